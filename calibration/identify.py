@@ -1,0 +1,307 @@
+"""Closed-loop identification by Levenberg-Marquardt with column scaling (MODEL.md section 5).
+
+Minimises ``f^T f`` over the free parameters, f the stacked loop residuals (mm^2) of m poses.
+Each iteration solves the damped, column-scaled normal equations
+
+    (G^T G + lambda I) ds = -G^T f,   G = g H,   dx = H ds,
+
+with the analytic Jacobian g (implicit differentiation of the sphere equations) and
+``H = diag(sqrt(M) / ||g_j||)`` (see :mod:`calibration.observability`).
+
+Covariance. The four residuals of a pose share that pose's four readings, so they are
+correlated, and to first order they are one scalar loop-closure error seen four times: their
+noise is ``D_k e_k`` with ``D_k = df_k/dV_k`` (4 x 4, nearly rank one) and ``e_k`` the voltage
+noise. The least-squares estimate then has the sandwich covariance
+
+    C = (g^T g)^-1 (sum_k g_k^T D_k Sigma_V D_k^T g_k) (g^T g)^-1,
+
+with ``Sigma_V = sigma_V^2 I``. ``sigma_V`` is the given noise level or, by default, estimated
+from the whitened residuals ``u_k^T f_k / s_k`` (``s_k u_k v_k^T`` the leading singular triple
+of ``D_k``), which have variance ``sigma_V^2`` each.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import ConvergenceError, InputError
+from .kinematics import volts_to_lengths
+from .observability import ObservabilityIndices, column_scales, require_observable
+from .parameters import (
+    N_PARAMS,
+    NOMINAL,
+    PAPER7,
+    SL_GAIN,
+    SL_OFFSET,
+    STROKE_MM,
+    UNITS,
+    ParameterModel,
+    check_vector,
+)
+from .residuals import check_volts, loop_residuals, reference_points
+from .simulate import NEAR_SINGULAR_MM
+
+WIDE_MARGIN_FACTOR = 4.0
+
+
+@dataclass(frozen=True)
+class Identification:
+    """Result of :func:`identify`.
+
+    params: (20,) full estimate; start: (20,) the start; model: the free/tied/fixed split.
+    std: (n,) predicted standard deviations of the free parameters (mm or mm/V);
+    covariance: (n, n). sigma_volts: the per-channel voltage noise used for them (given, or
+    estimated). rms_residual: RMS of f at the solution, mm^2. iterations; converged; message.
+    used: (m,) poses used; excluded: indices of near-singular or inconsistent poses left out.
+    indices: observability indices of the used poses at the solution.
+    """
+
+    model: ParameterModel
+    params: np.ndarray
+    start: np.ndarray
+    std: np.ndarray
+    covariance: np.ndarray
+    sigma_volts: float
+    sigma_estimated: bool
+    rms_residual: float
+    iterations: int
+    converged: bool
+    message: str
+    used: np.ndarray
+    excluded: np.ndarray
+    indices: ObservabilityIndices
+    history: list[float] = field(default_factory=list, repr=False)
+
+    @property
+    def free_values(self) -> np.ndarray:
+        return self.model.free_values(self.params)
+
+    def table(self, truth: np.ndarray | None = None) -> str:
+        """A readable table of the free parameters: start, estimate, std (and truth, error)."""
+        head = f"{'param':>6} {'unit':>5} {'start':>10} {'estimate':>11} {'std':>8}"
+        if truth is not None:
+            head += f" {'truth':>10} {'error':>9} {'err/std':>7}"
+        lines = [head]
+        for j, name in enumerate(self.model.free):
+            i = self.model.free_index[j]
+            line = (
+                f"{name:>6} {UNITS[name]:>5} {self.start[i]:10.4f} {self.params[i]:11.4f} "
+                f"{self.std[j]:8.4f}"
+            )
+            if truth is not None:
+                err = self.params[i] - truth[i]
+                line += f" {truth[i]:10.4f} {err:+9.4f} {err / self.std[j]:+7.2f}"
+            lines.append(line)
+        ix = self.indices
+        lines.append(
+            f"{self.iterations} iterations, {self.message}; poses used {int(self.used.sum())}"
+            f" (excluded {len(self.excluded)}); rms residual {self.rms_residual:.4g} mm^2; "
+            f"noise {1000 * self.sigma_volts:.1f} mV"
+            f" ({'estimated' if self.sigma_estimated else 'given'}); "
+            f"s_min {ix.min_singular:.4g}, condition {ix.condition:.4g}"
+        )
+        return "\n".join(lines)
+
+
+def check_stroke(volts: np.ndarray, p: np.ndarray, stroke_mm: float = STROKE_MM) -> None:
+    """Raise :class:`InputError` if a reading puts an actuator outside its stroke."""
+    travel = np.abs(volts_to_lengths(volts, p) - p[SL_OFFSET])
+    bad = travel > stroke_mm * (1 + 1e-9)
+    if bad.any():
+        k, i = np.argwhere(bad)[0]
+        raise InputError(
+            f"{int(bad.sum())} readings put an actuator outside its +-{stroke_mm} mm stroke "
+            f"(first: pose {k}, sensor {i + 1}, {volts[k, i]:+.3f} V = "
+            f"{travel[k, i]:.2f} mm from d0)"
+        )
+
+
+def _whitened(f: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pose leading singular triple of D (m, 4, 4): returns u (m, 4), s (m,), and the
+    whitened scalar residuals u^T f / s (m,)."""
+    U, s, _ = np.linalg.svd(D)
+    u = U[:, :, 0]
+    return u, s[:, 0], np.einsum("mi,mi->m", u, f) / s[:, 0]
+
+
+def identify(
+    volts: np.ndarray,
+    model: ParameterModel = PAPER7,
+    start: np.ndarray = NOMINAL,
+    *,
+    noise_volts: float | None = None,
+    max_iter: int = 100,
+    xtol: float = 1e-10,
+    ftol: float = 1e-10,
+    near_singular_mm: float = NEAR_SINGULAR_MM,
+    max_change: float = 50.0,
+) -> Identification:
+    """Identify the free parameters of ``model`` from m poses of sensor readings.
+
+    volts: (m, 4) readings in V (quasi-static poses). start: full parameter vector (20,) to
+    start from; fixed parameters keep its values. noise_volts: known per-channel noise (1 sigma,
+    V) for the covariance; None estimates it from the residuals. near_singular_mm: poses whose
+    mirror solutions come closer than this (at the start) are excluded and reported.
+    max_change: a free parameter moving further than this from the start (in its unit) is
+    divergence.
+
+    Raises InputError (bad readings, too few usable poses), UnobservableError (the free set is
+    rank deficient on these poses), ConvergenceError (divergence).
+    """
+    V = check_volts(volts)
+    p0 = check_vector(start).copy()
+    check_stroke(V, p0)
+    n = model.n_free
+    m = V.shape[0]
+    if m < n:
+        raise InputError(f"{m} poses cannot identify {n} free parameters; record at least {n}")
+
+    def usable(p: np.ndarray, margin_mm: float, ref: np.ndarray) -> np.ndarray:
+        r = loop_residuals(p, V, ref, jacobian=False)
+        return r.feasible.all(axis=1) & (r.separation.min(axis=1) >= margin_mm)
+
+    x0 = model.free_values(p0)
+    p = p0
+    # A start far from the truth misplaces the branch references by up to ~10 mm, so the
+    # first pass keeps only poses whose mirror solutions lie far apart; the final pass uses
+    # every pose that is usable at the estimate.
+    ref = reference_points(V, p0)
+    wide = usable(p0, WIDE_MARGIN_FACTOR * near_singular_mm, ref)
+    used = wide if wide.sum() >= max(n, m // 4) else usable(p0, near_singular_mm, ref)
+    history: list[float] = []
+    total_iter = 0
+    for attempt in range(4):
+        if used.sum() < n:
+            raise InputError(
+                f"only {int(used.sum())} of {m} poses are usable ({int((~used).sum())} "
+                f"near-singular or inconsistent); {n} free parameters need at least {n}"
+            )
+        used_fit = used
+        # the wide first pass needs only to bring the branch references close
+        loose = attempt == 0 and used is wide
+        p, f, g, r, it, converged, message = _levenberg_marquardt(
+            V[used], ref[used], model, p, x0, p0, max_iter,
+            max(xtol, 1e-4) if loose else xtol, max(ftol, 1e-4) if loose else ftol,
+            max_change, history,
+        )  # fmt: skip
+        total_iter += it
+        ref = reference_points(V, p)
+        now = usable(p, near_singular_mm, ref)
+        if (np.array_equal(now, used) and not loose) or now.sum() < n:
+            break
+        used = now
+    else:
+        used = used_fit
+    excluded = np.flatnonzero(~used)
+    x = model.free_values(p)
+    cost = history[-1]
+    it = total_iter
+    if not converged and np.any(np.abs(x - x0) >= max_change * 0.999):
+        raise ConvergenceError(f"diverged: a parameter moved more than {max_change} from start")
+
+    h = column_scales(g, model.free)
+    G = g * h
+    s = np.linalg.svd(G, compute_uv=False)
+    offsets = np.eye(N_PARAMS)[:, SL_OFFSET]  # d f / d d0 = d f / d d(k) of each pose
+    D = loop_residuals(p, V[used], ref[used], directions=offsets).jacobian * p[SL_GAIN]
+    u, sk, w = _whitened(f.reshape(-1, 4), D)
+    mu = len(sk)
+    if noise_volts is None:
+        dof = max(mu - n, 1)
+        sigma = float(np.sqrt(np.sum(w**2) / dof))
+        estimated = True
+    else:
+        sigma = float(noise_volts)
+        estimated = False
+    Ginv = np.linalg.inv(G.T @ G)
+    gk = G.reshape(mu, 4, n)
+    # D_k D_k^T ~ s_k^2 u_k u_k^T: the meat of the sandwich is sum_k (g_k^T u_k s_k)^2.
+    a = np.einsum("mrn,mr->mn", gk, u) * sk[:, None]
+    meat = a.T @ a
+    cov_s = sigma**2 * Ginv @ meat @ Ginv
+    cov = cov_s * np.outer(h, h)
+    std = np.sqrt(np.diag(cov))
+    return Identification(
+        model=model,
+        params=p,
+        start=p0,
+        std=std,
+        covariance=cov,
+        sigma_volts=sigma,
+        sigma_estimated=estimated,
+        rms_residual=float(np.sqrt(cost / len(f))),
+        iterations=it,
+        converged=converged,
+        message=message,
+        used=used,
+        excluded=excluded,
+        indices=ObservabilityIndices(s, mu),
+        history=history,
+    )
+
+
+def _levenberg_marquardt(V, ref, model, p_start, x0, p0, max_iter, xtol, ftol, max_change, history):
+    """LM with column scaling on poses V from p_start. The branch references ``ref`` (forward
+    kinematics at p_start) stay fixed, so the objective is smooth within one call."""
+    n = model.n_free
+    T = model.tie_matrix
+
+    def evaluate(p: np.ndarray, ref: np.ndarray):
+        r = loop_residuals(p, V, ref, directions=T)
+        return r.residuals.reshape(-1), r.jacobian.reshape(-1, n), r
+
+    p = p_start
+    f, g, r = evaluate(p, ref)
+    require_observable(g, model)
+    x = model.free_values(p)
+    cost = float(f @ f)
+    history.append(cost)
+    lam = 1e-3
+    nu = 2.0
+    converged = False
+    message = "maximum iterations reached"
+    it = 0
+    while it < max_iter:
+        it += 1
+        h = column_scales(g, model.free)
+        G = g * h
+        GtG = G.T @ G
+        grad = G.T @ f
+        diag = np.diag(np.diag(GtG))
+        step_taken = False
+        while lam < 1e12:
+            ds = np.linalg.solve(GtG + lam * diag, -grad)
+            x_new = x + h * ds
+            nxt = None
+            if np.all(np.abs(x_new - x0) <= max_change):
+                p_new = model.expand(x_new, p0)
+                nxt = evaluate(p_new, ref)
+            if nxt is not None and np.isfinite(nxt[0]).all() and np.isfinite(nxt[1]).all():
+                new_cost = float(nxt[0] @ nxt[0])
+                # gain ratio: actual over predicted reduction of f^T f (Nielsen's damping)
+                predicted = float(ds @ (lam * diag @ ds - grad))
+                rho = (cost - new_cost) / predicted if predicted > 0 else -1.0
+                if rho > 0:
+                    lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                    nu = 2.0
+                    step_taken = True
+                    break
+            lam *= nu
+            nu *= 2.0
+        if not step_taken:
+            if np.linalg.norm(grad) <= 1e-9 * max(cost, 1.0) ** 0.5 * np.sqrt(len(f)):
+                converged, message = True, "converged (gradient)"
+            else:
+                message = "no step reduces the residuals (stalled)"
+            break
+        small_step = np.linalg.norm(ds) <= xtol * (np.linalg.norm(x / h) + xtol)
+        small_gain = cost - new_cost <= ftol * cost
+        x, p, cost = x_new, p_new, new_cost
+        f, g, r = nxt
+        history.append(cost)
+        if small_step or small_gain or cost == 0.0:
+            converged, message = True, "converged"
+            break
+    return p, f, g, r, it, converged, message

@@ -1,0 +1,208 @@
+"""Inverse and forward kinematics of the shoulder joint, vectorised over poses.
+
+Conventions: rotations are arrays of shape ``(m, 3, 3)`` mapping plate (home) coordinates to
+base coordinates; lengths are ``(m, 4)`` in mm, ordered actuator 1..4. Actuators 1, 2 join A1,
+A2 to the plate point B1; actuators 3, 4 join A3, A4 to B2 (MODEL.md sections 1, 4).
+Z-Y-Z Euler angles are intrinsic, ``R = Rz(alpha) @ Ry(beta) @ Rz(gamma)``, in radians.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .errors import InputError
+from .parameters import (
+    B1_AZIMUTH_DEG,
+    B2_AZIMUTH_DEG,
+    B_ELEVATION_DEG,
+    BASE_COORDS,
+    I_K1,
+    I_K2,
+    I_K3,
+    N_PARAMS,
+    SL_GAIN,
+    SL_OFFSET,
+    STROKE_MM,
+    check_vector,
+)
+from .spheres import intersect_three_spheres
+
+# d A[i, a] / d p, shape (4, 3, 20): base coordinates are parameters or structural zeros.
+D_BASE = np.zeros((4, 3, N_PARAMS))
+for (_pt, _ax), _ip in BASE_COORDS.items():
+    D_BASE[_pt, _ax, _ip] = 1.0
+D_BASE.setflags(write=False)
+LEG_POINT = (0, 0, 1, 1)  # actuator i ends at B1 (0) or B2 (1)
+
+
+def _unit(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+    return np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+
+
+_U1 = _unit(B1_AZIMUTH_DEG, B_ELEVATION_DEG)
+_W = _unit(B2_AZIMUTH_DEG, B_ELEVATION_DEG)
+_W = _W - (_W @ _U1) * _U1
+_W /= np.linalg.norm(_W)
+
+
+def base_points(p: np.ndarray) -> np.ndarray:
+    """A1..A4 from a full parameter vector, shape (4, 3) in mm."""
+    A = np.zeros((4, 3))
+    for (pt, ax), ip in BASE_COORDS.items():
+        A[pt, ax] = p[ip]
+    return A
+
+
+def plate_home(p: np.ndarray) -> np.ndarray:
+    """B1 and B2 at the identity rotation, shape (2, 3) in mm.
+
+    B1 lies at azimuth 57.4 deg, elevation 45 deg, radius k1; B2 at radius k2 in the plane of
+    B1 and the reference B2 direction (azimuth 237.4 deg, elevation 45 deg), at the angle that
+    makes ``|B1 B2| = k3`` (90 deg for the reference design).
+    """
+    k1, k2, k3 = p[I_K1], p[I_K2], p[I_K3]
+    cos_phi = (k1 * k1 + k2 * k2 - k3 * k3) / (2 * k1 * k2)
+    phi = np.arccos(np.clip(cos_phi, -1.0, 1.0))
+    return np.stack([k1 * _U1, k2 * (np.cos(phi) * _U1 + np.sin(phi) * _W)])
+
+
+def lengths_to_volts(lengths: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Sensor voltages ``V = (d - d0) / S`` for lengths (m, 4) in mm."""
+    return (np.asarray(lengths, dtype=float) - p[SL_OFFSET]) / p[SL_GAIN]
+
+
+def volts_to_lengths(volts: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Actuator lengths ``d = S V + d0`` in mm for voltages (m, 4) in V."""
+    return np.asarray(volts, dtype=float) * p[SL_GAIN] + p[SL_OFFSET]
+
+
+def check_rotations(R: np.ndarray) -> np.ndarray:
+    """Validate rotations: shape (m, 3, 3) (or (3, 3), promoted), finite, orthonormal."""
+    R = np.asarray(R, dtype=float)
+    if R.shape == (3, 3):
+        R = R[None]
+    if R.ndim != 3 or R.shape[1:] != (3, 3):
+        raise InputError(f"rotations must have shape (m, 3, 3), got {R.shape}")
+    if not np.all(np.isfinite(R)):
+        raise InputError("rotations contain NaN or infinity")
+    err = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(initial=0.0)
+    if err > 1e-6:
+        raise InputError(f"rotations are not orthonormal (max |R R^T - I| = {err:.2e})")
+    return R
+
+
+def plate_points(R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """B1 and B2 for each rotation, shape (m, 2, 3) in mm."""
+    return np.einsum("mij,bj->mbi", R, plate_home(p))
+
+
+def inverse_kinematics(R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Actuator lengths for plate rotations.
+
+    R: (m, 3, 3) rotations (or one (3, 3)); p: full parameter vector (20,).
+    Returns lengths (m, 4) in mm: ``d1 = |R B1h - A1|``, ``d2 = |R B1h - A2|``,
+    ``d3 = |R B2h - A3|``, ``d4 = |R B2h - A4|``.
+    """
+    R = check_rotations(R)
+    p = check_vector(p)
+    B = plate_points(R, p)[:, LEG_POINT, :]  # (m, 4, 3)
+    return np.linalg.norm(B - base_points(p), axis=-1)
+
+
+def euler_zyz(R: np.ndarray) -> np.ndarray:
+    """Intrinsic Z-Y-Z Euler angles (alpha, beta, gamma) of rotations (m, 3, 3), radians (m, 3)."""
+    return Rotation.from_matrix(check_rotations(R)).as_euler("ZYZ")
+
+
+def from_euler_zyz(angles: np.ndarray) -> np.ndarray:
+    """Rotations (m, 3, 3) from intrinsic Z-Y-Z Euler angles (m, 3) in radians."""
+    return Rotation.from_euler("ZYZ", np.atleast_2d(angles)).as_matrix()
+
+
+def tilt_swivel(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tilt of the output axis from +z and swivel about it (alpha + gamma), radians, (m,) each.
+
+    Swivel is wrapped to (-pi, pi].
+    """
+    a, b, g = euler_zyz(R).T
+    swivel = np.angle(np.exp(1j * (a + g)))
+    return b, swivel
+
+
+@dataclass(frozen=True)
+class ForwardSolution:
+    """Result of :func:`forward_kinematics`.
+
+    rotations: (m, 3, 3) plate rotations fitting the four lengths in the least-squares sense.
+    rms_mm: (m,) RMS length misfit (the loop-closure inconsistency of the reading).
+    sigma_min: (m,) smallest singular value of the 4x3 length-to-rotation Jacobian, in mm/rad
+        (near zero: the orientation is poorly determined by the lengths).
+    converged: (m,) bool.
+    """
+
+    rotations: np.ndarray
+    rms_mm: np.ndarray
+    sigma_min: np.ndarray
+    converged: np.ndarray
+
+
+def forward_kinematics(
+    lengths: np.ndarray, p: np.ndarray, *, max_iter: int = 30, tol: float = 1e-12
+) -> ForwardSolution:
+    """Plate rotations from four actuator lengths (numerical forward kinematics).
+
+    The start comes from two three-sphere intersections, B1 from (O, k1), (A1, d1), (A2, d2) and
+    B2 from (O, k2), (A3, d3), (A4, d4), each on the assembly branch above the base (z > 0),
+    aligned to the home plate by an orthogonal Procrustes fit. Gauss-Newton on the rotation
+    (left increments ``R <- exp([w]x) R``) then fits all four lengths in the least-squares sense.
+
+    lengths: (m, 4) in mm; p: full parameter vector (20,).
+    """
+    d = np.atleast_2d(np.asarray(lengths, dtype=float))
+    if d.ndim != 2 or d.shape[1] != 4:
+        raise InputError(f"lengths must have shape (m, 4), got {d.shape}")
+    if not np.all(np.isfinite(d)):
+        raise InputError("lengths contain NaN or infinity")
+    p = check_vector(p)
+    A = base_points(p)
+    home = plate_home(p)
+    m = d.shape[0]
+    up = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (m, 3))
+    b1 = intersect_three_spheres(p[I_K1], A[0], d[:, 0], A[1], d[:, 1], up).point
+    b2 = intersect_three_spheres(p[I_K2], A[2], d[:, 2], A[3], d[:, 3], up).point
+    src = np.stack([home[0], home[1], np.cross(home[0], home[1]) / np.linalg.norm(home[0])])
+    dst = np.stack([b1, b2, np.cross(b1, b2) / p[I_K1]], axis=1)  # (m, 3, 3) rows are points
+    U, _, Vt = np.linalg.svd(np.einsum("mki,kj->mij", dst, src))
+    fix = np.ones((m, 3))
+    fix[:, 2] = np.sign(np.linalg.det(U @ Vt))
+    R = (U * fix[:, None, :]) @ Vt
+    converged = np.zeros(m, dtype=bool)
+    for _ in range(max_iter):
+        B = plate_points(R, p)[:, LEG_POINT, :]
+        diff = B - A
+        dist = np.linalg.norm(diff, axis=-1)
+        r = dist - d
+        u = diff / dist[..., None]
+        Jw = np.cross(B, u)  # d dist / d w, (m, 4, 3)
+        Jt = np.swapaxes(Jw, 1, 2)
+        step = -np.linalg.solve(Jt @ Jw, Jt @ r[..., None])[..., 0]
+        R = Rotation.from_rotvec(step).as_matrix() @ R
+        converged = np.linalg.norm(step, axis=1) < tol**0.5
+        if converged.all():
+            break
+    B = plate_points(R, p)[:, LEG_POINT, :]
+    diff = B - A
+    dist = np.linalg.norm(diff, axis=-1)
+    Jw = np.cross(B, diff / dist[..., None])
+    sig = np.sqrt(np.maximum(np.linalg.eigvalsh(np.swapaxes(Jw, 1, 2) @ Jw)[:, 0], 0.0))
+    rms = np.sqrt(np.mean((dist - d) ** 2, axis=1))
+    return ForwardSolution(R, rms, sig, converged)
+
+
+def in_stroke(lengths: np.ndarray, p: np.ndarray, stroke_mm: float = STROKE_MM) -> np.ndarray:
+    """(m, 4) bool: each length within ``d0_i +- stroke_mm``."""
+    return np.abs(np.asarray(lengths) - p[SL_OFFSET]) <= stroke_mm

@@ -1,0 +1,252 @@
+"""Pose selection: choose K of N candidate poses that best identify the free parameters
+(MODEL.md section 8).
+
+Every pose k contributes ``A_k = G_k^T G_k`` to the information matrix ``M(S) = sum_{k in S} A_k``
+of a set S, where ``G_k`` (4, n) is the pose's block of the scaled Jacobian. One fixed column
+scaling ``H`` (that of the whole candidate pool, see :mod:`calibration.observability`) is used
+for every subset, so that subsets are compared on one scale. The singular values of a subset's
+scaled Jacobian are the square roots of the eigenvalues of ``M(S)``.
+
+Algorithm.
+1. Convex relaxation: maximise ``lambda_min(sum_k w_k A_k)`` over ``0 <= w_k <= 1``,
+   ``sum w = K``, by Frank-Wolfe on a soft-min smoothing of lambda_min.
+2. The K largest relaxed weights start a Fedorov exchange: repeatedly remove one chosen pose
+   and add the candidate that most improves the criterion, evaluated exactly on a shortlist
+   ranked by the first-order gain, until no swap improves it. Swaps that would break the
+   condition-number bound are refused (or, while it is broken, only swaps that lower it are
+   taken).
+
+Certified bound (criterion ``min_singular``). For any symmetric ``Z >= 0`` with trace one,
+``lambda_min(M) <= <Z, M>``, hence for every K-subset
+``lambda_min(M(S)) <= sum_{k in S} <Z, A_k> <= (sum of the K largest <Z, A_k>)``.
+Every Z the relaxation produces gives such a bound; the smallest one is reported, as a bound
+on the minimum singular value ``sqrt(.)``. Its minimum over Z equals the optimum of the
+relaxation (minimax duality), so ``value / bound`` measures both the integrality gap and how
+far the relaxation was solved; a ratio of 1 proves the chosen set optimal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+from .observability import CONDITION_OK, ObservabilityIndices, as_rows, column_scales
+from .parameters import ParameterModel
+from .residuals import check_volts, loop_residuals, reference_points
+from .simulate import NEAR_SINGULAR_MM
+
+CRITERIA = ("min_singular", "condition", "volume", "noise_amplification", "a_optimality")
+
+
+def _criterion_value(lam: np.ndarray, criterion: str, k: int) -> np.ndarray:
+    """Criterion (larger is better) from ascending eigenvalues lam (..., n) of M."""
+    lam = np.maximum(lam, 0.0)
+    lo, hi = lam[..., 0], lam[..., -1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if criterion == "min_singular":
+            return np.sqrt(lo)
+        if criterion == "condition":
+            return -np.sqrt(hi / lo)
+        if criterion == "volume":
+            return np.exp(0.5 * np.mean(np.log(lam), axis=-1)) / np.sqrt(k)
+        if criterion == "noise_amplification":
+            return lo / np.sqrt(hi)
+        if criterion == "a_optimality":
+            return -np.sum(1.0 / lam, axis=-1)
+    raise InputError(f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)}")
+
+
+def _condition(lam: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.sqrt(np.maximum(lam[..., -1], 0) / np.maximum(lam[..., 0], 0))
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Result of :func:`select_poses`.
+
+    indices: (K,) chosen candidate indices, ascending. criterion and value: the maximised
+    criterion on the pool's scale (``condition`` and ``a_optimality`` are reported as
+    positive numbers, smaller better). upper_bound: certified upper bound on the minimum
+    singular value of any K-subset (pool scale), or None. condition: of the chosen set (pool
+    scale). indices_own: observability indices of the chosen set with its own scaling, as the
+    paper reports them. swaps: exchanges made; passes: exchange passes.
+    """
+
+    indices: np.ndarray
+    criterion: str
+    value: float
+    min_singular: float
+    condition: float
+    upper_bound: float | None
+    indices_own: ObservabilityIndices
+    swaps: int
+    passes: int
+
+    @property
+    def bound_ratio(self) -> float | None:
+        """Chosen minimum singular value as a fraction of the certified bound."""
+        if self.upper_bound is None or self.upper_bound <= 0:
+            return None
+        return self.min_singular / self.upper_bound
+
+
+def _compress(G: np.ndarray) -> np.ndarray:
+    """Per-pose blocks (N, 4, n) -> the information factors (N, r, n) with A_k = F_k^T F_k,
+    keeping only the rows that carry information (the blocks are nearly rank one)."""
+    _, s, Vt = np.linalg.svd(G, full_matrices=False)
+    F = s[:, :, None] * Vt
+    keep = np.flatnonzero(s.max(axis=0) > 1e-12 * s.max())
+    return F[:, keep, :]
+
+
+def relaxation_bound(
+    F: np.ndarray, k: int, *, iterations: int = 300, w0: np.ndarray | None = None
+) -> tuple[float, np.ndarray]:
+    """Frank-Wolfe on the relaxed E-optimal design; returns (bound on lambda_min, weights).
+
+    F: (N, r, n) information factors; the bound holds for the exact matrices they build.
+    """
+    N, r, n = F.shape
+    F2 = F.reshape(N * r, n)
+    w = np.full(N, k / N) if w0 is None else w0.astype(float).copy()
+    best = np.inf
+    for t in range(iterations):
+        M = (F2 * np.repeat(w, r)[:, None]).T @ F2
+        lam, Q = np.linalg.eigh(M)
+        spread = max(lam[-1] - lam[0], 1e-300)
+        mu = max(lam[0], 1e-12 * lam[-1]) * 0.02 + 1e-6 * spread / (1 + t)
+        pi = np.exp(-(lam - lam[0]) / mu)
+        pi /= pi.sum()
+        c = ((F2 @ Q) ** 2 @ pi).reshape(N, r).sum(axis=1)  # <Z, A_k>
+        top = np.argpartition(-c, k - 1)[:k]
+        best = min(best, float(c[top].sum()))
+        s = np.zeros(N)
+        s[top] = 1.0
+        if best - lam[0] <= 1e-9 * best:
+            break
+        w += 2.0 / (t + 3.0) * (s - w)
+    return best, w
+
+
+def candidate_jacobian(
+    volts: np.ndarray,
+    model: ParameterModel,
+    p: np.ndarray,
+    *,
+    near_singular_mm: float = NEAR_SINGULAR_MM,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobian (N, 4, n) of the loop residuals of candidate poses with respect to the free
+    parameters at ``p``, and the (N,) mask of usable poses (not near-singular, consistent).
+    Rows of unusable poses are zero, so they are never chosen."""
+    V = check_volts(volts)
+    r = loop_residuals(p, V, reference_points(V, p), directions=model.tie_matrix)
+    ok = r.feasible.all(axis=1) & (r.separation.min(axis=1) >= near_singular_mm)
+    ok &= np.isfinite(r.jacobian).all(axis=(1, 2))
+    J = np.where(ok[:, None, None], r.jacobian, 0.0)
+    return J, ok
+
+
+def select_poses(
+    J: np.ndarray,
+    k: int,
+    *,
+    criterion: str = "min_singular",
+    max_condition: float = CONDITION_OK,
+    scales: np.ndarray | None = None,
+    certify: bool = True,
+    shortlist: int = 48,
+    max_passes: int = 20,
+) -> Selection:
+    """Choose k of the N candidate poses whose Jacobian is J ((N, 4, n) or (4N, n)).
+
+    criterion: one of :data:`CRITERIA` (maximise min_singular, volume, noise_amplification;
+    minimise condition, a_optimality). max_condition: bound on the condition number of the
+    chosen set (pool scaling). scales: ``diag(H)``; default the pool's own column scaling.
+    certify: compute the certified upper bound (also seeds the exchange).
+    """
+    rows, N = as_rows(J)
+    n = rows.shape[1]
+    if criterion not in CRITERIA:
+        raise InputError(f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)}")
+    if not (n <= k <= N):
+        raise InputError(f"cannot choose {k} poses from {N} candidates for {n} free parameters")
+    if not np.all(np.isfinite(rows)):
+        raise InputError("the candidates' Jacobian contains NaN (near-singular poses?)")
+    h = column_scales(rows) if scales is None else np.asarray(scales, dtype=float)
+    G = (rows * h).reshape(N, 4, n)
+    F = _compress(G)
+    F2 = F.reshape(-1, n)
+
+    lam_bound, w = relaxation_bound(F, k, iterations=300 if certify else 60)
+    bound = float(np.sqrt(max(lam_bound, 0.0))) if certify else None
+    chosen = np.sort(np.argpartition(-w, k - 1)[:k])
+    in_set = np.zeros(N, dtype=bool)
+    in_set[chosen] = True
+
+    def info(idx: np.ndarray) -> np.ndarray:
+        return np.einsum("kri,krj->ij", F[idx], F[idx])
+
+    M = info(chosen)
+    lam = np.linalg.eigvalsh(M)
+    cur = float(_criterion_value(lam, criterion, k))
+    cond_ok = bool(_condition(lam) <= max_condition)
+    swaps = 0
+    passes = 0
+    while passes < max_passes:
+        passes += 1
+        improved = False
+        for pos in range(k):
+            i = chosen[pos]
+            B = M - F[i].T @ F[i]
+            lb, Qb = np.linalg.eigh(B)
+            # first-order gain of adding candidate j, weighted towards the weak directions
+            scale = max(lb[0], 1e-12 * max(lb[-1], 1e-300))
+            wts = np.exp(-(lb - lb[0]) / (0.5 * scale + 1e-300))
+            score = ((F2 @ Qb) ** 2 @ wts).reshape(N, -1).sum(axis=1)
+            score[in_set] = -np.inf
+            cand = np.argpartition(-score, shortlist - 1)[:shortlist]
+            trial = B[None] + np.einsum("kri,krj->kij", F[cand], F[cand])
+            lt = np.linalg.eigvalsh(trial)
+            vals = _criterion_value(lt, criterion, k)
+            conds = _condition(lt)
+            if cond_ok:
+                vals = np.where(conds <= max_condition, vals, -np.inf)
+            else:
+                vals = np.where(conds < _condition(lam), vals, -np.inf)
+            b = int(np.argmax(vals))
+            if vals[b] > cur * (1 + 1e-12) + 1e-300 if cur > 0 else vals[b] > cur:
+                j = int(cand[b])
+                in_set[i], in_set[j] = False, True
+                chosen[pos] = j
+                M = trial[b]
+                lam = lt[b]
+                cur = float(vals[b])
+                cond_ok = bool(_condition(lam) <= max_condition)
+                swaps += 1
+                improved = True
+        if not improved:
+            break
+    chosen = np.sort(chosen)
+    lam = np.linalg.eigvalsh(np.einsum("kri,krj->ij", G[chosen], G[chosen]))
+    value = float(_criterion_value(lam, criterion, k))
+    if criterion in ("condition", "a_optimality"):
+        value = -value
+    s = np.sqrt(np.maximum(lam[::-1], 0.0))
+    own_rows = rows.reshape(N, 4, n)[chosen].reshape(-1, n)
+    own = ObservabilityIndices(
+        np.linalg.svd(own_rows * column_scales(own_rows), compute_uv=False), k
+    )
+    return Selection(
+        indices=chosen,
+        criterion=criterion,
+        value=value,
+        min_singular=float(s[-1]),
+        condition=float(s[0] / s[-1]) if s[-1] > 0 else float("inf"),
+        upper_bound=bound,
+        indices_own=own,
+        swaps=swaps,
+        passes=passes,
+    )
