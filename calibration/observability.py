@@ -178,6 +178,31 @@ def _drop(model: ParameterModel, name: str) -> ParameterModel | None:
     return ParameterModel(free, tuple(t for t in model.ties if t.leader != name))
 
 
+def _condition_of(rows: np.ndarray) -> float:
+    s = np.linalg.svd(rows * column_scales(rows), compute_uv=False)
+    return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+
+
+def _suggest(rows, model, condition_limit, jacobian_of) -> ParameterModel | None:
+    """Drop, one at a time, the parameter whose removal leaves the best-conditioned set,
+    until the condition number is within the limit."""
+    current, J = model, rows
+    while _condition_of(J) > condition_limit:
+        best = None
+        for j, name in enumerate(current.free):
+            reduced = _drop(current, name)
+            if reduced is None:
+                continue
+            Jr = as_rows(jacobian_of(reduced))[0] if jacobian_of else np.delete(J, j, axis=1)
+            cond = _condition_of(Jr)
+            if best is None or cond < best[0]:
+                best = (cond, reduced, Jr)
+        if best is None:
+            return None
+        _, current, J = best
+    return current
+
+
 def analyse_identifiability(
     J: np.ndarray,
     model: ParameterModel,
@@ -223,22 +248,7 @@ def analyse_identifiability(
             status[name] = "ok"
         if status[name] == "unobservable":
             rel_std[name] = float("inf")
-    suggestion: ParameterModel | None = model
-    Jcur = rows
-    while suggestion is not None:
-        hc = column_scales(Jcur, suggestion.free)
-        _, sc, Vtc = np.linalg.svd(Jcur * hc, full_matrices=False)
-        if sc[-1] > sc[0] / condition_limit:
-            break
-        worst = suggestion.free[int(np.argmax(np.abs(Vtc[-1])))]
-        keep = [j for j, n in enumerate(suggestion.free) if n != worst]
-        suggestion = _drop(suggestion, worst)
-        if suggestion is None:
-            break
-        if jacobian_of is not None:
-            Jcur = as_rows(jacobian_of(suggestion))[0]
-        else:
-            Jcur = Jcur[:, keep]
+    suggestion = _suggest(rows, model, condition_limit, jacobian_of)
     return IdentifiabilityReport(model, ix, status, combos, suggestion, rel_std)
 
 

@@ -71,7 +71,9 @@ class Selection:
     criterion on the pool's scale (``condition`` and ``a_optimality`` are reported as
     positive numbers, smaller better). upper_bound: certified upper bound on the minimum
     singular value of any K-subset (pool scale), or None. condition: of the chosen set (pool
-    scale). indices_own: observability indices of the chosen set with its own scaling, as the
+    scale); meets_condition: whether it is within the requested bound (the exchange first
+    lowers the condition until it is, and reports honestly if it cannot).
+    indices_own: observability indices of the chosen set with its own scaling, as the
     paper reports them. swaps: exchanges made; passes: exchange passes.
     """
 
@@ -81,6 +83,7 @@ class Selection:
     min_singular: float
     condition: float
     upper_bound: float | None
+    meets_condition: bool
     indices_own: ObservabilityIndices
     swaps: int
     passes: int
@@ -214,16 +217,18 @@ def select_poses(
             conds = _condition(lt)
             if cond_ok:
                 vals = np.where(conds <= max_condition, vals, -np.inf)
-            else:
-                vals = np.where(conds < _condition(lam), vals, -np.inf)
-            b = int(np.argmax(vals))
-            if vals[b] > cur * (1 + 1e-12) + 1e-300 if cur > 0 else vals[b] > cur:
+                b = int(np.argmax(vals))
+                better = vals[b] > cur + 1e-12 * abs(cur)
+            else:  # first get within the bound: take the swap that lowers the condition most
+                b = int(np.argmin(conds))
+                better = conds[b] < _condition(lam) * (1 - 1e-12)
+            if better:
                 j = int(cand[b])
                 in_set[i], in_set[j] = False, True
                 chosen[pos] = j
                 M = trial[b]
                 lam = lt[b]
-                cur = float(vals[b])
+                cur = float(_criterion_value(lam, criterion, k))
                 cond_ok = bool(_condition(lam) <= max_condition)
                 swaps += 1
                 improved = True
@@ -246,6 +251,7 @@ def select_poses(
         min_singular=float(s[-1]),
         condition=float(s[0] / s[-1]) if s[-1] > 0 else float("inf"),
         upper_bound=bound,
+        meets_condition=bool(s[-1] > 0 and s[0] / s[-1] <= max_condition),
         indices_own=own,
         swaps=swaps,
         passes=passes,
