@@ -135,9 +135,10 @@ class Combination:
 class IdentifiabilityReport:
     """Which free parameters the pose set can identify (the paper's steps a-c, automated).
 
-    status: name -> "ok" | "weak" | "unobservable"; weak and unobservable parameters are those
-    with at least ``share`` of their scaled variance in directions beyond the condition limit
-    (``weak``) or below the numerical rank (``unobservable``). combinations: those directions,
+    status: name -> "ok" | "weak" | "unobservable": a parameter taking part, with at least
+    ``share`` of its squared weight over the singular directions, in a direction below the
+    numerical rank is unobservable (its value cannot be told apart from that combination),
+    in one beyond the condition limit weak. combinations: those directions,
     weakest first. suggestion: a free set reaching the condition limit by dropping, one at a
     time, the parameter that dominates the weakest direction (followers of a dropped leader
     are dropped with it).
@@ -208,7 +209,7 @@ def analyse_identifiability(
     model: ParameterModel,
     *,
     condition_limit: float = CONDITION_OK,
-    share: float = 0.5,
+    share: float = 0.05,
     jacobian_of=None,
 ) -> IdentifiabilityReport:
     """Classify the free parameters of ``model`` from the scaled SVD of J ((m, 4, n)).
