@@ -30,20 +30,19 @@ from .errors import ConvergenceError, InputError
 from .kinematics import volts_to_lengths
 from .observability import ObservabilityIndices, column_scales, require_observable
 from .parameters import (
-    N_PARAMS,
     NOMINAL,
     PAPER7,
-    SL_GAIN,
     SL_OFFSET,
     STROKE_MM,
     UNITS,
     ParameterModel,
     check_vector,
 )
-from .residuals import check_volts, loop_residuals, reference_points
+from .residuals import check_volts, loop_residuals, noise_sensitivity, reference_points
 from .simulate import NEAR_SINGULAR_MM
 
-WIDE_MARGIN_FACTOR = 4.0
+WIDE_MARGIN_FACTOR = 8.0
+MAX_PASSES = 6
 
 
 @dataclass(frozen=True)
@@ -118,14 +117,6 @@ def check_stroke(volts: np.ndarray, p: np.ndarray, stroke_mm: float = STROKE_MM)
         )
 
 
-def _whitened(f: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-pose leading singular triple of D (m, 4, 4): returns u (m, 4), s (m,), and the
-    whitened scalar residuals u^T f / s (m,)."""
-    U, s, _ = np.linalg.svd(D)
-    u = U[:, :, 0]
-    return u, s[:, 0], np.einsum("mi,mi->m", u, f) / s[:, 0]
-
-
 def identify(
     volts: np.ndarray,
     model: ParameterModel = PAPER7,
@@ -133,8 +124,8 @@ def identify(
     *,
     noise_volts: float | None = None,
     max_iter: int = 100,
-    xtol: float = 1e-10,
-    ftol: float = 1e-10,
+    xtol: float = 1e-9,
+    ftol: float = 1e-12,
     near_singular_mm: float = NEAR_SINGULAR_MM,
     max_change: float = 50.0,
 ) -> Identification:
@@ -145,7 +136,9 @@ def identify(
     V) for the covariance; None estimates it from the residuals. near_singular_mm: poses whose
     mirror solutions come closer than this (at the start) are excluded and reported.
     max_change: a free parameter moving further than this from the start (in its unit) is
-    divergence.
+    divergence. xtol: converged when no free parameter moves more than this (in its unit) in
+    an iteration; ftol: or when the relative decrease of f^T f falls below it near the
+    Gauss-Newton regime (damping <= 1).
 
     Raises InputError (bad readings, too few usable poses), UnobservableError (the free set is
     rank deficient on these poses), ConvergenceError (divergence).
@@ -172,28 +165,31 @@ def identify(
     used = wide if wide.sum() >= max(n, m // 4) else usable(p0, near_singular_mm, ref)
     history: list[float] = []
     total_iter = 0
-    for attempt in range(4):
+    final = False
+    for attempt in range(MAX_PASSES):
         if used.sum() < n:
             raise InputError(
                 f"only {int(used.sum())} of {m} poses are usable ({int((~used).sum())} "
                 f"near-singular or inconsistent); {n} free parameters need at least {n}"
             )
-        used_fit = used
-        # the wide first pass needs only to bring the branch references close
-        loose = attempt == 0 and used is wide
+        final = final or attempt == MAX_PASSES - 1
+        # Passes until the usable set settles need only bring the estimate (and with it the
+        # branch references) close; the last pass converges tightly on the settled set.
         p, f, g, r, it, converged, message = _levenberg_marquardt(
             V[used], ref[used], model, p, x0, p0, max_iter,
-            max(xtol, 1e-4) if loose else xtol, max(ftol, 1e-4) if loose else ftol,
+            xtol if final else max(xtol, 1e-3), ftol if final else max(ftol, 1e-4),
             max_change, history,
         )  # fmt: skip
         total_iter += it
-        ref = reference_points(V, p)
-        now = usable(p, near_singular_mm, ref)
-        if (np.array_equal(now, used) and not loose) or now.sum() < n:
+        if final:
             break
+        ref = reference_points(V, p)
+        # hysteresis: a pose in the fit stays while it keeps 90 % of the margin
+        now = usable(p, near_singular_mm, ref) | (used & usable(p, 0.9 * near_singular_mm, ref))
+        if now.sum() < n:
+            break
+        final = np.array_equal(now, used) and attempt > 0
         used = now
-    else:
-        used = used_fit
     excluded = np.flatnonzero(~used)
     x = model.free_values(p)
     cost = history[-1]
@@ -204,9 +200,8 @@ def identify(
     h = column_scales(g, model.free)
     G = g * h
     s = np.linalg.svd(G, compute_uv=False)
-    offsets = np.eye(N_PARAMS)[:, SL_OFFSET]  # d f / d d0 = d f / d d(k) of each pose
-    D = loop_residuals(p, V[used], ref[used], directions=offsets).jacobian * p[SL_GAIN]
-    u, sk, w = _whitened(f.reshape(-1, 4), D)
+    u, sk = noise_sensitivity(p, V[used], ref[used])
+    w = np.einsum("mi,mi->m", u, f.reshape(-1, 4)) / sk  # whitened: variance sigma_V^2 each
     mu = len(sk)
     if noise_volts is None:
         dof = max(mu - n, 1)
@@ -296,8 +291,8 @@ def _levenberg_marquardt(V, ref, model, p_start, x0, p0, max_iter, xtol, ftol, m
             else:
                 message = "no step reduces the residuals (stalled)"
             break
-        small_step = np.linalg.norm(ds) <= xtol * (np.linalg.norm(x / h) + xtol)
-        small_gain = cost - new_cost <= ftol * cost
+        small_step = np.abs(x_new - x).max() <= xtol
+        small_gain = cost - new_cost <= ftol * cost and lam <= 1.0
         x, p, cost = x_new, p_new, new_cost
         f, g, r = nxt
         history.append(cost)

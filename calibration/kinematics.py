@@ -49,6 +49,14 @@ _W = _W - (_W @ _U1) * _U1
 _W /= np.linalg.norm(_W)
 
 
+def _frame(b1: np.ndarray, b2: np.ndarray) -> np.ndarray:
+    """Orthonormal frames (m, 3, 3), columns: along b1, in the b1-b2 plane, along b1 x b2."""
+    e1 = b1 / np.linalg.norm(b1, axis=-1, keepdims=True)
+    e3 = np.cross(b1, b2)
+    e3 /= np.linalg.norm(e3, axis=-1, keepdims=True)
+    return np.stack([e1, np.cross(e3, e1), e3], axis=-1)
+
+
 def base_points(p: np.ndarray) -> np.ndarray:
     """A1..A4 from a full parameter vector, shape (4, 3) in mm."""
     A = np.zeros((4, 3))
@@ -157,8 +165,9 @@ def forward_kinematics(
 
     The start comes from two three-sphere intersections, B1 from (O, k1), (A1, d1), (A2, d2) and
     B2 from (O, k2), (A3, d3), (A4, d4), each on the assembly branch above the base (z > 0),
-    aligned to the home plate by an orthogonal Procrustes fit. Gauss-Newton on the rotation
-    (left increments ``R <- exp([w]x) R``) then fits all four lengths in the least-squares sense.
+    by the rotation that carries the home frame of (B1, B2) onto theirs. Gauss-Newton on the
+    rotation (left increments ``R <- exp([w]x) R``) then fits all four lengths in the
+    least-squares sense.
 
     lengths: (m, 4) in mm; p: full parameter vector (20,).
     """
@@ -174,25 +183,25 @@ def forward_kinematics(
     up = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (m, 3))
     b1 = intersect_three_spheres(p[I_K1], A[0], d[:, 0], A[1], d[:, 1], up).point
     b2 = intersect_three_spheres(p[I_K2], A[2], d[:, 2], A[3], d[:, 3], up).point
-    src = np.stack([home[0], home[1], np.cross(home[0], home[1]) / np.linalg.norm(home[0])])
-    dst = np.stack([b1, b2, np.cross(b1, b2) / p[I_K1]], axis=1)  # (m, 3, 3) rows are points
-    U, _, Vt = np.linalg.svd(np.einsum("mki,kj->mij", dst, src))
-    fix = np.ones((m, 3))
-    fix[:, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = (U * fix[:, None, :]) @ Vt
+    R = _frame(b1, b2) @ np.swapaxes(_frame(home[None, 0], home[None, 1]), 1, 2)
+    home_legs = home[list(LEG_POINT)]  # (4, 3)
     converged = np.zeros(m, dtype=bool)
+    active = np.arange(m)
     for _ in range(max_iter):
-        B = plate_points(R, p)[:, LEG_POINT, :]
+        Ra = R[active]
+        B = Ra @ home_legs.T  # (a, 3, 4)
+        B = np.swapaxes(B, 1, 2)
         diff = B - A
         dist = np.linalg.norm(diff, axis=-1)
-        r = dist - d
         u = diff / dist[..., None]
-        Jw = np.cross(B, u)  # d dist / d w, (m, 4, 3)
+        Jw = np.cross(B, u)  # d dist / d w, (a, 4, 3)
         Jt = np.swapaxes(Jw, 1, 2)
-        step = -np.linalg.solve(Jt @ Jw, Jt @ r[..., None])[..., 0]
-        R = Rotation.from_rotvec(step).as_matrix() @ R
-        converged = np.linalg.norm(step, axis=1) < tol**0.5
-        if converged.all():
+        step = -np.linalg.solve(Jt @ Jw, Jt @ (dist - d[active])[..., None])[..., 0]
+        R[active] = Rotation.from_rotvec(step).as_matrix() @ Ra
+        done = np.linalg.norm(step, axis=1) < tol**0.5
+        converged[active[done]] = True
+        active = active[~done]
+        if active.size == 0:
             break
     B = plate_points(R, p)[:, LEG_POINT, :]
     diff = B - A

@@ -28,7 +28,7 @@ CONDITION_OK = 1000.0
 def as_rows(J: np.ndarray) -> tuple[np.ndarray, int]:
     """A Jacobian as 2-D rows and its pose count: (m, 4, n) -> (4 m, n), m."""
     J = np.asarray(J, dtype=float)
-    if J.ndim == 3:
+    if J.ndim == 3:  # (m, r, n) blocks, one per pose
         return J.reshape(-1, J.shape[-1]), J.shape[0]
     if J.ndim == 2 and J.shape[0] % 4 == 0:
         return J, J.shape[0] // 4

@@ -124,3 +124,18 @@ def loop_residuals(
             de = second.jacobian - dA[target]
             J[:, i] = 2.0 * (e[:, None, :] @ de)[:, 0] - 2.0 * d[:, target, None] * dd[:, target]
     return LoopResiduals(f, J, sep, feas)
+
+
+def noise_sensitivity(
+    p: np.ndarray, volts: np.ndarray, ref: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """How each pose's residuals respond to noise on its own readings.
+
+    ``D_k = df_k / dV_k`` (4 x 4, mm^2/V) is nearly rank one: the four residuals of a pose
+    measure one loop-closure error. Returns its leading singular pair, u (m, 4) and s (m,) in
+    mm^2/V, so that voltage noise e_k moves the residuals by about ``u_k s_k (v_k . e_k)``.
+    """
+    offsets = np.eye(N_PARAMS)[:, SL_OFFSET]  # d f / d d0 = d f / d d(k) of each pose
+    D = loop_residuals(p, volts, ref, directions=offsets).jacobian * p[SL_GAIN]
+    U, sv, _ = np.linalg.svd(D)
+    return U[:, :, 0], sv[:, 0]

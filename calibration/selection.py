@@ -34,7 +34,7 @@ import numpy as np
 from .errors import InputError
 from .observability import CONDITION_OK, ObservabilityIndices, as_rows, column_scales
 from .parameters import ParameterModel
-from .residuals import check_volts, loop_residuals, reference_points
+from .residuals import check_volts, loop_residuals, noise_sensitivity, reference_points
 from .simulate import NEAR_SINGULAR_MM
 
 CRITERIA = ("min_singular", "condition", "volume", "noise_amplification", "a_optimality")
@@ -134,22 +134,41 @@ def relaxation_bound(
     return best, w
 
 
+@dataclass(frozen=True)
+class Candidates:
+    """Candidate poses prepared for selection.
+
+    jacobian: (N, 4, n) loop-residual Jacobian with respect to the free parameters (the
+    paper's design matrix); usable: (N,) not near-singular and consistent; information:
+    (N, 1, n) each pose's noise-whitened information row ``u_k^T J_k / s_k`` (see
+    :func:`calibration.residuals.noise_sensitivity`): the pose's real information about the
+    parameters per unit voltage noise. Rows of unusable poses are zero, so they are never
+    chosen.
+    """
+
+    jacobian: np.ndarray
+    usable: np.ndarray
+    information: np.ndarray
+
+
 def candidate_jacobian(
     volts: np.ndarray,
     model: ParameterModel,
     p: np.ndarray,
     *,
     near_singular_mm: float = NEAR_SINGULAR_MM,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Jacobian (N, 4, n) of the loop residuals of candidate poses with respect to the free
-    parameters at ``p``, and the (N,) mask of usable poses (not near-singular, consistent).
-    Rows of unusable poses are zero, so they are never chosen."""
+) -> Candidates:
+    """Prepare N candidate poses (readings (N, 4) in V) at the parameter estimate ``p``."""
     V = check_volts(volts)
-    r = loop_residuals(p, V, reference_points(V, p), directions=model.tie_matrix)
+    ref = reference_points(V, p)
+    r = loop_residuals(p, V, ref, directions=model.tie_matrix)
+    u, s = noise_sensitivity(p, V, ref)
     ok = r.feasible.all(axis=1) & (r.separation.min(axis=1) >= near_singular_mm)
-    ok &= np.isfinite(r.jacobian).all(axis=(1, 2))
+    ok &= np.isfinite(r.jacobian).all(axis=(1, 2)) & (s > 0)
     J = np.where(ok[:, None, None], r.jacobian, 0.0)
-    return J, ok
+    with np.errstate(divide="ignore", invalid="ignore"):
+        info = np.where(ok[:, None], (u[:, None, :] @ J)[:, 0] / s[:, None], 0.0)
+    return Candidates(J, ok, info[:, None, :])
 
 
 def select_poses(
@@ -162,6 +181,7 @@ def select_poses(
     certify: bool = True,
     shortlist: int = 48,
     max_passes: int = 20,
+    information: np.ndarray | None = None,
 ) -> Selection:
     """Choose k of the N candidate poses whose Jacobian is J ((N, 4, n) or (4N, n)).
 
@@ -169,6 +189,10 @@ def select_poses(
     minimise condition, a_optimality). max_condition: bound on the condition number of the
     chosen set (pool scaling). scales: ``diag(H)``; default the pool's own column scaling.
     certify: compute the certified upper bound (also seeds the exchange).
+    information: (N, r, n) per-pose information factors to design on instead of J's own
+    blocks, typically :attr:`Candidates.information` (noise-whitened), which keeps the
+    choice away from near-singular poses whose large Jacobian rows are mostly amplified
+    noise. The paper's indices of the chosen set (``indices_own``) always come from J.
     """
     rows, N = as_rows(J)
     n = rows.shape[1]
@@ -178,8 +202,14 @@ def select_poses(
         raise InputError(f"cannot choose {k} poses from {N} candidates for {n} free parameters")
     if not np.all(np.isfinite(rows)):
         raise InputError("the candidates' Jacobian contains NaN (near-singular poses?)")
-    h = column_scales(rows) if scales is None else np.asarray(scales, dtype=float)
-    G = (rows * h).reshape(N, 4, n)
+    if information is None:
+        blocks = rows.reshape(N, 4, n)
+    else:
+        blocks = np.asarray(information, dtype=float)
+        if blocks.ndim != 3 or blocks.shape[0] != N or blocks.shape[2] != n:
+            raise InputError(f"information must have shape ({N}, r, {n}), got {blocks.shape}")
+    h = column_scales(blocks) if scales is None else np.asarray(scales, dtype=float)
+    G = blocks * h
     F = _compress(G)
     F2 = F.reshape(-1, n)
 

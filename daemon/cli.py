@@ -49,8 +49,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
         f"Recorded {len(ps)} poses while the plate was moved by hand "
         f"(noise {args.noise_mv:g} mV, 12-bit codes)."
     )
-    J, usable = candidate_jacobian(ps.volts, model, NOMINAL)
-    sel = select_poses(J, args.select)
+    cand = candidate_jacobian(ps.volts, model, NOMINAL)
+    usable = cand.usable
+    sel = select_poses(cand.jacobian, args.select, information=cand.information)
     print(
         f"Selected {args.select} poses of {len(ps)} "
         f"({int((~usable).sum())} near-singular left out):"
@@ -73,8 +74,10 @@ def cmd_observability(args: argparse.Namespace) -> int:
     """Which parameters a pose set can identify (the paper's steps a-c)."""
     model = _model(args)
     ps = simulate_poses(args.poses, seed=args.seed, noise_volts=0.0, quantize=False)
-    J, ok = candidate_jacobian(ps.volts, model, ps.truth)
-    report = analyse_identifiability(J[ok], model, condition_limit=args.condition_limit)
+    cand = candidate_jacobian(ps.volts, model, ps.truth)
+    report = analyse_identifiability(
+        cand.jacobian[cand.usable], model, condition_limit=args.condition_limit
+    )
     print(report.summary())
     return 0
 

@@ -22,8 +22,8 @@ def design():
 
 
 def jac(ps, model):
-    J, ok = candidate_jacobian(ps.volts, model, ps.truth)
-    return J[ok]
+    c = candidate_jacobian(ps.volts, model, ps.truth)
+    return c.jacobian[c.usable]
 
 
 def test_all_20_parameters_condition_above_10000(design):

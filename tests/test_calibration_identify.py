@@ -42,8 +42,8 @@ def test_paper_noise_50_selected_poses_offsets_within_3_sigma_over_seeds():
     z_all = []
     for seed in range(12):
         ps = simulate_poses(450, seed=seed, noise_volts=0.040)
-        J, ok = candidate_jacobian(ps.volts, PAPER7, NOMINAL)
-        sel = select_poses(J, 50, certify=False)
+        c = candidate_jacobian(ps.volts, PAPER7, NOMINAL)
+        sel = select_poses(c.jacobian, 50, certify=False, information=c.information)
         res = identify(ps.volts[sel.indices], PAPER7, NOMINAL)
         assert res.converged, res.message
         z = (res.params - ps.truth)[16:20] / res.std[:4]

@@ -13,8 +13,8 @@ from calibration.simulate import simulate_poses
 @pytest.fixture(scope="module")
 def pool():
     ps = simulate_poses(2000, seed=8)
-    J, ok = candidate_jacobian(ps.volts, PAPER7, NOMINAL)
-    return J, ok
+    c = candidate_jacobian(ps.volts, PAPER7, NOMINAL)
+    return c.jacobian, c.usable
 
 
 def test_selection_near_certified_bound_and_far_above_random(pool):
