@@ -42,7 +42,8 @@ from .residuals import check_volts, loop_residuals, noise_sensitivity, reference
 from .simulate import NEAR_SINGULAR_MM
 
 WIDE_MARGIN_FACTOR = 8.0
-MAX_PASSES = 6
+LOOSE_PASSES = 2
+MAX_PASSES = 4
 
 
 @dataclass(frozen=True)
@@ -151,9 +152,10 @@ def identify(
     if m < n:
         raise InputError(f"{m} poses cannot identify {n} free parameters; record at least {n}")
 
-    def usable(p: np.ndarray, margin_mm: float, ref: np.ndarray) -> np.ndarray:
+    def margins(p: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        """Smallest branch separation of each pose, mm (-1 where spheres miss)."""
         r = loop_residuals(p, V, ref, jacobian=False)
-        return r.feasible.all(axis=1) & (r.separation.min(axis=1) >= margin_mm)
+        return np.where(r.feasible.all(axis=1), r.separation.min(axis=1), -1.0)
 
     x0 = model.free_values(p0)
     p = p0
@@ -161,34 +163,34 @@ def identify(
     # first pass keeps only poses whose mirror solutions lie far apart; the final pass uses
     # every pose that is usable at the estimate.
     ref = reference_points(V, p0)
-    wide = usable(p0, WIDE_MARGIN_FACTOR * near_singular_mm, ref)
-    used = wide if wide.sum() >= max(n, m // 4) else usable(p0, near_singular_mm, ref)
+    sep = margins(p0, ref)
+    wide = sep >= WIDE_MARGIN_FACTOR * near_singular_mm
+    used = wide if wide.sum() >= max(n, m // 4) else sep >= near_singular_mm
     history: list[float] = []
     total_iter = 0
-    final = False
     for attempt in range(MAX_PASSES):
         if used.sum() < n:
             raise InputError(
                 f"only {int(used.sum())} of {m} poses are usable ({int((~used).sum())} "
                 f"near-singular or inconsistent); {n} free parameters need at least {n}"
             )
-        final = final or attempt == MAX_PASSES - 1
-        # Passes until the usable set settles need only bring the estimate (and with it the
-        # branch references) close; the last pass converges tightly on the settled set.
-        p, f, g, r, it, converged, message = _levenberg_marquardt(
+        # The first passes (the wide one, then all usable poses) need only bring the estimate,
+        # and with it the branch references, close; later passes converge tightly.
+        tight = attempt >= LOOSE_PASSES
+        p, f, g, it, converged, message = _levenberg_marquardt(
             V[used], ref[used], model, p, x0, p0, max_iter,
-            xtol if final else max(xtol, 1e-3), ftol if final else max(ftol, 1e-4),
+            xtol if tight else max(xtol, 1e-3), ftol if tight else max(ftol, 1e-4),
             max_change, history,
         )  # fmt: skip
         total_iter += it
-        if final:
+        if attempt == MAX_PASSES - 1:
             break
         ref = reference_points(V, p)
         # hysteresis: a pose in the fit stays while it keeps 90 % of the margin
-        now = usable(p, near_singular_mm, ref) | (used & usable(p, 0.9 * near_singular_mm, ref))
-        if now.sum() < n:
+        sep = margins(p, ref)
+        now = (sep >= near_singular_mm) | (used & (sep >= 0.9 * near_singular_mm))
+        if now.sum() < n or (tight and np.array_equal(now, used)):
             break
-        final = np.array_equal(now, used) and attempt > 0
         used = now
     excluded = np.flatnonzero(~used)
     x = model.free_values(p)
@@ -243,12 +245,14 @@ def _levenberg_marquardt(V, ref, model, p_start, x0, p0, max_iter, xtol, ftol, m
     n = model.n_free
     T = model.tie_matrix
 
-    def evaluate(p: np.ndarray, ref: np.ndarray):
-        r = loop_residuals(p, V, ref, directions=T)
-        return r.residuals.reshape(-1), r.jacobian.reshape(-1, n), r
+    def residuals(p: np.ndarray) -> np.ndarray:
+        return loop_residuals(p, V, ref, jacobian=False).residuals.reshape(-1)
+
+    def jacobian(p: np.ndarray) -> np.ndarray:
+        return loop_residuals(p, V, ref, directions=T).jacobian.reshape(-1, n)
 
     p = p_start
-    f, g, r = evaluate(p, ref)
+    f, g = residuals(p), jacobian(p)
     require_observable(g, model)
     x = model.free_values(p)
     cost = float(f @ f)
@@ -269,12 +273,12 @@ def _levenberg_marquardt(V, ref, model, p_start, x0, p0, max_iter, xtol, ftol, m
         while lam < 1e12:
             ds = np.linalg.solve(GtG + lam * diag, -grad)
             x_new = x + h * ds
-            nxt = None
+            f_new = None
             if np.all(np.abs(x_new - x0) <= max_change):
                 p_new = model.expand(x_new, p0)
-                nxt = evaluate(p_new, ref)
-            if nxt is not None and np.isfinite(nxt[0]).all() and np.isfinite(nxt[1]).all():
-                new_cost = float(nxt[0] @ nxt[0])
+                f_new = residuals(p_new)
+            if f_new is not None and np.isfinite(f_new).all():
+                new_cost = float(f_new @ f_new)
                 # gain ratio: actual over predicted reduction of f^T f (Nielsen's damping)
                 predicted = float(ds @ (lam * diag @ ds - grad))
                 rho = (cost - new_cost) / predicted if predicted > 0 else -1.0
@@ -293,10 +297,14 @@ def _levenberg_marquardt(V, ref, model, p_start, x0, p0, max_iter, xtol, ftol, m
             break
         small_step = np.abs(x_new - x).max() <= xtol
         small_gain = cost - new_cost <= ftol * cost and lam <= 1.0
-        x, p, cost = x_new, p_new, new_cost
-        f, g, r = nxt
+        g_new = jacobian(p_new)
+        if not np.isfinite(g_new).all():  # a pose hit a degenerate configuration
+            lam *= nu
+            nu *= 2.0
+            continue
+        x, p, cost, f, g = x_new, p_new, new_cost, f_new, g_new
         history.append(cost)
         if small_step or small_gain or cost == 0.0:
             converged, message = True, "converged"
             break
-    return p, f, g, r, it, converged, message
+    return p, f, g, it, converged, message

@@ -13,9 +13,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .kinematics import D_BASE, base_points, forward_kinematics, plate_points, volts_to_lengths
-from .parameters import I_K1, I_K2, I_K3, N_PARAMS, SL_GAIN, SL_OFFSET, check_vector
-from .spheres import SphereIntersection, intersect_three_spheres
+from .kinematics import base_points, forward_kinematics, plate_points, volts_to_lengths
+from .parameters import (
+    BASE_COORDS,
+    I_K1,
+    I_K2,
+    I_K3,
+    N_PARAMS,
+    SL_GAIN,
+    SL_OFFSET,
+    check_vector,
+)
+from .spheres import adjoint, dot3, solve
 
 _E = np.eye(N_PARAMS)
 
@@ -56,7 +65,9 @@ def reference_points(volts: np.ndarray, p: np.ndarray) -> np.ndarray:
     They select the assembly branch of each intersection in :func:`loop_residuals`.
     """
     V = check_volts(volts)
-    fk = forward_kinematics(volts_to_lengths(V, p), p)
+    # a few Gauss-Newton steps place the plate to well under a millimetre, far inside the
+    # separation of the branches the references choose between
+    fk = forward_kinematics(volts_to_lengths(V, p), p, max_iter=4)
     return plate_points(fk.rotations, p)
 
 
@@ -78,52 +89,57 @@ def loop_residuals(
     p = check_vector(p)
     V = check_volts(volts)
     m = V.shape[0]
-    A = base_points(p)
-    d = volts_to_lengths(V, p)
-    W = _E if directions is None else np.asarray(directions, dtype=float)
-    if jacobian:
-        # forward-mode seeds along W: d(d_i)/dW, d(A)/dW
-        dd = V[:, :, None] * W[SL_GAIN] + W[SL_OFFSET]
-        dA = D_BASE @ W
-
-    def sphere(k: int, i: int, second: tuple, which: int) -> SphereIntersection:
-        """sphere(O, p[k]) & sphere(A_i, d_i) & second = (centre, d centre, radius, d radius)."""
-        P2, dP2, r2, dr2 = second
-        if not jacobian:
-            return intersect_three_spheres(p[k], A[i], d[:, i], P2, r2, ref[:, which])
-        return intersect_three_spheres(
-            p[k], A[i], d[:, i], P2, r2, ref[:, which],
-            d_r0=W[k], d_P1=dA[i], d_r1=dd[:, i], d_P2=dP2, d_r2=dr2,
-        )  # fmt: skip
-
-    def base(i: int) -> tuple:
-        return (A[i], dA[i], d[:, i], dd[:, i]) if jacobian else (A[i], None, d[:, i], None)
-
-    def plate(b: SphereIntersection) -> tuple:
-        return (b.point, b.jacobian, p[I_K3], W[I_K3] if jacobian else None)
-
+    A = base_points(p)[:, :, None]  # (4, 3, 1): component-major, like everything below
+    VT = np.ascontiguousarray(V.T)  # (4, m)
+    d = VT * p[SL_GAIN, None] + p[SL_OFFSET, None]  # (4, m) lengths, d = S V + d0
+    refs = np.ascontiguousarray(np.transpose(np.asarray(ref, dtype=float), (1, 2, 0)))
+    k3 = p[I_K3]
     # B2 from sensors 3, 4 and B1 from sensors 1, 2 are each shared by two loops.
-    b2_34 = sphere(I_K2, 2, base(3), 1)
-    b1_12 = sphere(I_K1, 0, base(1), 0)
-    loops = (  # (first intersection, second intersection, the sensor left out)
-        (b2_34, sphere(I_K1, 1, plate(b2_34), 0), 0),
-        (b2_34, sphere(I_K1, 0, plate(b2_34), 0), 1),
-        (b1_12, sphere(I_K2, 3, plate(b1_12), 1), 2),
-        (b1_12, sphere(I_K2, 2, plate(b1_12), 1), 3),
+    b2 = solve(p[I_K2], A[2], d[2], A[3], d[3], refs[1])
+    b1 = solve(p[I_K1], A[0], d[0], A[1], d[1], refs[0])
+    loops = (
+        # (first, its (k, sensor, sensor)), second, its (k, sensor), the sensor left out
+        (b2, (I_K2, 2, 3), solve(p[I_K1], A[1], d[1], b2.x, k3, refs[0]), (I_K1, 1), 0),
+        (b2, (I_K2, 2, 3), solve(p[I_K1], A[0], d[0], b2.x, k3, refs[0]), (I_K1, 0), 1),
+        (b1, (I_K1, 0, 1), solve(p[I_K2], A[3], d[3], b1.x, k3, refs[1]), (I_K2, 3), 2),
+        (b1, (I_K1, 0, 1), solve(p[I_K2], A[2], d[2], b1.x, k3, refs[1]), (I_K2, 2), 3),
     )
-    f = np.empty((m, 4))
-    sep = np.empty((m, 4))
-    feas = np.empty((m, 4), dtype=bool)
-    J = np.empty((m, 4, W.shape[1])) if jacobian else None
-    for i, (first, second, target) in enumerate(loops):
-        e = second.point - A[target]
-        f[:, i] = np.einsum("mi,mi->m", e, e) - d[:, target] ** 2
-        sep[:, i] = np.minimum(first.separation, second.separation)
-        feas[:, i] = first.feasible & second.feasible
-        if jacobian:
-            de = second.jacobian - dA[target]
-            J[:, i] = 2.0 * (e[:, None, :] @ de)[:, 0] - 2.0 * d[:, target, None] * dd[:, target]
-    return LoopResiduals(f, J, sep, feas)
+    f = np.empty((4, m))
+    sep = np.empty((4, m))
+    feas = np.empty((4, m), dtype=bool)
+    W = _E if directions is None else np.asarray(directions, dtype=float)
+    J = np.empty((4, W.shape[1], m)) if jacobian else None
+    for i, (first, (kf, j, l), second, (ks, s_i), t) in enumerate(loops):
+        e = second.x - A[t]
+        f[i] = dot3(e, e) - d[t] ** 2
+        sep[i] = np.minimum(first.separation, second.separation)
+        feas[i] = first.feasible & second.feasible
+        if not jacobian:
+            continue
+        # reverse mode: the gradient of f_i with respect to all 20 parameters, per pose
+        grad_d = np.zeros((4, m))  # d f / d d_s (lengths)
+        grad_A = np.zeros((4, 3, m))  # d f / d A_s
+        G = np.zeros((N_PARAMS, m))
+        g2 = 2.0 * e
+        a0, a1, a2, bA, bx = adjoint(second, g2)
+        G[ks] += a0
+        G[I_K3] += a2
+        grad_d[s_i] += a1
+        grad_A[s_i] += bA
+        a0, a1, a2, bA1, bA2 = adjoint(first, bx)  # through the shared plate point
+        G[kf] += a0
+        grad_d[j] += a1
+        grad_d[l] += a2
+        grad_A[j] += bA1
+        grad_A[l] += bA2
+        grad_A[t] -= g2
+        grad_d[t] -= 2.0 * d[t]
+        G[SL_GAIN] += grad_d * VT  # d = S V + d0
+        G[SL_OFFSET] += grad_d
+        for (pt, ax), ip in BASE_COORDS.items():
+            G[ip] += grad_A[pt, ax]
+        J[i] = W.T @ G
+    return LoopResiduals(f.T, None if J is None else np.transpose(J, (2, 0, 1)), sep.T, feas.T)
 
 
 def noise_sensitivity(

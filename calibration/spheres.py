@@ -1,4 +1,4 @@
-"""Intersection of three spheres, one centred at the origin, with forward-mode derivatives.
+"""Intersection of three spheres, one centred at the origin, and its adjoint derivative.
 
 Used by the closed-loop residuals (MODEL.md section 5) and by forward kinematics. The point x
 solves ``|x| = r0``, ``|x - P1| = r1``, ``|x - P2| = r2``. Writing
@@ -7,8 +7,20 @@ first sphere fixes ``g = +-h / |n|`` with ``h^2 = r0^2 - |a P1 + b P2|^2``. The 
 solutions lie ``2 h`` apart; as h goes to zero they merge (a singular configuration) and the
 derivatives grow like ``1 / h``.
 
-Derivatives come from implicit differentiation of the sphere equations:
-``[x; x - P1; x - P2] dx = [r0 dr0; (x - P1).dP1 + r1 dr1; (x - P2).dP2 + r2 dr2]``.
+Derivatives come from implicit differentiation of the sphere equations,
+
+    M dx = rhs,  M = [x; x - P1; x - P2],
+    rhs = [r0 dr0; (x - P1).dP1 + r1 dr1; (x - P2).dP2 + r2 dr2].
+
+Where the spheres miss each other (inconsistent readings, or parameters far off), x is taken
+as the closest approach in the plane (O, P1, P2), which keeps residuals continuous; its
+derivative follows from the two plane equations and ``n . x = 0``:
+``M = [n; P1; P2]``, ``rhs = [-x.dn; rhs_0 - rhs_1; rhs_0 - rhs_2]``.
+
+The residuals need ``g . dx`` for one row vector g per pose (the adjoint, or reverse mode):
+``g . dx = lam . rhs`` with ``lam = M^-T g``, which :func:`adjoint` returns as coefficients of
+dr0, dr1, dr2, dP1 and dP2. Arrays here are component-major (points ``(3, m)``) so every
+operation runs over contiguous pose arrays.
 """
 
 from __future__ import annotations
@@ -18,119 +30,110 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.stack(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
+@dataclass(frozen=True)
+class Solved:
+    """One batch of intersections, component-major.
+
+    x: (3, m) the chosen solution; separation: (m,) distance between the two mirror
+    solutions (0 where there is none), mm; feasible: (m,) the spheres meet; the rest is kept
+    for :func:`adjoint`.
+    """
+
+    x: np.ndarray
+    separation: np.ndarray
+    feasible: np.ndarray
+    r0: np.ndarray
+    r1: np.ndarray
+    r2: np.ndarray
+    P1: np.ndarray
+    P2: np.ndarray
+    miss: np.ndarray
+    n: np.ndarray
+
+
+def solve(r0, P1, r1, P2, r2, ref: np.ndarray) -> Solved:
+    """Intersect sphere(O, r0), sphere(P1, r1), sphere(P2, r2) for m poses at once.
+
+    Centres P1, P2 and ``ref``: (3, m) or (3, 1); radii: scalars or (m,), mm. ``ref`` picks
+    the branch: the solution on the same side of the plane (O, P1, P2) as ``ref``, which is
+    the one nearer to it.
+    """
+    n = _cross(P1, P2)
+    nn = dot3(n, n)
+    g11, g12, g22 = dot3(P1, P1), dot3(P1, P2), dot3(P2, P2)
+    r00 = r0 * r0
+    c1 = 0.5 * (r00 - r1 * r1 + g11)
+    c2 = 0.5 * (r00 - r2 * r2 + g22)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = (c1 * g22 - c2 * g12) / nn
+        b = (c2 * g11 - c1 * g12) / nn
+    q = a * P1 + b * P2
+    h2 = r00 - dot3(q, q)
+    feasible = (h2 >= 0) & (nn > 0)
+    h = np.sqrt(np.where(feasible, h2, 0.0))
+    side = np.where(dot3(n, ref - q) >= 0, 1.0, -1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = q + (side * h / np.sqrt(nn)) * n
+    return Solved(x, 2.0 * h, feasible, r0, r1, r2, P1, P2, ~(h > 0), n)
+
+
+def adjoint(s: Solved, g: np.ndarray):
+    """Coefficients of ``g . dx`` for row vectors g (3, m).
+
+    Returns (a0, a1, a2, b1, b2) with ``g . dx = a0 dr0 + a1 dr1 + a2 dr2 + b1 . dP1 +
+    b2 . dP2`` per pose: a's (m,), b's (3, m). NaN where the configuration is degenerate.
+    """
+    e1, e2 = s.x - s.P1, s.x - s.P2
+    rows = (s.x, e1, e2)
+    if s.miss.any():
+        rows = tuple(
+            np.where(s.miss, alt, row) for alt, row in zip((s.n, s.P1, s.P2), rows, strict=True)
+        )
+    # M^-1 by the adjugate: columns r1 x r2, r2 x r0, r0 x r1 over det(M); lam = M^-T g.
+    adj = (_cross(rows[1], rows[2]), _cross(rows[2], rows[0]), _cross(rows[0], rows[1]))
+    det = dot3(rows[0], adj[0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_det = 1.0 / np.where(det != 0, det, np.nan)
+    lam = [dot3(c, g) * inv_det for c in adj]
+    a0, a1, a2 = lam[0] * s.r0, lam[1] * s.r1, lam[2] * s.r2
+    b1, b2 = lam[1] * e1, lam[2] * e2
+    if s.miss.any():
+        w = s.miss
+        a0 = np.where(w, (lam[1] + lam[2]) * s.r0, a0)
+        a1 = np.where(w, -a1, a1)
+        a2 = np.where(w, -a2, a2)
+        b1 = np.where(w, -lam[0] * _cross(s.P2, s.x) - b1, b1)
+        b2 = np.where(w, -lam[0] * _cross(s.x, s.P1) - b2, b2)
+    return a0, a1, a2, b1, b2
+
+
 @dataclass(frozen=True)
 class SphereIntersection:
-    """point: (m, 3); jacobian: (m, 3, q) derivative of the point, or None if not asked for;
-    separation: (m,) distance between the two mirror solutions (0 where none exists), mm;
-    feasible: (m,) False where the spheres do not meet: the point is then the closest
-    approach in the plane (O, P1, P2), which keeps the residuals continuous, and its
-    derivative is that of the closest approach."""
+    """point: (m, 3); separation: (m,) distance between the two mirror solutions, mm;
+    feasible: (m,) False where the spheres do not meet (the point is then the closest
+    approach in the plane of the three centres)."""
 
     point: np.ndarray
-    jacobian: np.ndarray | None
     separation: np.ndarray
     feasible: np.ndarray
 
 
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.einsum("...i,...i->...", a, b)
+def intersect_three_spheres(r0, P1, r1, P2, r2, ref: np.ndarray) -> SphereIntersection:
+    """Pose-major :func:`solve`: centres (3,) or (m, 3), radii scalars or (m,), ref (m, 3)."""
 
+    def comp(v):
+        v = np.asarray(v, dtype=float)
+        return v[:, None] if v.ndim == 1 else v.T
 
-def _vecmat(v: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """Row vectors v (m, 3) times matrices M (3, q) or (m, 3, q): (m, q)."""
-    return (v[:, None, :] @ M)[:, 0]
-
-
-def _solve3(M: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solve M (m, 3, 3) X = rhs (m, 3, q) by the adjugate; singular rows give NaN.
-
-    Much faster than a batched LAPACK solve for many tiny systems."""
-    r0, r1, r2 = M[:, 0], M[:, 1], M[:, 2]
-    adj = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=2)
-    det = _dot(r0, adj[:, :, 0])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = adj / np.where(det != 0, det, np.nan)[:, None, None]
-    return inv @ rhs
-
-
-def intersect_three_spheres(
-    r0: np.ndarray | float,
-    P1: np.ndarray,
-    r1: np.ndarray | float,
-    P2: np.ndarray,
-    r2: np.ndarray | float,
-    ref: np.ndarray,
-    *,
-    d_r0: np.ndarray | None = None,
-    d_P1: np.ndarray | None = None,
-    d_r1: np.ndarray | None = None,
-    d_P2: np.ndarray | None = None,
-    d_r2: np.ndarray | None = None,
-) -> SphereIntersection:
-    """Intersect sphere(O, r0), sphere(P1, r1), sphere(P2, r2), vectorised over m problems.
-
-    Radii are scalars or (m,), centres (3,) or (m, 3), all in mm. ``ref`` (m, 3) selects the
-    branch: the solution on the same side of the plane (O, P1, P2) as ``ref``, which is the one
-    nearer to ``ref``. The ``d_*`` arguments, if any is given, are derivatives with respect to
-    q parameters: radii (q,) or (m, q), centres (3, q) or (m, 3, q); missing ones are zero.
-    """
-    P1 = np.asarray(P1, dtype=float)
-    P2 = np.asarray(P2, dtype=float)
-    ref = np.asarray(ref, dtype=float)
-    m = ref.shape[0]
-    P1 = np.broadcast_to(P1, (m, 3))
-    P2 = np.broadcast_to(P2, (m, 3))
-    r0 = np.broadcast_to(np.asarray(r0, dtype=float), (m,))
-    r1 = np.broadcast_to(np.asarray(r1, dtype=float), (m,))
-    r2 = np.broadcast_to(np.asarray(r2, dtype=float), (m,))
-
-    n = np.cross(P1, P2)
-    nn = _dot(n, n)
-    g11, g12, g22 = _dot(P1, P1), _dot(P1, P2), _dot(P2, P2)
-    c1 = 0.5 * (r0 * r0 - r1 * r1 + g11)
-    c2 = 0.5 * (r0 * r0 - r2 * r2 + g22)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a = (c1 * g22 - c2 * g12) / nn
-        b = (c2 * g11 - c1 * g12) / nn
-    q = a[:, None] * P1 + b[:, None] * P2
-    h2 = r0 * r0 - _dot(q, q)
-    feasible = (h2 >= 0) & (nn > 0)
-    h = np.sqrt(np.where(feasible, h2, 0.0))
-    side = np.where(_dot(n, ref - q) >= 0, 1.0, -1.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = q + (side * h / np.sqrt(nn))[:, None] * n
-    separation = 2.0 * h
-
-    jac = None
-    if any(v is not None for v in (d_r0, d_P1, d_r1, d_P2, d_r2)):
-        q_dim = next(np.shape(v)[-1] for v in (d_r0, d_P1, d_r1, d_P2, d_r2) if v is not None)
-        rhs = np.zeros((m, 3, q_dim))
-        e1, e2 = x - P1, x - P2
-        if d_r0 is not None:
-            rhs[:, 0] += r0[:, None] * d_r0
-        if d_r1 is not None:
-            rhs[:, 1] += r1[:, None] * d_r1
-        if d_r2 is not None:
-            rhs[:, 2] += r2[:, None] * d_r2
-        if d_P1 is not None:
-            rhs[:, 1] += _vecmat(e1, d_P1)
-        if d_P2 is not None:
-            rhs[:, 2] += _vecmat(e2, d_P2)
-        M = np.stack([x, e1, e2], axis=1)
-        # Where the spheres miss each other, x is the closest approach in the plane
-        # (O, P1, P2): differentiate the two plane equations and n . x = 0 instead.
-        miss = ~(h > 0)
-        if miss.any():
-            M[miss, 0] = n[miss]
-            M[miss, 1] = P1[miss]
-            M[miss, 2] = P2[miss]
-            dn = np.zeros((m, 3, q_dim))
-            if d_P1 is not None:
-                dn += np.cross(np.broadcast_to(d_P1, (m, 3, q_dim)), P2[:, :, None], axis=1)
-            if d_P2 is not None:
-                dn += np.cross(P1[:, :, None], np.broadcast_to(d_P2, (m, 3, q_dim)), axis=1)
-            plane = rhs[:, 1:] - rhs[:, :1]  # P_i . dx = r0 dr0 - r_i dr_i - (x - P_i) . dP_i
-            rhs[miss, 0] = -_vecmat(x[miss], dn[miss])
-            rhs[miss, 1:] = -plane[miss]
-        jac = _solve3(M, rhs)
-    return SphereIntersection(x, jac, separation, feasible)
+    s = solve(r0, comp(P1), r1, comp(P2), r2, comp(ref))
+    return SphereIntersection(s.x.T, s.separation, s.feasible)
