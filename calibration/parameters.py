@@ -53,6 +53,7 @@ BASE_COORDS: dict[tuple[int, int], int] = {
 # Reference design (MODEL.md section 10).
 STROKE_MM = 37.5
 GAIN_NOMINAL = 3.75  # mm/V: +-10 V spans the +-37.5 mm stroke
+STROKE_VOLTS = STROKE_MM / GAIN_NOMINAL  # 10 V, the LVDT conditioner's span
 OFFSET_NOMINAL = 97.4  # mm: actuator length at home, where V = 0
 PLATE_RADIUS = 100.0
 B1_AZIMUTH_DEG, B2_AZIMUTH_DEG, B_ELEVATION_DEG = 57.4, 237.4, 45.0

@@ -63,11 +63,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     dt = time.perf_counter() - t0
     print()
     print(res.table(truth))
+    for problem in res.problems():
+        print(f"WARNING: {problem}")
     print()
     offs = res.params[16:20]
     print("New sensor offsets: " + ", ".join(f"d0{i + 1} = {v:.3f} mm" for i, v in enumerate(offs)))
     print(f"Done in {dt:.2f} s.")
-    return 0 if res.converged else 1
+    return 0 if not res.problems() else 1
 
 
 def cmd_observability(args: argparse.Namespace) -> int:

@@ -73,7 +73,7 @@ def test_bad_input_raises_clear_errors():
         identify(V, PAPER7)
     V = ps.volts.copy()
     V[7, 1] = 10.5  # 39.4 mm of travel
-    with pytest.raises(InputError, match=r"outside its \+-37.5 mm stroke.*pose 7, sensor 2"):
+    with pytest.raises(InputError, match=r"outside the \+-10 V span.*pose 7, sensor 2"):
         identify(V, PAPER7)
     with pytest.raises(InputError, match="5 poses cannot identify 7 free parameters"):
         identify(ps.volts[:5], PAPER7)
@@ -108,3 +108,14 @@ def test_gain_error_beyond_tolerance_is_reported_not_hidden():
     assert res.rms_residual > 1.0
     exact = identify(ps.volts, PAPER7, NOMINAL)
     assert exact.rms_residual < 1e-6
+
+
+def test_readings_that_do_not_fit_are_flagged():
+    ps = simulate_poses(300, seed=1)
+    good = identify(ps.volts, PAPER7)
+    assert good.problems() == []
+    V = ps.volts.copy()
+    V[:, 2] = V[np.random.default_rng(0).permutation(300), 2]  # channel 3 wired to junk
+    bad = identify(V, PAPER7)
+    text = " ".join(bad.problems())
+    assert "do not fit the model" in text
