@@ -48,6 +48,8 @@ from .simulate import NEAR_SINGULAR_MM
 WIDE_MARGIN_FACTOR = 8.0
 # Five times the paper's 40 mV: beyond this the residuals are not sensor noise.
 MAX_NOISE_VOLTS = 0.2
+# Relative gradient |G^T f| / (|G| |f|) that counts as zero when no step helps.
+GTOL = 1e-6
 LOOSE_PASSES = 2
 MAX_PASSES = 4
 
@@ -321,7 +323,8 @@ def _levenberg_marquardt(V, ref, model, p_start, x0, p0, max_iter, xtol, ftol, m
             lam *= nu
             nu *= 2.0
         if not step_taken:
-            if np.linalg.norm(grad) <= 1e-9 * max(cost, 1.0) ** 0.5 * np.sqrt(len(f)):
+            # no step lowers f^T f: a minimum to rounding if the gradient vanishes there
+            if np.linalg.norm(grad) <= GTOL * np.linalg.norm(G) * np.sqrt(cost):
                 converged, message = True, "converged (gradient)"
             else:
                 message = "no step reduces the residuals (stalled)"

@@ -9,10 +9,10 @@ import time
 import numpy as np
 
 from calibration.errors import CalibrationError
-from calibration.identify import identify
 from calibration.observability import analyse_identifiability
 from calibration.parameters import NOMINAL, ParameterModel
-from calibration.selection import candidate_jacobian, select_poses
+from calibration.pipeline import calibrate
+from calibration.selection import candidate_jacobian
 from calibration.simulate import perturbed_truth, simulate_poses
 
 
@@ -49,17 +49,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
         f"Recorded {len(ps)} poses while the plate was moved by hand "
         f"(noise {args.noise_mv:g} mV, 12-bit codes)."
     )
-    cand = candidate_jacobian(ps.volts, model, NOMINAL)
-    usable = cand.usable
-    sel = select_poses(cand.jacobian, args.select, information=cand.information)
+    cal = calibrate(ps.volts, model, NOMINAL, n_select=args.select)
+    sel, res = cal.selection, cal.identification
     print(
-        f"Selected {args.select} poses of {len(ps)} "
-        f"({int((~usable).sum())} near-singular left out):"
+        f"Selected {len(sel.indices)} poses of {len(ps)} in {cal.rounds} round(s):"
         f" s_min {sel.indices_own.min_singular:.3g}, condition {sel.indices_own.condition:.3g}"
         f" (own scaling); s_min {sel.min_singular:.4g} = {100 * sel.bound_ratio:.1f} % of the"
         f" certified bound {sel.upper_bound:.4g} (pool scaling)."
     )
-    res = identify(ps.volts[sel.indices], model, NOMINAL)
     dt = time.perf_counter() - t0
     print()
     print(res.table(truth))

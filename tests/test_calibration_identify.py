@@ -119,3 +119,17 @@ def test_readings_that_do_not_fit_are_flagged():
     bad = identify(V, PAPER7)
     text = " ".join(bad.problems())
     assert "do not fit the model" in text
+
+
+def test_calibrate_selects_then_identifies_in_rounds():
+    from calibration.pipeline import calibrate
+
+    ps = simulate_poses(450, seed=21)
+    cal = calibrate(ps.volts, PAPER7, NOMINAL, n_select=50)
+    res = cal.identification
+    assert len(cal.selection.indices) == 50 and 1 <= cal.rounds <= 2
+    assert res.converged and res.problems() == []
+    z = (res.params - ps.truth)[16:20] / res.std[:4]
+    assert np.all(np.abs(z) < 3)
+    few = calibrate(ps.volts[:30], PAPER7, NOMINAL, n_select=50)  # fewer than asked: all used
+    assert len(few.selection.indices) <= 30
