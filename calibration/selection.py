@@ -228,7 +228,8 @@ def select_poses(
     cond_ok = bool(_condition(lam) <= max_condition)
     swaps = 0
     passes = 0
-    while passes < max_passes:
+    short = min(shortlist, N - k)  # candidates outside the set
+    while short > 0 and passes < max_passes:
         passes += 1
         improved = False
         for pos in range(k):
@@ -240,7 +241,7 @@ def select_poses(
             wts = np.exp(-(lb - lb[0]) / (0.5 * scale + 1e-300))
             score = ((F2 @ Qb) ** 2 @ wts).reshape(N, -1).sum(axis=1)
             score[in_set] = -np.inf
-            cand = np.argpartition(-score, shortlist - 1)[:shortlist]
+            cand = np.argpartition(-score, short - 1)[:short]
             trial = B[None] + np.einsum("kri,krj->kij", F[cand], F[cand])
             lt = np.linalg.eigvalsh(trial)
             vals = _criterion_value(lt, criterion, k)
