@@ -1,0 +1,77 @@
+"""The ASCII protocol server: reads CR-terminated frames from a serial fd and answers.
+
+Runs on the emulator's asyncio loop. Each complete frame is answered at once (well within
+the datasheet's 10 ms) unless the module is off, stalled or the link is down, in which
+case the frame is silently lost, as on the real module.
+
+Decision where the datasheet is silent: the module's line buffer holds 64 bytes; a longer
+run without CR is discarded (line noise cannot grow it without bound).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+
+from .ascii_protocol import handle_frame
+from .handle import DeviceHandle
+from .wire import corrupt_ascii
+
+LINE_BUFFER_BYTES = 64
+
+
+class AsciiServer:
+    """Serve the ASCII protocol for module ``address`` on the (raw) serial fd ``fd``."""
+
+    def __init__(self, handle: DeviceHandle, fd: int, address: int) -> None:
+        if not 0 <= address <= 0xFF:
+            raise ValueError("ASCII address must be 0..255")
+        self.handle = handle
+        self.fd = fd
+        self.address = address
+        self._buffer = bytearray()
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    def start(self, loop: asyncio.AbstractEventLoop) -> None:
+        os.set_blocking(self.fd, False)
+        self._loop = loop
+        loop.add_reader(self.fd, self._on_readable)
+
+    def _on_readable(self) -> None:
+        try:
+            data = os.read(self.fd, 4096)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            return
+        self._buffer += data
+        while (end := self._buffer.find(b"\r")) >= 0:
+            frame = bytes(self._buffer[:end])
+            del self._buffer[: end + 1]
+            self._answer(frame)
+        if len(self._buffer) > LINE_BUFFER_BYTES:
+            self._buffer.clear()
+
+    def _answer(self, frame: bytes) -> None:
+        with self.handle.synced() as device:
+            if not self.handle.responsive_locked():
+                return
+            answer = handle_frame(device, frame, self.address)
+            if answer is None:
+                return
+            out = self.handle.wire.outgoing(answer, corrupt_ascii(device.ascii_checksum))
+        view = memoryview(out)
+        while view:
+            try:
+                view = view[os.write(self.fd, view) :]
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return
+
+    def close(self) -> None:
+        if self._loop is not None:
+            with contextlib.suppress(Exception):
+                self._loop.remove_reader(self.fd)
+            self._loop = None

@@ -1,0 +1,90 @@
+"""Time bases for the emulated LDQ-412.
+
+The device model never reads a clock itself: the emulator asks its clock for the current
+time and hands it to the model, which then produces every scan due up to that instant.
+Time is kept in integer nanoseconds so that scan schedules are exact and reproducible
+(a float sum such as ``0.1 + 0.2`` must not move a scan across a boundary).
+
+- :class:`RealClock`: wall time (monotonic), for running against real drivers.
+- :class:`SimClock`: wall time sped up (or slowed down) by a constant factor.
+- :class:`ManualClock`: time moves only when :meth:`ManualClock.advance` is called;
+  the basis of every bit-exact test.
+
+All clocks start at 0 when created.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Protocol, runtime_checkable
+
+NS_PER_S = 1_000_000_000
+
+
+@runtime_checkable
+class Clock(Protocol):
+    """A monotonic time base, in seconds since the clock was created."""
+
+    def now_ns(self) -> int:
+        """Current time in integer nanoseconds (never decreases)."""
+        ...
+
+    def now(self) -> float:
+        """Current time in seconds (``now_ns() / 1e9``)."""
+        ...
+
+
+class RealClock:
+    """Wall time from :func:`time.monotonic_ns`, starting at 0 on creation."""
+
+    def __init__(self) -> None:
+        self._origin_ns = time.monotonic_ns()
+
+    def now_ns(self) -> int:
+        return time.monotonic_ns() - self._origin_ns
+
+    def now(self) -> float:
+        return self.now_ns() / NS_PER_S
+
+
+class SimClock:
+    """Simulated time running ``speed`` times as fast as wall time (``speed > 0``).
+
+    ``SimClock(10.0)`` makes one real second count as ten device seconds, so a 2 s power
+    cycle takes 0.2 s of a test's wall time.
+    """
+
+    def __init__(self, speed: float) -> None:
+        if not speed > 0:
+            raise ValueError(f"speed must be > 0, got {speed!r}")
+        self.speed = float(speed)
+        self._origin_ns = time.monotonic_ns()
+
+    def now_ns(self) -> int:
+        return int((time.monotonic_ns() - self._origin_ns) * self.speed)
+
+    def now(self) -> float:
+        return self.now_ns() / NS_PER_S
+
+
+class ManualClock:
+    """A clock that only moves when told to; safe to advance from any thread."""
+
+    def __init__(self) -> None:
+        self._ns = 0
+        self._lock = threading.Lock()
+
+    def advance(self, seconds: float) -> None:
+        """Move time forward by ``seconds`` (>= 0), rounded to the nearest nanosecond."""
+        if seconds < 0:
+            raise ValueError(f"a clock cannot go backwards ({seconds!r} s)")
+        with self._lock:
+            self._ns += round(seconds * NS_PER_S)
+
+    def now_ns(self) -> int:
+        with self._lock:
+            return self._ns
+
+    def now(self) -> float:
+        return self.now_ns() / NS_PER_S

@@ -1,0 +1,491 @@
+"""The LDQ-412 device model (shared/DATASHEET.md): a pure state machine.
+
+No I/O, no threads, no clock of its own: the owner calls :meth:`LDQ412.sync` with the
+current time (integer nanoseconds of the emulator's clock) before every access, and the
+model produces every scan due up to that instant, in order. Lazy catch-up keeps the model
+deterministic (the scans depend only on the schedule, never on when somebody looked) and
+makes FIFO overflow exact. The owner serializes access (the model is not thread-safe).
+
+Timing model
+    Device time is microseconds since the current power-on. Scans happen at
+    ``anchor_us + floor(j * 1e6 / rate)`` for j = 0, 1, 2, ...: at power-on the anchor is
+    0 and the first scan (counter 0) happens at once; a write that changes the scan rate
+    re-anchors the schedule at the write's instant, the next scan following one new period
+    later. Channel i (1-based) is converted ``(i - 1) * 250 us`` after the scan's time
+    stamp; with oversampling N, the N conversions of a channel are modeled as a burst at
+    that instant (the source is called N times with the same instants; only its noise
+    differs).
+
+Source time base
+    The source sees seconds since the *first* power-on (``initial_uptime_s`` included),
+    which equals device time until a power cycle, and keeps running through power cycles
+    (the LVDTs do not restart with the module).
+
+Oversampling
+    The reported code is the mean of N conversion codes rounded half up:
+    ``(sum + N // 2) // N`` (what firmware does with ``(sum + N/2) >> log2 N``). Rounding
+    to nearest keeps the mid-code reconstruction unbiased; truncation would bias every
+    oversampled reading by about -0.5 LSB.
+
+Power-on state (also after :meth:`LDQ412.power_cycle`)
+    Counter 0, device time 0, empty FIFO, overflow clear, restart bit set, scan rate and
+    ASCII checksum mode back to the power-on values given to the constructor, oversampling
+    1. Injected channel faults (stuck, sensor fault, saturation) are physical and survive.
+"""
+
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.ldq412 import (
+    CHANNEL_SKEW_S,
+    CODE_MAX,
+    FIFO_DEPTH,
+    FIFO_FILLER,
+    FIFO_MAX_SCANS_PER_READ,
+    FIFO_SCAN_REGS,
+    HR_ASCII_CHECKSUM,
+    HR_CLEAR_FIFO,
+    HR_CLEAR_RESTART,
+    HR_COUNT,
+    HR_OVERSAMPLING,
+    HR_SCAN_RATE,
+    IR_FIFO,
+    IR_FIFO_END,
+    IR_IDENTITY_LEN,
+    IR_MODEL,
+    IR_SNAPSHOT_LEN,
+    MODEL_CODE,
+    N_CHANNELS,
+    OVERSAMPLING_CHOICES,
+    POWER_CYCLE_S,
+    SCAN_RATE_DEFAULT_HZ,
+    SCAN_RATE_MAX_HZ,
+    SCAN_RATE_MIN_HZ,
+    STATUS_OVERFLOW,
+    STATUS_RESTART,
+    U32_MOD,
+    V_MAX,
+    V_MIN,
+    split_u32,
+    volts_to_code,
+)
+
+from .source import SignalSource
+
+# Modbus exception codes the module answers (datasheet: 02 and 03; 01 for functions it
+# does not implement).
+ILLEGAL_FUNCTION = 0x01
+ILLEGAL_ADDRESS = 0x02
+ILLEGAL_VALUE = 0x03
+
+# Protocol limits of a single Modbus register read / write (Modbus application spec).
+MODBUS_MAX_READ = 125
+MODBUS_MAX_WRITE = 123
+
+_US_PER_S = 1_000_000
+_NS_PER_US = 1_000
+_CHANNEL_OFFSETS_S = np.arange(N_CHANNELS) * CHANNEL_SKEW_S
+# Analog levels beyond the converter's range, used to model a saturated conditioner.
+_SATURATION_V = {"high": V_MAX + 1.0, "low": V_MIN - 1.0}
+
+
+class DeviceError(Exception):
+    """A request the module refuses with a Modbus exception code (``code``)."""
+
+    def __init__(self, code: int, message: str) -> None:
+        super().__init__(f"exception {code:02X}: {message}")
+        self.code = code
+
+
+class DeviceOffError(RuntimeError):
+    """The module is powered off (inside a power cycle) and cannot be accessed."""
+
+
+@dataclass(frozen=True, slots=True)
+class TruthScan:
+    """One scan exactly as the module produced it (ground truth for tests and calibration).
+
+    counter, time_us: the uint32 values the module reports (wrapped).
+    codes: channel 1..4 codes.
+    status: the status register right after this scan was taken and pushed to the FIFO.
+    t_s: source time of channel 1's instant (seconds since the first power-on).
+    boot: power-on index, 0 for the first power-on, +1 per power cycle.
+    """
+
+    counter: int
+    time_us: int
+    codes: tuple[int, int, int, int]
+    status: int
+    t_s: float
+    boot: int
+
+
+def scans_due(uptime_us: int, rate_hz: int) -> int:
+    """Number of scans j >= 0 with ``floor(j * 1e6 / rate) <= uptime_us`` (anchor 0)."""
+    return ((uptime_us + 1) * rate_hz + _US_PER_S - 1) // _US_PER_S
+
+
+class LDQ412:
+    """The module's state: scanning, FIFO, registers, latches and channel faults.
+
+    source: the analog inputs (called N times per scan with oversampling N).
+    now_ns: the owner's clock at construction; the module has been powered on for
+        ``initial_uptime_s`` at that instant.
+    scan_rate_hz, ascii_checksum: power-on values of holding registers 0 and 4.
+    serial_number, firmware: identity (input registers 513..515, ``$AAF``).
+    truth_limit: None: :attr:`truth` keeps every scan; N: it keeps the latest N to 2N-1.
+    """
+
+    def __init__(
+        self,
+        source: SignalSource,
+        *,
+        now_ns: int = 0,
+        scan_rate_hz: int = SCAN_RATE_DEFAULT_HZ,
+        serial_number: int = 0x00C0FFEE,
+        firmware: tuple[int, int] = (2, 1),
+        ascii_checksum: bool = False,
+        initial_uptime_s: float = 0.0,
+        truth_limit: int | None = None,
+    ) -> None:
+        if truth_limit is not None and truth_limit < 1:
+            raise ValueError("truth_limit must be >= 1 or None")
+        if not SCAN_RATE_MIN_HZ <= scan_rate_hz <= SCAN_RATE_MAX_HZ:
+            raise ValueError(f"scan_rate_hz must be {SCAN_RATE_MIN_HZ}..{SCAN_RATE_MAX_HZ}")
+        if not 0 <= serial_number < U32_MOD:
+            raise ValueError("serial_number must be a uint32")
+        major, minor = firmware
+        if not (0 <= major <= 255 and 0 <= minor <= 99):
+            raise ValueError("firmware must be (major 0..255, minor 0..99)")
+        if initial_uptime_s < 0:
+            raise ValueError("initial_uptime_s must be >= 0")
+        self.source = source
+        self.serial_number = serial_number
+        self.firmware = (major, minor)
+        self.power_on_scan_rate_hz = scan_rate_hz
+        self.power_on_ascii_checksum = bool(ascii_checksum)
+        self.truth: list[TruthScan] = []
+        self.truth_limit = truth_limit
+
+        self._stuck: list[int | None] = [None] * N_CHANNELS
+        self._sensor_fault: list[bool] = [False] * N_CHANNELS
+        self._saturate: list[str | None] = [None] * N_CHANNELS
+
+        self._now_ns = now_ns
+        self._first_boot_ns = now_ns - round(initial_uptime_s * 1e9)
+        self._boot = -1
+        self._off_until_ns: int | None = None
+        self._power_on(self._first_boot_ns)
+        # Powered on long ago and never read: only the last FIFO_DEPTH scans still exist.
+        uptime_us = (now_ns - self._boot_ns) // _NS_PER_US
+        skipped = max(0, scans_due(uptime_us, scan_rate_hz) - FIFO_DEPTH)
+        if skipped:
+            self._next_j = skipped
+            self._counter = skipped % U32_MOD
+            self._overflow = True
+        self.sync(now_ns)
+
+    # ------------------------------------------------------------------ time
+
+    def _power_on(self, boot_ns: int) -> None:
+        self._boot += 1
+        self._boot_ns = boot_ns
+        self._off_until_ns = None
+        self._scan_rate = self.power_on_scan_rate_hz
+        self._oversampling = 1
+        self._ascii_checksum = self.power_on_ascii_checksum
+        self._counter = 0
+        self._anchor_us = 0
+        self._next_j = 0
+        self._fifo: collections.deque[tuple[int, int, int, int, int]] = collections.deque()
+        self._overflow = False
+        self._restart = True
+        self._latest: TruthScan | None = None
+        self._latest_low_status = 0  # rail and fault bits of the latest scan
+
+    def sync(self, now_ns: int) -> None:
+        """Bring the module to time ``now_ns``: finish a power cycle, take due scans.
+
+        Time never goes back: an earlier ``now_ns`` than the last one is ignored.
+        """
+        now_ns = max(now_ns, self._now_ns)
+        self._now_ns = now_ns
+        if self._off_until_ns is not None:
+            if now_ns < self._off_until_ns:
+                return
+            self._power_on(self._off_until_ns)
+        uptime_us = (now_ns - self._boot_ns) // _NS_PER_US
+        while True:
+            t_us = self._anchor_us + self._next_j * _US_PER_S // self._scan_rate
+            if t_us > uptime_us:
+                break
+            self._take_scan(t_us)
+            self._next_j += 1
+
+    @property
+    def now_ns(self) -> int:
+        """The time of the last :meth:`sync`."""
+        return self._now_ns
+
+    @property
+    def powered(self) -> bool:
+        """False inside a power cycle (as of the last :meth:`sync`)."""
+        return self._off_until_ns is None
+
+    @property
+    def boot(self) -> int:
+        """Power-on index: 0 for the first power-on, +1 per completed power cycle."""
+        return self._boot
+
+    @property
+    def uptime_us(self) -> int:
+        """Microseconds since the current power-on (unwrapped), as of the last sync."""
+        return (self._now_ns - self._boot_ns) // _NS_PER_US
+
+    def power_cycle(self, off_s: float = POWER_CYCLE_S) -> None:
+        """Switch the module off now and on again ``off_s`` seconds later.
+
+        Scans due up to now are taken first; nothing is scanned while off.
+        """
+        self.sync(self._now_ns)
+        self._off_until_ns = self._now_ns + round(off_s * 1e9)
+
+    # ------------------------------------------------------------------ scans
+
+    def _take_scan(self, t_us: int) -> None:
+        n = self._oversampling
+        t_s = ((self._boot_ns - self._first_boot_ns) // _NS_PER_US + t_us) / _US_PER_S
+        instants = t_s + _CHANNEL_OFFSETS_S
+        volts = np.empty((n, N_CHANNELS))
+        for k in range(n):
+            volts[k] = np.asarray(self.source.convert(instants.copy()), dtype=float)
+        for ch, mode in enumerate(self._saturate):
+            if mode is not None:
+                volts[:, ch] = _SATURATION_V[mode]
+        conv = volts_to_code(volts)
+        mean = (conv.sum(axis=0) + n // 2) // n
+        codes = [int(c) for c in mean]
+        fault_bits = 0
+        for ch in range(N_CHANNELS):
+            if self._stuck[ch] is not None:
+                codes[ch] = self._stuck[ch]
+            if self._sensor_fault[ch]:
+                codes[ch] = CODE_MAX
+                fault_bits |= 1 << (4 + ch)
+        rail_bits = sum(1 << ch for ch, c in enumerate(codes) if c in (0, CODE_MAX))
+        counter = self._counter
+        if len(self._fifo) >= FIFO_DEPTH:
+            self._fifo.popleft()
+            self._overflow = True
+        self._fifo.append((counter, *codes))
+        self._latest_low_status = rail_bits | fault_bits
+        self._latest = TruthScan(
+            counter=counter,
+            time_us=t_us % U32_MOD,
+            codes=(codes[0], codes[1], codes[2], codes[3]),
+            status=self.status,
+            t_s=t_s,
+            boot=self._boot,
+        )
+        self.truth.append(self._latest)
+        if self.truth_limit is not None and len(self.truth) >= 2 * self.truth_limit:
+            del self.truth[: -self.truth_limit]  # amortized O(1) per scan
+        self._counter = (counter + 1) % U32_MOD
+
+    def _require_power(self) -> None:
+        if not self.powered:
+            raise DeviceOffError("the module is powered off")
+
+    @property
+    def latest(self) -> TruthScan:
+        """The latest scan (what registers 0..7 and ``#AA`` report)."""
+        self._require_power()
+        assert self._latest is not None  # the first scan is taken at power-on
+        return self._latest
+
+    @property
+    def status(self) -> int:
+        """Status register: rail and fault bits of the latest scan plus the latches."""
+        return (
+            self._latest_low_status
+            | (STATUS_OVERFLOW if self._overflow else 0)
+            | (STATUS_RESTART if self._restart else 0)
+        )
+
+    @property
+    def fifo_level(self) -> int:
+        return len(self._fifo)
+
+    @property
+    def scan_rate_hz(self) -> int:
+        return self._scan_rate
+
+    @property
+    def oversampling(self) -> int:
+        return self._oversampling
+
+    @property
+    def ascii_checksum(self) -> bool:
+        """Holding register 4 (shared by Modbus and the ASCII protocol)."""
+        return self._ascii_checksum
+
+    @property
+    def firmware_text(self) -> str:
+        """Firmware version as ``M.mm`` (e.g. ``2.01``)."""
+        return f"{self.firmware[0]}.{self.firmware[1]:02d}"
+
+    # ------------------------------------------------------------------ registers
+
+    def snapshot_registers(self) -> list[int]:
+        """Input registers 0..9: one consistent view of the latest scan."""
+        s = self.latest
+        return [
+            *split_u32(s.counter),
+            *split_u32(s.time_us),
+            *s.codes,
+            self.status,
+            len(self._fifo),
+        ]
+
+    def identity_registers(self) -> list[int]:
+        """Input registers 512..515: model, firmware, serial number."""
+        major, minor = self.firmware
+        return [MODEL_CODE, major * 256 + minor, *split_u32(self.serial_number)]
+
+    def read_input_registers(self, address: int, count: int) -> list[int]:
+        """Function 04. Reading the FIFO window pops the scans it returns.
+
+        Raises :class:`DeviceError` with 03 for a count outside 1..125 or a FIFO-window
+        read whose count is not a multiple of 6, and 02 for addresses outside 0..9,
+        256..375, 512..515, a FIFO-window read not starting at 256 or reading past 375
+        (more than 20 scans).
+        """
+        self._require_power()
+        if not 1 <= count <= MODBUS_MAX_READ:
+            raise DeviceError(ILLEGAL_VALUE, f"count {count} outside 1..{MODBUS_MAX_READ}")
+        end = address + count
+        if 0 <= address and end <= IR_SNAPSHOT_LEN:
+            return self.snapshot_registers()[address:end]
+        if IR_MODEL <= address and end <= IR_MODEL + IR_IDENTITY_LEN:
+            return self.identity_registers()[address - IR_MODEL : end - IR_MODEL]
+        if address == IR_FIFO and end <= IR_FIFO_END:
+            if count % FIFO_SCAN_REGS:
+                raise DeviceError(ILLEGAL_VALUE, f"FIFO read of {count} registers, not N*6")
+            return self.pop_fifo(count // FIFO_SCAN_REGS)
+        raise DeviceError(ILLEGAL_ADDRESS, f"input registers {address}..{end - 1}")
+
+    def pop_fifo(self, n: int) -> list[int]:
+        """Remove the ``n`` (1..20) oldest scans; registers as the FIFO window returns them.
+
+        Missing scans (fewer than ``n`` waiting) are all-0xFFFF filler scans.
+        """
+        if not 1 <= n <= FIFO_MAX_SCANS_PER_READ:
+            raise DeviceError(ILLEGAL_VALUE, f"{n} scans per FIFO read")
+        regs: list[int] = []
+        for _ in range(n):
+            if self._fifo:
+                counter, *codes = self._fifo.popleft()
+                regs += [*split_u32(counter), *codes]
+            else:
+                regs += [FIFO_FILLER] * FIFO_SCAN_REGS
+        return regs
+
+    def holding_registers(self) -> list[int]:
+        """Holding registers 0..4 as read (the command registers 2 and 3 read 0)."""
+        return [self._scan_rate, self._oversampling, 0, 0, int(self._ascii_checksum)]
+
+    def read_holding_registers(self, address: int, count: int) -> list[int]:
+        """Function 03 (03 for a count outside 1..125, 02 outside 0..4)."""
+        self._require_power()
+        if not 1 <= count <= MODBUS_MAX_READ:
+            raise DeviceError(ILLEGAL_VALUE, f"count {count} outside 1..{MODBUS_MAX_READ}")
+        if not (0 <= address and address + count <= HR_COUNT):
+            raise DeviceError(
+                ILLEGAL_ADDRESS, f"holding registers {address}..{address + count - 1}"
+            )
+        return self.holding_registers()[address : address + count]
+
+    def write_registers(self, address: int, values: list[int]) -> None:
+        """Functions 06 and 16: all values are checked before any is applied.
+
+        02 for addresses outside 0..4; 03 for a count outside 1..123 or a value out of
+        range: rate 1..200, oversampling 1/2/4/8/16, command registers 2 and 3 take 0
+        (no-op) or 1, checksum mode 0 or 1. Values are applied in address order.
+        """
+        self._require_power()
+        if not 1 <= len(values) <= MODBUS_MAX_WRITE:
+            raise DeviceError(ILLEGAL_VALUE, f"count {len(values)} outside 1..{MODBUS_MAX_WRITE}")
+        if not (0 <= address and address + len(values) <= HR_COUNT):
+            raise DeviceError(
+                ILLEGAL_ADDRESS, f"holding registers {address}..{address + len(values) - 1}"
+            )
+        for reg, value in enumerate(values, start=address):
+            if not _holding_value_ok(reg, value):
+                raise DeviceError(ILLEGAL_VALUE, f"holding register {reg} = {value}")
+        for reg, value in enumerate(values, start=address):
+            if reg == HR_SCAN_RATE:
+                self.set_scan_rate(value)
+            elif reg == HR_OVERSAMPLING:
+                self._oversampling = value
+            elif reg == HR_CLEAR_FIFO and value == 1:
+                self._fifo.clear()
+                self._overflow = False
+            elif reg == HR_CLEAR_RESTART and value == 1:
+                self._restart = False
+            elif reg == HR_ASCII_CHECKSUM:
+                self._ascii_checksum = bool(value)
+
+    def set_scan_rate(self, rate_hz: int) -> None:
+        """Set the scan rate; a change re-anchors the schedule at the current time."""
+        self._require_power()
+        if not SCAN_RATE_MIN_HZ <= rate_hz <= SCAN_RATE_MAX_HZ:
+            raise DeviceError(ILLEGAL_VALUE, f"scan rate {rate_hz} Hz")
+        if rate_hz == self._scan_rate:
+            return
+        self.sync(self._now_ns)
+        self._scan_rate = rate_hz
+        self._anchor_us = self.uptime_us
+        self._next_j = 1
+
+    # ------------------------------------------------------------------ channel faults
+
+    def set_stuck(self, channel: int, code: int | None) -> None:
+        """Channel (1..4) reports ``code`` on every scan from now on; None releases it."""
+        ch = _channel_index(channel)
+        if code is not None and not 0 <= code <= CODE_MAX:
+            raise ValueError(f"code must be 0..{CODE_MAX}")
+        self._stuck[ch] = code
+
+    def set_sensor_fault(self, channel: int, on: bool) -> None:
+        """Sensor fault on a channel (1..4): it reads 4095 with its fault bit set."""
+        self._sensor_fault[_channel_index(channel)] = bool(on)
+
+    def set_saturation(self, channel: int, mode: str | None) -> None:
+        """The channel's conditioner output sits beyond the rail ("high"/"low"), or not."""
+        if mode not in (None, "high", "low"):
+            raise ValueError('mode must be "high", "low" or None')
+        self._saturate[_channel_index(channel)] = mode
+
+    def clear_channel_faults(self) -> None:
+        """Release every stuck channel, sensor fault and saturation."""
+        self._stuck = [None] * N_CHANNELS
+        self._sensor_fault = [False] * N_CHANNELS
+        self._saturate = [None] * N_CHANNELS
+
+
+def _channel_index(channel: int) -> int:
+    if not 1 <= channel <= N_CHANNELS:
+        raise ValueError(f"channel must be 1..{N_CHANNELS}, got {channel}")
+    return channel - 1
+
+
+def _holding_value_ok(reg: int, value: int) -> bool:
+    if reg == HR_SCAN_RATE:
+        return SCAN_RATE_MIN_HZ <= value <= SCAN_RATE_MAX_HZ
+    if reg == HR_OVERSAMPLING:
+        return value in OVERSAMPLING_CHOICES
+    return value in (0, 1)

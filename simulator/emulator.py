@@ -1,0 +1,297 @@
+"""The emulated LDQ-412 on a real wire: device model + server, in a background thread.
+
+::
+
+    with Emulator("modbus-tcp", clock=ManualClock()) as emu:
+        daq = open_daq(emu.url)          # modbus-tcp://127.0.0.1:40123?unit=1
+        emu.clock.advance(1.0)           # 20 scans happen
+        emu.faults.restart()
+        emu.truth                        # every scan the module produced
+
+Transports:
+
+- ``"modbus-tcp"``: pymodbus TCP server on ``host:port`` (port 0: a free port).
+- ``"modbus-rtu"``: pymodbus RTU server on a pseudo-terminal; the driver opens the other
+  end (``/dev/pts/N``) with pyserial.
+- ``"ascii"``: the module's ASCII protocol on a pseudo-terminal, same arrangement.
+
+Everything (servers, pty relay, a 10 ms housekeeping tick) runs on one asyncio loop in
+one thread, started by :meth:`Emulator.start` and stopped by :meth:`Emulator.close`.
+With a :class:`~simulator.clock.ManualClock`, the same scenario, seed and request sequence
+put the same bytes on the wire.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import threading
+from typing import Any
+
+import numpy as np
+
+from drivers.ldq412 import ASCII_DEFAULT_ADDR, MODBUS_UNIT, SCAN_RATE_DEFAULT_HZ, SERIAL_BAUD
+
+from .ascii_server import AsciiServer
+from .clock import Clock, RealClock
+from .device import LDQ412, TruthScan
+from .faults import FaultInjector
+from .handle import DeviceHandle
+from .modbus_server import ModbusRtuHost, ModbusTcpHost
+from .pty import PtyLink
+from .source import SignalSource, TestSource
+from .wire import WireFaults
+
+_log = logging.getLogger(__name__)
+
+TRANSPORTS = ("modbus-tcp", "modbus-rtu", "ascii")
+TICK_S = 0.01
+_START_TIMEOUT_S = 5.0
+_STOP_TIMEOUT_S = 5.0
+_GARBAGE_STREAM = 0x6A756E6B  # second seed word: the garbage rng differs from the source's
+
+
+class Emulator:
+    """An emulated LDQ-412 reachable at :attr:`url`; a context manager.
+
+    transport: "modbus-tcp", "modbus-rtu" or "ascii".
+    source: the analog inputs; None: :class:`~simulator.source.TestSource` (seed).
+    scan_rate_hz, ascii_checksum: power-on values of holding registers 0 and 4.
+    clock: None: :class:`~simulator.clock.RealClock`.
+    seed: seeds the built-in source and the garbage bytes.
+    serial_number, firmware: identity registers.
+    unit: Modbus unit id (1..247). ascii_addr: ASCII module address (0..255).
+    initial_uptime_s: the module was powered on this long ago (for 32-bit wraps); only
+        the last 256 scans of that time exist (in the FIFO, overflow latched if more).
+    host, port: TCP listening address (port 0: a free port, reported in ``url``).
+    truth_limit: None keeps every scan in :attr:`truth`; N keeps at least the latest N
+        (bounded memory for long real-time runs).
+    """
+
+    def __init__(
+        self,
+        transport: str,
+        source: SignalSource | None = None,
+        *,
+        scan_rate_hz: int = SCAN_RATE_DEFAULT_HZ,
+        clock: Clock | None = None,
+        seed: int = 0,
+        serial_number: int = 0x00C0FFEE,
+        firmware: tuple[int, int] = (2, 1),
+        unit: int = MODBUS_UNIT,
+        ascii_addr: int = ASCII_DEFAULT_ADDR,
+        ascii_checksum: bool = False,
+        initial_uptime_s: float = 0.0,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        truth_limit: int | None = None,
+    ) -> None:
+        if transport not in TRANSPORTS:
+            raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
+        if not 1 <= unit <= 247:
+            raise ValueError("unit must be 1..247")
+        if not 0 <= ascii_addr <= 0xFF:
+            raise ValueError("ascii_addr must be 0..255")
+        self.transport = transport
+        self.clock: Clock = clock if clock is not None else RealClock()
+        self.source: SignalSource = source if source is not None else TestSource(seed)
+        self.unit = unit
+        self.ascii_addr = ascii_addr
+        self.host = host
+        self.port = port
+        self.device = LDQ412(
+            self.source,
+            now_ns=self.clock.now_ns(),
+            scan_rate_hz=scan_rate_hz,
+            serial_number=serial_number,
+            firmware=firmware,
+            ascii_checksum=ascii_checksum,
+            initial_uptime_s=initial_uptime_s,
+            truth_limit=truth_limit,
+        )
+        self.wire = WireFaults(rng=np.random.default_rng([seed, _GARBAGE_STREAM]))
+        self.handle = DeviceHandle(self.device, self.clock, self.wire)
+        self.faults = FaultInjector(self.handle, self._follow_link_state)
+        self.url = ""
+
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._startup_error: BaseException | None = None
+        self._tcp: ModbusTcpHost | None = None
+        self._rtu: ModbusRtuHost | None = None
+        self._ascii: AsciiServer | None = None
+        self._link: PtyLink | None = None
+        self._reconcile_lock: asyncio.Lock | None = None
+        self._seen_boot = self.device.boot
+
+    # ------------------------------------------------------------------ public
+
+    @property
+    def lock(self) -> threading.RLock:
+        """Hold this to read :attr:`device` consistently while the servers run.
+
+        Do not call :attr:`faults` methods while holding it: link and power changes wait
+        for the server thread, which needs the lock.
+        """
+        return self.handle.lock
+
+    @property
+    def truth(self) -> list[TruthScan]:
+        """Every scan the module produced so far, in order (a copy, synced to the clock)."""
+        with self.handle.synced() as device:
+            return list(device.truth)
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> Emulator:
+        """Start the servers; returns once :attr:`url` is reachable. Idempotent."""
+        if self._thread is not None:
+            return self
+        ready = threading.Event()
+        self._thread = threading.Thread(
+            target=self._run, args=(ready,), name=f"ldq412-emulator[{self.transport}]", daemon=True
+        )
+        self._thread.start()
+        if not ready.wait(_START_TIMEOUT_S):
+            self.close()
+            raise TimeoutError("emulator did not start")
+        if self._startup_error is not None:
+            self.close()
+            raise RuntimeError("emulator failed to start") from self._startup_error
+        return self
+
+    def close(self) -> None:
+        """Stop the servers and the thread, close every fd. Idempotent."""
+        if self._thread is not None and threading.current_thread() is self._thread:
+            raise RuntimeError("Emulator.close() called from the emulator's own thread")
+        thread, self._thread = self._thread, None
+        if thread is None:
+            return
+        loop, stop = self._loop, self._stop
+        if loop is not None and stop is not None:
+            with contextlib.suppress(RuntimeError):  # loop already closed
+                loop.call_soon_threadsafe(stop.set)
+        thread.join(_STOP_TIMEOUT_S)
+        if thread.is_alive():
+            raise RuntimeError("emulator thread did not stop")
+
+    def __enter__(self) -> Emulator:
+        return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"Emulator({self.transport!r}, url={self.url!r})"
+
+    # ------------------------------------------------------------------ thread
+
+    def _run(self, ready: threading.Event) -> None:
+        loop = asyncio.new_event_loop()
+        self._loop = loop
+        try:
+            loop.run_until_complete(self._main(ready))
+        finally:
+            pending = asyncio.all_tasks(loop)
+            for task in pending:
+                task.cancel()
+            if pending:
+                loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+            loop.run_until_complete(loop.shutdown_asyncgens())
+            loop.close()
+            ready.set()
+
+    async def _main(self, ready: threading.Event) -> None:
+        self._stop = asyncio.Event()
+        self._reconcile_lock = asyncio.Lock()
+        try:
+            await self._open()
+        except BaseException as exc:  # reported to start()'s caller
+            self._startup_error = exc
+            await self._teardown()
+            ready.set()
+            return
+        ready.set()
+        tick = asyncio.create_task(self._tick())
+        await self._stop.wait()
+        tick.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await tick
+        await self._teardown()
+
+    async def _open(self) -> None:
+        loop = asyncio.get_running_loop()
+        if self.transport == "modbus-tcp":
+            self._tcp = ModbusTcpHost(self.handle, self.unit, self.host, self.port)
+            await self._tcp.listen()
+            self.port = self._tcp.port
+            self.url = f"modbus-tcp://{self.host}:{self.port}?unit={self.unit}"
+            return
+        self._link = PtyLink()
+        self._link.start(loop, connected=lambda: not self.wire.disconnected)
+        if self.transport == "modbus-rtu":
+            self._rtu = ModbusRtuHost(self.handle, self.unit, self._link.device_path)
+            await self._rtu.listen()
+            self.url = f"modbus-rtu://{self._link.host_path}?baud={SERIAL_BAUD}&unit={self.unit}"
+        else:
+            self._ascii = AsciiServer(self.handle, self._link.device_fd, self.ascii_addr)
+            self._ascii.start(loop)
+            self.url = (
+                f"ascii://{self._link.host_path}?baud={SERIAL_BAUD}"
+                f"&addr={self.ascii_addr:02X}&checksum={int(self.device.power_on_ascii_checksum)}"
+            )
+
+    async def _teardown(self) -> None:
+        if self._tcp is not None:
+            self._tcp.close()  # clients see an orderly close (FIN)
+        if self._rtu is not None:
+            self._rtu.close()
+        if self._ascii is not None:
+            self._ascii.close()
+        if self._link is not None:
+            self._link.close()
+        await asyncio.sleep(0)  # let transports deliver connection_lost before the loop ends
+
+    async def _tick(self) -> None:
+        """Housekeeping: keep scanning (truth grows even if nobody reads) and let the
+        TCP endpoint follow power and link state."""
+        while True:
+            await asyncio.sleep(TICK_S)
+            try:
+                await self._reconcile()
+            except Exception:  # keep ticking: a failed re-listen is retried next tick
+                _log.exception("emulator housekeeping failed")
+
+    async def _reconcile(self) -> None:
+        assert self._reconcile_lock is not None
+        async with self._reconcile_lock:
+            with self.handle.synced() as device:
+                powered, boot = device.powered, device.boot
+                disconnected = self.wire.disconnected
+            tcp = self._tcp
+            if tcp is None:
+                return
+            if disconnected or (powered and boot != self._seen_boot):
+                tcp.reset_connections()
+            if powered:
+                self._seen_boot = boot
+            want_listening = powered and not disconnected
+            if want_listening and not tcp.listening:
+                await tcp.listen()
+            elif not want_listening and tcp.listening:
+                tcp.stop_listening()
+
+    def _follow_link_state(self) -> None:
+        """Called by the fault injector: apply link/power changes before returning."""
+        loop = self._loop
+        if loop is None or not self.running or loop.is_closed():
+            return
+        if threading.current_thread() is self._thread:
+            loop.create_task(self._reconcile())
+            return
+        future = asyncio.run_coroutine_threadsafe(self._reconcile(), loop)
+        future.result(_STOP_TIMEOUT_S)

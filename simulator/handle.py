@@ -1,0 +1,42 @@
+"""The device model, its clock and the wire faults behind one lock.
+
+Servers (in the emulator's thread) and fault injection or ground-truth reads (in the
+caller's thread) both go through a :class:`DeviceHandle`, which serializes access and
+brings the model up to the clock's time first.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from .clock import Clock
+from .device import LDQ412
+from .wire import WireFaults
+
+
+class DeviceHandle:
+    """Serialized, clock-synced access to an :class:`LDQ412` and its :class:`WireFaults`."""
+
+    def __init__(self, device: LDQ412, clock: Clock, wire: WireFaults) -> None:
+        self.device = device
+        self.clock = clock
+        self.wire = wire
+        self.lock = threading.RLock()
+
+    @contextmanager
+    def synced(self) -> Iterator[LDQ412]:
+        """Hold the lock with the device synced to the clock's current time."""
+        with self.lock:
+            self.device.sync(self.clock.now_ns())
+            yield self.device
+
+    def responsive_locked(self) -> bool:
+        """Whether the module would answer now (call holding the lock, after a sync):
+        powered, not stalled, link up."""
+        return (
+            self.device.powered
+            and not self.wire.disconnected
+            and not self.wire.stalled(self.device.now_ns)
+        )

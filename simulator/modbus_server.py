@@ -1,0 +1,284 @@
+"""Modbus TCP and RTU servers for the emulated module, on pymodbus 3.16's server.
+
+pymodbus does all framing, MBAP headers and CRCs. The module's behaviour is attached
+through pymodbus' own extension points:
+
+- a :class:`pymodbus.simulator.SimDevice` whose register blocks mirror the module's
+  address map (addresses outside it answer exception 02 inside pymodbus) and whose
+  ``action`` hook runs the device model on every access: it fills the registers from the
+  model before a read (so a FIFO-window read pops scans), applies writes, and returns the
+  model's exception codes (02/03);
+- ``custom_pdu`` request classes: reads of 0 or more than 125 registers answer 03 (the
+  stock classes reject them while decoding, which pymodbus answers with 01), and every
+  function the module does not implement (anything but 03, 04, 06, 16) answers 01;
+- ``trace_pdu`` drops requests the module would not see (another unit address, module
+  off, stalled) before they touch the datastore, and ``trace_packet`` puts wire faults on
+  outgoing frames (garbage before, broken CRC/MBAP) and silences anything still not due.
+
+Decisions where the datasheet is silent: requests for another unit id get no answer on
+TCP either (as on RS-485); a broadcast (unit 0) is ignored.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import struct
+
+from pymodbus.constants import ExcCodes
+from pymodbus.datastore import ModbusServerContext
+from pymodbus.framer import FramerType
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
+from pymodbus.pdu.decoders import DecodePDU
+from pymodbus.pdu.register_message import (
+    ReadHoldingRegistersRequest,
+    ReadInputRegistersRequest,
+)
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from drivers.ldq412 import HR_COUNT, IR_FIFO, IR_FIFO_END, IR_MODEL, IR_SNAPSHOT_LEN, SERIAL_BAUD
+
+from .device import MODBUS_MAX_READ, DeviceError, DeviceOffError
+from .handle import DeviceHandle
+from .wire import Corrupter, corrupt_mbap, corrupt_rtu
+
+SUPPORTED_FUNCTIONS = (3, 4, 6, 16)
+
+
+class _CheckedReadHolding(ReadHoldingRegistersRequest):
+    """Function 03 whose count is checked when served (03), not while decoding (01)."""
+
+    def decode(self, data: bytes) -> None:
+        self.address, self.count = struct.unpack(">HH", data[:4])
+
+    async def datastore_update(self, context: ModbusServerContext, device_id: int) -> ModbusPDU:
+        if not 1 <= self.count <= MODBUS_MAX_READ:
+            return ExceptionResponse(self.function_code, ExcCodes.ILLEGAL_VALUE)
+        return await super().datastore_update(context, device_id)
+
+
+class _CheckedReadInput(_CheckedReadHolding):
+    """Function 04, count checked when served."""
+
+    function_code = ReadInputRegistersRequest.function_code
+
+
+class _Unsupported(ModbusPDU):
+    """A function the module does not implement: answered with exception 01."""
+
+    def decode(self, data: bytes) -> None:
+        """Nothing to decode: the request is refused as a whole."""
+
+    async def datastore_update(self, context: ModbusServerContext, device_id: int) -> ModbusPDU:
+        return ExceptionResponse(self.function_code, ExcCodes.ILLEGAL_FUNCTION)
+
+
+# RTU request sizes pymodbus cannot derive from its stock class (43 has sub-types).
+_RTU_FRAME_SIZE_OVERRIDE = {43: 7}
+_RTU_BARE_FRAME = 4
+
+
+def custom_pdus() -> list[type[ModbusPDU]]:
+    """Request classes replacing pymodbus' stock ones in the module's servers.
+
+    Every function code 1..127 other than 03, 04, 06, 16 answers 01; the RTU frame size
+    of a request comes from pymodbus' stock class where it has one (so an RTU request
+    is consumed whole), else a bare ``address fc crc`` frame is assumed.
+    """
+    classes: list[type[ModbusPDU]] = [_CheckedReadHolding, _CheckedReadInput]
+    for fc in range(1, 0x80):
+        if fc in SUPPORTED_FUNCTIONS:
+            continue
+        stock = DecodePDU.pdu_table.get(fc, (None, None))[0]
+        attrs = {
+            "function_code": fc,
+            "rtu_frame_size": _RTU_FRAME_SIZE_OVERRIDE.get(
+                fc, stock.rtu_frame_size if stock else _RTU_BARE_FRAME
+            ),
+            "rtu_byte_count_pos": stock.rtu_byte_count_pos if stock else 0,
+        }
+        classes.append(type(f"_Unsupported{fc}", (_Unsupported,), attrs))
+    return classes
+
+
+class ModbusAdapter:
+    """Connects pymodbus' hooks to the device model for one server.
+
+    unit: the module's unit id. unit_index: where the unit id sits in an outgoing frame
+    (6 for TCP after the MBAP's first six bytes, 0 for RTU). corrupter: breaks a frame.
+    """
+
+    def __init__(
+        self, handle: DeviceHandle, unit: int, unit_index: int, corrupter: Corrupter
+    ) -> None:
+        self.handle = handle
+        self.unit = unit
+        self.unit_index = unit_index
+        self.corrupter = corrupter
+
+    def sim_device(self) -> SimDevice:
+        """The register map (holes answer 02 inside pymodbus) with the device as action."""
+        regs = DataType.REGISTERS
+        return SimDevice(
+            id=self.unit,
+            simdata=(
+                [SimData(0, values=False, datatype=DataType.BITS)],  # never reached: fc 1/5/15
+                [SimData(0, values=False, datatype=DataType.BITS)],  # never reached: fc 2
+                [SimData(0, count=HR_COUNT, datatype=regs)],
+                [
+                    SimData(0, count=IR_SNAPSHOT_LEN, datatype=regs),
+                    SimData(IR_FIFO, count=IR_FIFO_END - IR_FIFO, datatype=regs),
+                    SimData(IR_MODEL, count=4, datatype=regs),
+                ],
+            ),
+            action=self.action,
+        )
+
+    async def action(
+        self,
+        function_code: int,
+        start_address: int,
+        address: int,
+        count: int,
+        registers: list[int],
+        set_values: list[int] | list[bool] | None,
+    ) -> ExcCodes | None:
+        """pymodbus access hook: run the request on the device model.
+
+        For a read, fills ``registers`` (pymodbus returns that slice). For a write, applies
+        it; pymodbus then stores the values, and its read-back of a function 06 (used for
+        the echo) returns exactly the value written.
+        """
+        offset = address - start_address
+        try:
+            with self.handle.synced() as device:
+                if function_code == 4:
+                    registers[offset : offset + count] = device.read_input_registers(address, count)
+                elif function_code == 3:
+                    registers[offset : offset + count] = device.read_holding_registers(
+                        address, count
+                    )
+                elif function_code in (6, 16):
+                    if set_values is not None:
+                        device.write_registers(address, [int(v) for v in set_values])
+                else:
+                    return ExcCodes.ILLEGAL_FUNCTION
+        except DeviceError as exc:
+            return ExcCodes(exc.code)
+        except DeviceOffError:
+            return ExcCodes.DEVICE_FAILURE  # never sent: trace_packet silences an off module
+        return None
+
+    def trace_pdu(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU | None:
+        """Drop (return None) a received request the module would not act on."""
+        if sending:
+            return pdu
+        with self.handle.synced():
+            if pdu.dev_id != self.unit or not self.handle.responsive_locked():
+                return None
+        return pdu
+
+    def trace_packet(self, sending: bool, packet: bytes) -> bytes:
+        """Apply wire faults to an outgoing frame; b"" sends nothing."""
+        if not sending or not packet:
+            return packet
+        with self.handle.synced():
+            if len(packet) <= self.unit_index or packet[self.unit_index] != self.unit:
+                return b""
+            if not self.handle.responsive_locked():
+                return b""
+            return self.handle.wire.outgoing(packet, self.corrupter)
+
+
+def _reset(conn: object) -> None:
+    """Abort a TCP connection with RST (SO_LINGER 0), as a rebooted host's stack does."""
+    transport = getattr(conn, "transport", None)
+    if transport is None:
+        return
+    sock = transport.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    transport.abort()
+
+
+class ModbusTcpHost:
+    """The module's Modbus TCP endpoint: a pymodbus server that can stop listening.
+
+    A power-off stops listening (connection attempts are refused) and leaves established
+    connections open but silent; power-on resets them (RST, as the module's rebooted
+    stack does on the client's next segment) and listens again. A cut link resets the
+    connections and refuses new ones until the link is back.
+    """
+
+    def __init__(self, handle: DeviceHandle, unit: int, host: str = "127.0.0.1", port: int = 0):
+        self.adapter = ModbusAdapter(handle, unit, 6, corrupt_mbap)
+        self.host = host
+        self.port = port
+        self._servers: list[ModbusTcpServer] = []
+        self.listening = False
+
+    async def listen(self) -> None:
+        """Start listening (on the first call, binds ``port``; 0 picks a free one)."""
+        server = ModbusTcpServer(
+            self.adapter.sim_device(),
+            address=(self.host, self.port),
+            trace_packet=self.adapter.trace_packet,
+            trace_pdu=self.adapter.trace_pdu,  # type: ignore[arg-type]
+            custom_pdu=custom_pdus(),
+        )
+        await server.serve_forever(background=True)
+        self._servers.append(server)
+        self.port = server.transport.sockets[0].getsockname()[1]  # type: ignore[attr-defined]
+        self.listening = True
+
+    def stop_listening(self) -> None:
+        """Refuse new connections; established ones stay open."""
+        if self.listening:
+            self._servers[-1].transport.close()  # the asyncio.Server: stops accepting only
+            self.listening = False
+
+    def reset_connections(self) -> None:
+        """RST every established connection and forget servers that have none left."""
+        for server in self._servers:
+            for conn in list(server.active_connections.values()):
+                _reset(conn)
+        keep = self._servers[-1:] if self.listening else []
+        for server in self._servers:
+            if server not in keep:
+                server.close()
+        self._servers = keep
+
+    def close(self) -> None:
+        self.stop_listening()
+        for server in self._servers:
+            server.close()
+        self._servers = []
+
+
+class ModbusRtuHost:
+    """The module's Modbus RTU endpoint: a pymodbus serial server on a pty slave."""
+
+    def __init__(self, handle: DeviceHandle, unit: int, port_path: str, baud: int = SERIAL_BAUD):
+        self.adapter = ModbusAdapter(handle, unit, 0, corrupt_rtu)
+        self.port_path = port_path
+        self.baud = baud
+        self._server: ModbusSerialServer | None = None
+
+    async def listen(self) -> None:
+        self._server = ModbusSerialServer(
+            self.adapter.sim_device(),
+            framer=FramerType.RTU,
+            port=self.port_path,
+            baudrate=self.baud,
+            trace_packet=self.adapter.trace_packet,
+            trace_pdu=self.adapter.trace_pdu,  # type: ignore[arg-type]
+            custom_pdu=custom_pdus(),
+        )
+        await self._server.serve_forever(background=True)
+
+    def close(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            self._server = None

@@ -1,0 +1,88 @@
+"""What the four LVDT conditioners present at the LDQ-412's inputs.
+
+A :class:`SignalSource` is the analog world seen by the emulated module: the device model
+calls :meth:`SignalSource.convert` once per conversion (so N times per scan with
+oversampling N) with the four channel instants of the scan, and quantizes what it gets.
+
+:class:`TestSource` is the built-in deterministic source used when the emulator is given
+none: slow sines per channel plus seeded Gaussian noise. :class:`ConstantSource` holds
+fixed voltages (with no noise): handy for pinning exact codes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from drivers.ldq412 import N_CHANNELS
+
+
+@runtime_checkable
+class SignalSource(Protocol):
+    """The analog inputs of the module."""
+
+    def convert(self, t: np.ndarray) -> np.ndarray:
+        """Volts the four LVDT conditioners present at instants ``t``.
+
+        ``t`` has shape (4,): seconds of device time since power-on, channel i (0-based)
+        at ``t_scan + i * 250e-6``. Returns shape (4,) float volts, noise included.
+        Called once per conversion, so N times per scan with oversampling N; must be
+        deterministic for a given seed and call sequence.
+        """
+        ...
+
+
+class TestSource:
+    """Slow sines per channel plus Gaussian noise from ``numpy.random.default_rng(seed)``.
+
+    Channel i: ``offset[i] + amplitude[i] * sin(2 pi freq[i] t + phase[i]) + N(0, noise_v)``.
+    The defaults stay well inside ±10 V (no rail) and move by less than one code between
+    the conversions of one scan. Each call draws exactly four normals, so the noise stream
+    depends only on the seed and the number of calls.
+    """
+
+    __test__ = False  # not a pytest test class, despite the name
+
+    def __init__(
+        self,
+        seed: int = 0,
+        *,
+        amplitude_v: Sequence[float] = (4.0, 3.0, 5.0, 2.0),
+        freq_hz: Sequence[float] = (0.05, 0.07, 0.11, 0.13),
+        offset_v: Sequence[float] = (0.5, -1.0, 0.0, 2.5),
+        phase_rad: Sequence[float] = (0.0, 1.0, 2.0, 3.0),
+        noise_v: float = 0.005,
+    ) -> None:
+        self.amplitude_v = np.asarray(amplitude_v, dtype=float)
+        self.freq_hz = np.asarray(freq_hz, dtype=float)
+        self.offset_v = np.asarray(offset_v, dtype=float)
+        self.phase_rad = np.asarray(phase_rad, dtype=float)
+        for name in ("amplitude_v", "freq_hz", "offset_v", "phase_rad"):
+            if getattr(self, name).shape != (N_CHANNELS,):
+                raise ValueError(f"{name} needs {N_CHANNELS} values")
+        self.noise_v = float(noise_v)
+        self._rng = np.random.default_rng(seed)
+
+    def clean(self, t: np.ndarray) -> np.ndarray:
+        """The noise-free volts at instants ``t`` (shape (4,)); draws no random numbers."""
+        t = np.asarray(t, dtype=float)
+        return self.offset_v + self.amplitude_v * np.sin(
+            2.0 * np.pi * self.freq_hz * t + self.phase_rad
+        )
+
+    def convert(self, t: np.ndarray) -> np.ndarray:
+        return self.clean(t) + self._rng.normal(0.0, self.noise_v, N_CHANNELS)
+
+
+class ConstantSource:
+    """Fixed volts on each channel, no noise. ``volts`` may be changed between scans."""
+
+    def __init__(self, volts: Sequence[float]) -> None:
+        self.volts = np.asarray(volts, dtype=float)
+        if self.volts.shape != (N_CHANNELS,):
+            raise ValueError(f"volts needs {N_CHANNELS} values")
+
+    def convert(self, t: np.ndarray) -> np.ndarray:
+        return self.volts.copy()
