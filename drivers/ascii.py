@@ -1,0 +1,333 @@
+"""LDQ-412 over its vendor ASCII protocol (pyserial).
+
+URL: ``ascii:///dev/ttyUSB0?baud=115200&addr=01&checksum=1`` (address as two hex digits,
+default 01; checksum 0/1 must match the module's checksum mode, default 0).
+
+The protocol has no FIFO: read_scans polls ``#AA`` once per call and returns the scan if
+its counter is new; scans the module made between two polls are reported in Scan.missed.
+The protocol has no serial-number query (Identity.serial is None) and no command to clear
+the restart flag (clear_restart returns False); the restart flag therefore stays set after
+the first power-on, and later restarts are detected by the counter going backwards only
+(a restart followed by more scans than the module had made before, all between two polls,
+is not detectable over ASCII).
+
+Frames are built and parsed here (the vendor protocol is not a library's). The parser is
+strict: exact lengths, hex digits only, the ``>`` / ``!AA`` / ``?AA`` leads, uppercase
+checksum digits that match; anything else is a DAQProtocolError. Before every command the
+input buffer is discarded, so leftovers of a fault never poison the next answer.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from typing import ClassVar
+
+import serial
+
+from . import ldq412
+from .base import DAQ, DaqUrl, Identity, Scan, register_scheme
+from .errors import (
+    DAQDisconnected,
+    DAQIdentityError,
+    DAQInvalidCommand,
+    DAQProtocolError,
+    DAQTimeout,
+)
+from .sequence import RawSnapshot, Sequencer
+
+CR = ldq412.ASCII_CR
+_HEX_UPPER = frozenset(b"0123456789ABCDEF")
+_HEX_ANY = _HEX_UPPER | frozenset(b"abcdef")
+_PRINTABLE = frozenset(range(0x20, 0x7F))
+_FIRMWARE_RE = re.compile(r"^(\d{1,3})\.(\d{2})$")
+#: '>' + counter (8) + time (8) + 4 codes (3 each) + status (4)
+SCAN_BODY_LEN = 1 + 8 + 8 + 3 * ldq412.N_CHANNELS + 4
+#: longest answer we wait for (the scan answer plus checksum digits and CR)
+MAX_ANSWER_LEN = SCAN_BODY_LEN + 3
+
+
+def encode_command(lead: str, addr: int, tail: str = "", *, checksum: bool) -> bytes:
+    """Command frame: lead + AA (two uppercase hex digits) + tail [+ checksum] + CR."""
+    if lead not in ("#", "$", "%"):
+        raise ValueError(f"command lead {lead!r}")
+    frame = f"{lead}{addr:02X}{tail}".encode("ascii")
+    if checksum:
+        frame += ldq412.ascii_checksum(frame)
+    return frame + CR
+
+
+def _hex(field: bytes, what: str, *, upper_only: bool = False) -> int:
+    allowed = _HEX_UPPER if upper_only else _HEX_ANY
+    if not field or any(b not in allowed for b in field):
+        raise DAQProtocolError(f"{what}: {field!r} is not hex")
+    return int(field, 16)
+
+
+def unframe(line: bytes, *, checksum: bool) -> bytes:
+    """Answer line (ending in CR) -> body, checking printability and the checksum."""
+    if not line.endswith(CR):
+        raise DAQProtocolError(f"partial answer (no CR): {line!r}")
+    body = line[:-1]
+    if not body:
+        raise DAQProtocolError("empty answer")
+    if any(b not in _PRINTABLE for b in body):
+        raise DAQProtocolError(f"non-printable bytes in answer: {line!r}")
+    if checksum:
+        if len(body) < 3:
+            raise DAQProtocolError(f"answer too short for a checksum: {line!r}")
+        body, digits = body[:-2], body[-2:]
+        _hex(digits, "checksum", upper_only=True)
+        if digits != ldq412.ascii_checksum(body):
+            raise DAQProtocolError(
+                f"bad checksum in {line!r}: expected {ldq412.ascii_checksum(body)!r}"
+            )
+    return body
+
+
+def _check_not_rejected(body: bytes, addr: int) -> None:
+    if body[:1] == b"?":
+        if body == b"?%02X" % addr:
+            raise DAQInvalidCommand(f"module {addr:02X} answered ?{addr:02X} (invalid command)")
+        raise DAQProtocolError(f"malformed or foreign rejection: {body!r}")
+
+
+def parse_scan(body: bytes, addr: int) -> RawSnapshot:
+    """``#AA`` answer body -> RawSnapshot (fifo_level None)."""
+    _check_not_rejected(body, addr)
+    if body[:1] != b">" or len(body) != SCAN_BODY_LEN:
+        raise DAQProtocolError(f"not a scan answer ('>' + 32 hex digits): {body!r}")
+    counter = _hex(body[1:9], "counter")
+    time_us = _hex(body[9:17], "time")
+    c = [_hex(body[17 + 3 * i : 20 + 3 * i], f"channel {i + 1}") for i in range(4)]
+    status = _hex(body[29:33], "status")
+    return RawSnapshot(counter, time_us, (c[0], c[1], c[2], c[3]), status)
+
+
+def parse_channel(body: bytes, addr: int) -> int:
+    """``#AAn`` answer body (``>`` + 3 hex digits) -> code."""
+    _check_not_rejected(body, addr)
+    if body[:1] != b">" or len(body) != 4:
+        raise DAQProtocolError(f"not a channel answer ('>' + 3 hex digits): {body!r}")
+    return _hex(body[1:], "code")
+
+
+def parse_ack(body: bytes, addr: int) -> bytes:
+    """``!AA...`` answer body -> the payload after ``!AA``."""
+    _check_not_rejected(body, addr)
+    head = b"!%02X" % addr
+    if body[:3] != head:
+        raise DAQProtocolError(f"expected an answer starting {head!r}: {body!r}")
+    return body[3:]
+
+
+def parse_firmware(payload: bytes) -> str:
+    """``$AAF`` payload ``M.mm`` -> "M.mm"."""
+    m = _FIRMWARE_RE.match(payload.decode("ascii"))
+    if not m:
+        raise DAQProtocolError(f"firmware version {payload!r} is not M.mm")
+    return f"{int(m.group(1))}.{m.group(2)}"
+
+
+def parse_rate(payload: bytes) -> int:
+    """``$AAR`` payload (4 hex digits) -> Hz."""
+    if len(payload) != 4:
+        raise DAQProtocolError(f"scan rate {payload!r} is not 4 hex digits")
+    rate = _hex(payload, "scan rate")
+    if not ldq412.SCAN_RATE_MIN_HZ <= rate <= ldq412.SCAN_RATE_MAX_HZ:
+        raise DAQProtocolError(f"scan rate {rate} Hz outside the datasheet range")
+    return rate
+
+
+@register_scheme("ascii")
+class AsciiDAQ(DAQ):
+    """LDQ-412 on RS-232/RS-485 speaking the vendor ASCII protocol."""
+
+    url_params: ClassVar[frozenset[str]] = frozenset(
+        {"baud", "addr", "checksum", "parity", "stopbits"}
+    )
+
+    def __init__(
+        self,
+        port: str,
+        *,
+        baud: int = ldq412.SERIAL_BAUD,
+        addr: int = ldq412.ASCII_DEFAULT_ADDR,
+        checksum: bool = False,
+        parity: str = "N",
+        stopbits: int = 1,
+        timeout: float = ldq412.HOST_TIMEOUT_S,
+        check_identity: bool = True,
+    ) -> None:
+        if not 0 <= addr <= 0xFF:
+            raise ValueError(f"ASCII address {addr} outside 00..FF")
+        if parity not in ("N", "E", "O"):
+            raise ValueError(f"parity {parity!r} not N, E or O")
+        if stopbits not in (1, 2):
+            raise ValueError(f"stopbits {stopbits} not 1 or 2")
+        self.port, self.baud, self.addr, self.checksum = port, baud, addr, checksum
+        self.parity, self.stopbits, self.timeout = parity, stopbits, timeout
+        self.url = f"ascii://{port}?baud={baud}&addr={addr:02X}&checksum={int(checksum)}"
+        self._ser: serial.SerialBase | None = None
+        self._closed = False
+        self._pending: list[Scan] = []
+        try:
+            self._open()
+            self.identity = self._read_identity(check_identity)
+            self._seq = Sequencer(self._get_scan_rate())
+        except BaseException:
+            self.close()
+            raise
+
+    @classmethod
+    def from_url(cls, url: DaqUrl, *, timeout: float, check_identity: bool) -> AsciiDAQ:
+        if not url.path:
+            raise ValueError(f"{url.raw}: no serial port")
+        addr_text = url.params.get("addr", f"{ldq412.ASCII_DEFAULT_ADDR:02X}")
+        if not 1 <= len(addr_text) <= 2:
+            raise ValueError(f"{url.raw}: addr={addr_text!r} is not two hex digits")
+        return cls(
+            url.path,
+            baud=url.get_int("baud", ldq412.SERIAL_BAUD),
+            addr=url.get_int("addr", ldq412.ASCII_DEFAULT_ADDR, base=16),
+            checksum=url.get_bool("checksum", False),
+            parity=url.params.get("parity", "N").upper(),
+            stopbits=url.get_int("stopbits", 1),
+            timeout=timeout,
+            check_identity=check_identity,
+        )
+
+    # -- transport -----------------------------------------------------------------------
+
+    def _open(self) -> serial.SerialBase:
+        if self._closed:
+            raise DAQDisconnected(f"{self.url}: driver closed")
+        if self._ser is None:
+            try:
+                self._ser = serial.serial_for_url(
+                    self.port,
+                    baudrate=self.baud,
+                    bytesize=8,
+                    parity=self.parity,
+                    stopbits=self.stopbits,
+                    timeout=min(self.timeout, 0.01),
+                    write_timeout=self.timeout,
+                )
+            except (serial.SerialException, OSError, ValueError) as exc:
+                raise DAQDisconnected(f"{self.url}: cannot open port: {exc}") from exc
+        return self._ser
+
+    def _drop(self) -> None:
+        if self._ser is not None:
+            try:
+                self._ser.close()
+            except Exception:  # noqa: BLE001 - closing a broken port must not raise
+                pass
+            self._ser = None
+
+    def transact(self, command: bytes) -> bytes:
+        """Send one complete command frame; return the answer body (checksum stripped).
+
+        Raises DAQTimeout if no byte arrives within the timeout, DAQProtocolError for a
+        partial or malformed answer, DAQDisconnected if the port fails.
+        """
+        ser = self._open()
+        try:
+            ser.reset_input_buffer()
+            ser.write(command)
+            line = self._read_line(ser)
+        except serial.SerialTimeoutException as exc:
+            self._drop()
+            raise DAQTimeout(f"{self.url}: write timed out") from exc
+        except (serial.SerialException, OSError) as exc:
+            self._drop()
+            raise DAQDisconnected(f"{self.url}: {exc}") from exc
+        if not line:
+            raise DAQTimeout(f"{self.url}: no answer to {command!r} within {self.timeout} s")
+        try:
+            return unframe(line, checksum=self.checksum)
+        except DAQProtocolError as exc:
+            raise DAQProtocolError(f"{self.url}: answer to {command!r}: {exc}") from None
+
+    def _read_line(self, ser: serial.SerialBase) -> bytes:
+        """Bytes up to and including the first CR, or what arrived before the deadline."""
+        deadline = time.monotonic() + self.timeout
+        buf = bytearray()
+        while True:
+            waiting = ser.in_waiting
+            chunk = ser.read(waiting if waiting else 1)
+            if chunk:
+                buf += chunk
+                cr = buf.find(CR)
+                if cr >= 0:
+                    # Bytes after the CR cannot belong to this answer; the next command
+                    # discards them with the input buffer.
+                    return bytes(buf[: cr + 1])
+                if len(buf) > 4 * MAX_ANSWER_LEN:
+                    return bytes(buf)  # a babbling line: unframe() reports it
+            if time.monotonic() >= deadline:
+                return bytes(buf)
+
+    def _command(self, lead: str, tail: str = "") -> bytes:
+        return self.transact(encode_command(lead, self.addr, tail, checksum=self.checksum))
+
+    # -- device functions ----------------------------------------------------------------
+
+    def _read_identity(self, check: bool) -> Identity:
+        try:
+            model = parse_ack(self._command("$", "M"), self.addr).decode("ascii")
+        except (DAQTimeout, DAQProtocolError) as exc:
+            raise type(exc)(
+                f"{exc} (is checksum={int(self.checksum)} the module's checksum mode, and "
+                f"addr={self.addr:02X} its address?)"
+            ) from exc
+        if check and model != ldq412.MODEL_NAME:
+            raise DAQIdentityError(f"{self.url}: model {model!r}, expected {ldq412.MODEL_NAME!r}")
+        firmware = parse_firmware(parse_ack(self._command("$", "F"), self.addr))
+        return Identity(model, firmware, None, None)
+
+    def _poll(self) -> Scan:
+        body = self._command("#")
+        host_time = time.monotonic()
+        snap = parse_scan(body, self.addr)
+        scan, new = self._seq.poll(snap, host_time)
+        if new:
+            self._pending.append(scan)
+        return scan
+
+    def read_scans(self) -> list[Scan]:
+        self._poll()
+        out, self._pending = self._pending, []
+        return out
+
+    def snapshot(self) -> Scan:
+        """Poll ``#AA``; a new scan seen here is also returned by the next read_scans."""
+        return self._poll()
+
+    def read_channel(self, channel: int) -> int:
+        """``#AAn``: code of one channel (1..4) of the latest scan."""
+        if not 1 <= channel <= ldq412.N_CHANNELS:
+            raise ValueError(f"channel {channel} outside 1..{ldq412.N_CHANNELS}")
+        return parse_channel(self._command("#", str(channel)), self.addr)
+
+    def _get_scan_rate(self) -> int:
+        return parse_rate(parse_ack(self._command("$", "R"), self.addr))
+
+    def _set_scan_rate(self, hz: int) -> None:
+        payload = parse_ack(self._command("%", f"R{hz:04X}"), self.addr)
+        if payload:
+            raise DAQProtocolError(f"{self.url}: set scan rate: unexpected payload {payload!r}")
+        self._seq.set_rate(hz)
+
+    def clear_restart(self) -> bool:
+        """The ASCII protocol cannot clear the restart flag: returns False."""
+        return False
+
+    @property
+    def sequencer(self) -> Sequencer:
+        """Sequence state (restarts detected, total missed); read-only use."""
+        return self._seq
+
+    def close(self) -> None:
+        self._closed = True
+        self._drop()

@@ -1,0 +1,355 @@
+"""Abstract DAQ interface, the records it returns, and URL -> driver dispatch.
+
+A driver is chosen by the scheme of a URL, as pyserial's ``serial_for_url`` and
+python-can's interfaces do::
+
+    modbus-tcp://host:port?unit=1[&fifo=1]
+    modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1[&parity=N&stopbits=1&fifo=1]
+    ascii:///dev/ttyUSB0?baud=115200&addr=01&checksum=1
+
+Drivers register their scheme with :func:`register_scheme`; :func:`open_daq` parses the
+URL, rejects unknown query parameters, and hands the parsed URL to the driver class.
+"""
+
+from __future__ import annotations
+
+import re
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import ClassVar, Literal, TypeVar
+from urllib.parse import parse_qsl, urlsplit
+
+import numpy as np
+
+from . import ldq412
+
+ScanSource = Literal["fifo", "snapshot"]
+
+
+@dataclass(frozen=True, slots=True)
+class Identity:
+    """What the module says it is, read at connect.
+
+    model: model name, ``"LDQ412"`` (Modbus: derived from model code 0x0412 in register
+        512; ASCII: the ``$AAM`` answer verbatim).
+    firmware: version as ``"M.mm"``, e.g. ``"2.01"``.
+    serial: serial number (registers 514-515), or None over ASCII, whose command set has
+        no serial-number query.
+    model_code: raw model code (Modbus), or None over ASCII.
+    """
+
+    model: str
+    firmware: str
+    serial: int | None
+    model_code: int | None = None
+
+    @property
+    def firmware_version(self) -> tuple[int, int]:
+        """Firmware as (major, minor)."""
+        major, minor = self.firmware.split(".")
+        return int(major), int(minor)
+
+
+@dataclass(frozen=True, slots=True)
+class Scan:
+    """One scan of the four channels, as delivered by a driver.
+
+    Raw fields (what the device reports, 32-bit, wrapping):
+        counter: scan counter, 0..2**32-1 (0 at power-on, +1 per scan).
+        time_us: device time of channel 1's conversion, µs, 0..2**32-1.
+        codes: channel 1..4 ADC codes, 0..4095.
+        status: status register (bits 0-3 rail, 4-7 sensor fault, 8 FIFO overflow
+            latched, 9 restart latched).
+
+    Unwrapped fields (computed by the driver):
+        counter64: scans since the device's power-on, never wraps.
+        time64_us: µs of device time since power-on, never wraps. The number of 32-bit
+            wraps before the first scan the driver saw (of each power-on epoch) is
+            estimated from counter64 x the nominal scan period.
+        epoch: number of device restarts this driver detected before this scan;
+            (epoch, counter64) increases strictly from scan to scan.
+
+    Events (true on the first scan delivered after the event; never hidden):
+        missed: scans the device produced immediately before this one that the driver
+            never delivered (counter gap; FIFO overflow or polling slower than the scan
+            rate). After a restart: the new power-on epoch's scans before this one
+            (the old epoch's undelivered tail is unknowable).
+        restarted: the device restarted (power cycle) before this scan, detected by the
+            restart status bit or the counter going backwards. Also true on the first
+            scan after connect if the restart bit was set then.
+        overflow: the device's FIFO overflowed before this scan (latched bit 8 seen;
+            the driver clears it). Only FIFO reads report it.
+
+    Provenance:
+        time_measured: time_us came from the device (snapshot / ``#AA``); False for FIFO
+            scans, whose time is derived: anchor time + (counter - anchor counter) x
+            1e6 / scan rate, anchored on the snapshot read in the same call.
+        status_measured: status came from the device for this very scan. False for FIFO
+            scans: rail bits are then computed from the codes, fault bits are the
+            snapshot's fault bits on channels reading 4095, bits 8-9 the snapshot's.
+        source: "fifo" or "snapshot".
+        host_time: time.monotonic() when the answer carrying this scan arrived, s.
+    """
+
+    counter: int
+    time_us: int
+    codes: tuple[int, int, int, int]
+    status: int
+    counter64: int
+    time64_us: int
+    epoch: int = 0
+    missed: int = 0
+    restarted: bool = False
+    overflow: bool = False
+    time_measured: bool = True
+    status_measured: bool = True
+    source: ScanSource = "snapshot"
+    host_time: float = 0.0
+
+    @property
+    def rail(self) -> tuple[bool, bool, bool, bool]:
+        """Per channel: at the rail (code 0 or 4095) per status bits 0-3."""
+        return _bits(self.status, 0)
+
+    @property
+    def fault(self) -> tuple[bool, bool, bool, bool]:
+        """Per channel: sensor fault (excitation lost, cable cut) per status bits 4-7."""
+        return _bits(self.status, 4)
+
+    @property
+    def overflow_latched(self) -> bool:
+        """Status bit 8 as read (FIFO overflow latched in the device)."""
+        return bool(self.status & ldq412.STATUS_OVERFLOW)
+
+    @property
+    def restart_latched(self) -> bool:
+        """Status bit 9 as read (restart latched in the device)."""
+        return bool(self.status & ldq412.STATUS_RESTART)
+
+    @property
+    def trustworthy(self) -> tuple[bool, bool, bool, bool]:
+        """Per channel: neither at the rail nor faulted."""
+        r, f = self.rail, self.fault
+        return (
+            not (r[0] or f[0]),
+            not (r[1] or f[1]),
+            not (r[2] or f[2]),
+            not (r[3] or f[3]),
+        )
+
+    @property
+    def volts(self) -> np.ndarray:
+        """Channel voltages by mid-code reconstruction, V, shape (4,)."""
+        return ldq412.code_to_volts(np.asarray(self.codes))
+
+    @property
+    def time_s(self) -> float:
+        """Unwrapped device time, s."""
+        return self.time64_us * 1e-6
+
+
+def _bits(status: int, shift: int) -> tuple[bool, bool, bool, bool]:
+    return (
+        bool(status >> shift & 1),
+        bool(status >> (shift + 1) & 1),
+        bool(status >> (shift + 2) & 1),
+        bool(status >> (shift + 3) & 1),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class DaqUrl:
+    """A parsed driver URL.
+
+    scheme: lower-case scheme, e.g. "modbus-tcp".
+    host, port: network endpoint (None for serial URLs).
+    path: serial device path (e.g. "/dev/ttyUSB0", "COM3"), "" for network URLs.
+    params: query parameters, all values as strings.
+    """
+
+    scheme: str
+    host: str | None
+    port: int | None
+    path: str
+    params: Mapping[str, str] = field(default_factory=lambda: MappingProxyType({}))
+    raw: str = ""
+
+    def get_int(self, key: str, default: int, *, base: int = 10) -> int:
+        """Integer query parameter, or default if absent. Raises ValueError if malformed."""
+        value = self.params.get(key)
+        if value is None:
+            return default
+        try:
+            return int(value, base)
+        except ValueError:
+            raise ValueError(f"{self.raw}: {key}={value!r} is not an integer") from None
+
+    def get_bool(self, key: str, default: bool) -> bool:
+        """0/1 (also false/true, no/yes, off/on) query parameter."""
+        value = self.params.get(key)
+        if value is None:
+            return default
+        v = value.strip().lower()
+        if v in ("1", "true", "yes", "on"):
+            return True
+        if v in ("0", "false", "no", "off"):
+            return False
+        raise ValueError(f"{self.raw}: {key}={value!r} is not a boolean (0/1)")
+
+
+_SCHEME_RE = re.compile(r"^[a-z][a-z0-9+.-]*$")
+
+
+def parse_url(url: str) -> DaqUrl:
+    """Split a driver URL into scheme, endpoint and query parameters.
+
+    Raises ValueError on a missing scheme, a repeated query key, or a malformed port.
+    """
+    parts = urlsplit(url)
+    scheme = parts.scheme.lower()
+    if not scheme or not _SCHEME_RE.match(scheme) or "://" not in url:
+        raise ValueError(f"not a DAQ URL (scheme://...): {url!r}")
+    params: dict[str, str] = {}
+    for key, value in parse_qsl(parts.query, keep_blank_values=True, strict_parsing=False):
+        if key in params:
+            raise ValueError(f"{url}: query parameter {key!r} given twice")
+        params[key] = value
+    try:
+        port = parts.port
+    except ValueError:
+        raise ValueError(f"{url}: malformed port") from None
+    host = parts.hostname
+    # Serial URLs carry the device in the path ("ascii:///dev/ttyUSB0") or, for Windows
+    # names, in the netloc ("ascii://COM3").
+    if parts.path and parts.path != "/":
+        path = parts.path if not parts.netloc else parts.netloc + parts.path
+    else:
+        path = parts.netloc if parts.netloc and port is None else ""
+    return DaqUrl(scheme, host, port, path, MappingProxyType(params), url)
+
+
+D = TypeVar("D", bound="DAQ")
+_REGISTRY: dict[str, type[DAQ]] = {}
+
+
+def register_scheme(scheme: str) -> Callable[[type[D]], type[D]]:
+    """Class decorator: make ``open_daq`` dispatch URLs with ``scheme`` to the class."""
+
+    def deco(cls: type[D]) -> type[D]:
+        if scheme in _REGISTRY and _REGISTRY[scheme] is not cls:
+            raise ValueError(f"URL scheme {scheme!r} already registered")
+        _REGISTRY[scheme] = cls
+        cls.scheme = scheme
+        return cls
+
+    return deco
+
+
+def registered_schemes() -> dict[str, type[DAQ]]:
+    """A copy of the scheme -> driver class registry."""
+    return dict(_REGISTRY)
+
+
+def open_daq(
+    url: str, *, timeout: float = ldq412.HOST_TIMEOUT_S, check_identity: bool = True
+) -> DAQ:
+    """Open the driver the URL's scheme names and connect to the module.
+
+    timeout: s without an answer before a call raises DAQTimeout (datasheet: 0.1 s).
+    check_identity: raise DAQIdentityError unless the module identifies as an LDQ-412.
+
+    Raises ValueError for an unknown scheme or bad/unknown query parameters, and the
+    driver's DAQError subclasses for connection/identity failures.
+    """
+    parsed = parse_url(url)
+    try:
+        cls = _REGISTRY[parsed.scheme]
+    except KeyError:
+        known = ", ".join(sorted(_REGISTRY))
+        raise ValueError(f"unknown DAQ URL scheme {parsed.scheme!r} (known: {known})") from None
+    unknown = set(parsed.params) - set(cls.url_params)
+    if unknown:
+        raise ValueError(
+            f"{url}: unknown parameter(s) {sorted(unknown)} for {parsed.scheme} "
+            f"(allowed: {sorted(cls.url_params)})"
+        )
+    if not timeout > 0:
+        raise ValueError(f"timeout must be > 0 s, got {timeout}")
+    return cls.from_url(parsed, timeout=timeout, check_identity=check_identity)
+
+
+class DAQ(ABC):
+    """An LDQ-412 module reached over one transport.
+
+    Every call is bounded in time by the timeout given at open (plus the transfer time
+    of the answer) and either returns valid data or raises a DAQError; after an error
+    the next call tries again (reconnecting if needed). A DAQ is not thread-safe: one
+    thread (or one lock) per instance.
+    """
+
+    scheme: ClassVar[str] = ""
+    #: query parameters accepted in the URL
+    url_params: ClassVar[frozenset[str]] = frozenset()
+
+    identity: Identity
+    url: str
+
+    @classmethod
+    @abstractmethod
+    def from_url(cls, url: DaqUrl, *, timeout: float, check_identity: bool) -> DAQ:
+        """Connect to the module the parsed URL describes (used by open_daq)."""
+
+    @abstractmethod
+    def read_scans(self) -> list[Scan]:
+        """Every scan since the previous call, exactly once, oldest first.
+
+        From the FIFO where the transport has one (Modbus), otherwise by polling the
+        latest-scan snapshot once per call (ASCII, or Modbus with ``fifo=0``), in which
+        case scans the device produced between two polls are reported in Scan.missed.
+        Scans already taken off the device when a call fails are kept and returned by the
+        next successful call.
+        """
+
+    @abstractmethod
+    def snapshot(self) -> Scan:
+        """The latest scan (measured time and status)."""
+
+    @property
+    def scan_rate(self) -> int:
+        """Configured scan rate, Hz (read from the module)."""
+        return self._get_scan_rate()
+
+    @scan_rate.setter
+    def scan_rate(self, hz: int) -> None:
+        if not isinstance(hz, int) or isinstance(hz, bool):
+            raise TypeError(f"scan rate must be an int (Hz), got {hz!r}")
+        if not ldq412.SCAN_RATE_MIN_HZ <= hz <= ldq412.SCAN_RATE_MAX_HZ:
+            raise ValueError(
+                f"scan rate {hz} Hz outside {ldq412.SCAN_RATE_MIN_HZ}..{ldq412.SCAN_RATE_MAX_HZ}"
+            )
+        self._set_scan_rate(hz)
+
+    @abstractmethod
+    def _get_scan_rate(self) -> int: ...
+
+    @abstractmethod
+    def _set_scan_rate(self, hz: int) -> None: ...
+
+    @abstractmethod
+    def clear_restart(self) -> bool:
+        """Clear the module's latched restart flag; False if the transport cannot."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release the transport. Idempotent."""
+
+    def __enter__(self: D) -> D:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.url}>"

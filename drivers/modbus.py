@@ -1,0 +1,372 @@
+"""Register-map logic shared by the Modbus TCP and Modbus RTU drivers.
+
+Transport details (framing, CRC, MBAP, sockets, serial ports) are pymodbus's; this module
+only knows the LDQ-412 register map and turns pymodbus outcomes into DAQError subclasses.
+
+Retry policy: pymodbus retries are 0. A FIFO read is destructive (the module removes the
+scans it answers with), so resending a request whose answer was lost or corrupted would
+silently skip scans; instead the call raises, and the scans lost with the answer show up
+as Scan.missed on the next scan delivered. A dead device therefore costs one timeout per
+call, never more (plus the answer's transfer time).
+
+After a timeout or a protocol error the connection is dropped and reopened on the next
+call (TCP: a fresh socket, so a late answer can never be taken for the next one; RTU: the
+port is reopened and the line is drained until quiet).
+"""
+
+from __future__ import annotations
+
+import time
+from abc import abstractmethod
+from collections.abc import Callable
+from typing import ClassVar
+
+from pymodbus.client.base import ModbusBaseSyncClient
+from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
+
+from . import ldq412
+from .base import DAQ, Identity, Scan
+from .errors import (
+    DAQDisconnected,
+    DAQIdentityError,
+    DAQModbusException,
+    DAQProtocolError,
+    DAQTimeout,
+)
+from .sequence import RawSnapshot, Sequencer
+
+FC_READ_HOLDING = 3
+FC_READ_INPUT = 4
+FC_WRITE_SINGLE = 6
+
+
+def parse_snapshot(regs: list[int]) -> RawSnapshot:
+    """Input registers 0..9 -> RawSnapshot. Raises DAQProtocolError on out-of-range values."""
+    if len(regs) != ldq412.IR_SNAPSHOT_LEN:
+        raise DAQProtocolError(f"snapshot: {len(regs)} registers, expected 10")
+    codes = (regs[4], regs[5], regs[6], regs[7])
+    if max(codes) > ldq412.CODE_MAX:
+        raise DAQProtocolError(f"snapshot: code out of range in {codes}")
+    level = regs[ldq412.IR_FIFO_LEVEL]
+    if level > ldq412.FIFO_DEPTH:
+        raise DAQProtocolError(f"snapshot: FIFO level {level} > {ldq412.FIFO_DEPTH}")
+    return RawSnapshot(
+        counter=ldq412.join_u32(regs[0], regs[1]),
+        time_us=ldq412.join_u32(regs[2], regs[3]),
+        codes=codes,
+        status=regs[ldq412.IR_STATUS],
+        fifo_level=level,
+    )
+
+
+def parse_fifo(regs: list[int]) -> list[tuple[int, tuple[int, int, int, int]]]:
+    """FIFO window registers -> [(counter, codes)], oldest first, filler scans dropped.
+
+    A filler scan is six 0xFFFF registers. Anything else with a code above 4095 (a partly
+    filled scan, corrupted data) raises DAQProtocolError.
+    """
+    n = ldq412.FIFO_SCAN_REGS
+    if len(regs) % n:
+        raise DAQProtocolError(f"FIFO: {len(regs)} registers is not a whole number of scans")
+    out: list[tuple[int, tuple[int, int, int, int]]] = []
+    for i in range(0, len(regs), n):
+        hi, lo, c1, c2, c3, c4 = regs[i : i + n]
+        if c1 == c2 == c3 == c4 == hi == lo == ldq412.FIFO_FILLER:
+            continue
+        codes = (c1, c2, c3, c4)
+        if max(codes) > ldq412.CODE_MAX:
+            raise DAQProtocolError(f"FIFO: malformed scan {regs[i : i + n]}")
+        out.append((ldq412.join_u32(hi, lo), codes))
+    return out
+
+
+def format_firmware(reg: int) -> str:
+    """Register 513 (major*256 + minor) -> "M.mm"."""
+    return f"{reg >> 8}.{reg & 0xFF:02d}"
+
+
+class ModbusDAQ(DAQ):
+    """LDQ-412 over Modbus (TCP or RTU): the register map, FIFO draining, flag clearing.
+
+    URL parameters common to both: ``unit`` (Modbus device id, default 1), ``fifo``
+    (1: read_scans drains the FIFO, the default; 0: it polls the snapshot, e.g. when
+    another master owns the FIFO).
+    """
+
+    url_params: ClassVar[frozenset[str]] = frozenset({"unit", "fifo"})
+
+    def __init__(
+        self, *, url: str, unit: int, timeout: float, use_fifo: bool, check_identity: bool
+    ) -> None:
+        if not 0 <= unit <= 247:
+            raise ValueError(f"Modbus unit {unit} outside 0..247")
+        self.url = url
+        self.unit = unit
+        self.timeout = timeout
+        self.use_fifo = use_fifo
+        self._rx_bytes = 0
+        self._closed = False
+        self._resync_needed = False
+        self._pending: list[Scan] = []
+        self._client = self._make_client(self._trace_packet)
+        try:
+            self._connect()
+            self.identity = self._read_identity(check_identity)
+            self._seq = Sequencer(self._read_rate())
+        except BaseException:
+            self.close()
+            raise
+
+    # -- transport hooks -----------------------------------------------------------------
+
+    @abstractmethod
+    def _make_client(self, trace: Callable[[bool, bytes], bytes]) -> ModbusBaseSyncClient:
+        """A pymodbus sync client with retries=0, timeout=self.timeout, trace_packet=trace."""
+
+    def _resync(self) -> None:
+        """Bring the link back to a known state after an error (transport specific)."""
+
+    def _trace_packet(self, sending: bool, data: bytes) -> bytes:
+        if not sending:
+            self._rx_bytes += len(data)
+        return data
+
+    def _connect(self) -> None:
+        try:
+            ok = self._client.connect()
+        except (OSError, ModbusException) as exc:
+            raise DAQDisconnected(f"{self.url}: cannot connect: {exc}") from exc
+        if not ok:
+            raise DAQDisconnected(f"{self.url}: cannot connect")
+
+    def _drop(self) -> None:
+        self._resync_needed = True
+        try:
+            self._client.close()
+        except Exception:  # noqa: BLE001 - closing a broken transport must not raise
+            pass
+
+    def _execute(self, what: str, fc: int, op: Callable[[], ModbusPDU]) -> ModbusPDU:
+        """Run one pymodbus request, mapping every outcome onto the typed errors."""
+        if self._closed:
+            raise DAQDisconnected(f"{self.url}: driver closed")
+        if self._resync_needed:
+            self._resync_needed = False
+            self._resync()
+        self._rx_bytes = 0
+        try:
+            rsp = op()
+        except ConnectionException as exc:
+            self._drop()
+            raise DAQDisconnected(f"{self.url}: {what}: {exc}") from exc
+        except ModbusIOException as exc:
+            self._drop()
+            if self._rx_bytes:
+                raise DAQProtocolError(
+                    f"{self.url}: {what}: {self._rx_bytes} bytes received but no valid "
+                    f"answer (garbage, partial frame or bad CRC/MBAP)"
+                ) from exc
+            raise DAQTimeout(f"{self.url}: {what}: no answer within {self.timeout} s") from exc
+        except (ModbusException, ValueError, IndexError) as exc:
+            self._drop()
+            raise DAQProtocolError(f"{self.url}: {what}: undecodable answer: {exc}") from exc
+        except OSError as exc:
+            self._drop()
+            raise DAQDisconnected(f"{self.url}: {what}: {exc}") from exc
+        if isinstance(rsp, ExceptionResponse):
+            raise DAQModbusException(
+                rsp.exception_code,
+                fc,
+                f"{self.url}: {what}: Modbus exception {rsp.exception_code:#04x}",
+            )
+        if rsp.function_code != fc:
+            self._drop()
+            raise DAQProtocolError(
+                f"{self.url}: {what}: answer has function {rsp.function_code}, expected {fc}"
+            )
+        return rsp
+
+    # -- low-level register access (public: also for diagnostics) ------------------------
+
+    def read_input_registers(self, address: int, count: int) -> list[int]:
+        """Function 04. Raises DAQProtocolError if the answer has the wrong length."""
+        rsp = self._execute(
+            f"read input registers {address}+{count}",
+            FC_READ_INPUT,
+            lambda: self._client.read_input_registers(address, count=count, device_id=self.unit),
+        )
+        return self._checked_registers(rsp, count, f"input registers {address}+{count}")
+
+    def read_holding_registers(self, address: int, count: int) -> list[int]:
+        """Function 03. Raises DAQProtocolError if the answer has the wrong length."""
+        rsp = self._execute(
+            f"read holding registers {address}+{count}",
+            FC_READ_HOLDING,
+            lambda: self._client.read_holding_registers(address, count=count, device_id=self.unit),
+        )
+        return self._checked_registers(rsp, count, f"holding registers {address}+{count}")
+
+    def write_register(self, address: int, value: int) -> None:
+        """Function 06. Raises DAQProtocolError unless the echo matches the request."""
+        rsp = self._execute(
+            f"write register {address}={value}",
+            FC_WRITE_SINGLE,
+            lambda: self._client.write_register(address, value, device_id=self.unit),
+        )
+        if getattr(rsp, "address", None) != address or list(rsp.registers) != [value]:
+            self._drop()
+            raise DAQProtocolError(f"{self.url}: write {address}={value}: wrong echo {rsp}")
+
+    def _checked_registers(self, rsp: ModbusPDU, count: int, what: str) -> list[int]:
+        regs = list(rsp.registers)
+        if len(regs) != count:
+            self._drop()
+            raise DAQProtocolError(f"{self.url}: {what}: {len(regs)} registers answered")
+        return regs
+
+    # -- device functions ----------------------------------------------------------------
+
+    def _read_identity(self, check: bool) -> Identity:
+        model, fw, ser_hi, ser_lo = self.read_input_registers(
+            ldq412.IR_MODEL, ldq412.IR_IDENTITY_LEN
+        )
+        if check and model != ldq412.MODEL_CODE:
+            raise DAQIdentityError(
+                f"{self.url}: model code {model:#06x}, expected {ldq412.MODEL_CODE:#06x}"
+            )
+        name = ldq412.MODEL_NAME if model == ldq412.MODEL_CODE else f"unknown-{model:#06x}"
+        return Identity(name, format_firmware(fw), ldq412.join_u32(ser_hi, ser_lo), model)
+
+    def _read_rate(self) -> int:
+        (rate,) = self.read_holding_registers(ldq412.HR_SCAN_RATE, 1)
+        if not ldq412.SCAN_RATE_MIN_HZ <= rate <= ldq412.SCAN_RATE_MAX_HZ:
+            raise DAQProtocolError(f"{self.url}: scan rate register reads {rate}")
+        return rate
+
+    def _read_snapshot(self) -> tuple[RawSnapshot, float]:
+        regs = self.read_input_registers(ldq412.IR_COUNTER, ldq412.IR_SNAPSHOT_LEN)
+        host_time = time.monotonic()
+        try:
+            return parse_snapshot(regs), host_time
+        except DAQProtocolError as exc:
+            self._drop()
+            raise DAQProtocolError(f"{self.url}: {exc}") from None
+
+    def _read_fifo(self, n: int) -> list[tuple[int, tuple[int, int, int, int]]]:
+        regs = self.read_input_registers(ldq412.IR_FIFO, n * ldq412.FIFO_SCAN_REGS)
+        try:
+            return parse_fifo(regs)
+        except DAQProtocolError as exc:
+            self._drop()
+            raise DAQProtocolError(f"{self.url}: {exc}") from None
+
+    def _clear_latched(self, status: int) -> None:
+        if status & ldq412.STATUS_OVERFLOW:
+            # Also empties the FIFO: any scan arriving since the drain is lost and shows
+            # up as Scan.missed on the next scan.
+            self.write_register(ldq412.HR_CLEAR_FIFO, 1)
+        if status & ldq412.STATUS_RESTART:
+            self.write_register(ldq412.HR_CLEAR_RESTART, 1)
+            self._seq.restart_bit_cleared()
+
+    def _drain(self) -> list[Scan]:
+        """One FIFO transaction: anchor snapshot, the waiting scans, flag clearing."""
+        snap, _ = self._read_snapshot()
+        self._seq.begin_batch(snap)
+        if self._seq.period_mismatch():
+            # Somebody changed the scan rate behind our back: derived times need the new one.
+            self._seq.set_rate(self._read_rate())
+        raw: list[tuple[int, tuple[int, int, int, int]]] = []
+        out: list[Scan] = []
+        remaining = snap.fifo_level or 0
+        try:
+            while remaining > 0:
+                n = min(ldq412.FIFO_MAX_SCANS_PER_READ, remaining)
+                chunk = self._read_fifo(n)
+                raw.extend(chunk)
+                if len(chunk) < n:  # fewer waiting than the level said (another reader?)
+                    break
+                remaining -= n
+        finally:
+            # Scans taken off the device are never dropped, even if a later chunk failed.
+            if raw:
+                out = self._seq.fifo_scans(raw, time.monotonic())
+                self._pending.extend(out)
+        self._clear_latched(snap.status)
+        return out
+
+    def _poll(self) -> Scan:
+        snap, host_time = self._read_snapshot()
+        scan, new = self._seq.poll(snap, host_time)
+        if new:
+            self._pending.append(scan)
+        if snap.status & ldq412.STATUS_RESTART:
+            self.write_register(ldq412.HR_CLEAR_RESTART, 1)
+            self._seq.restart_bit_cleared()
+        return scan
+
+    def read_scans(self) -> list[Scan]:
+        if self.use_fifo:
+            self._drain()
+        else:
+            self._poll()
+        out, self._pending = self._pending, []
+        return out
+
+    def snapshot(self) -> Scan:
+        if not self.use_fifo:
+            return self._poll()
+        snap, host_time = self._read_snapshot()
+        return self._seq.peek(snap, host_time)
+
+    def _get_scan_rate(self) -> int:
+        return self._read_rate()
+
+    def _set_scan_rate(self, hz: int) -> None:
+        if self.use_fifo:
+            # FIFO scans' times are derived from the rate: take the old-rate ones first.
+            self._drain()
+        self.write_register(ldq412.HR_SCAN_RATE, hz)
+        self._seq.set_rate(hz)
+
+    @property
+    def oversampling(self) -> int:
+        """Conversions averaged per reported code (1, 2, 4, 8 or 16)."""
+        (n,) = self.read_holding_registers(ldq412.HR_OVERSAMPLING, 1)
+        return n
+
+    @oversampling.setter
+    def oversampling(self, n: int) -> None:
+        if n not in ldq412.OVERSAMPLING_CHOICES:
+            raise ValueError(f"oversampling {n} not in {ldq412.OVERSAMPLING_CHOICES}")
+        self.write_register(ldq412.HR_OVERSAMPLING, n)
+
+    def clear_fifo(self) -> None:
+        """Empty the module's FIFO and clear its overflow flag (scans in it are lost and
+        reported as missed)."""
+        self.write_register(ldq412.HR_CLEAR_FIFO, 1)
+
+    def clear_restart(self) -> bool:
+        # Observe the flag first, so clearing it never hides a restart from read_scans.
+        if self.use_fifo:
+            self._drain()
+        else:
+            self._poll()
+        self.write_register(ldq412.HR_CLEAR_RESTART, 1)
+        self._seq.restart_bit_cleared()
+        return True
+
+    @property
+    def sequencer(self) -> Sequencer:
+        """Sequence state (restarts detected, total missed); read-only use."""
+        return self._seq
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._client.close()
+        except Exception:  # noqa: BLE001
+            pass

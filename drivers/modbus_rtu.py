@@ -1,0 +1,104 @@
+"""LDQ-412 over Modbus RTU on RS-485 (pymodbus ModbusSerialClient, RTU framer).
+
+URL: ``modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1&parity=N&stopbits=1&fifo=1``
+(datasheet defaults: 115200 baud, 8N1, unit 1).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import ClassVar
+
+from pymodbus.client import ModbusSerialClient
+from pymodbus.client.base import ModbusBaseSyncClient
+from pymodbus.framer import FramerType
+
+from . import ldq412
+from .base import DaqUrl, register_scheme
+from .modbus import ModbusDAQ
+
+#: silence on the line that ends a drain after an error, s (many RTU frame times)
+QUIET_S = 0.005
+
+
+@register_scheme("modbus-rtu")
+class ModbusRtuDAQ(ModbusDAQ):
+    """LDQ-412 on RS-485. RTU has no transaction id, so after an error the port is
+    reopened and the line drained until ``QUIET_S`` of silence (bounded by the timeout)
+    before the next request; answers are checked for function code and length."""
+
+    url_params: ClassVar[frozenset[str]] = ModbusDAQ.url_params | {"baud", "parity", "stopbits"}
+
+    def __init__(
+        self,
+        port: str,
+        *,
+        baud: int = ldq412.SERIAL_BAUD,
+        parity: str = "N",
+        stopbits: int = 1,
+        unit: int = ldq412.MODBUS_UNIT,
+        timeout: float = ldq412.HOST_TIMEOUT_S,
+        use_fifo: bool = True,
+        check_identity: bool = True,
+    ) -> None:
+        if parity not in ("N", "E", "O"):
+            raise ValueError(f"parity {parity!r} not N, E or O")
+        if stopbits not in (1, 2):
+            raise ValueError(f"stopbits {stopbits} not 1 or 2")
+        if baud <= 0:
+            raise ValueError(f"baud {baud} must be > 0")
+        self.port, self.baud, self.parity, self.stopbits = port, baud, parity, stopbits
+        super().__init__(
+            url=f"modbus-rtu://{port}?baud={baud}&unit={unit}&fifo={int(use_fifo)}",
+            unit=unit,
+            timeout=timeout,
+            use_fifo=use_fifo,
+            check_identity=check_identity,
+        )
+
+    @classmethod
+    def from_url(cls, url: DaqUrl, *, timeout: float, check_identity: bool) -> ModbusRtuDAQ:
+        if not url.path:
+            raise ValueError(f"{url.raw}: no serial port")
+        return cls(
+            url.path,
+            baud=url.get_int("baud", ldq412.SERIAL_BAUD),
+            parity=url.params.get("parity", "N").upper(),
+            stopbits=url.get_int("stopbits", 1),
+            unit=url.get_int("unit", ldq412.MODBUS_UNIT),
+            timeout=timeout,
+            use_fifo=url.get_bool("fifo", True),
+            check_identity=check_identity,
+        )
+
+    def _make_client(self, trace: Callable[[bool, bytes], bytes]) -> ModbusBaseSyncClient:
+        return ModbusSerialClient(
+            self.port,
+            framer=FramerType.RTU,
+            baudrate=self.baud,
+            bytesize=8,
+            parity=self.parity,
+            stopbits=self.stopbits,
+            timeout=self.timeout,
+            retries=0,
+            trace_packet=trace,
+        )
+
+    def _resync(self) -> None:
+        client = self._client
+        if not client.connect() or client.socket is None:
+            return  # the next request reports DAQDisconnected
+        ser = client.socket
+        deadline = time.monotonic() + self.timeout
+        try:
+            last_rx = time.monotonic()
+            while time.monotonic() < deadline:
+                if ser.in_waiting:
+                    ser.read(ser.in_waiting)
+                    last_rx = time.monotonic()
+                elif time.monotonic() - last_rx >= QUIET_S:
+                    break
+                time.sleep(0.001)
+        except OSError:
+            self._drop()

@@ -1,0 +1,62 @@
+"""LDQ-412 over Modbus TCP (pymodbus ModbusTcpClient).
+
+URL: ``modbus-tcp://host[:port]?unit=1&fifo=1`` (port 502 and unit 1 by default).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from pymodbus.client import ModbusTcpClient
+from pymodbus.client.base import ModbusBaseSyncClient
+
+from . import ldq412
+from .base import DaqUrl, register_scheme
+from .modbus import ModbusDAQ
+
+
+@register_scheme("modbus-tcp")
+class ModbusTcpDAQ(ModbusDAQ):
+    """LDQ-412 on Ethernet. A timeout or protocol error closes the socket; the next call
+    opens a fresh one (so a late answer can never be mistaken for the next one)."""
+
+    def __init__(
+        self,
+        host: str,
+        port: int = ldq412.MODBUS_TCP_PORT,
+        *,
+        unit: int = ldq412.MODBUS_UNIT,
+        timeout: float = ldq412.HOST_TIMEOUT_S,
+        use_fifo: bool = True,
+        check_identity: bool = True,
+    ) -> None:
+        self.host, self.port = host, port
+        super().__init__(
+            url=f"modbus-tcp://{host}:{port}?unit={unit}&fifo={int(use_fifo)}",
+            unit=unit,
+            timeout=timeout,
+            use_fifo=use_fifo,
+            check_identity=check_identity,
+        )
+
+    @classmethod
+    def from_url(cls, url: DaqUrl, *, timeout: float, check_identity: bool) -> ModbusTcpDAQ:
+        if not url.host:
+            raise ValueError(f"{url.raw}: no host")
+        return cls(
+            url.host,
+            url.port or ldq412.MODBUS_TCP_PORT,
+            unit=url.get_int("unit", ldq412.MODBUS_UNIT),
+            timeout=timeout,
+            use_fifo=url.get_bool("fifo", True),
+            check_identity=check_identity,
+        )
+
+    def _make_client(self, trace: Callable[[bool, bytes], bytes]) -> ModbusBaseSyncClient:
+        return ModbusTcpClient(
+            self.host,
+            port=self.port,
+            timeout=self.timeout,
+            retries=0,
+            trace_packet=trace,
+        )

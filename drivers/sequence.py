@@ -1,0 +1,310 @@
+"""Turning raw device readings into a gap-free, unwrapped sequence of Scan records.
+
+Pure logic, no I/O: every driver feeds it what it read, and it decides which scans are new,
+how many were missed, where the device restarted, and what the 64-bit counter and time of
+each scan are.
+
+Two kinds of input:
+
+* snapshots (registers 0..9 or the ``#AA`` answer): counter, time, codes, status of the
+  latest scan, all measured. ``poll`` turns one into a Scan if its counter is new.
+* FIFO scans (registers 256..): counter and codes only. ``begin_batch`` takes the snapshot
+  read just before the FIFO as the *anchor*; ``fifo_scans`` then derives each FIFO scan's
+  time as ``anchor time + (counter - anchor counter) x 1e6 / rate`` (rounded to the µs),
+  which is exact whenever the scan period is a whole number of µs (1e6 % rate == 0) and
+  within 1 µs otherwise. The FIFO scan whose counter equals the anchor's gets the
+  anchor's measured time and status. Other FIFO scans get a derived status: rail bits
+  computed from their own codes (datasheet: code 0 or 4095); fault bits = the fault bits
+  of the anchor or of the previous anchor (the two snapshots bracketing the batch),
+  restricted to channels reading 4095 (a faulted channel reads 4095, and a channel at 4095
+  is untrustworthy anyway); latched bits 8-9 from the anchor.
+
+Restart detection: the restart bit rising (or set at the first observation), or the
+counter going backwards (a backwards step of less than 2**31 is a restart; a larger one
+is a 32-bit wrap). Each restart starts a new epoch with counter64 = the raw counter (the
+datasheet's power-on counter starts at 0).
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from . import ldq412
+from .base import Scan, ScanSource
+
+U32 = ldq412.U32_MOD
+HALF = U32 // 2
+LATCHED_MASK = ldq412.STATUS_OVERFLOW | ldq412.STATUS_RESTART
+
+
+@dataclass(frozen=True, slots=True)
+class RawSnapshot:
+    """The latest scan as read from the device (all fields raw, 32-bit)."""
+
+    counter: int
+    time_us: int
+    codes: tuple[int, int, int, int]
+    status: int
+    fifo_level: int | None = None  # Modbus register 9; None over ASCII
+
+
+@dataclass(frozen=True, slots=True)
+class _Anchor:
+    epoch: int
+    counter: int
+    counter64: int
+    time_us: int
+    time64: int
+    status: int
+
+
+@dataclass(frozen=True, slots=True)
+class _Last:
+    epoch: int
+    counter: int
+    counter64: int
+
+
+def signed_delta(value: int, ref: int) -> int:
+    """value - ref for 32-bit wrapping counters, in [-2**31, 2**31)."""
+    return (value - ref + HALF) % U32 - HALF
+
+
+def period_ticks_us(dcount: int, rate_hz: int) -> int:
+    """round(dcount * 1e6 / rate_hz) in exact integer arithmetic (dcount may be < 0)."""
+    return (2 * dcount * 1_000_000 + rate_hz) // (2 * rate_hz)
+
+
+def derived_status(codes: Sequence[int], anchor_status: int, other_fault: int = 0) -> int:
+    """Status word for a FIFO scan (see module docstring); other_fault: fault bits of the
+    previous anchor."""
+    rail = 0
+    at_max = 0
+    for i, code in enumerate(codes):
+        if code == 0 or code == ldq412.CODE_MAX:
+            rail |= 1 << i
+        if code == ldq412.CODE_MAX:
+            at_max |= 1 << i
+    fault = (anchor_status | other_fault) & ldq412.STATUS_FAULT_MASK & (at_max << 4)
+    return rail | fault | (anchor_status & LATCHED_MASK)
+
+
+class Sequencer:
+    """State that links successive reads of one device into one scan sequence."""
+
+    def __init__(self, scan_rate_hz: int) -> None:
+        self.scan_rate_hz = scan_rate_hz
+        self.epoch = 0
+        self.restarts_detected = 0
+        self.missed_total = 0
+        self._anchor: _Anchor | None = None
+        self._prev_anchor: _Anchor | None = None  # newest anchor of the previous epoch
+        self._batch_prev_anchor: _Anchor | None = None  # anchor before this batch's, same epoch
+        self._last: _Last | None = None  # last scan delivered
+        self._restart_bit_prev: bool | None = None
+        self._first_restart = False  # restart bit was set when first observed
+        self._pending_overflow = False
+        self._boundary_pending = False
+        #: measured scan period (µs) between the last two anchors of one epoch, or None
+        self.measured_period_us: float | None = None
+
+    # -- bookkeeping ---------------------------------------------------------------
+
+    def restart_bit_cleared(self) -> None:
+        """The driver cleared the restart bit: the next time it is seen set is a restart."""
+        self._restart_bit_prev = False
+
+    @property
+    def anchor_counter64(self) -> int | None:
+        return None if self._anchor is None else self._anchor.counter64
+
+    def _observe(self, snap: RawSnapshot) -> bool:
+        """Record a snapshot's restart evidence; True if it shows a new restart."""
+        bit = bool(snap.status & ldq412.STATUS_RESTART)
+        edge = bit and not self._restart_bit_prev
+        self._restart_bit_prev = bit
+        ref = self._ref_counter()
+        if ref is None:
+            self._first_restart = self._first_restart or edge
+            return False
+        regression = (snap.counter - ref) % U32 >= HALF
+        return edge or regression
+
+    def _ref_counter(self) -> int | None:
+        """Raw counter of the newest scan known in the current epoch."""
+        a, last = self._anchor, self._last
+        if last is not None and last.epoch == self.epoch:
+            if a is None or a.epoch != self.epoch or last.counter64 > a.counter64:
+                return last.counter
+        if a is not None and a.epoch == self.epoch:
+            return a.counter
+        return None
+
+    def _start_epoch(self) -> None:
+        self._prev_anchor = self._anchor
+        self.epoch += 1
+        self.restarts_detected += 1
+
+    def _set_anchor(self, snap: RawSnapshot) -> _Anchor:
+        a = self._anchor
+        if a is None or a.epoch != self.epoch:
+            c64 = snap.counter  # assumes no 32-bit counter wrap before we connected
+            nominal = period_ticks_us(c64, self.scan_rate_hz)
+            wraps = max(0, round((nominal - snap.time_us) / U32))
+            t64 = snap.time_us + wraps * U32
+        else:
+            dc = signed_delta(snap.counter, a.counter)
+            c64 = a.counter64 + dc
+            dt = (snap.time_us - a.time_us) % U32
+            # Whole 32-bit time wraps between the anchors, from the counter (only matters
+            # if two reads are more than 71.6 min apart).
+            wraps = max(0, round((period_ticks_us(dc, self.scan_rate_hz) - dt) / U32))
+            t64 = a.time64 + dt + wraps * U32
+            if dc >= 20:
+                self.measured_period_us = (t64 - a.time64) / dc
+        anchor = _Anchor(self.epoch, snap.counter, c64, snap.time_us, t64, snap.status)
+        self._anchor = anchor
+        return anchor
+
+    def period_mismatch(self, tolerance: float = 0.005) -> bool:
+        """True if the measured period disagrees with the nominal rate (rate changed?)."""
+        p = self.measured_period_us
+        nominal = 1e6 / self.scan_rate_hz
+        return p is not None and abs(p - nominal) > tolerance * nominal
+
+    def set_rate(self, hz: int) -> None:
+        """New nominal scan rate; forget the period measured at the old one."""
+        self.scan_rate_hz = hz
+        self.measured_period_us = None
+
+    def _deliver(self, epoch: int, counter: int, c64: int) -> tuple[int, bool, bool]:
+        """Commit a delivered scan; returns (missed, restarted, overflow)."""
+        last = self._last
+        if last is not None and last.epoch == epoch:
+            missed, restarted = c64 - last.counter64 - 1, False
+        elif last is None and epoch == 0:
+            missed, restarted = 0, self._first_restart
+            self._first_restart = False
+        else:
+            missed, restarted = c64, True
+        self._last = _Last(epoch, counter, c64)
+        overflow, self._pending_overflow = self._pending_overflow, False
+        self.missed_total += missed
+        return missed, restarted, overflow
+
+    # -- snapshot polling ----------------------------------------------------------
+
+    def poll(
+        self, snap: RawSnapshot, host_time: float, source: ScanSource = "snapshot"
+    ) -> tuple[Scan, bool]:
+        """Feed one snapshot. Returns (scan, is_new); a repeated counter gives is_new False
+        and a Scan with no events."""
+        if self._observe(snap):
+            self._start_epoch()
+        a = self._set_anchor(snap)
+        last = self._last
+        is_new = last is None or last.epoch != a.epoch or a.counter64 > last.counter64
+        missed, restarted, overflow = 0, False, False
+        if is_new:
+            missed, restarted, overflow = self._deliver(a.epoch, snap.counter, a.counter64)
+        scan = Scan(
+            counter=snap.counter,
+            time_us=snap.time_us,
+            codes=snap.codes,
+            status=snap.status,
+            counter64=a.counter64,
+            time64_us=a.time64,
+            epoch=a.epoch,
+            missed=missed,
+            restarted=restarted,
+            overflow=overflow,
+            time_measured=True,
+            status_measured=True,
+            source=source,
+            host_time=host_time,
+        )
+        return scan, is_new
+
+    def peek(self, snap: RawSnapshot, host_time: float) -> Scan:
+        """Like poll, without changing any state (a snapshot read beside the FIFO)."""
+        scan, _ = copy.deepcopy(self).poll(snap, host_time)
+        return scan
+
+    # -- FIFO ------------------------------------------------------------------------
+
+    def begin_batch(self, snap: RawSnapshot) -> None:
+        """Anchor the FIFO scans about to be read on the snapshot read just before."""
+        old = self._anchor
+        if self._observe(snap):
+            self._start_epoch()
+            self._boundary_pending = True
+        self._set_anchor(snap)
+        self._batch_prev_anchor = old if old is not None and old.epoch == self.epoch else None
+        if snap.status & ldq412.STATUS_OVERFLOW:
+            self._pending_overflow = True
+
+    def fifo_scans(
+        self, raw: Sequence[tuple[int, tuple[int, int, int, int]]], host_time: float
+    ) -> list[Scan]:
+        """Turn (counter, codes) pairs read from the FIFO, oldest first, into Scans.
+
+        Scans that are not newer than the last delivered one (duplicates, stale data) are
+        dropped. If the anchor showed a restart, the new epoch begins at the first scan
+        whose counter goes backwards, or at the first scan if none does.
+        """
+        anchor = self._anchor
+        if anchor is None:
+            raise RuntimeError("fifo_scans() before begin_batch()")
+        boundary = -1  # scans before this index belong to the previous epoch
+        if self._boundary_pending and raw:
+            self._boundary_pending = False
+            boundary = 0
+            last = self._last
+            prev = last.counter if last is not None and last.epoch == self.epoch - 1 else None
+            if prev is not None and self._prev_anchor is not None:
+                for i, (c, _) in enumerate(raw):
+                    if (c - prev) % U32 >= HALF or c == prev:
+                        boundary = i
+                        break
+                    prev = c
+        rate = self.scan_rate_hz
+        bracket = self._batch_prev_anchor
+        other_fault = bracket.status if bracket is not None else 0
+        out: list[Scan] = []
+        for i, (c, codes) in enumerate(raw):
+            a = anchor if i >= boundary else self._prev_anchor
+            assert a is not None
+            c64 = a.counter64 + signed_delta(c, a.counter)
+            last = self._last
+            if last is not None and (
+                last.epoch > a.epoch or (last.epoch == a.epoch and c64 <= last.counter64)
+            ):
+                continue
+            if c64 == a.counter64:
+                t64, status, measured = a.time64, a.status, True
+            else:
+                t64 = a.time64 + period_ticks_us(c64 - a.counter64, rate)
+                extra = other_fault if a is anchor else 0
+                status, measured = derived_status(codes, a.status, extra), False
+            missed, restarted, overflow = self._deliver(a.epoch, c, c64)
+            out.append(
+                Scan(
+                    counter=c,
+                    time_us=t64 % U32,
+                    codes=codes,
+                    status=status,
+                    counter64=c64,
+                    time64_us=t64,
+                    epoch=a.epoch,
+                    missed=missed,
+                    restarted=restarted,
+                    overflow=overflow,
+                    time_measured=measured,
+                    status_measured=measured,
+                    source="fifo",
+                    host_time=host_time,
+                )
+            )
+        return out

@@ -1,0 +1,197 @@
+"""The ASCII driver against a scripted odd device on a real pseudo-terminal.
+
+The emulator behaves like the datasheet; a real module may not. Here a small responder
+thread sits on the master side of a pty and answers each command with whatever a test
+scripts (wrong model, partial frames, split frames, junk lines, silence), while the driver
+opens the slave side with pyserial exactly as it would open /dev/ttyUSB0.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import threading
+import time
+import tty
+from collections.abc import Callable, Iterator
+
+import pytest
+
+from drivers import ldq412, open_daq
+from drivers.errors import DAQIdentityError, DAQInvalidCommand, DAQProtocolError, DAQTimeout
+
+Reply = bytes | list[tuple[float, bytes]] | None
+Handler = Callable[[bytes], Reply]
+
+SCAN = b">0000123400ABCDEF800001FFFBB80004"
+
+
+class ScriptedDevice:
+    """Answers each CR-terminated command with handler(command without CR).
+
+    A reply is bytes (written at once), a list of (delay_s, bytes) pieces, or None.
+    """
+
+    def __init__(self, handler: Handler) -> None:
+        self.handler = handler
+        self.master, slave = os.openpty()
+        tty.setraw(slave)
+        self.path = os.ttyname(slave)
+        self._slave = slave  # keep open so the master never sees EIO between opens
+        self._stop = threading.Event()
+        self.commands: list[bytes] = []
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        buf = b""
+        while not self._stop.is_set():
+            r, _, _ = select.select([self.master], [], [], 0.02)
+            if not r:
+                continue
+            try:
+                buf += os.read(self.master, 4096)
+            except OSError:
+                return
+            while b"\r" in buf:
+                cmd, buf = buf.split(b"\r", 1)
+                self.commands.append(cmd)
+                reply = self.handler(cmd)
+                if reply is None:
+                    continue
+                pieces = [(0.0, reply)] if isinstance(reply, bytes) else reply
+                for delay, data in pieces:
+                    time.sleep(delay)
+                    os.write(self.master, data)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(1)
+        os.close(self.master)
+        os.close(self._slave)
+
+
+def good_device(cmd: bytes) -> Reply:
+    return {
+        b"$01M": b"!01LDQ412\r",
+        b"$01F": b"!012.01\r",
+        b"$01R": b"!010014\r",
+        b"#01": SCAN + b"\r",
+    }.get(cmd, b"?01\r")
+
+
+@pytest.fixture
+def device() -> Iterator[Callable[[Handler], ScriptedDevice]]:
+    made: list[ScriptedDevice] = []
+
+    def make(handler: Handler) -> ScriptedDevice:
+        d = ScriptedDevice(handler)
+        made.append(d)
+        return d
+
+    yield make
+    for d in made:
+        d.close()
+
+
+def url(dev: ScriptedDevice, extra: str = "") -> str:
+    return f"ascii://{dev.path}?baud=115200&addr=01{extra}"
+
+
+def test_identity_at_connect(device) -> None:
+    dev = device(good_device)
+    with open_daq(url(dev)) as daq:
+        assert daq.identity.model == ldq412.MODEL_NAME
+        assert daq.identity.firmware == "2.01"
+        assert daq.identity.serial is None  # the ASCII protocol has no serial query
+        assert daq.scan_rate == 20
+        scans = daq.read_scans()
+        assert [s.counter for s in scans] == [0x1234]
+        assert scans[0].codes == (2048, 1, 4095, 3000) and scans[0].rail[2]
+        assert daq.read_scans() == []  # same counter again: deduplicated
+
+
+def test_wrong_model_is_an_identity_error(device) -> None:
+    dev = device(lambda c: b"!01LDQ999\r" if c == b"$01M" else good_device(c))
+    with pytest.raises(DAQIdentityError):
+        open_daq(url(dev))
+    with open_daq(url(dev), check_identity=False) as daq:
+        assert daq.identity.model == "LDQ999"
+
+
+def test_silent_device_times_out_within_the_bound(device) -> None:
+    dev = device(good_device)
+    daq = open_daq(url(dev))
+    dev.handler = lambda c: None
+    t0 = time.monotonic()
+    with pytest.raises(DAQTimeout):
+        daq.read_scans()
+    assert time.monotonic() - t0 < ldq412.HOST_TIMEOUT_S + 0.05
+    dev.handler = good_device
+    assert [s.counter for s in daq.read_scans()] == [0x1234]
+    daq.close()
+
+
+@pytest.mark.parametrize(
+    ("reply", "error"),
+    [
+        (SCAN, DAQProtocolError),  # partial: no CR ever
+        (SCAN[:20] + b"\r", DAQProtocolError),  # truncated
+        (b"\x13\x88junk\r" + SCAN + b"\r", DAQProtocolError),  # junk line first
+        (b"zz" + SCAN + b"\r", DAQProtocolError),  # junk glued to the answer
+        (SCAN.replace(b"8000", b"8g00") + b"\r", DAQProtocolError),  # non-hex
+        (b"?01\r", DAQInvalidCommand),
+        (b"!01\r", DAQProtocolError),  # an ack where a scan was expected
+        (b"A" * 500, DAQProtocolError),  # babbling, no CR
+    ],
+)
+def test_malformed_answers_then_recovery(device, reply: bytes, error: type) -> None:
+    dev = device(good_device)
+    daq = open_daq(url(dev))
+    dev.handler = lambda c: reply if c == b"#01" else good_device(c)
+    t0 = time.monotonic()
+    with pytest.raises(error):
+        daq.read_scans()
+    assert time.monotonic() - t0 < 2 * ldq412.HOST_TIMEOUT_S + 0.05
+    dev.handler = good_device
+    assert [s.counter for s in daq.read_scans()] == [0x1234]
+    daq.close()
+
+
+def test_split_and_lowercase_answers_are_accepted(device) -> None:
+    lower = SCAN.lower().replace(b"g", b"G")
+    dev = device(
+        lambda c: (
+            [(0.0, lower[:10]), (0.01, lower[10:]), (0.01, b"\r")]
+            if c == b"#01"
+            else good_device(c)
+        )
+    )
+    with open_daq(url(dev)) as daq:
+        (s,) = daq.read_scans()
+        assert s.time_us == 0xABCDEF
+
+
+def test_checksum_mode(device) -> None:
+    def with_cs(cmd: bytes) -> Reply:
+        body, digits = cmd[:-2], cmd[-2:]
+        if digits != ldq412.ascii_checksum(body):
+            return None
+        plain = good_device(body)
+        assert isinstance(plain, bytes)
+        ans = plain[:-1]
+        return ans + ldq412.ascii_checksum(ans) + b"\r"
+
+    dev = device(with_cs)
+    with open_daq(url(dev, "&checksum=1")) as daq:
+        assert [s.counter for s in daq.read_scans()] == [0x1234]
+        assert dev.commands[-1] == b"#0184"
+        bad = SCAN + b"00\r"
+        dev.handler = lambda c: bad
+        with pytest.raises(DAQProtocolError, match="checksum"):
+            daq.read_scans()
+    # a module in checksum mode ignores commands without digits: the error says what
+    # to check
+    dev.handler = with_cs
+    with pytest.raises(DAQTimeout, match="checksum"):
+        open_daq(url(dev, "&checksum=0"))
