@@ -8,6 +8,7 @@ Z-Y-Z Euler angles are intrinsic, ``R = Rz(alpha) @ Ry(beta) @ Rz(gamma)``, in r
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -122,8 +123,12 @@ def inverse_kinematics(R: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 def euler_zyz(R: np.ndarray) -> np.ndarray:
-    """Intrinsic Z-Y-Z Euler angles (alpha, beta, gamma) of rotations (m, 3, 3), radians (m, 3)."""
-    return Rotation.from_matrix(check_rotations(R)).as_euler("ZYZ")
+    """Intrinsic Z-Y-Z Euler angles (alpha, beta, gamma) of rotations (m, 3, 3), radians (m, 3).
+
+    At zero tilt only alpha + gamma is defined; gamma is then reported as zero."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Gimbal lock")
+        return Rotation.from_matrix(check_rotations(R)).as_euler("ZYZ")
 
 
 def from_euler_zyz(angles: np.ndarray) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -60,4 +60,5 @@ def calibrate(
             break  # the same poses again: the estimate would not change
         result = identify(V[sel.indices], model, p, noise_volts=noise_volts)
         previous, p = sel.indices, result.params
-    return Calibration(result, sel, rounds_run)
+    # report against the caller's start, not the intermediate one of the last round
+    return Calibration(replace(result, start=np.asarray(start, dtype=float)), sel, rounds_run)

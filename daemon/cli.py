@@ -14,6 +14,7 @@ from calibration.parameters import NOMINAL, ParameterModel
 from calibration.pipeline import calibrate
 from calibration.selection import candidate_jacobian
 from calibration.simulate import perturbed_truth, simulate_poses
+from simulator import run as simulate_run
 
 
 def _model(args: argparse.Namespace) -> ParameterModel:
@@ -107,6 +108,15 @@ def build_parser() -> argparse.ArgumentParser:
     obs.add_argument("--seed", type=int, default=1)
     obs.add_argument("--condition-limit", type=float, default=1000.0)
     obs.set_defaults(func=cmd_observability)
+
+    sim = sub.add_parser(
+        "simulate",
+        help="serve an emulated LDQ-412 driven by a simulated shoulder joint",
+        description=simulate_run.__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    simulate_run.add_arguments(sim)
+    sim.set_defaults(func=simulate_run.run)
     return parser
 
 

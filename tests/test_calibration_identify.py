@@ -133,3 +133,25 @@ def test_calibrate_selects_then_identifies_in_rounds():
     assert np.all(np.abs(z) < 3)
     few = calibrate(ps.volts[:30], PAPER7, NOMINAL, n_select=50)  # fewer than asked: all used
     assert len(few.selection.indices) <= 30
+
+
+def test_still_poses_average_the_pauses():
+    from calibration.errors import InputError as _InputError
+    from calibration.poses import still_poses
+
+    rng = np.random.default_rng(0)
+    level = np.array([[1.0, -2.0, 0.5, 3.0], [2.0, 1.0, -1.0, 0.0]])
+    ramp = np.linspace(level[0], level[1], 40)
+    V = np.concatenate([np.repeat(level[:1], 60, 0), ramp, np.repeat(level[1:], 80, 0)])
+    V = V + rng.normal(0, 0.04, V.shape)
+    valid = np.ones(len(V), dtype=bool)
+    valid[150] = False  # a rail or fault scan splits the second pause
+    sp = still_poses(V, valid=valid)
+    assert len(sp) == 3
+    assert np.allclose(sp.volts[0], level[0], atol=0.03)
+    assert np.allclose(sp.volts[-1], level[1], atol=0.03)
+    assert sp.ranges[0, 0] == 0 and sp.ranges[-1, 1] == len(V)
+    assert np.all(sp.spread < 0.06)
+    assert len(still_poses(V, max_scans=20)) > 5
+    with pytest.raises(_InputError, match="window"):
+        still_poses(V, window=1)

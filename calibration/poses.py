@@ -1,0 +1,93 @@
+"""Quasi-static poses from a stream of scans (MODEL.md section 8).
+
+While the plate moves, the four channels of a scan are converted 250 us apart, and a hand
+moves the plate quickly enough for that to matter; so calibration poses come from the still
+stretches of a recording, averaged. A stretch is still where, over a window of scans, every
+channel stays within a band consistent with its noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from .errors import InputError
+from .residuals import check_volts
+
+
+@dataclass(frozen=True)
+class StillPoses:
+    """volts: (k, 4) mean readings of the still stretches, V; spread: (k, 4) standard
+    deviation of the readings within each stretch, V; ranges: (k, 2) first and one-past-last
+    scan index of each stretch; counts: (k,) scans averaged."""
+
+    volts: np.ndarray
+    spread: np.ndarray
+    ranges: np.ndarray
+
+    @property
+    def counts(self) -> np.ndarray:
+        return self.ranges[:, 1] - self.ranges[:, 0]
+
+    def __len__(self) -> int:
+        return len(self.volts)
+
+
+def still_poses(
+    volts: np.ndarray,
+    *,
+    window: int = 10,
+    band_volts: float = 0.25,
+    max_scans: int | None = None,
+    valid: np.ndarray | None = None,
+) -> StillPoses:
+    """Find still stretches in a scan stream and average each into one pose.
+
+    volts: (n, 4) readings in scan order, V. window: scans a stretch must at least span
+    (0.5 s at 20 Hz). band_volts: largest peak-to-peak change of any channel within a window
+    that still counts as still (40 mV noise gives about 0.2 V peak-to-peak over 10 scans).
+    max_scans: split longer stretches into pieces of at most this many scans (None: keep
+    whole). valid: (n,) bool, False for scans that must not be used (rail, faults, gaps);
+    a stretch never spans an invalid scan.
+    """
+    V = check_volts(volts)
+    n = len(V)
+    if window < 2:
+        raise InputError(f"a still window needs at least 2 scans, got {window}")
+    ok = np.ones(n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    if ok.shape != (n,):
+        raise InputError(f"valid must have shape ({n},), got {ok.shape}")
+    empty = StillPoses(np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, 2), dtype=int))
+    if n < window:
+        return empty
+    win = sliding_window_view(V, window, axis=0)  # (n - window + 1, 4, window)
+    still_win = (np.ptp(win, axis=2).max(axis=1) <= band_volts) & sliding_window_view(
+        ok, window
+    ).all(axis=1)
+    # a scan is still if it lies in at least one still window
+    cover = np.zeros(n + 1, dtype=int)
+    starts = np.flatnonzero(still_win)
+    np.add.at(cover, starts, 1)
+    np.add.at(cover, starts + window, -1)
+    still = np.cumsum(cover[:-1]) > 0
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(int), [0]])))
+    ranges = edges.reshape(-1, 2)
+    if max_scans is not None:
+        if max_scans < window:
+            raise InputError(f"max_scans ({max_scans}) must be at least the window ({window})")
+        pieces = []
+        for a, b in ranges:
+            cuts = list(range(a, b, max_scans)) + [b]
+            pieces += [(c0, c1) for c0, c1 in zip(cuts[:-1], cuts[1:], strict=True)
+                       if c1 - c0 >= window]  # fmt: skip
+        ranges = np.array(pieces, dtype=int).reshape(-1, 2)
+    if len(ranges) == 0:
+        return empty
+    csum = np.concatenate([np.zeros((1, 4)), np.cumsum(V, axis=0)])
+    csq = np.concatenate([np.zeros((1, 4)), np.cumsum(V * V, axis=0)])
+    cnt = (ranges[:, 1] - ranges[:, 0])[:, None]
+    mean = (csum[ranges[:, 1]] - csum[ranges[:, 0]]) / cnt
+    var = np.maximum((csq[ranges[:, 1]] - csq[ranges[:, 0]]) / cnt - mean**2, 0.0)
+    return StillPoses(mean, np.sqrt(var), ranges)

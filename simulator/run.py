@@ -1,0 +1,271 @@
+"""``loopcal simulate``: serve an emulated LDQ-412 driven by a simulated shoulder joint.
+
+Prints where it listens (the driver URL; for serial transports the pseudo-terminal path a
+driver opens like /dev/ttyUSB0), applies scheduled faults, and can stream its ground truth
+(the true parameters, then every scan it produced with the plate's true orientation) to a
+JSON Lines file.
+
+Fault schedule, times in seconds of device time since start (repeatable ``--fault``)::
+
+    restart@30            power cycle at 30 s (2 s off)
+    stall@12+2            no answers from 12 s for 2 s
+    disconnect@20+3       link down from 20 s for 3 s
+    garbage@8:16          16 junk bytes before the next answer at 8 s
+    corrupt@10:3          the next 3 answers with a broken CRC/checksum/MBAP
+    stuck@15+5:2=1000     channel 2 stuck at code 1000 from 15 s for 5 s
+    sensor@15+5:3         sensor fault on channel 3 from 15 s for 5 s
+    saturate@15+5:1=high  channel 1 at the high rail from 15 s for 5 s
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import signal
+import sys
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from calibration.kinematics import euler_zyz
+from calibration.parameters import NAMES, ParameterModel, from_dict, to_dict
+from calibration.simulate import NOISE_VOLTS, perturbed_truth
+
+from .clock import RealClock, SimClock
+from .emulator import TRANSPORTS, Emulator
+from .faults import FaultInjector
+from .mechanism import MechanismSource
+from .scenarios import HandMoves, Static, Sweep
+
+_FAULT = re.compile(
+    r"^(?P<kind>[a-z]+)@(?P<at>\d+(?:\.\d*)?)(?:\+(?P<dur>\d+(?:\.\d*)?))?(?::(?P<arg>.+))?$"
+)
+_KINDS = ("restart", "stall", "disconnect", "garbage", "corrupt", "stuck", "sensor", "saturate")
+
+
+@dataclass(frozen=True)
+class FaultEvent:
+    """A fault switched on at ``at`` (device seconds) and, for lasting ones, off at
+    ``at + duration``."""
+
+    kind: str
+    at: float
+    duration: float | None
+    channel: int | None
+    value: str | None
+
+    @classmethod
+    def parse(cls, text: str) -> FaultEvent:
+        m = _FAULT.match(text.strip())
+        if not m or m["kind"] not in _KINDS:
+            raise ValueError(
+                f"bad fault {text!r}: expected KIND@SECONDS[+DURATION][:ARG] with KIND one of "
+                f"{', '.join(_KINDS)} (e.g. restart@30, stall@12+2, stuck@15+5:2=1000)"
+            )
+        kind, arg = m["kind"], m["arg"]
+        dur = float(m["dur"]) if m["dur"] else None
+        channel = value = None
+        if kind in ("stall", "disconnect", "stuck", "sensor", "saturate") and dur is None:
+            raise ValueError(f"fault {text!r} needs a duration: {kind}@SECONDS+DURATION")
+        if kind in ("stuck", "sensor", "saturate"):
+            ch, _, value = (arg or "").partition("=")
+            if ch not in ("1", "2", "3", "4"):
+                raise ValueError(f"fault {text!r} needs a channel 1..4 after ':'")
+            channel = int(ch)
+            if kind == "stuck" and not (value.isdigit() and 0 <= int(value) <= 4095):
+                raise ValueError(f"fault {text!r}: stuck needs a code 0..4095 (:CH=CODE)")
+            if kind == "saturate" and value not in ("high", "low"):
+                raise ValueError(f"fault {text!r}: saturate needs :CH=high or :CH=low")
+        elif kind in ("garbage", "corrupt"):
+            value = arg or ("16" if kind == "garbage" else "1")
+            if not value.isdigit() or int(value) < 1:
+                raise ValueError(f"fault {text!r}: {kind} takes a positive count")
+        return cls(kind, float(m["at"]), dur, channel, value)
+
+    def switch_on(self, f: FaultInjector) -> None:
+        k = self.kind
+        if k == "restart":
+            f.restart(self.duration if self.duration is not None else 2.0)
+        elif k == "stall":
+            f.stall(self.duration)
+        elif k == "disconnect":
+            f.disconnect()
+        elif k == "garbage":
+            f.garbage(int(self.value))
+        elif k == "corrupt":
+            f.corrupt_next(int(self.value))
+        elif k == "stuck":
+            f.stuck_channel(self.channel, int(self.value))
+        elif k == "sensor":
+            f.sensor_fault(self.channel, True)
+        elif k == "saturate":
+            f.saturate(self.channel, self.value)
+
+    def switch_off(self, f: FaultInjector) -> None:
+        k = self.kind
+        if k == "disconnect":
+            f.reconnect()
+        elif k == "stuck":
+            f.stuck_channel(self.channel, None)
+        elif k == "sensor":
+            f.sensor_fault(self.channel, False)
+        elif k == "saturate":
+            f.saturate(self.channel, None)
+
+
+class TruthWriter:
+    """Streams ground truth as JSON Lines: a header, then one object per scan."""
+
+    def __init__(self, out: TextIO, header: dict, source: MechanismSource) -> None:
+        self.out = out
+        self.source = source
+        self.last: tuple[int, int] | None = None  # (boot, counter) last written
+        out.write(json.dumps({"type": "header", **header}) + "\n")
+
+    def write_new(self, truth: list) -> int:
+        start = 0
+        if self.last is not None:
+            for i in range(len(truth) - 1, -1, -1):
+                if (truth[i].boot, truth[i].counter) == self.last:
+                    start = i + 1
+                    break
+        new = truth[start:]
+        if not new:
+            return 0
+        euler = np.degrees(euler_zyz(self.source.scenario.rotation([s.t_s for s in new])))
+        for s, e in zip(new, euler, strict=True):
+            rec = {
+                "type": "scan",
+                "boot": s.boot,
+                "counter": s.counter,
+                "time_us": s.time_us,
+                "codes": list(s.codes),
+                "status": s.status,
+                "t_s": round(s.t_s, 6),
+                "euler_deg": [round(float(a), 6) for a in e],
+            }
+            self.out.write(json.dumps(rec) + "\n")
+        self.last = (new[-1].boot, new[-1].counter)
+        self.out.flush()
+        return len(new)
+
+
+def truth_parameters(args: argparse.Namespace) -> np.ndarray:
+    """True parameters: offsets (and the paper's geometry) moved at random by the seed,
+    then explicit ``NAME=VALUE`` overrides."""
+    rng = np.random.default_rng([args.seed, 1])
+    p = perturbed_truth(rng, offsets_mm=args.offset_error, model=ParameterModel.parse("paper7"))
+    overrides = {}
+    for item in filter(None, (s.strip() for s in (args.truth or "").split(","))):
+        name, eq, value = item.partition("=")
+        if not eq or name.strip() not in NAMES:
+            raise ValueError(f"bad --truth entry {item!r}: expected NAME=VALUE, NAME one of the "
+                             "20 parameters")  # fmt: skip
+        try:
+            overrides[name.strip()] = float(value)
+        except ValueError:
+            raise ValueError(f"bad --truth entry {item!r}: {value!r} is not a number") from None
+    return from_dict(overrides, p)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--transport", choices=TRANSPORTS, default="modbus-tcp")
+    p.add_argument("--host", default="127.0.0.1", help="TCP address (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=0, help="TCP port (default: a free one)")
+    p.add_argument("--unit", type=int, default=1, help="Modbus unit id (default 1)")
+    p.add_argument("--addr", type=lambda s: int(s, 16), default=1, help="ASCII address, hex")
+    p.add_argument("--checksum", action="store_true", help="ASCII checksum mode on at power-on")
+    p.add_argument("--scan-rate", type=int, default=20, help="scan rate at power-on, Hz (20)")
+    p.add_argument("--speed", type=float, default=1.0, help="device time per real second (1)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--scenario", choices=("hand", "static", "sweep"), default="hand")
+    p.add_argument("--noise-mv", type=float, default=1000 * NOISE_VOLTS)
+    p.add_argument("--offset-error", type=float, default=3.0,
+                   help="true offsets differ from the blueprint by up to this, mm (3)")  # fmt: skip
+    p.add_argument("--truth", default=None, help="true parameters, e.g. 'd01=99.1,A1x=68.9'")
+    p.add_argument("--fault", action="append", default=[], metavar="SPEC",
+                   help="schedule a fault (see loopcal simulate --help-faults)")  # fmt: skip
+    p.add_argument("--help-faults", action="store_true", help="explain the fault syntax")
+    p.add_argument(
+        "--duration", type=float, default=None,
+        help="stop after this many seconds of device time (default: until a signal)",
+    )  # fmt: skip
+    p.add_argument("--truth-out", type=Path, default=None,
+                   help="write the ground truth here (JSON Lines)")  # fmt: skip
+
+
+def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
+    """Serve until ``--duration`` of device time has passed or SIGINT/SIGTERM."""
+    if args.help_faults:
+        print(__doc__)
+        return 0
+    try:
+        faults = sorted((FaultEvent.parse(s) for s in args.fault), key=lambda e: e.at)
+        truth = truth_parameters(args)
+        if args.speed <= 0:
+            raise ValueError("--speed must be positive")
+        if args.noise_mv < 0:
+            raise ValueError("--noise-mv must not be negative")
+        scenario = {"hand": lambda: HandMoves(args.seed, params=truth), "static": Static,
+                    "sweep": Sweep}[args.scenario]()  # fmt: skip
+    except ValueError as exc:
+        print(f"loopcal simulate: error: {exc}", file=sys.stderr)
+        return 2
+    source = MechanismSource(scenario, truth, noise_volts=args.noise_mv / 1000, seed=args.seed)
+    clock = RealClock() if args.speed == 1.0 else SimClock(args.speed)
+    stop = stop or threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(sig, lambda *_: stop.set())
+    emu = Emulator(
+        args.transport, source, scan_rate_hz=args.scan_rate, clock=clock, seed=args.seed,
+        unit=args.unit, ascii_addr=args.addr, ascii_checksum=args.checksum, host=args.host,
+        port=args.port, truth_limit=max(20_000, int(60 * args.scan_rate * args.speed)),
+    )  # fmt: skip
+    out = open(args.truth_out, "w", encoding="utf-8") if args.truth_out else None  # noqa: SIM115
+    try:
+        with emu:
+            print(f"listening: {emu.url}", flush=True)
+            if args.transport != "modbus-tcp":
+                print(f"serial device: {emu.url.split('://', 1)[1].split('?')[0]}", flush=True)
+            writer = None
+            if out is not None:
+                header = {
+                    "parameters": to_dict(truth),
+                    "scenario": scenario.describe(),
+                    "noise_volts": args.noise_mv / 1000,
+                    "seed": args.seed,
+                    "transport": args.transport,
+                    "scan_rate_hz": args.scan_rate,
+                    "url": emu.url,
+                    "faults": args.fault,
+                }
+                writer = TruthWriter(out, header, source)
+            t0 = clock.now()
+            pending = [(e.at, 0, e) for e in faults]
+            pending += [(e.at + e.duration, 1, e) for e in faults if e.duration is not None
+                        and e.kind in ("disconnect", "stuck", "sensor", "saturate")]  # fmt: skip
+            pending.sort(key=lambda x: (x[0], x[1]))
+            last_flush = 0.0
+            while not stop.is_set():
+                now = clock.now() - t0
+                while pending and pending[0][0] <= now:
+                    _, off, event = pending.pop(0)
+                    (event.switch_off if off else event.switch_on)(emu.faults)
+                    print(f"{now:9.3f} s  fault {'off' if off else 'on'}: {event.kind}", flush=True)
+                if writer is not None and clock.now() - t0 - last_flush >= 0.5 * args.speed:
+                    writer.write_new(emu.truth)
+                    last_flush = clock.now() - t0
+                if args.duration is not None and now >= args.duration:
+                    break
+                stop.wait(0.05)
+            if writer is not None:
+                writer.write_new(emu.truth)
+    finally:
+        if out is not None:
+            out.close()
+    return 0

@@ -1,0 +1,189 @@
+"""How the simulated plate moves: orientation as a function of device time.
+
+A scenario maps times ``t`` (seconds since the module's first power-on, shape (k,)) to plate
+rotations (k, 3, 3), deterministically for its seed, whatever order it is asked in.
+
+- :class:`HandMoves`: a technician moving the plate by hand: smooth minimum-jerk moves
+  between random reachable orientations, with pauses (the still segments calibration poses
+  come from).
+- :class:`Static`: the plate held still.
+- :class:`Sweep`: the output axis circling at a fixed tilt while the plate swivels.
+"""
+
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from calibration.kinematics import from_euler_zyz
+from calibration.parameters import NOMINAL
+from calibration.simulate import NEAR_SINGULAR_MM, reachable, sample_workspace
+
+
+class Scenario:
+    """Base class: :meth:`rotation` of the plate at device times ``t``."""
+
+    name = "scenario"
+
+    def rotation(self, t: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def describe(self) -> dict:
+        return {"name": self.name}
+
+
+class Static(Scenario):
+    """The plate held at one orientation (Z-Y-Z Euler angles in degrees; default home)."""
+
+    name = "static"
+
+    def __init__(self, euler_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+        self.euler_deg = tuple(float(a) for a in euler_deg)
+        self._R = from_euler_zyz(np.radians(self.euler_deg))[0]
+
+    def rotation(self, t: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(self._R, (np.size(t), 3, 3)).copy()
+
+    def describe(self) -> dict:
+        return {"name": self.name, "euler_deg": list(self.euler_deg)}
+
+
+class Sweep(Scenario):
+    """The output axis circles at ``tilt_deg`` once per ``period_s`` while the plate swivels
+    by ``+-swivel_deg`` (sinusoidally, once per two periods)."""
+
+    name = "sweep"
+
+    def __init__(
+        self, period_s: float = 20.0, tilt_deg: float = 20.0, swivel_deg: float = 20.0
+    ) -> None:
+        if period_s <= 0:
+            raise ValueError("sweep period must be positive")
+        self.period_s, self.tilt_deg, self.swivel_deg = float(period_s), tilt_deg, swivel_deg
+        check = self.rotation(np.linspace(0.0, 2 * period_s, 400))
+        if not reachable(check, NOMINAL, margin_mm=NEAR_SINGULAR_MM).all():
+            raise ValueError(
+                f"a sweep at {tilt_deg} deg tilt and +-{swivel_deg} deg swivel leaves the "
+                "reachable workspace; choose a smaller tilt or swivel"
+            )
+
+    def rotation(self, t: np.ndarray) -> np.ndarray:
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        alpha = 2 * np.pi * t / self.period_s
+        swivel = np.radians(self.swivel_deg) * np.sin(np.pi * t / self.period_s)
+        beta = np.full_like(t, np.radians(self.tilt_deg))
+        return from_euler_zyz(np.column_stack([alpha, beta, swivel - alpha]))
+
+    def describe(self) -> dict:
+        return {
+            "name": self.name,
+            "period_s": self.period_s,
+            "tilt_deg": self.tilt_deg,
+            "swivel_deg": self.swivel_deg,
+        }
+
+
+@dataclass(frozen=True)
+class _Segment:
+    start: float
+    end: float
+    slerp: Slerp | None  # None: a pause at `hold`
+    hold: Rotation
+
+
+def min_jerk(tau: np.ndarray) -> np.ndarray:
+    """Minimum-jerk progress ``10 t^3 - 15 t^4 + 6 t^5`` of a move, for tau in [0, 1]."""
+    tau = np.clip(tau, 0.0, 1.0)
+    return tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
+
+
+class HandMoves(Scenario):
+    """A technician moving the plate by hand.
+
+    From home, the plate pauses (``pause_s`` range), then moves along the shortest rotation to
+    a random reachable orientation with a minimum-jerk profile at a peak-to-average speed
+    typical of a hand (``speed_deg_s`` range of average angular speeds), pauses, and so on.
+    Every orientation on a move stays inside the reachable workspace with a margin from
+    singular configurations. Segments are generated on demand from ``seed``.
+    """
+
+    name = "hand"
+
+    def __init__(
+        self,
+        seed: int = 0,
+        *,
+        pause_s: tuple[float, float] = (1.0, 3.0),
+        speed_deg_s: tuple[float, float] = (15.0, 40.0),
+        params: np.ndarray = NOMINAL,
+    ) -> None:
+        self.seed = seed
+        self.pause_s = pause_s
+        self.speed_deg_s = speed_deg_s
+        self.params = np.asarray(params, dtype=float)
+        self._rng = np.random.default_rng(seed)
+        self._segments: list[_Segment] = []
+        self._starts: list[float] = []
+        self._append(_Segment(0.0, self._pause(), None, Rotation.identity()))
+
+    def _pause(self) -> float:
+        return float(self._rng.uniform(*self.pause_s))
+
+    def _append(self, seg: _Segment) -> None:
+        self._segments.append(seg)
+        self._starts.append(seg.start)
+
+    def _extend(self) -> None:
+        last = self._segments[-1]
+        here = last.hold
+        for _ in range(100):
+            target = Rotation.from_matrix(
+                sample_workspace(1, self._rng, self.params, margin_mm=1.5 * NEAR_SINGULAR_MM)[0]
+            )
+            slerp = Slerp([0.0, 1.0], Rotation.concatenate([here, target]))
+            path = slerp(np.linspace(0.0, 1.0, 24)).as_matrix()
+            if reachable(path, self.params, margin_mm=NEAR_SINGULAR_MM).all():
+                break
+        else:  # pragma: no cover - the workspace is connected around home
+            target = Rotation.identity()
+            slerp = Slerp([0.0, 1.0], Rotation.concatenate([here, target]))
+        angle = np.degrees((here.inv() * target).magnitude())
+        duration = max(0.5, angle / self._rng.uniform(*self.speed_deg_s))
+        t0 = last.end
+        self._append(_Segment(t0, t0 + duration, slerp, target))
+        self._append(_Segment(t0 + duration, t0 + duration + self._pause(), None, target))
+
+    def segments_until(self, t: float) -> list[tuple[float, float, bool]]:
+        """(start, end, moving) of every segment up to time t: the ground truth of which
+        stretches are still."""
+        while self._segments[-1].end <= t:
+            self._extend()
+        return [(s.start, s.end, s.slerp is not None) for s in self._segments if s.start <= t]
+
+    def rotation(self, t: np.ndarray) -> np.ndarray:
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        while self._segments[-1].end <= t.max():
+            self._extend()
+        out = np.empty((t.size, 3, 3))
+        for k, tk in enumerate(t):
+            seg = self._segments[max(bisect.bisect_right(self._starts, tk) - 1, 0)]
+            if seg.slerp is None:
+                out[k] = seg.hold.as_matrix()
+            else:
+                tau = (tk - seg.start) / (seg.end - seg.start)
+                out[k] = seg.slerp(min_jerk(tau)).as_matrix()
+        return out
+
+    def describe(self) -> dict:
+        return {
+            "name": self.name,
+            "seed": self.seed,
+            "pause_s": list(self.pause_s),
+            "speed_deg_s": list(self.speed_deg_s),
+        }
+
+
+SCENARIOS = {"hand": HandMoves, "static": Static, "sweep": Sweep}

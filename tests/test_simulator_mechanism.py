@@ -1,0 +1,100 @@
+"""The simulated mechanism behind the emulated DAQ, and calibration from its wire data."""
+
+import numpy as np
+import pytest
+
+from calibration.kinematics import inverse_kinematics, lengths_to_volts
+from calibration.parameters import NOMINAL, PAPER7
+from calibration.pipeline import calibrate
+from calibration.poses import still_poses
+from calibration.simulate import perturbed_truth, reachable
+from drivers import open_daq
+from drivers.ldq412 import at_rail, code_to_volts
+from simulator import Emulator, ManualClock
+from simulator.mechanism import MechanismSource
+from simulator.scenarios import HandMoves, Static, Sweep, min_jerk
+
+
+def test_hand_moves_are_deterministic_in_any_query_order():
+    t = np.linspace(0, 120, 500)
+    a = HandMoves(3).rotation(t)
+    late_first = HandMoves(3)
+    b = np.concatenate([late_first.rotation(t[250:]), late_first.rotation(t[:250])])
+    b = np.concatenate([b[250:], b[:250]])
+    assert np.array_equal(a, b)
+    assert not np.allclose(a, HandMoves(4).rotation(t))
+
+
+def test_hand_moves_stay_in_the_workspace_and_pause():
+    truth = perturbed_truth(np.random.default_rng(2))
+    h = HandMoves(5, params=truth)
+    t = np.linspace(0, 300, 3000)
+    R = h.rotation(t)
+    assert reachable(R, truth, margin_mm=9.0).all()
+    segs = h.segments_until(300)
+    pauses = [(a, b) for a, b, moving in segs if not moving]
+    moves = [(a, b) for a, b, moving in segs if moving]
+    assert len(pauses) > 20 and len(moves) > 20
+    a, b = pauses[3]
+    held = h.rotation(np.linspace(a, b - 1e-6, 20))
+    assert np.abs(held - held[0]).max() == 0.0  # the plate is still during a pause
+
+
+def test_moves_start_and_end_at_rest():
+    assert min_jerk(np.array([0.0, 1.0])).tolist() == [0.0, 1.0]
+    eps = 1e-4
+    slope = (min_jerk(np.array([eps, 1.0])) - min_jerk(np.array([0.0, 1 - eps]))) / eps
+    assert abs(slope[0]) < 1e-6 and abs(slope[1]) < 1e-6
+
+
+def test_source_is_the_inverse_kinematics_of_the_truth():
+    truth = perturbed_truth(np.random.default_rng(3))
+    src = MechanismSource(Static((30.0, 20.0, -10.0)), truth, noise_volts=0.0)
+    t = np.array([1.0, 1.00025, 1.0005, 1.00075])
+    from calibration.kinematics import from_euler_zyz
+
+    R = from_euler_zyz(np.radians([30.0, 20.0, -10.0]))
+    expected = lengths_to_volts(inverse_kinematics(R, truth), truth)[0]
+    assert np.allclose(src.convert(t), expected, atol=1e-12)
+
+
+def test_channel_skew_of_a_moving_plate():
+    src = MechanismSource(Sweep(period_s=4.0), NOMINAL, noise_volts=0.0)
+    t0 = 1.0
+    skewed = src.convert(t0 + 250e-6 * np.arange(4))
+    same_instant = src.clean(np.full(4, t0))
+    # channel 1 is the scan's instant; channel 4 is converted 750 us later
+    assert skewed[0] == same_instant[0]
+    assert abs(skewed[3] - same_instant[3]) > 1e-4
+
+
+def test_bad_sweep_or_noise_is_refused():
+    with pytest.raises(ValueError, match="leaves the reachable workspace"):
+        Sweep(tilt_deg=60.0)
+    with pytest.raises(ValueError, match="noise"):
+        MechanismSource(Static(), NOMINAL, noise_volts=-1.0)
+
+
+def test_calibration_from_wire_data_recovers_the_offsets():
+    """Five minutes of a technician moving the plate, read over Modbus TCP, still stretches
+    averaged, best 50 poses selected, paper's seven parameters identified."""
+    truth = perturbed_truth(np.random.default_rng(1))
+    src = MechanismSource(HandMoves(1, params=truth), truth, seed=1)
+    clock = ManualClock()
+    with Emulator("modbus-tcp", src, clock=clock) as emu:
+        daq = open_daq(emu.url)
+        scans = []
+        for _ in range(300):
+            clock.advance(1.0)
+            scans += daq.read_scans()
+        daq.close()
+        assert [s.counter for s in scans] == [s.counter for s in emu.truth]
+    codes = np.array([s.codes for s in scans])
+    poses = still_poses(code_to_volts(codes), valid=~at_rail(codes).any(axis=1))
+    assert len(poses) >= 50
+    res = calibrate(poses.volts, PAPER7, NOMINAL).identification
+    assert res.problems() == []
+    z = (res.params - truth)[16:20] / res.std[:4]
+    assert np.all(np.abs(z) < 3), z
+    assert np.all(res.std[:4] < 0.1)
+    assert np.abs(res.params - truth)[16:20].max() < 0.2
