@@ -49,3 +49,57 @@ class MechanismSource:
 
     def convert(self, t: np.ndarray) -> np.ndarray:
         return self.clean(t) + self._rng.normal(0.0, self.noise_volts, 4)
+
+
+class ReplaySource:
+    """:class:`~simulator.source.SignalSource` replaying a recording: each channel reads the
+    latest recorded value at or before its instant (sample and hold), shifted so that the
+    recording starts at device time ``start_s``; after the end it holds the last value, or
+    starts over with ``loop``.
+
+    times_s: (n,) increasing recording times, s; volts: (n, 4). Recorded codes replay
+    bit for bit when given as their mid-code volts (:func:`drivers.ldq412.code_to_volts`).
+    """
+
+    def __init__(
+        self, times_s: np.ndarray, volts: np.ndarray, *, start_s: float = 0.0, loop: bool = False
+    ) -> None:
+        self.times = np.asarray(times_s, dtype=float)
+        self.volts = np.asarray(volts, dtype=float)
+        if self.times.ndim != 1 or self.volts.shape != (len(self.times), 4) or not len(self.times):
+            raise ValueError("a replay needs n increasing times and (n, 4) volts, n >= 1")
+        if np.any(np.diff(self.times) <= 0):
+            raise ValueError("replay times must increase strictly")
+        self.times = self.times - self.times[0]
+        self.start_s = float(start_s)
+        self.loop = loop
+        self.span = self.times[-1] + (np.median(np.diff(self.times)) if len(self.times) > 1 else 1)
+
+    def convert(self, t: np.ndarray) -> np.ndarray:
+        rel = np.asarray(t, dtype=float) - self.start_s
+        if self.loop:
+            rel = np.mod(rel, self.span)
+        k = np.clip(np.searchsorted(self.times, rel, side="right") - 1, 0, len(self.times) - 1)
+        return self.volts[k, np.arange(4)]
+
+    @classmethod
+    def from_truth_file(cls, path, *, loop: bool = False) -> ReplaySource:
+        """Replay the scans of a ``loopcal simulate --truth-out`` file (every power-on in
+        order; times from the scans' own source times)."""
+        import json
+
+        from drivers.ldq412 import code_to_volts
+
+        times, codes = [], []
+        with open(path, encoding="utf-8") as fh:
+            for n, line in enumerate(fh, 1):
+                try:
+                    rec = json.loads(line)
+                except json.JSONDecodeError as exc:
+                    raise ValueError(f"{path}:{n}: not JSON ({exc.msg})") from None
+                if rec.get("type") == "scan":
+                    times.append(rec["t_s"])
+                    codes.append(rec["codes"])
+        if not times:
+            raise ValueError(f"{path}: no scans to replay")
+        return cls(np.array(times), code_to_volts(np.array(codes)), loop=loop)

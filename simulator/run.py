@@ -38,7 +38,7 @@ from calibration.simulate import NOISE_VOLTS, perturbed_truth
 from .clock import RealClock, SimClock
 from .emulator import TRANSPORTS, Emulator
 from .faults import FaultInjector
-from .mechanism import MechanismSource
+from .mechanism import MechanismSource, ReplaySource
 from .scenarios import HandMoves, Static, Sweep
 
 _FAULT = re.compile(
@@ -120,7 +120,7 @@ class FaultEvent:
 class TruthWriter:
     """Streams ground truth as JSON Lines: a header, then one object per scan."""
 
-    def __init__(self, out: TextIO, header: dict, source: MechanismSource) -> None:
+    def __init__(self, out: TextIO, header: dict, source: MechanismSource | ReplaySource) -> None:
         self.out = out
         self.source = source
         self.last: tuple[int, int] | None = None  # (boot, counter) last written
@@ -136,7 +136,12 @@ class TruthWriter:
         new = truth[start:]
         if not new:
             return 0
-        euler = np.degrees(euler_zyz(self.source.scenario.rotation([s.t_s for s in new])))
+        scenario = getattr(self.source, "scenario", None)
+        euler = (
+            np.degrees(euler_zyz(scenario.rotation([s.t_s for s in new])))
+            if scenario is not None
+            else [None] * len(new)
+        )
         for s, e in zip(new, euler, strict=True):
             rec = {
                 "type": "scan",
@@ -146,7 +151,7 @@ class TruthWriter:
                 "codes": list(s.codes),
                 "status": s.status,
                 "t_s": round(s.t_s, 6),
-                "euler_deg": [round(float(a), 6) for a in e],
+                "euler_deg": None if e is None else [round(float(a), 6) for a in e],
             }
             self.out.write(json.dumps(rec) + "\n")
         self.last = (new[-1].boot, new[-1].counter)
@@ -163,8 +168,9 @@ def truth_parameters(args: argparse.Namespace) -> np.ndarray:
     for item in filter(None, (s.strip() for s in (args.truth or "").split(","))):
         name, eq, value = item.partition("=")
         if not eq or name.strip() not in NAMES:
-            raise ValueError(f"bad --truth entry {item!r}: expected NAME=VALUE, NAME one of the "
-                             "20 parameters")  # fmt: skip
+            raise ValueError(
+                f"bad --truth entry {item!r}: expected NAME=VALUE, NAME one of the 20 parameters"
+            )
         try:
             overrides[name.strip()] = float(value)
         except ValueError:
@@ -182,20 +188,38 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scan-rate", type=int, default=20, help="scan rate at power-on, Hz (20)")
     p.add_argument("--speed", type=float, default=1.0, help="device time per real second (1)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--scenario", choices=("hand", "static", "sweep"), default="hand")
+    p.add_argument("--scenario", choices=("hand", "static", "sweep", "replay"), default="hand")
+    p.add_argument(
+        "--replay",
+        type=Path,
+        default=None,
+        help="with --scenario replay: a --truth-out file to play back (loops)",
+    )
     p.add_argument("--noise-mv", type=float, default=1000 * NOISE_VOLTS)
-    p.add_argument("--offset-error", type=float, default=3.0,
-                   help="true offsets differ from the blueprint by up to this, mm (3)")  # fmt: skip
+    p.add_argument(
+        "--offset-error",
+        type=float,
+        default=3.0,
+        help="true offsets differ from the blueprint by up to this, mm (3)",
+    )
     p.add_argument("--truth", default=None, help="true parameters, e.g. 'd01=99.1,A1x=68.9'")
-    p.add_argument("--fault", action="append", default=[], metavar="SPEC",
-                   help="schedule a fault (see loopcal simulate --help-faults)")  # fmt: skip
+    p.add_argument(
+        "--fault",
+        action="append",
+        default=[],
+        metavar="SPEC",
+        help="schedule a fault (see loopcal simulate --help-faults)",
+    )
     p.add_argument("--help-faults", action="store_true", help="explain the fault syntax")
     p.add_argument(
-        "--duration", type=float, default=None,
+        "--duration",
+        type=float,
+        default=None,
         help="stop after this many seconds of device time (default: until a signal)",
-    )  # fmt: skip
-    p.add_argument("--truth-out", type=Path, default=None,
-                   help="write the ground truth here (JSON Lines)")  # fmt: skip
+    )
+    p.add_argument(
+        "--truth-out", type=Path, default=None, help="write the ground truth here (JSON Lines)"
+    )
 
 
 def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
@@ -210,22 +234,41 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             raise ValueError("--speed must be positive")
         if args.noise_mv < 0:
             raise ValueError("--noise-mv must not be negative")
-        scenario = {"hand": lambda: HandMoves(args.seed, params=truth), "static": Static,
-                    "sweep": Sweep}[args.scenario]()  # fmt: skip
-    except ValueError as exc:
+        if args.scenario == "replay":
+            if args.replay is None:
+                raise ValueError("--scenario replay needs --replay FILE")
+            source = ReplaySource.from_truth_file(args.replay, loop=True)
+            scenario = None
+        else:
+            scenario = {
+                "hand": lambda: HandMoves(args.seed, params=truth),
+                "static": Static,
+                "sweep": Sweep,
+            }[args.scenario]()
+            source = MechanismSource(
+                scenario, truth, noise_volts=args.noise_mv / 1000, seed=args.seed
+            )
+    except (ValueError, OSError) as exc:
         print(f"loopcal simulate: error: {exc}", file=sys.stderr)
         return 2
-    source = MechanismSource(scenario, truth, noise_volts=args.noise_mv / 1000, seed=args.seed)
     clock = RealClock() if args.speed == 1.0 else SimClock(args.speed)
     stop = stop or threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         if threading.current_thread() is threading.main_thread():
             signal.signal(sig, lambda *_: stop.set())
     emu = Emulator(
-        args.transport, source, scan_rate_hz=args.scan_rate, clock=clock, seed=args.seed,
-        unit=args.unit, ascii_addr=args.addr, ascii_checksum=args.checksum, host=args.host,
-        port=args.port, truth_limit=max(20_000, int(60 * args.scan_rate * args.speed)),
-    )  # fmt: skip
+        args.transport,
+        source,
+        scan_rate_hz=args.scan_rate,
+        clock=clock,
+        seed=args.seed,
+        unit=args.unit,
+        ascii_addr=args.addr,
+        ascii_checksum=args.checksum,
+        host=args.host,
+        port=args.port,
+        truth_limit=max(20_000, int(60 * args.scan_rate * args.speed)),
+    )
     out = open(args.truth_out, "w", encoding="utf-8") if args.truth_out else None  # noqa: SIM115
     try:
         with emu:
@@ -235,8 +278,10 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             writer = None
             if out is not None:
                 header = {
-                    "parameters": to_dict(truth),
-                    "scenario": scenario.describe(),
+                    "parameters": to_dict(truth) if scenario else None,
+                    "scenario": scenario.describe()
+                    if scenario
+                    else {"name": "replay", "file": str(args.replay)},
                     "noise_volts": args.noise_mv / 1000,
                     "seed": args.seed,
                     "transport": args.transport,
@@ -247,8 +292,12 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
                 writer = TruthWriter(out, header, source)
             t0 = clock.now()
             pending = [(e.at, 0, e) for e in faults]
-            pending += [(e.at + e.duration, 1, e) for e in faults if e.duration is not None
-                        and e.kind in ("disconnect", "stuck", "sensor", "saturate")]  # fmt: skip
+            pending += [
+                (e.at + e.duration, 1, e)
+                for e in faults
+                if e.duration is not None
+                and e.kind in ("disconnect", "stuck", "sensor", "saturate")
+            ]
             pending.sort(key=lambda x: (x[0], x[1]))
             last_flush = 0.0
             while not stop.is_set():
