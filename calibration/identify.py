@@ -50,8 +50,8 @@ WIDE_MARGIN_FACTOR = 8.0
 MAX_NOISE_VOLTS = 0.2
 # Relative gradient |G^T f| / (|G| |f|) that counts as zero when no step helps.
 GTOL = 1e-6
-LOOSE_PASSES = 2
-MAX_PASSES = 4
+MAX_LOOSE_PASSES = 4
+MAX_PASSES = 6
 
 
 @dataclass(frozen=True)
@@ -158,7 +158,7 @@ def identify(
     *,
     noise_volts: float | None = None,
     max_iter: int = 100,
-    xtol: float = 1e-9,
+    xtol: float = 1e-8,
     ftol: float = 1e-12,
     near_singular_mm: float = NEAR_SINGULAR_MM,
     max_change: float = 50.0,
@@ -168,11 +168,12 @@ def identify(
     volts: (m, 4) readings in V (quasi-static poses). start: full parameter vector (20,) to
     start from; fixed parameters keep its values. noise_volts: known per-channel noise (1 sigma,
     V) for the covariance; None estimates it from the residuals. near_singular_mm: poses whose
-    mirror solutions come closer than this (at the start) are excluded and reported.
+    mirror solutions come closer than this (at the estimate) are excluded and reported.
     max_change: a free parameter moving further than this from the start (in its unit) is
-    divergence. xtol: converged when no free parameter moves more than this (in its unit) in
-    an iteration; ftol: or when the relative decrease of f^T f falls below it near the
-    Gauss-Newton regime (damping <= 1).
+    divergence. xtol: converged when no free parameter is estimated to be further than this (in
+    its unit) from the limit, judged from the step and the observed convergence rate; ftol: or
+    when the relative decrease of f^T f falls below it near the Gauss-Newton regime (damping <=
+    1).
 
     Raises InputError (bad readings, too few usable poses), UnobservableError (the free set is
     rank deficient on these poses), ConvergenceError (divergence).
@@ -201,15 +202,16 @@ def identify(
     used = wide if wide.sum() >= max(n, m // 4) else sep >= near_singular_mm
     history: list[float] = []
     total_iter = 0
+    tight = False
     for attempt in range(MAX_PASSES):
         if used.sum() < n:
             raise InputError(
                 f"only {int(used.sum())} of {m} poses are usable ({int((~used).sum())} "
                 f"near-singular or inconsistent); {n} free parameters need at least {n}"
             )
-        # The first passes (the wide one, then all usable poses) need only bring the estimate,
-        # and with it the branch references, close; later passes converge tightly.
-        tight = attempt >= LOOSE_PASSES
+        # Loose passes (the wide one, then all usable poses) bring the estimate, and with it
+        # the branch references and the usable set, close; once the set has settled, a tight
+        # pass converges on it (and again if that changes the set).
         p, f, g, it, converged, message = _levenberg_marquardt(
             V[used], ref[used], model, p, x0, p0, max_iter,
             xtol if tight else max(xtol, 1e-3), ftol if tight else max(ftol, 1e-4),
@@ -222,8 +224,12 @@ def identify(
         # hysteresis: a pose in the fit stays while it keeps 90 % of the margin
         sep = margins(p, ref)
         now = (sep >= near_singular_mm) | (used & (sep >= 0.9 * near_singular_mm))
-        if now.sum() < n or (tight and np.array_equal(now, used)):
+        if now.sum() < n:
             break
+        settled = attempt >= 1 and np.array_equal(now, used)
+        if tight and settled:
+            break
+        tight = tight or settled or attempt >= MAX_LOOSE_PASSES - 1
         used = now
     excluded = np.flatnonzero(~used)
     x = model.free_values(p)
@@ -272,26 +278,52 @@ def identify(
     )
 
 
+def fit_fixed(
+    volts: np.ndarray,
+    ref: np.ndarray,
+    model: ParameterModel = PAPER7,
+    start: np.ndarray = NOMINAL,
+    *,
+    max_iter: int = 100,
+    xtol: float = 1e-8,
+    ftol: float = 1e-12,
+    max_change: float = 50.0,
+) -> tuple[np.ndarray, int, bool, str]:
+    """The bare solver of :func:`identify`: LM on fixed poses with fixed branch references
+    (m, 2, 3), no pose screening, no covariance. Returns (params, iterations, converged,
+    message). For benchmarks and for callers that manage poses themselves."""
+    V = check_volts(volts)
+    p0 = check_vector(start)
+    p, _, _, it, converged, message = _levenberg_marquardt(
+        V, np.asarray(ref, dtype=float), model, p0, model.free_values(p0), p0, max_iter,
+        xtol, ftol, max_change, [],
+    )  # fmt: skip
+    return p, it, converged, message
+
+
 def _levenberg_marquardt(V, ref, model, p_start, x0, p0, max_iter, xtol, ftol, max_change, history):
     """LM with column scaling on poses V from p_start. The branch references ``ref`` (forward
     kinematics at p_start) stay fixed, so the objective is smooth within one call."""
     n = model.n_free
     T = model.tie_matrix
 
-    def residuals(p: np.ndarray) -> np.ndarray:
-        return loop_residuals(p, V, ref, jacobian=False).residuals.reshape(-1)
+    def residuals(p: np.ndarray):
+        r = loop_residuals(p, V, ref, jacobian=False)
+        return r.residuals.reshape(-1), r
 
-    def jacobian(p: np.ndarray) -> np.ndarray:
-        return loop_residuals(p, V, ref, directions=T).jacobian.reshape(-1, n)
+    def jacobian(r) -> np.ndarray:
+        return r.derivative(T).reshape(-1, n)
 
     p = p_start
-    f, g = residuals(p), jacobian(p)
+    f, r = residuals(p)
+    g = jacobian(r)
     require_observable(g, model)
     x = model.free_values(p)
     cost = float(f @ f)
     history.append(cost)
     lam = 1e-3
     nu = 2.0
+    prev_step = 0.0
     converged = False
     message = "maximum iterations reached"
     it = 0
@@ -309,7 +341,7 @@ def _levenberg_marquardt(V, ref, model, p_start, x0, p0, max_iter, xtol, ftol, m
             f_new = None
             if np.all(np.abs(x_new - x0) <= max_change):
                 p_new = model.expand(x_new, p0)
-                f_new = residuals(p_new)
+                f_new, r_new = residuals(p_new)
             if f_new is not None and np.isfinite(f_new).all():
                 new_cost = float(f_new @ f_new)
                 # gain ratio: actual over predicted reduction of f^T f (Nielsen's damping)
@@ -329,9 +361,15 @@ def _levenberg_marquardt(V, ref, model, p_start, x0, p0, max_iter, xtol, ftol, m
             else:
                 message = "no step reduces the residuals (stalled)"
             break
-        small_step = np.abs(x_new - x).max() <= xtol
+        # Gauss-Newton converges linearly on these large-residual problems: estimate the rate
+        # from successive steps and stop when the remaining distance, about
+        # step * rate / (1 - rate), is below xtol
+        step = np.abs(x_new - x).max()
+        rate = min(step / prev_step, 0.9) if prev_step > 0 else 0.9
+        small_step = step * max(rate / (1.0 - rate), 1.0) <= xtol
+        prev_step = step
         small_gain = cost - new_cost <= ftol * cost and lam <= 1.0
-        g_new = jacobian(p_new)
+        g_new = jacobian(r_new)
         if not np.isfinite(g_new).all():  # a pose hit a degenerate configuration
             lam *= nu
             nu *= 2.0

@@ -8,7 +8,7 @@ three-sphere intersections that do not use sensor i. The residual vector of m po
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -40,6 +40,14 @@ class LoopResiduals:
     jacobian: np.ndarray | None
     separation: np.ndarray
     feasible: np.ndarray
+    _state: tuple | None = field(default=None, repr=False, compare=False)
+
+    def derivative(self, directions: np.ndarray | None = None) -> np.ndarray:
+        """The Jacobian (m, 4, q) along ``directions`` (20, q) (default: all parameters),
+        from the intersections already solved for the residuals: only the reverse sweep
+        runs, so an accepted trial step costs no second forward solve."""
+        W = _E if directions is None else np.asarray(directions, dtype=float)
+        return _jacobian(self._state, W)
 
 
 def check_volts(volts: np.ndarray) -> np.ndarray:
@@ -107,16 +115,28 @@ def loop_residuals(
     f = np.empty((4, m))
     sep = np.empty((4, m))
     feas = np.empty((4, m), dtype=bool)
-    W = _E if directions is None else np.asarray(directions, dtype=float)
-    J = np.empty((4, W.shape[1], m)) if jacobian else None
-    for i, (first, (kf, j, l), second, (ks, s_i), t) in enumerate(loops):
+    errors = []
+    for i, (first, _, second, _, t) in enumerate(loops):
         e = second.x - A[t]
+        errors.append(e)
         f[i] = dot3(e, e) - d[t] ** 2
         sep[i] = np.minimum(first.separation, second.separation)
         feas[i] = first.feasible & second.feasible
-        if not jacobian:
-            continue
-        # reverse mode: the gradient of f_i with respect to all 20 parameters, per pose
+    state = (loops, errors, A, d, VT, m)
+    out = LoopResiduals(f.T, None, sep.T, feas.T, state)
+    if jacobian:
+        out = replace(out, jacobian=out.derivative(directions))
+    return out
+
+
+def _jacobian(state: tuple, W: np.ndarray) -> np.ndarray:
+    """Reverse sweep over the four loops: (m, 4, q) derivatives along W (20, q)."""
+    loops, errors, A, d, VT, m = state
+    J = np.empty((4, W.shape[1], m))
+    for i, ((first, (kf, j, l), second, (ks, s_i), t), e) in enumerate(
+        zip(loops, errors, strict=True)
+    ):
+        # the gradient of f_i with respect to all 20 parameters, per pose
         grad_d = np.zeros((4, m))  # d f / d d_s (lengths)
         grad_A = np.zeros((4, 3, m))  # d f / d A_s
         G = np.zeros((N_PARAMS, m))
@@ -139,7 +159,7 @@ def loop_residuals(
         for (pt, ax), ip in BASE_COORDS.items():
             G[ip] += grad_A[pt, ax]
         J[i] = W.T @ G
-    return LoopResiduals(f.T, None if J is None else np.transpose(J, (2, 0, 1)), sep.T, feas.T)
+    return np.transpose(J, (2, 0, 1))
 
 
 def noise_sensitivity(
