@@ -7,23 +7,14 @@ from urllib.parse import parse_qs, urlsplit
 
 import pytest
 import serial
+from emulator_helpers import SILENCE_S, golden_source
 
 from simulator.ascii_protocol import handle_frame
 from simulator.clock import ManualClock
 from simulator.device import LDQ412
 from simulator.emulator import Emulator
-from simulator.source import ConstantSource
 
 GOLDEN_BODY = b">0000123400ABCDEF800001FFFBB80004"
-SILENCE_S = 0.15  # well above the datasheet's 10 ms answer time
-
-
-def mid_volts(code: int) -> float:
-    return (code + 0.5) * 20.0 / 4096 - 10.0
-
-
-def golden_source() -> ConstantSource:
-    return ConstantSource([mid_volts(c) for c in (2048, 1, 4095, 3000)])
 
 
 def port_of(url: str) -> str:

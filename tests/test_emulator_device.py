@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from emulator_helpers import mid_volts
 
 from drivers.ldq412 import (
     CODE_MAX,
@@ -29,11 +30,6 @@ from simulator.device import (
 from simulator.source import ConstantSource, TestSource
 
 S = 1_000_000_000  # ns per second
-
-
-def mid_volts(code: int) -> float:
-    """The datasheet's mid-code reconstruction (a voltage that converts to ``code``)."""
-    return (code + 0.5) * 20.0 / 4096 - 10.0
 
 
 def datasheet_code(v: float) -> int:

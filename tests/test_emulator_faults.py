@@ -8,31 +8,11 @@ from urllib.parse import urlsplit
 
 import pytest
 import serial
+from emulator_helpers import SILENCE_S, golden_source, recv_exact
 from pymodbus.framer.rtu import FramerRTU
 
 from simulator.clock import ManualClock, SimClock
 from simulator.emulator import Emulator
-from simulator.source import ConstantSource
-
-SILENCE_S = 0.15
-
-
-def mid_volts(code: int) -> float:
-    return (code + 0.5) * 20.0 / 4096 - 10.0
-
-
-def golden_source() -> ConstantSource:
-    return ConstantSource([mid_volts(c) for c in (2048, 1, 4095, 3000)])
-
-
-def recv_exact(sock: socket.socket, n: int) -> bytes:
-    data = b""
-    while len(data) < n:
-        chunk = sock.recv(n - len(data))
-        if not chunk:
-            raise ConnectionError("closed")
-        data += chunk
-    return data
 
 
 def tcp_ask(sock: socket.socket, pdu_hex: str, tid: int = 0x0101) -> bytes:
