@@ -23,7 +23,6 @@ from .parameters import (
     I_K1,
     I_K2,
     I_K3,
-    N_PARAMS,
     SL_GAIN,
     SL_OFFSET,
     STROKE_MM,
@@ -31,11 +30,6 @@ from .parameters import (
 )
 from .spheres import intersect_three_spheres
 
-# d A[i, a] / d p, shape (4, 3, 20): base coordinates are parameters or structural zeros.
-D_BASE = np.zeros((4, 3, N_PARAMS))
-for (_pt, _ax), _ip in BASE_COORDS.items():
-    D_BASE[_pt, _ax, _ip] = 1.0
-D_BASE.setflags(write=False)
 LEG_POINT = (0, 0, 1, 1)  # actuator i ends at B1 (0) or B2 (1)
 
 
