@@ -235,8 +235,13 @@ def identify(
     x = model.free_values(p)
     cost = history[-1]
     it = total_iter
-    if not converged and np.any(np.abs(x - x0) >= max_change * 0.999):
-        raise ConvergenceError(f"diverged: a parameter moved more than {max_change} from start")
+    at_bound = np.abs(x - x0) >= max_change * 0.999
+    if at_bound.any():  # the fit ran into the bound: whatever it settled on is not a minimum
+        names = ", ".join(n for n, b in zip(model.free, at_bound, strict=True) if b)
+        raise ConvergenceError(
+            f"diverged: {names} moved more than {max_change} from the start; check the "
+            "start values, the free set and the readings"
+        )
 
     h = column_scales(g, model.free)
     G = g * h

@@ -155,3 +155,32 @@ def test_still_poses_average_the_pauses():
     assert len(still_poses(V, max_scans=20)) > 5
     with pytest.raises(_InputError, match="window"):
         still_poses(V, window=1)
+
+
+def test_divergence_is_an_error_not_a_result():
+    from calibration.errors import ConvergenceError
+
+    ps = simulate_poses(100, seed=4, noise_volts=0.0, quantize=False)
+    start = ps.truth.copy()
+    start[16:] += 3.0
+    # the answer lies 3 mm away; forbidding moves beyond 1 mm must end in a clear error
+    with pytest.raises(ConvergenceError, match=r"A1x moved more than 1.0"):
+        identify(ps.volts, PAPER7, start, max_change=1.0)
+
+
+def test_observability_indices_follow_their_definitions():
+    from calibration.observability import observability_indices
+
+    s = np.array([4.0, 2.0, 0.5])
+    J = np.zeros((8, 3))  # two poses, 4 rows each
+    J[[0, 1, 2], [0, 1, 2]] = s
+    ix = observability_indices(J, scales=np.ones(3))
+    assert ix.n_poses == 2
+    assert ix.min_singular == pytest.approx(0.5)
+    assert ix.condition == pytest.approx(8.0)
+    assert ix.volume == pytest.approx((4 * 2 * 0.5) ** (1 / 3) / np.sqrt(2))
+    assert ix.noise_amplification == pytest.approx(0.25 / 4)
+    assert ix.a_optimality == pytest.approx(1 / 16 + 1 / 4 + 4)
+    # default scaling: every column to RMS one per pose
+    unit = observability_indices(J)
+    assert np.allclose(unit.singular_values, np.sqrt(2))
