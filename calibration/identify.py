@@ -224,8 +224,11 @@ def identify(
         # hysteresis: a pose in the fit stays while it keeps 90 % of the margin
         sep = margins(p, ref)
         now = (sep >= near_singular_mm) | (used & (sep >= 0.9 * near_singular_mm))
-        if now.sum() < n:
-            break
+        if now.sum() < n:  # keep the fitted set rather than drop below n poses
+            if tight:
+                break
+            tight = True
+            continue
         settled = attempt >= 1 and np.array_equal(now, used)
         if tight and settled:
             break
