@@ -3,7 +3,7 @@
 Minimises ``f^T f`` over the free parameters, f the stacked loop residuals (mm^2) of m poses.
 Each iteration solves the damped, column-scaled normal equations
 
-    (G^T G + lambda I) ds = -G^T f,   G = g H,   dx = H ds,
+    (G^T G + lambda diag(G^T G)) ds = -G^T f,   G = g H,   dx = H ds,
 
 with the analytic Jacobian g (implicit differentiation of the sphere equations) and
 ``H = diag(sqrt(M) / ||g_j||)`` (see :mod:`calibration.observability`).

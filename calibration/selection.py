@@ -209,8 +209,7 @@ def select_poses(
         if blocks.ndim != 3 or blocks.shape[0] != N or blocks.shape[2] != n:
             raise InputError(f"information must have shape ({N}, r, {n}), got {blocks.shape}")
     h = column_scales(blocks) if scales is None else np.asarray(scales, dtype=float)
-    G = blocks * h
-    F = _compress(G)
+    F = _compress(blocks * h)
     F2 = F.reshape(-1, n)
 
     lam_bound, w = relaxation_bound(F, k, iterations=300 if certify else 60)
@@ -219,7 +218,7 @@ def select_poses(
     in_set = np.zeros(N, dtype=bool)
     in_set[chosen] = True
 
-    def info(idx: np.ndarray) -> np.ndarray:
+    def info(idx: np.ndarray) -> np.ndarray:  # information matrix of a set, sum of F_k^T F_k
         return np.einsum("kri,krj->ij", F[idx], F[idx])
 
     M = info(chosen)
@@ -266,7 +265,7 @@ def select_poses(
         if not improved:
             break
     chosen = np.sort(chosen)
-    lam = np.linalg.eigvalsh(np.einsum("kri,krj->ij", G[chosen], G[chosen]))
+    lam = np.linalg.eigvalsh(info(chosen))
     value = float(_criterion_value(lam, criterion, k))
     if criterion in ("condition", "a_optimality"):
         value = -value
