@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from calibration.parameters import NOMINAL, ParameterModel
+from calibration.parameters import NOMINAL
 from calibration.pipeline import calibrate
 from calibration.poses import still_poses
 from calibration.simulate import perturbed_truth
@@ -22,10 +22,15 @@ from simulator import Emulator, ManualClock
 from simulator.mechanism import MechanismSource
 from simulator.scenarios import HandMoves
 
+from .model_options import add_model_options, model_from_args
+
+HELP = "calibrate a simulated shoulder joint whose LVDT offsets were lost, through its emulated DAQ"
+
 FIFO_STEP_S = 1.0  # device seconds between FIFO reads (the FIFO holds 12.8 s at 20 Hz)
 
 
-def run(args: argparse.Namespace, model: ParameterModel) -> int:
+def run(args: argparse.Namespace) -> int:
+    model = model_from_args(args)
     if args.minutes <= 0:
         raise ValueError("--minutes must be positive")
     if args.noise_mv < 0:
@@ -83,6 +88,7 @@ def run(args: argparse.Namespace, model: ParameterModel) -> int:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_model_options(p)
     p.add_argument(
         "--transport", choices=("modbus-tcp", "modbus-rtu", "ascii"), default="modbus-tcp"
     )
