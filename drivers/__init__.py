@@ -9,7 +9,16 @@ Open a module by URL; the scheme picks the driver::
 
 from . import errors
 from .ascii import AsciiDAQ
-from .base import DAQ, DaqUrl, Identity, Scan, open_daq, parse_url, register_scheme
+from .base import (
+    DAQ,
+    DaqUrl,
+    Identity,
+    Scan,
+    driver_for_url,
+    open_daq,
+    parse_url,
+    register_scheme,
+)
 from .errors import (
     DAQDisconnected,
     DAQError,
@@ -25,6 +34,7 @@ from .modbus_tcp import ModbusTcpDAQ
 
 __all__ = [
     "open_daq",
+    "driver_for_url",
     "parse_url",
     "register_scheme",
     "DAQ",

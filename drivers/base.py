@@ -90,7 +90,9 @@ class Scan:
             scans: rail bits are then computed from the codes, fault bits are the
             snapshot's fault bits on channels reading 4095, bits 8-9 the snapshot's.
         source: "fifo" or "snapshot".
-        host_time: time.monotonic() when the answer carrying this scan arrived, s.
+        host_time: time.monotonic() when the answer carrying this scan arrived, s (for the
+            FIFO scan that is also the batch's anchor snapshot: when the snapshot arrived,
+            the earliest answer that carried it).
     """
 
     counter: int
@@ -252,16 +254,10 @@ def registered_schemes() -> dict[str, type[DAQ]]:
     return dict(_REGISTRY)
 
 
-def open_daq(
-    url: str, *, timeout: float = ldq412.HOST_TIMEOUT_S, check_identity: bool = True
-) -> DAQ:
-    """Open the driver the URL's scheme names and connect to the module.
+def driver_for_url(url: str) -> tuple[type[DAQ], DaqUrl]:
+    """The driver class a URL names and the parsed URL, without connecting.
 
-    timeout: s without an answer before a call raises DAQTimeout (datasheet: 0.1 s).
-    check_identity: raise DAQIdentityError unless the module identifies as an LDQ-412.
-
-    Raises ValueError for an unknown scheme or bad/unknown query parameters, and the
-    driver's DAQError subclasses for connection/identity failures.
+    Raises ValueError for a malformed URL, an unknown scheme or an unknown query parameter.
     """
     parsed = parse_url(url)
     try:
@@ -275,6 +271,21 @@ def open_daq(
             f"{url}: unknown parameter(s) {sorted(unknown)} for {parsed.scheme} "
             f"(allowed: {sorted(cls.url_params)})"
         )
+    return cls, parsed
+
+
+def open_daq(
+    url: str, *, timeout: float = ldq412.HOST_TIMEOUT_S, check_identity: bool = True
+) -> DAQ:
+    """Open the driver the URL's scheme names and connect to the module.
+
+    timeout: s without an answer before a call raises DAQTimeout (datasheet: 0.1 s).
+    check_identity: raise DAQIdentityError unless the module identifies as an LDQ-412.
+
+    Raises ValueError for an unknown scheme or bad/unknown query parameters, and the
+    driver's DAQError subclasses for connection/identity failures.
+    """
+    cls, parsed = driver_for_url(url)
     if not timeout > 0:
         raise ValueError(f"timeout must be > 0 s, got {timeout}")
     return cls.from_url(parsed, timeout=timeout, check_identity=check_identity)
@@ -315,6 +326,13 @@ class DAQ(ABC):
     @abstractmethod
     def snapshot(self) -> Scan:
         """The latest scan (measured time and status)."""
+
+    @property
+    def has_fifo(self) -> bool:
+        """True if read_scans drains the module's FIFO (every scan once, up to 256 waiting);
+        False if it polls the latest scan, so that a host must call it more often than the
+        module scans to miss none."""
+        return False
 
     @property
     def scan_rate(self) -> int:

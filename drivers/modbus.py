@@ -272,8 +272,8 @@ class ModbusDAQ(DAQ):
 
     def _drain(self) -> list[Scan]:
         """One FIFO transaction: anchor snapshot, the waiting scans, flag clearing."""
-        snap, _ = self._read_snapshot()
-        self._seq.begin_batch(snap)
+        snap, snap_time = self._read_snapshot()
+        self._seq.begin_batch(snap, snap_time)
         if self._seq.period_mismatch():
             # Somebody changed the scan rate behind our back: derived times need the new one.
             self._seq.set_rate(self._read_rate())
@@ -313,6 +313,10 @@ class ModbusDAQ(DAQ):
             self._poll()
         out, self._pending = self._pending, []
         return out
+
+    @property
+    def has_fifo(self) -> bool:
+        return self.use_fifo
 
     def snapshot(self) -> Scan:
         if not self.use_fifo:

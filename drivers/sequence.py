@@ -107,6 +107,7 @@ class Sequencer:
         self._first_restart = False  # restart bit was set when first observed
         self._pending_overflow = False
         self._boundary_pending = False
+        self._anchor_host_time: float | None = None
         #: measured scan period (µs) between the last two anchors of one epoch, or None
         self.measured_period_us: float | None = None
 
@@ -234,8 +235,10 @@ class Sequencer:
 
     # -- FIFO ------------------------------------------------------------------------
 
-    def begin_batch(self, snap: RawSnapshot) -> None:
-        """Anchor the FIFO scans about to be read on the snapshot read just before."""
+    def begin_batch(self, snap: RawSnapshot, host_time: float | None = None) -> None:
+        """Anchor the FIFO scans about to be read on the snapshot read just before
+        (host_time: when that snapshot arrived; the anchor scan keeps it)."""
+        self._anchor_host_time = host_time
         old = self._anchor
         if self._observe(snap):
             self._start_epoch()
@@ -282,8 +285,11 @@ class Sequencer:
                 last.epoch > a.epoch or (last.epoch == a.epoch and c64 <= last.counter64)
             ):
                 continue
+            arrived = host_time
             if c64 == a.counter64:
                 t64, status, measured = a.time64, a.status, True
+                if a is anchor and self._anchor_host_time is not None:
+                    arrived = self._anchor_host_time
             else:
                 t64 = a.time64 + period_ticks_us(c64 - a.counter64, rate)
                 extra = other_fault if a is anchor else 0
@@ -304,7 +310,7 @@ class Sequencer:
                     time_measured=measured,
                     status_measured=measured,
                     source="fifo",
-                    host_time=host_time,
+                    host_time=arrived,
                 )
             )
         return out
