@@ -1,0 +1,125 @@
+"""Read-back speed of the recording format: a day of 20 Hz scans into numpy arrays.
+
+Writes (once, cached under ``--dir``) a day of recording as the daemon writes it: 1,728,000
+scans at 20 Hz, one flush per second (a raw chunk and a views chunk each), rotated hourly
+into 24 files, realistic codes. Then, each the median of ``--repeats`` runs:
+
+* ``read day``: :func:`daemon.recording.read_recordings` of the 24 files (target < 5 s);
+* ``read hour window``: one hour out of the day, by time window over all 24 files;
+* ``read crashed hour``: one file cut short (no summary), read record by record;
+* baseline, measured in the same run: the mcap library's message iterator
+  (``make_reader(f).iter_messages()``) over every message of one file, in messages per
+  second, and what a day would take at that rate if each scan were one message (the
+  layout this format avoids). The ratio compares the two.
+
+Run: ``python bench/bench_recording.py [--repeats 5] [--dir bench/results/day]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from mcap.reader import make_reader
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _timing import median_time  # noqa: E402
+
+from calibration.parameters import NOMINAL  # noqa: E402
+from calibration.simulate import simulate_poses  # noqa: E402
+from daemon import recording as rec  # noqa: E402
+from daemon import scans as S  # noqa: E402
+from drivers.ldq412 import volts_to_code  # noqa: E402
+
+RATE = 20
+HOUR = 3600 * RATE
+T0 = 1_795_000_000_000_000_000
+
+
+def write_day(directory: Path, hours: int) -> list[Path]:
+    directory.mkdir(parents=True, exist_ok=True)
+    existing = rec.find_recordings(directory)
+    if len(existing) == hours:
+        return existing
+    for p in existing:
+        p.unlink()
+    ps = simulate_poses(2000, seed=3)
+    codes = volts_to_code(ps.volts)
+    files = []
+    t_start = time.perf_counter()
+    for h in range(hours):
+        rows = S.empty(HOUR)
+        c = np.arange(h * HOUR, (h + 1) * HOUR, dtype=np.uint64)
+        rows["counter64"] = c
+        rows["time64_us"] = c * 50_000
+        rows["stamp_ns"] = T0 + (c * 50_000_000).astype(np.int64)
+        rows["host_ns"] = rows["stamp_ns"] + 3_000_000
+        # a technician's hand: still for ~2 s, then somewhere else
+        rows["codes"] = codes[(c // 40) % len(codes)]
+        rows["from_fifo"] = True
+        path = directory / rec.recording_name(int(rows["stamp_ns"][0]))
+        meta = rec.metadata_records(device={"model": "LDQ412"}, controller={}, command="bench")
+        w = rec.RecordingWriter(path, metadata=meta, params=NOMINAL, fsync=False)
+        for k in range(0, HOUR, RATE):
+            w.write(rows[k : k + RATE])
+        w.close()
+        files.append(path)
+        print(f"  wrote {path.name} ({path.stat().st_size / 1e6:.1f} MB), "
+              f"{time.perf_counter() - t_start:.0f} s so far", flush=True)  # fmt: skip
+    return files
+
+
+def iterate_all(path: Path) -> int:
+    n = 0
+    with open(path, "rb") as f:
+        for _ in make_reader(f).iter_messages(log_time_order=False):
+            n += 1
+    return n
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--hours", type=int, default=24)
+    ap.add_argument("--dir", type=Path, default=Path(__file__).parent / "results" / "day")
+    args = ap.parse_args()
+    print(f"writing {args.hours} h of 20 Hz recording into {args.dir} (cached) ...")
+    files = write_day(args.dir, args.hours)
+    size = sum(p.stat().st_size for p in files)
+    n_scans = args.hours * HOUR
+    print(f"{len(files)} files, {size / 1e6:.0f} MB, {n_scans:,} scans "
+          f"({size / n_scans:.0f} bytes per scan)")  # fmt: skip
+
+    t_day, out = median_time(lambda: rec.read_recordings(files), args.repeats)
+    assert len(out) == n_scans and np.all(np.diff(out.scans["counter64"].astype(np.int64)) == 1)
+    h0 = int(out.scans["stamp_ns"][HOUR * (args.hours // 2)])
+    t_win, win = median_time(
+        lambda: rec.read_recordings(files, since=h0, until=h0 + 3600 * 10**9), args.repeats
+    )
+    assert len(win) == HOUR
+    crashed = args.dir.parent / "crashed.mcap"
+    data = files[0].read_bytes()
+    crashed.write_bytes(data[: int(len(data) * 0.9)])
+    t_crash, cr = median_time(lambda: rec.read_recordings(crashed), args.repeats)
+    crashed.unlink()
+    t_iter, n_msgs = median_time(lambda: iterate_all(files[0]), max(1, args.repeats // 2))
+    per_s = n_msgs / t_iter
+
+    print()
+    print(f"read day           {t_day:6.2f} s   {n_scans / t_day:10,.0f} scans/s  "
+          f"(target 1.7 M scans in < 5 s: {'met' if t_day < 5 else 'NOT met'})")  # fmt: skip
+    print(f"read hour window   {t_win:6.2f} s   {len(win) / t_win:10,.0f} scans/s")
+    print(f"read crashed hour  {t_crash:6.2f} s   {len(cr) / t_crash:10,.0f} scans/s  "
+          f"({len(cr):,} scans up to the cut)")  # fmt: skip
+    print(f"baseline: mcap iter_messages over every message of one file: {per_s:,.0f} msgs/s")
+    naive = n_scans / per_s
+    print(f"  a day as one message per scan at that rate: {naive:.1f} s; "
+          f"this format reads it {naive / t_day:.1f}x faster")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

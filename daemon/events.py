@@ -1,0 +1,100 @@
+"""Events: what happened to the acquisition, as the recording and the log tell it.
+
+An event has a kind (below), a level, a one-line message for people and details for
+programs. The acquisition and the recorder raise them; the recorder writes them to the
+recording (``/loopcal/events``, and ``/loopcal/log`` for Foxglove's Log panel) and to the
+log; the calibration worker reads them back (for example to drop scans next to a gap).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any
+
+
+class Level(IntEnum):
+    """Severity; the numbers are those of Foxglove's ``foxglove.Log`` levels."""
+
+    DEBUG = 1
+    INFO = 2
+    WARNING = 3
+    ERROR = 4
+
+
+#: every event kind and what it means (docs/recording.md lists the same table)
+KINDS: dict[str, str] = {
+    "recorder_start": "the recorder started (details: version, pid, resume point)",
+    "recorder_stop": "the recorder stopped (details: reason, scans written)",
+    "connect": "the DAQ answered after being unreachable (details: url, identity, outage_s)",
+    "disconnect": "the DAQ stopped answering or the link failed (details: url, error)",
+    "gap": "scans the module made were never received (details: missed, counter64, reason)",
+    "restart": "the module restarted: counter back to 0, restart bit set (details: epoch)",
+    "overflow": "the module's FIFO overflowed: its oldest scans were lost",
+    "rail": "a channel reached or left the rail (details: channel, on)",
+    "sensor_fault": "a channel's sensor fault bit rose or fell (details: channel, on)",
+    "config_reload": "the configuration was reloaded on SIGHUP (details: ok, error)",
+    "disk_error": "the recording could not be written (details: path, error)",
+    "disk_recovered": "writing works again (details: path, backlog scans, outage_s)",
+    "backlog_dropped": "the in-memory backlog overflowed while the disk failed (details: scans)",
+    "retention": "an old recording was deleted to stay under the disk budget (details: path)",
+}
+
+
+@dataclass(frozen=True)
+class Event:
+    """One event.
+
+    stamp_ns: when it happened, ns since the Unix epoch (UTC).
+    kind: one of :data:`KINDS`.
+    level: severity.
+    message: one line for people.
+    details: JSON-serialisable facts for programs.
+    """
+
+    stamp_ns: int
+    kind: str
+    level: Level
+    message: str
+    details: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"unknown event kind {self.kind!r}")
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``loopcal.Event`` message (see :mod:`daemon.recording`)."""
+        sec, nsec = divmod(int(self.stamp_ns), 1_000_000_000)
+        return {
+            "timestamp": {"sec": sec, "nsec": nsec},
+            "kind": self.kind,
+            "level": int(self.level),
+            "message": self.message,
+            "details": self.details,
+        }
+
+    @classmethod
+    def from_json(cls, obj: dict[str, Any]) -> Event:
+        ts = obj["timestamp"]
+        return cls(
+            stamp_ns=int(ts["sec"]) * 1_000_000_000 + int(ts["nsec"]),
+            kind=str(obj["kind"]),
+            level=Level(int(obj["level"])),
+            message=str(obj["message"]),
+            details=dict(obj.get("details") or {}),
+        )
+
+    def log(self, logger: logging.Logger) -> None:
+        """Write the event as one log line at its level."""
+        extra = f" {json.dumps(self.details, sort_keys=True)}" if self.details else ""
+        logger.log(_LOG_LEVELS[self.level], "%s: %s%s", self.kind, self.message, extra)
+
+
+_LOG_LEVELS = {
+    Level.DEBUG: logging.DEBUG,
+    Level.INFO: logging.INFO,
+    Level.WARNING: logging.WARNING,
+    Level.ERROR: logging.ERROR,
+}
