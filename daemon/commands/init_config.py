@@ -1,0 +1,29 @@
+"""``loopcal init-config PATH [--force]``: write a controller config (TOML) with the 20
+parameters at the reference geometry, each with a comment saying what it is and its unit."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ..controller_config import ControllerConfigError, write_initial_config
+
+HELP = "write a controller config (TOML) with the 20 parameters at the reference geometry"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("path", help="where to write it, e.g. /etc/loopcal/controller.toml")
+    p.add_argument("--force", action="store_true", help="overwrite an existing file")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        path = write_initial_config(args.path, force=args.force)
+    except ControllerConfigError as exc:
+        print(f"loopcal init-config: error: {exc}", file=sys.stderr)
+        return 2
+    print(
+        f"wrote {path}: the 20 parameters at the reference geometry "
+        "(edit the gains S1..S4 to your bench values)"
+    )
+    return 0
