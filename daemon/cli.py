@@ -9,11 +9,14 @@ from types import ModuleType
 
 from calibration.errors import CalibrationError
 
-from .commands import demo, observability, simulate
+from .commands import daemon, demo, init_config, observability, record, simulate
 
 #: (name, module) in the order ``loopcal --help`` lists them
 COMMANDS: list[tuple[str, ModuleType]] = [
     ("demo", demo),
+    ("record", record),
+    ("daemon", daemon),
+    ("init-config", init_config),
     ("simulate", simulate),
     ("observability", observability),
 ]

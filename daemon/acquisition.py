@@ -1,0 +1,536 @@
+"""DAQ -> scans: the loop that reads the LDQ-412 and hands every scan on, with its events.
+
+:class:`Acquisition` runs in a thread of its own and never waits for the disk: it reads the
+module, turns the driver's :class:`drivers.Scan` records into rows of
+:data:`daemon.scans.SCAN_DTYPE` and gives each batch to a sink (the recorder's queue).
+
+What it adds to the driver's scans:
+
+- a power-on **epoch** that survives the recorder: started with the last scan already
+  recorded (a :class:`ResumePoint`), it stays the same while the module keeps its power-on
+  and the counter moves on, and goes up by one when the module restarted (restart bit,
+  counter going backwards) or another module answers at the URL. The scans lost while
+  nobody read the module are counted on the first scan read (``missed``) and reported;
+- UTC time stamps: ``host_ns`` when the answer arrived, and ``stamp_ns``, the acquisition
+  instant, from the module's own clock mapped to UTC by a sliding minimum of
+  (arrival - device time) over the last minute (a minimum, because delays only add);
+- events: gaps, restarts, FIFO overflow, rail and sensor faults (onset at once, end after a
+  second of clear scans, so a channel flickering at the rail does not flood the log),
+  and the link going down and coming back.
+
+When the module stops answering, the loop retries with exponential backoff (0.1 s doubling
+to 2 s, far inside the 12.8 s the module's FIFO holds at 20 Hz), so a short outage loses
+nothing over Modbus. The FIFO is read every ``read_period`` (and again at once if it was
+more than half full); without a FIFO (ASCII, or Modbus with ``fifo=0``) the loop polls once
+per scan, just after the instant the next scan is due.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers import DAQ, DAQError, Scan, ldq412, open_daq
+
+from .events import Event, Level
+from .scans import SCAN_DTYPE
+
+log = logging.getLogger("daemon.acquisition")
+
+BACKOFF_MIN_S = 0.1
+BACKOFF_MAX_S = 2.0
+CLOCK_WINDOW_S = 60.0  # how far back the device-to-UTC offset looks
+CLOCK_STEP_NS = 500_000_000  # an offset change larger than this is a clock step: start over
+POLL_GUARD_S = 0.003  # poll this long after the next scan is due
+FAULT_CLEAR_S = 1.0  # a rail or fault condition ends after this long of clear scans
+STILL_DOWN_LOG_S = 60.0
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    """What the module at the URL said it is, at connect."""
+
+    url: str
+    model: str
+    firmware: str
+    serial: int | None
+    scan_rate_hz: int
+    has_fifo: bool
+
+    def as_metadata(self) -> dict[str, str]:
+        return {
+            "url": self.url,
+            "model": self.model,
+            "firmware": self.firmware,
+            "serial": "" if self.serial is None else str(self.serial),
+            "scan_rate_hz": str(self.scan_rate_hz),
+            "fifo": str(self.has_fifo).lower(),
+        }
+
+
+@dataclass(frozen=True)
+class ResumePoint:
+    """The last scan already recorded (where a new recorder carries on)."""
+
+    epoch: int
+    counter64: int
+    time64_us: int
+    serial: int | None
+
+    @classmethod
+    def from_row(cls, row: np.void, device_metadata: dict[str, str]) -> ResumePoint:
+        serial = device_metadata.get("serial") or None
+        return cls(
+            int(row["epoch"]),
+            int(row["counter64"]),
+            int(row["time64_us"]),
+            int(serial) if serial is not None else None,
+        )
+
+
+@dataclass
+class Batch:
+    """What one read produced: scan rows (SCAN_DTYPE, oldest first) and events."""
+
+    rows: np.ndarray
+    events: list[Event]
+    device: DeviceInfo | None
+
+
+@dataclass
+class AcquisitionStats:
+    """Counters for the status line and the benchmarks (read by other threads)."""
+
+    scans: int = 0
+    missed: int = 0
+    gaps: int = 0
+    restarts: int = 0
+    reads: int = 0
+    read_errors: int = 0
+    connected: bool = False
+    last_error: str = ""
+    #: monotonic start times of the latest reads, s (for the read-period jitter)
+    read_starts: collections.deque = field(default_factory=lambda: collections.deque(maxlen=4096))
+
+
+class ClockMap:
+    """Device time -> UTC for one power-on epoch.
+
+    ``offset`` is the smallest (arrival - device time) seen over the last
+    :data:`CLOCK_WINDOW_S`: arrival is never earlier than the scan, and the smallest delay
+    over many reads is close to zero. The window follows a drifting crystal; an offset
+    jumping by more than :data:`CLOCK_STEP_NS` (the host clock was set) restarts it.
+    """
+
+    def __init__(self) -> None:
+        self._samples: collections.deque[tuple[float, int]] = collections.deque()
+        self.offset_ns: int | None = None
+        self._last_stamp = -(1 << 62)
+
+    def observe(self, mono_s: float, arrival_ns: int, time64_us: int) -> None:
+        sample = arrival_ns - time64_us * 1000
+        if self.offset_ns is not None and abs(sample - self.offset_ns) > CLOCK_STEP_NS:
+            self._samples.clear()
+            self._last_stamp = -(1 << 62)
+        q = self._samples
+        while q and q[-1][1] >= sample:
+            q.pop()
+        q.append((mono_s, sample))
+        while q[0][0] < mono_s - CLOCK_WINDOW_S:
+            q.popleft()
+        self.offset_ns = q[0][1]
+
+    def stamps(self, time64_us: np.ndarray) -> np.ndarray:
+        """UTC stamps, ns, strictly increasing within the epoch."""
+        assert self.offset_ns is not None
+        s = time64_us.astype(np.int64) * 1000 + self.offset_ns
+        s = np.maximum(s, self._last_stamp + 1 + np.arange(len(s)))
+        if len(s):
+            self._last_stamp = int(s[-1])
+        return s
+
+
+class _Flag:
+    """A rail or fault condition of one channel: on at once, off after a clear stretch."""
+
+    def __init__(self) -> None:
+        self.on = False
+        self.clear_since: int | None = None  # stamp_ns of the first clear scan
+
+
+class Acquisition:
+    """Reads the module at ``url`` until stopped, giving every batch of scans to ``sink``.
+
+    url: driver URL (see :func:`drivers.open_daq`). timeout: s without an answer before a
+    call fails. read_period: s between FIFO reads. resume: the last scan already recorded.
+    sink: called from the acquisition thread with each :class:`Batch`; must not block.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        sink: Callable[[Batch], None],
+        *,
+        timeout: float = ldq412.HOST_TIMEOUT_S,
+        read_period: float = 0.2,
+        resume: ResumePoint | None = None,
+    ) -> None:
+        if not timeout > 0:
+            raise ValueError(f"timeout must be > 0 s, got {timeout}")
+        if not 0 < read_period <= 5.0:
+            raise ValueError(f"read period must be in (0, 5] s, got {read_period}")
+        self.url = url
+        self.sink = sink
+        self.timeout = timeout
+        self.read_period = read_period
+        self.stats = AcquisitionStats()
+        self.device: DeviceInfo | None = None
+        #: monotonic time of the loop's last turn (a watchdog reads it)
+        self.heartbeat = time.monotonic()
+        self._daq: DAQ | None = None
+        self._last: ResumePoint | None = resume
+        self._base_epoch: int | None = None  # recorded epoch = base + driver epoch
+        self._clocks: dict[int, ClockMap] = {}
+        self._rail = [_Flag() for _ in range(4)]
+        self._fault = [_Flag() for _ in range(4)]
+        self._down_since: float | None = None
+        self._down_logged = 0.0
+        self._backoff = BACKOFF_MIN_S
+        self._pending_events: list[Event] = []
+        self._first_missed: int | None = None
+        self._clock_hint: tuple[int, float, int, int] | None = None
+        self._poll_clock = ClockMap()  # device time -> host monotonic ns, for polling
+        self._poll_epoch = -1
+        self._seen_driver_epochs: set[int] = set()
+
+    @property
+    def resume_point(self) -> ResumePoint | None:
+        """The last scan handed on (where another acquisition would carry on)."""
+        return self._last
+
+    # ------------------------------------------------------------------ thread body
+
+    def run(self, stop: threading.Event) -> None:
+        """Read until ``stop`` is set; then read once more and close the driver."""
+        next_read = time.monotonic()
+        try:
+            while not stop.is_set():
+                self.heartbeat = time.monotonic()
+                wait = next_read - self.heartbeat
+                if wait > 0 and stop.wait(wait):
+                    break
+                next_read = self._step()
+            if self._daq is not None and self.stats.connected:
+                self._step()  # the scans made since the last read
+        finally:
+            self._flush_events()
+            if self._daq is not None:
+                self._daq.close()
+                self._daq = None
+            self.stats.connected = False
+
+    def _step(self) -> float:
+        """One read (connecting first if needed); returns the monotonic time of the next."""
+        start = time.monotonic()
+        if self._daq is None:
+            try:
+                self._daq = open_daq(self.url, timeout=self.timeout)
+            except DAQError as exc:
+                self._failed(exc, start)
+                return start + self._next_backoff()
+            self._connected(self._daq)
+        daq = self._daq
+        self.stats.read_starts.append(start)
+        self.stats.reads += 1
+        try:
+            scans = daq.read_scans()
+        except DAQError as exc:
+            self._failed(exc, start)
+            return start + self._next_backoff()
+        if self._down_since is not None:
+            self._recovered(start)
+        self._backoff = BACKOFF_MIN_S
+        new_epochs = {s.epoch for s in scans} - self._seen_driver_epochs
+        if new_epochs and daq.has_fifo:
+            self._sync_clock(daq)
+        self._seen_driver_epochs |= new_epochs
+        rows = self._rows(scans) if scans else np.zeros(0, dtype=SCAN_DTYPE)
+        if len(rows) or self._pending_events:
+            self._flush_events(rows)
+        if daq.has_fifo:
+            if len(scans) >= ldq412.FIFO_DEPTH // 2:
+                return start  # falling behind: read again at once
+            return start + self.read_period
+        return self._next_poll(start, scans)
+
+    def _sync_clock(self, daq: DAQ) -> None:
+        """Catch the moment a new scan appears (polling the latest scan for up to 1.5 scan
+        periods), so that the first device-to-UTC offset of an epoch is not off by the age
+        of the scan a FIFO read happened to be anchored on."""
+        rate = self.device.scan_rate_hz if self.device else ldq412.SCAN_RATE_DEFAULT_HZ
+        t_end = time.monotonic() + 1.5 / rate
+        try:
+            prev = daq.snapshot()
+            while time.monotonic() < t_end:
+                time.sleep(0.002)
+                snap = daq.snapshot()
+                if snap.epoch != prev.epoch:
+                    return
+                if snap.counter64 != prev.counter64:
+                    arrival = time.time_ns() + round((snap.host_time - time.monotonic()) * 1e9)
+                    self._clock_hint = (snap.epoch, snap.host_time, arrival, snap.time64_us)
+                    return
+        except DAQError:
+            return  # the next read reports it
+
+    def _next_backoff(self) -> float:
+        wait = self._backoff
+        self._backoff = min(BACKOFF_MAX_S, self._backoff * 2)
+        return wait
+
+    def _next_poll(self, start: float, scans: list[Scan]) -> float:
+        """Without a FIFO: poll just after the next scan is due, on the host's monotonic
+        clock (device time + the smallest arrival delay seen: a poll never lands before
+        the scan it is meant for, and has the rest of the period to spare)."""
+        rate = self.device.scan_rate_hz if self.device else ldq412.SCAN_RATE_DEFAULT_HZ
+        period = 1.0 / rate
+        if not scans:
+            return start + min(0.005, period / 4)
+        newest = scans[-1]
+        if newest.epoch != self._poll_epoch:
+            self._poll_epoch, self._poll_clock = newest.epoch, ClockMap()
+        clock = self._poll_clock
+        clock.observe(newest.host_time, round(newest.host_time * 1e9), newest.time64_us)
+        assert clock.offset_ns is not None
+        due = ((newest.time64_us * 1000 + clock.offset_ns) * 1e-9) + period + POLL_GUARD_S
+        return min(max(due, start + 0.002), start + period)
+
+    # ------------------------------------------------------------------ link state
+
+    def _emit(self, kind: str, level: Level, message: str, **details: object) -> None:
+        ev = Event(time.time_ns(), kind, level, message, dict(details))
+        ev.log(log)
+        self._pending_events.append(ev)
+
+    def _flush_events(self, rows: np.ndarray | None = None) -> None:
+        if rows is None:
+            rows = np.zeros(0, dtype=SCAN_DTYPE)
+        events, self._pending_events = self._pending_events, []
+        if len(rows) or events:
+            self.sink(Batch(rows, events, self.device))
+
+    def _connected(self, daq: DAQ) -> None:
+        ident = daq.identity
+        rate = daq.sequencer.scan_rate_hz if hasattr(daq, "sequencer") else daq.scan_rate
+        self.device = DeviceInfo(
+            daq.url, ident.model, ident.firmware, ident.serial, int(rate), daq.has_fifo
+        )
+        self._base_epoch = None
+        serial = "" if ident.serial is None else f", serial {ident.serial}"
+        self._emit(
+            "connect",
+            Level.INFO,
+            f"{ident.model} firmware {ident.firmware}{serial} at {daq.url}, {rate} Hz",
+            url=daq.url,
+            model=ident.model,
+            firmware=ident.firmware,
+            serial=ident.serial,
+            scan_rate_hz=int(rate),
+            outage_s=None
+            if self._down_since is None
+            else round(time.monotonic() - self._down_since, 3),
+        )
+        self._down_since = None
+        self.stats.connected = True
+
+    def _failed(self, exc: DAQError, now: float) -> None:
+        self.stats.read_errors += 1
+        self.stats.last_error = str(exc)
+        if self._down_since is None:
+            self._down_since = now
+            self._down_logged = now
+            self.stats.connected = False
+            self._emit(
+                "disconnect",
+                Level.WARNING,
+                f"{type(exc).__name__}: {exc}",
+                url=self.url,
+                error=type(exc).__name__,
+            )
+            self._flush_events()
+        elif now - self._down_logged >= STILL_DOWN_LOG_S:
+            self._down_logged = now
+            log.warning(
+                "DAQ still unreachable after %.0f s (%s: %s)",
+                now - self._down_since,
+                type(exc).__name__,
+                exc,
+            )
+
+    def _recovered(self, now: float) -> None:
+        assert self._down_since is not None
+        outage = now - self._down_since
+        self._down_since = None
+        self.stats.connected = True
+        self._emit(
+            "connect",
+            Level.INFO,
+            f"DAQ answers again after {outage:.2f} s",
+            url=self.url,
+            outage_s=round(outage, 3),
+        )
+
+    # ------------------------------------------------------------------ scans -> rows
+
+    def _rows(self, scans: list[Scan]) -> np.ndarray:
+        if self._base_epoch is None:
+            scans = self._continue_from_last(scans)
+            if not scans:
+                return np.zeros(0, dtype=SCAN_DTYPE)
+        base = self._base_epoch
+        assert base is not None
+        n = len(scans)
+        rows = np.zeros(n, dtype=SCAN_DTYPE)
+        rows["counter64"] = [s.counter64 for s in scans]
+        rows["time64_us"] = [s.time64_us for s in scans]
+        rows["epoch"] = [base + s.epoch for s in scans]
+        rows["missed"] = [s.missed for s in scans]
+        rows["codes"] = [s.codes for s in scans]
+        rows["status"] = [s.status for s in scans]
+        rows["restarted"] = [s.restarted for s in scans]
+        rows["overflow"] = [s.overflow for s in scans]
+        rows["time_measured"] = [s.time_measured for s in scans]
+        rows["status_measured"] = [s.status_measured for s in scans]
+        rows["from_fifo"] = [s.source == "fifo" for s in scans]
+        mono_ns, utc_ns = time.monotonic_ns(), time.time_ns()
+        host = np.array([s.host_time for s in scans])
+        rows["host_ns"] = utc_ns + np.round((host - mono_ns * 1e-9) * 1e9).astype(np.int64)
+        resumed = self._first_missed is not None
+        if resumed:
+            rows["missed"][0] = self._first_missed
+            self._first_missed = None
+        self._stamp(rows, host)
+        self._scan_events(rows, first_ever=self._last is None, resumed=resumed)
+        last = rows[-1]
+        self._last = ResumePoint(
+            int(last["epoch"]), int(last["counter64"]), int(last["time64_us"]),
+            self.device.serial if self.device else None,
+        )  # fmt: skip
+        self.stats.scans += n
+        return rows
+
+    def _continue_from_last(self, scans: list[Scan]) -> list[Scan]:
+        """First scans of a new driver: same power-on as the last recorded scan, or not?"""
+        first = scans[0]
+        last = self._last
+        serial = self.device.serial if self.device else None
+        if last is None:
+            self._base_epoch = -first.epoch
+            return scans
+        if last.serial is not None and serial is not None and serial != last.serial:
+            self._base_epoch = last.epoch + 1 - first.epoch
+            self._emit("restart", Level.WARNING,
+                       f"a different module answers (serial {serial}, was {last.serial}): "
+                       "new epoch", epoch=last.epoch + 1, serial=serial)  # fmt: skip
+            return scans
+        if first.restarted or first.counter64 < last.counter64:
+            self._base_epoch = last.epoch + 1 - first.epoch
+            if not first.restarted:  # the restart flag is set on the first row below
+                self._emit("restart", Level.WARNING,
+                           "the module's counter went back while nobody read it: it restarted",
+                           epoch=last.epoch + 1)  # fmt: skip
+            return scans
+        self._base_epoch = last.epoch - first.epoch
+        # already recorded (a polled latest scan read again): drop
+        scans = [s for s in scans if s.epoch != first.epoch or s.counter64 > last.counter64]
+        if scans and scans[0].epoch == first.epoch:
+            lost = scans[0].counter64 - last.counter64 - 1
+            if lost > 0:
+                self._first_missed = lost
+        return scans
+
+    def _stamp(self, rows: np.ndarray, host_s: np.ndarray) -> None:
+        epochs = rows["epoch"]
+        for e in np.unique(epochs):
+            sel = epochs == e
+            clock = self._clocks.get(int(e))
+            if clock is None:
+                self._clocks = {int(e): ClockMap()}  # older epochs are over
+                clock = self._clocks[int(e)]
+            hint = self._clock_hint
+            if hint is not None and hint[0] + (self._base_epoch or 0) == int(e):
+                clock.observe(*self._clock_hint[1:])
+                self._clock_hint = None
+            idx = np.flatnonzero(sel)
+            measured = idx[rows["time_measured"][idx]]
+            i = measured[-1] if len(measured) else idx[-1]  # arrival was closest to the scan
+            clock.observe(float(host_s[i]), int(rows["host_ns"][i]), int(rows["time64_us"][i]))
+            rows["stamp_ns"][sel] = clock.stamps(rows["time64_us"][sel])
+
+    def _scan_events(self, rows: np.ndarray, *, first_ever: bool, resumed: bool) -> None:
+        st = self.stats
+        for i in np.flatnonzero(rows["missed"] | rows["restarted"] | rows["overflow"]):
+            r = rows[i]
+            c64, missed = int(r["counter64"]), int(r["missed"])
+            if r["restarted"] and i == 0 and first_ever:
+                text = "restart flag set at connect: powered on since it was last read"
+                self._emit("restart", Level.INFO, f"the module's {text}",
+                           epoch=int(r["epoch"]), counter64=c64)  # fmt: skip
+            elif r["restarted"]:
+                st.restarts += 1
+                self._emit("restart", Level.WARNING,
+                           f"module restarted (epoch {int(r['epoch'])}); {missed} scans of the "
+                           "new power-on came before this one",
+                           epoch=int(r["epoch"]), counter64=c64, missed=missed)  # fmt: skip
+            elif missed:
+                st.gaps += 1
+                why = "counter gap"
+                if i == 0 and resumed:
+                    why = "since the last recorded scan (read but not written, or never read)"
+                self._emit("gap", Level.WARNING,
+                           f"{missed} scan(s) missed before counter {c64}: {why}",
+                           missed=missed, counter64=c64, epoch=int(r["epoch"]),
+                           reason=why)  # fmt: skip
+            if r["overflow"]:
+                self._emit("overflow", Level.WARNING,
+                           "the module's FIFO overflowed: its oldest scans were lost",
+                           counter64=c64)  # fmt: skip
+            st.missed += missed
+        status = rows["status"].astype(np.int64)
+        rate = self.device.scan_rate_hz if self.device else ldq412.SCAN_RATE_DEFAULT_HZ
+        for ch in range(4):
+            self._flag_events("rail", self._rail[ch], ch, (status >> ch) & 1, rows, rate)
+            self._flag_events("sensor_fault", self._fault[ch], ch, (status >> (4 + ch)) & 1,
+                              rows, rate)  # fmt: skip
+
+    def _flag_events(
+        self, kind: str, flag: _Flag, ch: int, bits: np.ndarray, rows: np.ndarray, rate: int
+    ) -> None:
+        if not flag.on and not bits.any():
+            return
+        stamps = rows["stamp_ns"]
+        clear_ns = round(FAULT_CLEAR_S * 1e9)
+        what = "at the rail" if kind == "rail" else "sensor fault"
+        for i in range(len(bits)):
+            if bits[i]:
+                flag.clear_since = None
+                if not flag.on:
+                    flag.on = True
+                    self._emit(kind, Level.WARNING, f"channel {ch + 1} {what}",
+                               channel=ch + 1, on=True, counter64=int(rows["counter64"][i]),
+                               code=int(rows["codes"][i][ch]))  # fmt: skip
+            elif flag.on:
+                if flag.clear_since is None:
+                    flag.clear_since = int(stamps[i])
+                elif stamps[i] - flag.clear_since >= clear_ns:
+                    flag.on = False
+                    flag.clear_since = None
+                    c64 = int(rows["counter64"][i])
+                    self._emit(kind, Level.INFO, f"channel {ch + 1} no longer {what}",
+                               channel=ch + 1, on=False, counter64=c64)  # fmt: skip

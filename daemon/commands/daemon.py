@@ -1,0 +1,46 @@
+"""``loopcal daemon --config PATH``: the acquisition daemon, as systemd runs it.
+
+Reads the TOML config (every key is described in docs/daemon.md and in
+:mod:`daemon.settings`), records until SIGTERM, reloads the config and starts a new file on
+SIGHUP, and speaks the systemd notify protocol (READY, STATUS, WATCHDOG) when systemd
+gives it a socket.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ..controller_config import ControllerConfigError
+from ..process import run_recorder, setup_logging
+from ..recorder import Recorder
+from ..settings import SettingsError, load_daemon_config
+
+HELP = "the acquisition daemon (systemd's entry point): record the DAQ for months"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--config",
+        required=True,
+        type=Path,
+        metavar="PATH",
+        help="the daemon's TOML config, e.g. /etc/loopcal/daemon.toml",
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")  # fmt: skip
+
+
+def run(args: argparse.Namespace) -> int:
+    setup_logging(args.verbose)
+    try:
+        settings = load_daemon_config(args.config)
+        recorder = Recorder(
+            settings,
+            command=f"loopcal daemon --config {args.config}",
+            reload_settings=lambda: load_daemon_config(args.config),
+        )
+    except (SettingsError, ControllerConfigError) as exc:
+        print(f"loopcal daemon: error: {exc}", file=sys.stderr)
+        return 2
+    return run_recorder(recorder)

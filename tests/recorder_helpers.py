@@ -1,0 +1,139 @@
+"""Helpers for the recorder tests: an emulated DAQ in this process, the recorder as a real
+subprocess (``loopcal record`` / ``loopcal daemon``), its log lines as they come."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from calibration.parameters import NOMINAL
+from simulator import Emulator
+from simulator.clock import Clock
+from simulator.mechanism import MechanismSource
+from simulator.scenarios import HandMoves
+
+LOOPCAL = [sys.executable, "-m", "daemon.cli"]
+
+
+def hand_emulator(
+    transport: str = "modbus-tcp", *, rate: int = 20, clock: Clock | None = None, seed: int = 0
+) -> Emulator:
+    """An emulated LDQ-412 on a technician-moved shoulder joint (not started)."""
+    source = MechanismSource(HandMoves(seed), NOMINAL, noise_volts=0.04, seed=seed)
+    return Emulator(transport, source, scan_rate_hz=rate, clock=clock, seed=seed)
+
+
+class Proc:
+    """A loopcal subprocess whose stderr lines are collected as they arrive."""
+
+    def __init__(
+        self,
+        args: list[str],
+        *,
+        env: dict[str, str] | None = None,
+        preexec_fn: Callable[[], None] | None = None,
+    ) -> None:
+        self.args = args
+        self.lines: list[str] = []
+        self._cond = threading.Condition()
+        self.proc = subprocess.Popen(
+            [*LOOPCAL, *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env={**os.environ, **(env or {})},
+            preexec_fn=preexec_fn,
+        )
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            with self._cond:
+                self.lines.append(line.rstrip("\n"))
+                self._cond.notify_all()
+
+    def wait_for(self, pattern: str, timeout: float = 10.0, *, after: int = 0) -> int:
+        """Index of the first log line from ``after`` on matching ``pattern``."""
+        rx = re.compile(pattern)
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                for i in range(after, len(self.lines)):
+                    if rx.search(self.lines[i]):
+                        return i
+                left = deadline - time.monotonic()
+                if left <= 0 or self.proc.poll() is not None and not self._reader.is_alive():
+                    raise AssertionError(
+                        f"no log line matching {pattern!r} within {timeout} s:\n" + self.text
+                    )
+                self._cond.wait(min(left, 0.1))
+
+    @property
+    def text(self) -> str:
+        with self._cond:
+            return "\n".join(self.lines)
+
+    def signal(self, sig: signal.Signals) -> None:
+        self.proc.send_signal(sig)
+
+    def stop(self, timeout: float = 10.0) -> tuple[int, float]:
+        """SIGTERM; returns (exit status, seconds it took to exit)."""
+        t0 = time.monotonic()
+        self.proc.send_signal(signal.SIGTERM)
+        rc = self.proc.wait(timeout)
+        took = time.monotonic() - t0
+        self._reader.join(5)
+        return rc, took
+
+    def wait(self, timeout: float = 30.0) -> int:
+        rc = self.proc.wait(timeout)
+        self._reader.join(5)
+        return rc
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+        self._reader.join(5)
+
+
+def record(url: str, out: Path, *extra: str, **kw) -> Proc:
+    """``loopcal record --daq URL --out DIR ...`` as a subprocess."""
+    return Proc(["record", "--daq", url, "--out", str(out), *extra], **kw)
+
+
+def truth_table(emu: Emulator) -> dict[tuple[int, int], tuple[int, tuple[int, ...]]]:
+    """(boot, counter) -> (time_us, codes) of every scan the emulated module made."""
+    return {(s.boot, s.counter): (s.time_us, s.codes) for s in emu.truth}
+
+
+def assert_matches_truth(rows: np.ndarray, emu: Emulator, *, boot_of_epoch=lambda e: e) -> None:
+    """Every recorded scan is the module's scan with that counter, bit for bit."""
+    truth = truth_table(emu)
+    for r in rows:
+        key = (boot_of_epoch(int(r["epoch"])), int(r["counter64"]) & 0xFFFFFFFF)
+        assert key in truth, f"recorded scan {key} never happened"
+        t_us, codes = truth[key]
+        assert (int(r["time64_us"]) & 0xFFFFFFFF) == t_us, key
+        assert tuple(int(c) for c in r["codes"]) == codes, key
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process so far, s."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
