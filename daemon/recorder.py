@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .acquisition import Acquisition, Batch, DeviceInfo, ResumePoint
+from .acquisition import Acquisition, AcquisitionStats, Batch, DeviceInfo, ResumePoint
 from .controller_config import ControllerConfig, load_controller_config, nominal_config
 from .events import Event, Level
 from .recording import (
@@ -229,6 +229,10 @@ class Recorder:
             log.critical("internal error: %r", self._fatal)
             return 1
         return 0
+
+    @property
+    def acquisition_stats(self) -> AcquisitionStats | None:
+        return self._acq.stats if self._acq is not None else None
 
     def _healthy(self, now: float) -> bool:
         acq = self._acq

@@ -178,3 +178,88 @@ def test_rotation_and_retention_at_an_accelerated_rate(tmp_path):
     assert all(str(p) not in deleted for p in files)
     assert max(str(p) for p in map(str, deleted)) < min(str(p) for p in files)
     assert_matches_truth(out.scans, emu)
+
+
+def test_channel_faults_are_events_and_views_mark_them(tmp_path):
+    with hand_emulator() as emu:
+        rec = record(emu.url, tmp_path)
+        rec.wait_for("recording to")
+        emu.faults.sensor_fault(3, True)
+        emu.faults.saturate(1, "high")
+        rec.wait_for("sensor_fault: channel 3 sensor fault")
+        time.sleep(1.0)
+        emu.faults.sensor_fault(3, False)
+        emu.faults.saturate(1, None)
+        rec.wait_for("sensor_fault: channel 3 no longer", timeout=10)
+        rec.wait_for("rail: channel 1 no longer at the rail", timeout=10)
+        rc, _ = rec.stop()
+    assert rc == 0, rec.text
+    out = read_recordings(tmp_path)
+    assert_matches_truth(out.scans, emu)
+    faults = [(e.details["channel"], e.details["on"]) for e in out.events_of("sensor_fault")]
+    rails = [(e.details["channel"], e.details["on"]) for e in out.events_of("rail")]
+    assert faults == [(3, True), (3, False)]
+    assert (1, True) in rails and (1, False) in rails and rails.count((3, True)) == 1
+    bad = out.scans["codes"][:, 2] == 4095
+    assert bad.sum() >= 15 and np.all(out.scans["status"][bad] & (1 << 6))
+
+
+def test_a_stop_longer_than_the_fifo_is_counted_exactly(tmp_path):
+    with hand_emulator(rate=100) as emu:  # 256 scans: 2.56 s
+        rec = record(emu.url, tmp_path)
+        rec.wait_for("recording to")
+        rec.signal(signal.SIGSTOP)
+        time.sleep(4.0)
+        rec.signal(signal.SIGCONT)
+        rec.wait_for("overflow: ", timeout=10)
+        time.sleep(1.0)
+        rc, _ = rec.stop()
+    assert rc == 0, rec.text
+    out = read_recordings(tmp_path)
+    rows = out.scans
+    assert_matches_truth(rows, emu)
+    c = rows["counter64"].astype(np.int64)
+    # every scan is either recorded or counted as missed on the scan after the hole
+    assert np.array_equal(np.diff(c) - 1, rows["missed"][1:].astype(np.int64))
+    assert rows["missed"].sum() > 100 and out.events_of("overflow") and out.events_of("gap")
+
+
+def test_a_stalled_module_is_ridden_out(tmp_path):
+    with hand_emulator() as emu:
+        rec = record(emu.url, tmp_path)
+        rec.wait_for("recording to")
+        emu.faults.stall(2.0)
+        rec.wait_for(r"disconnect: DAQTimeout")
+        rec.wait_for("DAQ answers again", timeout=10)
+        time.sleep(1.0)
+        rc, _ = rec.stop()
+    assert rc == 0, rec.text
+    out = read_recordings(tmp_path)
+    assert consecutive(out.scans) and out.scans["missed"].sum() == 0
+    assert "pymodbus" not in rec.text
+
+
+def test_rotation_by_size(tmp_path):
+    with hand_emulator(rate=200) as emu:
+        rec = record(emu.url, tmp_path, "--rotate-size", "100KiB", "--read-period", "0.05")
+        rec.wait_for("rotating .*bytes", timeout=30)
+        rc, _ = rec.stop()
+    assert rc == 0, rec.text
+    files = find_recordings(tmp_path)
+    assert len(files) >= 2 and files[0].stat().st_size >= 100 * 1024
+    out = read_recordings(tmp_path)
+    assert all(f.complete for f in out.files) and consecutive(out.scans)
+    assert out.scans["counter64"][0] == 0
+
+
+def test_a_daq_that_never_answers(tmp_path):
+    import socket
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    rec = record(f"modbus-tcp://127.0.0.1:{port}?unit=1", tmp_path, "--duration", "2")
+    assert rec.wait(30) == 1
+    assert "disconnect: DAQDisconnected" in rec.text
+    assert "nothing was recorded" in rec.text
+    assert find_recordings(tmp_path) == []

@@ -132,10 +132,16 @@ def run(args: argparse.Namespace) -> int:
         return 2
     status = run_recorder(recorder)
     st = recorder.status
-    logging.getLogger("daemon.record").info(
+    log = logging.getLogger("daemon.record")
+    log.info(
         "stopped (%s): %d scans in %d file(s) in %s",
         recorder.exit_reason, st.scans_written, st.files_written, settings.directory,
     )  # fmt: skip
+    if status == 0 and st.scans_written == 0:
+        acq = recorder.acquisition_stats
+        why = acq.last_error if acq is not None and acq.last_error else "no scan arrived"
+        log.error("nothing was recorded: %s", why)
+        return 1
     return status
 
 
