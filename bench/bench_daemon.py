@@ -1,0 +1,172 @@
+"""The acquisition daemon's cost on the controller: CPU, read timing and memory.
+
+``loopcal record`` runs as a subprocess against an emulated LDQ-412 (Modbus TCP, in this
+process). Three figures, each against a baseline measured in the same run:
+
+* ``cpu``: share of one core the recorder uses at 20 Hz in steady state (after a warm-up),
+  over ``--seconds``; baseline: a bare driver loop reading the same module the same way
+  (``read_scans()`` every 0.2 s, no recording) in a subprocess of its own. Target < 2 %.
+* ``jitter``: the recorder's read periods (arrival times of its FIFO reads, from the
+  recording itself) against the nominal 0.2 s: percentiles of the deviation; and for the
+  ASCII transport (no FIFO, one poll per scan), the deviation from the 50 ms scan period.
+* ``memory``: resident memory of the recorder while it records 1,000,000 scans at an
+  accelerated rate (200 Hz of device time, ``--speed`` times as fast), sampled as it goes;
+  baseline: its resident memory after the first 50,000 scans. Target: no growth.
+
+Run: ``python bench/bench_daemon.py [--seconds 60] [--scans 1000000] [--speed 25]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
+from recorder_helpers import cpu_seconds, hand_emulator  # noqa: E402
+
+from daemon.recording import read_recordings  # noqa: E402
+from simulator import Emulator, SimClock  # noqa: E402
+from simulator.source import TestSource  # noqa: E402
+
+LOOPCAL = [sys.executable, "-m", "daemon.cli"]
+
+BARE_LOOP = """
+import sys, time
+from drivers import open_daq
+daq = open_daq(sys.argv[1])
+n = 0
+while True:
+    n += len(daq.read_scans())
+    time.sleep(0.2)
+"""
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError("no VmRSS")
+
+
+def cpu_share(pid: int, seconds: float, warmup: float) -> float:
+    time.sleep(warmup)
+    c0, t0 = cpu_seconds(pid), time.monotonic()
+    time.sleep(seconds)
+    return (cpu_seconds(pid) - c0) / (time.monotonic() - t0)
+
+
+def stop(proc: subprocess.Popen) -> None:
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
+def bench_cpu_and_jitter(seconds: float, transport: str) -> dict:
+    out = Path(tempfile.mkdtemp(prefix="loopcal-bench-"))
+    with hand_emulator(transport, rate=20) as emu:
+        rec = subprocess.Popen([*LOOPCAL, "record", "--daq", emu.url, "--out", str(out)],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+        share = cpu_share(rec.pid, seconds, warmup=5.0)
+        stop(rec)
+        base = None
+        if transport == "modbus-tcp":
+            bare = subprocess.Popen([sys.executable, "-c", BARE_LOOP, emu.url])
+            base = cpu_share(bare.pid, seconds, warmup=2.0)
+            stop(bare)
+    rows = read_recordings(out).scans
+    if transport == "ascii":
+        arrivals = rows["host_ns"] / 1e9
+        nominal = 0.05
+    else:  # FIFO scans of one read share its arrival time; the anchor keeps its snapshot's
+        batch = rows["host_ns"][~rows["time_measured"]]
+        arrivals = np.unique(batch) / 1e9
+        nominal = 0.2
+    periods = np.diff(arrivals)[5:]
+    dev = np.abs(periods - nominal) * 1000
+    return {"cpu": share, "base": base, "dev_ms": np.percentile(dev, [50, 90, 99]),
+            "dev_max": dev.max(), "reads": len(periods), "nominal": nominal,
+            "missed": int(rows["missed"].sum())}  # fmt: skip
+
+
+def bench_memory(n_scans: int, speed: float) -> list[tuple[int, float]]:
+    out = Path(tempfile.mkdtemp(prefix="loopcal-bench-"))
+    rate = 200
+    clock = SimClock(speed)
+    samples = []
+    with Emulator("modbus-tcp", TestSource(1), scan_rate_hz=rate, clock=clock,
+                  truth_limit=1000) as emu:  # fmt: skip
+        rec = subprocess.Popen([*LOOPCAL, "record", "--daq", emu.url, "--out", str(out),
+                                "--read-period", "0.02", "--rotate-seconds", "60",
+                                "--disk-budget", "2GiB"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+        t0 = clock.now()
+        next_report = 0
+        while True:
+            time.sleep(2.0)
+            made = int((clock.now() - t0) * rate)
+            samples.append((made, rss_mb(rec.pid)))
+            if made >= next_report:
+                print(f"  {made:>9,} scans  RSS {samples[-1][1]:6.1f} MB", flush=True)
+                next_report += n_scans // 10
+            if made >= n_scans:
+                break
+        stop(rec)
+    rows = read_recordings(out).scans
+    print(f"  recorded {len(rows):,} scans in the files kept, {int(rows['missed'].sum())} missed")
+    for p in out.iterdir():
+        p.unlink()
+    out.rmdir()
+    return samples
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=60.0, help="CPU measurement window")
+    ap.add_argument("--scans", type=int, default=1_000_000, help="scans for the memory run")
+    ap.add_argument("--speed", type=float, default=25.0, help="device time per real second")
+    args = ap.parse_args()
+    print(f"CPU and read timing at 20 Hz, {args.seconds:g} s after a 5 s warm-up (Modbus TCP):")
+    r = bench_cpu_and_jitter(args.seconds, "modbus-tcp")
+    print(f"  recorder        {100 * r['cpu']:5.2f} % of one core "
+          f"(target < 2 %: {'met' if r['cpu'] < 0.02 else 'NOT met'})")  # fmt: skip
+    print(f"  bare driver loop {100 * r['base']:5.2f} % (same reads, no recording); "
+          f"recorder / bare = {r['cpu'] / max(r['base'], 1e-9):.1f}x")  # fmt: skip
+    p50, p90, p99 = r["dev_ms"]
+    print(f"  FIFO read period {r['nominal']:g} s: |deviation| p50 {p50:.2f} ms, p90 {p90:.2f} ms,"
+          f" p99 {p99:.2f} ms, max {r['dev_max']:.2f} ms over {r['reads']} reads; "
+          f"{r['missed']} scans missed")  # fmt: skip
+    a = bench_cpu_and_jitter(min(args.seconds, 30.0), "ascii")
+    p50, p90, p99 = a["dev_ms"]
+    print(f"  ASCII polling, one poll per 50 ms scan: {100 * a['cpu']:.2f} % of one core; "
+          f"|deviation| p50 {p50:.2f} ms, p90 {p90:.2f} ms, p99 {p99:.2f} ms, "
+          f"max {a['dev_max']:.2f} ms; {a['missed']} scans missed")  # fmt: skip
+    print()
+    print(f"Memory while recording {args.scans:,} scans at 200 Hz x {args.speed:g} "
+          f"({200 * args.speed:,.0f} scans/s):")  # fmt: skip
+    samples = bench_memory(args.scans, args.speed)
+    made = np.array([s[0] for s in samples])
+    rss = np.array([s[1] for s in samples])
+    fifth = max(1, len(rss) // 5)
+    first, last = float(np.median(rss[:fifth])), float(np.median(rss[-fifth:]))
+    print(
+        f"  RSS: median over the first fifth {first:.1f} MB (baseline), over the last fifth "
+        f"{last:.1f} MB ({last - first:+.1f} MB); peak {rss.max():.1f} MB at "
+        f"{made[rss.argmax()]:,} scans. Files rotate every 60 s of device time "
+        f"({200 * 60:,} x {args.speed:g} scans): each file's index is freed when it closes."
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    sys.exit(main())
