@@ -37,7 +37,6 @@ import re
 import socket
 import struct
 import sys
-import time
 import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -1089,10 +1088,6 @@ def last_scan(directory: str | os.PathLike) -> tuple[np.void, dict[str, dict[str
         if len(rec):
             return rec.scans[-1], rec.files[0].metadata
     return None
-
-
-def utc_now_ns() -> int:
-    return time.time_ns()
 
 
 __all__ = [

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import re
 import resource
+import shutil
 import signal
 import socket
 import subprocess
@@ -314,7 +315,9 @@ def test_a_stalling_disk_does_not_delay_reading(tmp_path):
     src = tmp_path / "slow_fsync.c"
     src.write_text(SLOW_FSYNC_C)
     lib = tmp_path / "slow_fsync.so"
-    subprocess.run(["gcc", "-shared", "-fPIC", "-o", str(lib), str(src), "-ldl"], check=True)
+    gcc = shutil.which("gcc")
+    assert gcc, "gcc builds the fsync shim (Debian's gcc is on every machine of this kind)"
+    subprocess.run([gcc, "-shared", "-fPIC", "-o", str(lib), str(src), "-ldl"], check=True)
     env = {"LD_PRELOAD": str(lib), "SLOW_FSYNC_S": "1.5"}
     probe = tmp_path / "probe"
     code = (f"import os,time; f=open({str(probe)!r},'wb'); t=time.monotonic(); "
