@@ -49,9 +49,19 @@ import numpy as np
 import zstandard
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
-from mcap.reader import SeekingReader
-from mcap.records import Channel, Chunk, Message, MessageIndex, Metadata
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.opcode import Opcode
+from mcap.reader import FOOTER_SIZE, SeekingReader
+from mcap.records import (
+    Channel,
+    Chunk,
+    Footer,
+    Message,
+    MessageIndex,
+    Metadata,
+    Statistics,
+    SummaryOffset,
+)
+from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 from scipy.spatial.transform import Rotation
 
@@ -1002,6 +1012,30 @@ class _FileReader:
         return note
 
 
+def message_time_range(path: Path) -> tuple[int, int] | None:
+    """(first, last) message log time of a complete file from its statistics record alone
+    (footer -> summary offsets -> statistics), or None if the file has none."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(-(FOOTER_SIZE + MAGIC_SIZE), os.SEEK_END)
+            footer = next(StreamReader(f, skip_magic=True).records)
+            if not isinstance(footer, Footer) or not footer.summary_offset_start:
+                return None
+            f.seek(footer.summary_offset_start)
+            for rec in StreamReader(f, skip_magic=True).records:
+                if not isinstance(rec, SummaryOffset):
+                    return None
+                if rec.group_opcode == Opcode.STATISTICS:
+                    f.seek(rec.group_start)
+                    stats = next(StreamReader(f, skip_magic=True).records)
+                    if isinstance(stats, Statistics) and stats.message_count:
+                        return stats.message_start_time, stats.message_end_time
+                    return None
+    except (OSError, *_READ_ERRORS):
+        return None
+    return None
+
+
 def read_recordings(
     paths: str | os.PathLike | Iterable[str | os.PathLike],
     *,
@@ -1030,6 +1064,12 @@ def read_recordings(
     for path in files:
         if not path.exists():
             raise RecordingError(f"{path}: no such file")
+        if lo is not None or hi is not None:
+            span = message_time_range(path)  # skip whole files outside the window cheaply
+            if span is not None and not (
+                (lo is None or span[1] + BLOCK_SPAN_NS >= lo) and (hi is None or span[0] < hi)
+            ):
+                continue
         reader = _FileReader(path, lo, hi)
         rows, info = reader.read()
         parts.append((rows, info, reader.events))

@@ -212,6 +212,9 @@ def test_many_files_time_window_and_duplicates(tmp_path):
     assert [f.path for f in both.files] == [pa, pb]
     win = rec.read_recordings([pb, pa], since=int(a["stamp_ns"][90]), until=int(b["stamp_ns"][10]))
     assert win.scans["counter64"].tolist() == list(range(90, 110))
+    late = rec.read_recordings(tmp_path, since=int(b["stamp_ns"][50]))
+    assert [f.path for f in late.files] == [pb]  # a file wholly before the window is skipped
+    assert late.scans["counter64"].tolist() == list(range(150, 200))
     with pytest.raises(ValueError, match="empty time window"):
         rec.read_recordings(pa, since=T0 + 10, until=T0)
 
