@@ -9,7 +9,7 @@ from types import ModuleType
 
 from calibration.errors import CalibrationError
 
-from .commands import daemon, demo, init_config, observability, record, simulate
+from .commands import calibrate, daemon, demo, init_config, observability, record, simulate
 
 #: (name, module) in the order ``loopcal --help`` lists them
 COMMANDS: list[tuple[str, ModuleType]] = [
@@ -17,6 +17,7 @@ COMMANDS: list[tuple[str, ModuleType]] = [
     ("record", record),
     ("daemon", daemon),
     ("init-config", init_config),
+    ("calibrate", calibrate),
     ("simulate", simulate),
     ("observability", observability),
 ]

@@ -1,0 +1,261 @@
+"""``loopcal calibrate``: new parameters from recordings, written only when they can be
+trusted.
+
+Reads one or several recordings (or a time window of the daemon's recording directory),
+finds the still poses, selects the best, identifies the free parameters starting from the
+controller config, and runs the acceptance gates. Without ``--write`` it changes nothing and
+shows the change it would make; with ``--write`` and every gate passed, it writes the new
+values into the controller config (keeping the previous version beside it). Exit status: 0
+accepted (and written with ``--write``), 1 a gate failed (nothing written), 2 bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+from calibration.errors import CalibrationError
+from calibration.parameters import ParameterModel
+
+from ..controller_config import ControllerConfigError, load_controller_config
+from ..recording import RecordingError, find_recordings, read_recordings
+from ..settings import SettingsError, load_daemon_config
+from ..worker import describe_files, run_worker
+from ..writeback import write_back
+
+HELP = "identify new parameters from recordings; --write puts them in the controller config"
+
+_DURATION = re.compile(r"^(\d+(?:\.\d+)?)\s*(s|m|min|h|d)$")
+
+
+def parse_time(text: str) -> datetime:
+    """ISO 8601 (UTC unless it says otherwise), e.g. 2026-11-22T10:15 or ...T10:15:00+01:00."""
+    try:
+        t = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a time (ISO 8601, e.g. 2026-11-22T10:15:00Z)"
+        ) from None
+    return t if t.tzinfo else t.replace(tzinfo=UTC)
+
+
+def parse_duration(text: str) -> timedelta:
+    m = _DURATION.match(text.strip())
+    if not m:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a duration (e.g. 90s, 15m, 2h, 1d)")
+    unit = {"s": 1, "m": 60, "min": 60, "h": 3600, "d": 86400}[m.group(2)]
+    return timedelta(seconds=float(m.group(1)) * unit)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "recordings",
+        nargs="*",
+        type=Path,
+        metavar="REC.mcap",
+        help="recording files or directories (default with --config: its directory)",
+    )
+    p.add_argument(
+        "--controller-config",
+        type=Path,
+        metavar="PATH",
+        help="the controller config to start from (and to write with --write)",
+    )
+    p.add_argument(
+        "--config",
+        type=Path,
+        metavar="DAEMON.toml",
+        help="take the recording directory and controller config from the daemon's "
+        "config (what the systemd worker unit does)",
+    )
+    p.add_argument(
+        "--free",
+        nargs="+",
+        metavar="NAME",
+        help="free parameters: a preset (paper7, offsets, all) or names, e.g. "
+        "--free d03 (default: the controller config's [calibration].free, "
+        "else paper7)",
+    )
+    p.add_argument("--ties", default=None, help="ties for a custom free set, e.g. 'A4x=-A1x'")
+    p.add_argument("--since", type=parse_time, metavar="TIME", help="only scans from TIME on")
+    p.add_argument("--until", type=parse_time, metavar="TIME", help="only scans before TIME")
+    p.add_argument(
+        "--last",
+        type=parse_duration,
+        metavar="DURATION",
+        help="only the last DURATION of the recordings (e.g. 15m)",
+    )
+    p.add_argument("--select", type=int, default=50, metavar="N", help="poses selected (50)")
+    p.add_argument(
+        "--write",
+        action="store_true",
+        help="write the new values into the controller config if every gate passes",
+    )
+    p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    p.add_argument(
+        "--report", type=Path, metavar="DIR", help="write an HTML report with plots into DIR"
+    )
+
+
+class _Fail(Exception):
+    """Bad input: message for the user, exit status 2."""
+
+
+def _inputs(args: argparse.Namespace) -> tuple[list[Path], Path]:
+    files: list[Path] = list(args.recordings)
+    controller = args.controller_config
+    if args.config is not None:
+        try:
+            settings = load_daemon_config(args.config)
+        except SettingsError as exc:
+            raise _Fail(str(exc)) from None
+        if not files:
+            files = [settings.directory]
+        if controller is None:
+            controller = settings.controller_config
+    if controller is None:
+        raise _Fail(
+            "no controller config: give --controller-config PATH (or --config with a "
+            "[controller] config)"
+        )
+    if not files:
+        raise _Fail("no recordings given: name REC.mcap files or a directory, or use --config")
+    out: list[Path] = []
+    for f in files:
+        if f.is_dir():
+            try:
+                found = find_recordings(f)
+            except RecordingError as exc:
+                raise _Fail(str(exc)) from None
+            if not found:
+                raise _Fail(f"{f}: no recordings (loopcal-*.mcap) in this directory")
+            out += found
+        elif f.exists():
+            out.append(f)
+        else:
+            raise _Fail(f"{f}: no such file")
+    return out, controller
+
+
+def run(args: argparse.Namespace) -> int:
+    def progress(text: str) -> None:
+        print(text, file=sys.stderr if args.json else sys.stdout, flush=True)
+
+    try:
+        files, controller_path = _inputs(args)
+        config = load_controller_config(controller_path)
+        free = ",".join(args.free) if args.free else (config.free or "paper7")
+        ties = args.ties if args.free else (",".join(config.ties) or None)
+        model = ParameterModel.parse(free, ties or ())
+        since, until = args.since, args.until
+        if args.last is not None:
+            if since is not None:
+                raise _Fail("give --since or --last, not both")
+            end = until or _latest(files)
+            since = end - args.last
+        if args.select < model.n_free:
+            raise _Fail(f"--select {args.select}: at least {model.n_free} poses are needed")
+        progress(f"reading {len(files)} recording file(s)")
+        rec = read_recordings(files, since=since, until=until)
+    except (_Fail, ControllerConfigError, RecordingError, CalibrationError, ValueError) as exc:
+        print(f"loopcal calibrate: error: {exc}", file=sys.stderr)
+        return 2
+    notes = describe_files(rec)
+    if notes:
+        progress(f"note: {notes}")
+    if len(rec) == 0:
+        print(
+            "loopcal calibrate: error: no scans in the recordings"
+            + (" within the time window" if since or until else ""),
+            file=sys.stderr,
+        )
+        return 2
+    result = run_worker(rec, config, model, n_select=args.select, progress=progress)
+    written = backup = None
+    if args.write and result.accepted:
+        try:
+            written, backup = write_back(
+                config,
+                result.params,
+                result.provenance(since=_ns(since), until=_ns(until)),
+            )
+        except ControllerConfigError as exc:
+            print(f"loopcal calibrate: error: {exc}", file=sys.stderr)
+            return 2
+    if args.report is not None:
+        from ..report import write_report  # matplotlib only when a report is asked for
+
+        page = write_report(result, args.report, progress=progress)
+        progress(f"report: {page}")
+    if args.json:
+        doc = result.as_json()
+        doc.update(
+            {
+                "written": written is not None,
+                "config": str(config.path),
+                "previous_version": str(backup) if backup else None,
+            }
+        )
+        print(json.dumps(doc, indent=1, default=_jsonable))
+    else:
+        _print_human(result, config.path, written, backup, args.write)
+    return 0 if result.accepted else 1
+
+
+def _latest(files: list[Path]) -> datetime:
+    from ..recording import message_time_range
+
+    ends = [r[1] for r in (message_time_range(f) for f in files) if r is not None]
+    if not ends:  # cut files: read them to find out
+        rec = read_recordings(files)
+        if not len(rec):
+            raise _Fail("no scans in the recordings")
+        ends = [int(rec.scans["stamp_ns"][-1])]
+    return datetime.fromtimestamp(max(ends) / 1e9, UTC) + timedelta(microseconds=1)
+
+
+def _ns(t: datetime | None) -> int | None:
+    return None if t is None else round(t.timestamp() * 1e9)
+
+
+def _jsonable(obj):
+    if hasattr(obj, "item"):
+        return obj.item()
+    raise TypeError(f"not JSON serialisable: {obj!r}")
+
+
+def _print_human(result, path, written, backup, asked_to_write: bool) -> None:
+    cal = result.calibration
+    print()
+    print(f"Free parameters: {result.model.describe()}")
+    if cal is not None:
+        ident = cal.identification
+        print(
+            f"{int(ident.used.sum())} of {len(cal.selection.indices)} selected poses used; "
+            f"{len(result.held_out)} held out to check; rms residual "
+            f"{ident.rms_residual:.4g} mm^2, equivalent noise {1000 * ident.sigma_volts:.1f} mV "
+            f"(the poses' scatter predicts {1000 * result.expected_noise_volts:.1f} mV)"
+        )
+        print()
+        print(result.table())
+    print()
+    print("Acceptance gates:")
+    for g in result.gates:
+        print(g.line())
+    print()
+    if not result.accepted:
+        names = ", ".join(g.name for g in result.failed)
+        print(f"REFUSED ({names}): {path} is unchanged.")
+    elif written is not None:
+        print(
+            f"Wrote {len(result.changed())} value(s) to {written}; the previous version is "
+            f"{backup}."
+        )
+    elif asked_to_write:
+        print(f"Nothing to write: {path} already holds these values.")
+    else:
+        print(f"Accepted. Nothing written: add --write to put these values in {path}.")

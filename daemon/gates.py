@@ -1,0 +1,307 @@
+"""The acceptance gates: when the worker may vouch for a calibration, and what to do if not.
+
+Each gate compares one figure of the identification with a limit and, when it fails, says
+why in plain words and what the technician should do about it. ``loopcal calibrate --write``
+writes the controller config only if every gate passes. The limits (docs/calibration.md
+explains each):
+
+=================  ===========================================================================
+gate               passes when
+=================  ===========================================================================
+``poses``          at least MIN_POSES still poses, and every channel moved across them
+``converged``      the identification converged
+``condition``      condition number of the scaled Jacobian <= 1000
+``min_singular``   its smallest singular value >= MIN_SINGULAR
+``noise``          the residuals imply no more noise than NOISE_RATIO x the noise the poses'
+                   own spread predicts (their loops close as well as the sensors allow)
+``holdout``        poses kept out of the fit close their loops as well as predicted
+``plausible``      no parameter moved further than a refit, or a blueprint tolerance, can
+``precision``      every identified parameter's standard deviation is within PRECISION
+=================  ===========================================================================
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from calibration.kinematics import base_points, forward_kinematics, volts_to_lengths
+from calibration.observability import CONDITION_OK
+from calibration.parameters import INDEX, UNITS
+from calibration.residuals import loop_residuals, noise_sensitivity, reference_points
+from calibration.simulate import NEAR_SINGULAR_MM
+from drivers import ldq412
+
+MIN_POSES = 30
+MIN_CHANNEL_RANGE_V = 0.5  # a channel that moves less than this over all poses is stuck
+MIN_SINGULAR = 0.05
+NOISE_RATIO = 3.0
+HOLDOUT_EVERY = 5  # every fifth pose is kept out of the fit to validate it
+#: largest believable change per parameter group (a refitted LVDT moves its offset by mm)
+CHANGE_LIMITS = {"offset": 15.0, "geometry": 3.0, "gain": 0.05}
+PRECISION = {"mm": 0.25, "mm/V": 0.01}
+GOOD_TILT_DEG = 25.0  # the workspace allows 45 deg; poses should reach this far every way
+LSB_VOLTS = ldq412.V_SPAN / (ldq412.CODE_MAX + 1)
+
+
+@dataclass(frozen=True)
+class Gate:
+    """One acceptance check. value and limit are what was compared (for people and JSON);
+    reason says why it failed and advice what to do (both empty when it passed)."""
+
+    name: str
+    passed: bool
+    value: float | int | str | None
+    limit: str
+    reason: str = ""
+    advice: str = ""
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def line(self) -> str:
+        mark = "pass" if self.passed else "FAIL"
+        value = f"{self.value:.4g}" if isinstance(self.value, float) else str(self.value)
+        text = f"  [{mark}] {self.name}: {value} (limit {self.limit})"
+        if not self.passed:
+            text += f"\n         why: {self.reason}\n         do:  {self.advice}"
+        return text
+
+
+def _group(name: str) -> str:
+    if name.startswith("d0"):
+        return "offset"
+    if name.startswith("S"):
+        return "gain"
+    return "geometry"
+
+
+# ---------------------------------------------------------------------------- workspace
+
+
+def coverage_advice(volts: np.ndarray, params: np.ndarray) -> str:
+    """Which way the technician should tilt the plate next, from where the poses went.
+
+    The plate's output axis (its z axis) of each pose, by forward kinematics: for each
+    sensor, the largest tilt reached towards that sensor's base point (within 45 deg of its
+    azimuth). The sensor reached least is where to go."""
+    if len(volts) == 0:
+        return "move the plate by hand through its whole range, holding each position still"
+    fk = forward_kinematics(volts_to_lengths(volts, params), params)
+    axis = fk.rotations[:, :, 2]
+    tilt = np.degrees(np.arccos(np.clip(axis[:, 2], -1, 1)))
+    az = np.degrees(np.arctan2(axis[:, 1], axis[:, 0]))
+    A = base_points(params)
+    reach = []
+    for i in range(4):
+        a = np.degrees(np.arctan2(A[i, 1], A[i, 0]))
+        near = np.abs((az - a + 180) % 360 - 180) <= 45
+        reach.append(float(tilt[near].max()) if near.any() else 0.0)
+    worst = int(np.argmin(reach))
+    if reach[worst] >= GOOD_TILT_DEG:
+        return "record more still positions spread over the whole workspace"
+    return (
+        f"tilt the plate further toward sensor {worst + 1} (the poses reach only "
+        f"{reach[worst]:.0f} deg that way; aim for {GOOD_TILT_DEG:.0f} deg or more), holding "
+        "each position still for a second"
+    )
+
+
+# ---------------------------------------------------------------------------- gates
+
+
+def poses_gate(volts: np.ndarray) -> Gate:
+    """Enough still poses, and no channel that never moved (stuck or disconnected)."""
+    n = len(volts)
+    if n:
+        span = np.ptp(volts, axis=0)
+        stuck = [i + 1 for i in range(4) if span[i] < MIN_CHANNEL_RANGE_V]
+        if stuck and len(stuck) < 4:
+            names = ", ".join(f"sensor {i}" for i in stuck)
+            return Gate(
+                "poses",
+                False,
+                n,
+                f">= {MIN_POSES} poses, every channel moving",
+                f"{names} read the same ({', '.join(f'{span[i - 1]:.3f} V' for i in stuck)} "
+                "range) in every pose while the others moved: stuck or disconnected",
+                f"check {names}: its LVDT core, cable and conditioner; then record again",
+            )
+    if n < MIN_POSES:
+        return Gate(
+            "poses",
+            False,
+            n,
+            f">= {MIN_POSES}",
+            f"only {n} still poses found in the recording",
+            "move the plate to at least 40 positions, holding each still for about a second",
+        )
+    return Gate("poses", True, n, f">= {MIN_POSES}")
+
+
+def converged_gate(converged: bool, message: str) -> Gate:
+    if converged:
+        return Gate("converged", True, message, "converged")
+    return Gate(
+        "converged",
+        False,
+        message,
+        "converged",
+        f"the identification did not converge ({message})",
+        "record again with more, well spread still positions; check the start "
+        "values in the controller config",
+    )
+
+
+def condition_gate(condition: float, advice: str) -> Gate:
+    ok = condition <= CONDITION_OK
+    return Gate(
+        "condition",
+        ok,
+        condition,
+        f"<= {CONDITION_OK:g}",
+        "" if ok else "some combination of parameters is barely seen by these poses",
+        "" if ok else advice,
+    )
+
+
+def min_singular_gate(s_min: float, advice: str) -> Gate:
+    ok = s_min >= MIN_SINGULAR
+    return Gate(
+        "min_singular",
+        ok,
+        s_min,
+        f">= {MIN_SINGULAR:g}",
+        "" if ok else "the poses hardly tell some parameters apart",
+        "" if ok else advice,
+    )
+
+
+def expected_noise(spread: np.ndarray, counts: np.ndarray) -> float:
+    """RMS noise of the poses' mean readings the poses themselves predict, V: their spread
+    over the square root of the scans averaged, and the 12-bit rounding, which averaging
+    a still reading does not remove."""
+    var = (spread**2) / counts[:, None] + LSB_VOLTS**2 / 12
+    return float(np.sqrt(var.mean()))
+
+
+def noise_gate(sigma_fit: float, expected: float) -> Gate:
+    limit = NOISE_RATIO * expected
+    ok = sigma_fit <= limit
+    return Gate(
+        "noise",
+        ok,
+        f"{1000 * sigma_fit:.2f} mV",
+        f"<= {NOISE_RATIO:g} x {1000 * expected:.2f} mV = {1000 * limit:.2f} mV",
+        ""
+        if ok
+        else f"the loops close only to {1000 * sigma_fit:.1f} mV of equivalent sensor "
+        f"noise, where the readings' own scatter predicts {1000 * expected:.1f} mV",
+        ""
+        if ok
+        else "check every sensor's wiring and its gain S in the controller config "
+        "(a swapped, sticking or mis-scaled channel), and hold the plate still in each pose",
+    )
+
+
+def holdout_residuals(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
+    """Loop-closure error of each pose at ``params`` in volts of equivalent sensor noise
+    (the residuals projected on their noise direction), near-singular poses left out."""
+    if len(volts) == 0:
+        return np.zeros(0)
+    ref = reference_points(volts, params)
+    r = loop_residuals(params, volts, ref, jacobian=False)
+    ok = r.feasible.all(axis=1) & (r.separation.min(axis=1) >= NEAR_SINGULAR_MM)
+    if not ok.any():
+        return np.zeros(0)
+    u, s = noise_sensitivity(params, volts[ok], ref[ok])
+    return np.einsum("mi,mi->m", u, r.residuals[ok]) / s
+
+
+def holdout_gate(w: np.ndarray, sigma_fit: float) -> Gate:
+    n = len(w)
+    if n < 5:
+        return Gate(
+            "holdout",
+            False,
+            n,
+            ">= 5 held-out poses",
+            f"only {n} poses were left to check the fit against",
+            "record more still positions",
+        )
+    ratio = float(np.sqrt(np.mean(w**2)) / sigma_fit)
+    limit = 1.2 * float(np.sqrt(chi2.ppf(0.999, n) / n))
+    ok = ratio <= limit
+    return Gate(
+        "holdout",
+        ok,
+        ratio,
+        f"<= {limit:.2f} (RMS over the fit's, {n} poses)",
+        ""
+        if ok
+        else f"{n} poses kept out of the fit close their loops {ratio:.1f} times worse "
+        "than the fitted ones: the fit describes its own poses, not the mechanism",
+        ""
+        if ok
+        else "free the parameters that changed (for example the gain of a replaced "
+        "sensor) or check the mechanism for play; hold each position still",
+    )
+
+
+def plausible_gate(free: list[str], previous: np.ndarray, new: np.ndarray) -> Gate:
+    worst, worst_ratio = "", 0.0
+    for name in free:
+        i = INDEX[name]
+        limit = CHANGE_LIMITS[_group(name)]
+        if _group(name) == "gain":
+            limit *= previous[i]
+        ratio = abs(new[i] - previous[i]) / limit
+        if ratio > worst_ratio:
+            worst, worst_ratio = name, ratio
+    if worst_ratio <= 1.0:
+        if not worst:
+            return Gate("plausible", True, "no change", "changes within " + _limits_text())
+        i = INDEX[worst]
+        change = f"largest {worst} {new[i] - previous[i]:+.3f} {UNITS[worst]}"
+        return Gate("plausible", True, change, "changes within " + _limits_text())
+    i = INDEX[worst]
+    change = new[i] - previous[i]
+    sensor = worst[-1] if worst.startswith(("d0", "S")) else None
+    return Gate(
+        "plausible",
+        False,
+        f"{worst} {change:+.3f} {UNITS[worst]}",
+        "changes within " + _limits_text(),
+        f"{worst} would change by {change:+.3f} {UNITS[worst]}, more than a "
+        f"{'refitted LVDT' if sensor else 'blueprint tolerance'} explains",
+        (
+            f"check that sensor {sensor} is the one replaced, its gain S{sensor} and its wiring"
+            if sensor
+            else "check the controller config's geometry against the mechanism"
+        ),
+    )
+
+
+def _limits_text() -> str:
+    return (
+        f"{CHANGE_LIMITS['offset']:g} mm (offsets), {CHANGE_LIMITS['geometry']:g} mm "
+        f"(geometry), {100 * CHANGE_LIMITS['gain']:g} % (gains)"
+    )
+
+
+def precision_gate(free: list[str], std: np.ndarray, advice: str) -> Gate:
+    ratios = [std[j] / PRECISION[UNITS[n]] for j, n in enumerate(free)]
+    j = int(np.argmax(ratios))
+    ok = ratios[j] <= 1.0
+    name = free[j]
+    limit = f"<= {PRECISION['mm']:g} mm, {PRECISION['mm/V']:g} mm/V"
+    return Gate(
+        "precision",
+        ok,
+        f"{name} {std[j]:.3f} {UNITS[name]}",
+        limit,
+        "" if ok else f"{name} is known only to +-{std[j]:.3f} {UNITS[name]} (1 sigma)",
+        "" if ok else advice,
+    )

@@ -1,0 +1,115 @@
+"""MCAP -> poses: the still stretches of a recording, averaged into calibration poses.
+
+While the plate moves, the four channels of a scan are converted 250 µs apart, so a scan of
+a moving plate is skewed; calibration poses therefore come from stretches where the plate is
+held still, averaged (:func:`calibration.poses.still_poses` finds them). Before that, scans
+that must not be in any pose are taken out:
+
+- a channel at the rail or with its sensor-fault bit (the datasheet's untrustworthy reading);
+- scans next to a gap or a restart: what the plate did in between is unknown, so a stretch
+  never spans one, and the scans within ``gap_margin_s`` of it are not used.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calibration.poses import still_poses
+
+from . import scans as scan_rows
+from .recording import Recording
+
+STILL_WINDOW_S = 0.5  # a pose spans at least this long
+GAP_MARGIN_S = 0.25  # scans this close to a gap or restart are not used
+LONGEST_POSE_S = 5.0  # longer stretches are split (a plate may creep while "still")
+
+
+@dataclass(frozen=True)
+class RecordedPoses:
+    """Still poses of a recording.
+
+    volts: (k, 4) mean readings, V. spread: (k, 4) standard deviation of the readings within
+    each pose, V. counts: (k,) scans averaged. rows: (k, 2) first and one-past-last row of
+    the recording's scans. stamp_ns: (k,) the pose's middle time. scan_rate_hz: of the
+    recording. dropped: scans left out, by reason.
+    """
+
+    volts: np.ndarray
+    spread: np.ndarray
+    counts: np.ndarray
+    rows: np.ndarray
+    stamp_ns: np.ndarray
+    scan_rate_hz: float
+    dropped: dict[str, int] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.volts)
+
+    @property
+    def noise_volts(self) -> np.ndarray:
+        """(k, 4) standard deviation of each pose's mean, V (spread / sqrt(count))."""
+        return self.spread / np.sqrt(self.counts)[:, None]
+
+
+def scan_rate(rec: Recording) -> float:
+    """The recording's scan rate, Hz, from the device times of consecutive scans."""
+    s = rec.scans
+    if len(s) < 2:
+        return 20.0
+    same = (np.diff(s["epoch"]) == 0) & (np.diff(s["counter64"].astype(np.int64)) == 1)
+    dt = np.diff(s["time64_us"].astype(np.int64))[same]
+    return 1e6 / float(np.median(dt)) if len(dt) else 20.0
+
+
+def recorded_poses(
+    rec: Recording,
+    *,
+    window_s: float = STILL_WINDOW_S,
+    band_volts: float = 0.25,
+    gap_margin_s: float = GAP_MARGIN_S,
+    longest_s: float = LONGEST_POSE_S,
+) -> RecordedPoses:
+    """The still poses of a recording (see the module docstring).
+
+    window_s: a pose spans at least this long. band_volts: largest peak-to-peak change of a
+    channel within such a window that still counts as still (40 mV of noise gives about
+    0.2 V over 10 scans). gap_margin_s: scans this close to a gap or restart are left out.
+    longest_s: longer still stretches are split into poses of at most this long.
+    """
+    s = rec.scans
+    n = len(s)
+    rate = scan_rate(rec)
+    bad_channel = ~scan_rows.trustworthy(s).all(axis=1)
+    breaks = np.flatnonzero((s["missed"] > 0) | s["restarted"])
+    if n:
+        epoch_change = np.flatnonzero(np.diff(s["epoch"]) != 0) + 1
+        breaks = np.union1d(breaks, epoch_change)
+    margin = max(1, round(gap_margin_s * rate))
+    near_gap = np.zeros(n, dtype=bool)
+    for b in breaks:
+        near_gap[max(0, b - margin) : b + margin] = True
+    valid = ~bad_channel & ~near_gap
+    dropped = {
+        "channel at the rail or faulted": int(bad_channel.sum()),
+        "next to a gap or restart": int((near_gap & ~bad_channel).sum()),
+    }
+    window = max(2, round(window_s * rate))
+    found = still_poses(
+        scan_rows.volts(s),
+        window=window,
+        band_volts=band_volts,
+        max_scans=max(window, round(longest_s * rate)),
+        valid=valid,
+    )
+    mid = (found.ranges[:, 0] + found.ranges[:, 1] - 1) // 2
+    return RecordedPoses(
+        volts=found.volts,
+        spread=found.spread,
+        counts=found.counts,
+        rows=found.ranges,
+        stamp_ns=s["stamp_ns"][mid] if len(mid) else np.zeros(0, dtype=np.int64),
+        scan_rate_hz=rate,
+        dropped=dropped,
+    )

@@ -1,0 +1,223 @@
+"""The calibration worker: from recordings to parameters it can vouch for.
+
+MCAP -> poses -> fit -> gates: the worker reads the recordings
+(:func:`daemon.recording.read_recordings`), takes their still poses
+(:func:`daemon.poses.recorded_poses`), keeps every fifth out of the fit to check it
+against, selects the best of the others and identifies the free parameters from them
+(:func:`calibration.pipeline.calibrate`, started from the controller config), and runs the
+acceptance gates (:mod:`daemon.gates`). Writing the result into the controller config is
+:mod:`daemon.writeback`'s job, and only done when every gate passed.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.errors import CalibrationError
+from calibration.parameters import INDEX, NAMES, UNITS, ParameterModel
+from calibration.pipeline import Calibration, calibrate
+
+from . import gates as G
+from .controller_config import ControllerConfig
+from .poses import RecordedPoses, recorded_poses
+from .recording import Recording, loopcal_version
+
+N_SELECT = 50
+
+
+@dataclass
+class WorkerResult:
+    """What the worker found.
+
+    model: the free set identified. previous: (20,) the controller config's values.
+    params: (20,) the new values (= previous if the identification failed).
+    std: {name: standard deviation} of the free parameters. gates: the acceptance gates in
+    order. poses, fit, held_out: the poses found, and indices of those fitted and held out.
+    calibration: the selection and identification, or None if it could not run.
+    """
+
+    model: ParameterModel
+    previous: np.ndarray
+    params: np.ndarray
+    std: dict[str, float]
+    gates: list[G.Gate]
+    poses: RecordedPoses
+    fit: np.ndarray
+    held_out: np.ndarray
+    calibration: Calibration | None
+    recording: Recording
+    seconds: float = 0.0
+    expected_noise_volts: float = float("nan")
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def accepted(self) -> bool:
+        return all(g.passed for g in self.gates)
+
+    @property
+    def failed(self) -> list[G.Gate]:
+        return [g for g in self.gates if not g.passed]
+
+    def changed(self) -> list[str]:
+        """Names of the parameters the result changes (free ones and those tied to them)."""
+        return [n for n in NAMES if self.params[INDEX[n]] != self.previous[INDEX[n]]]
+
+    # ------------------------------------------------------------------ output
+
+    def table(self) -> str:
+        """The change, parameter by parameter, with uncertainties."""
+        lines = [f"{'param':>6} {'unit':>5} {'previous':>10} {'new':>10} {'change':>9} {'std':>7}"]
+        for name in self.model.free:
+            i = INDEX[name]
+            lines.append(
+                f"{name:>6} {UNITS[name]:>5} {self.previous[i]:10.4f} {self.params[i]:10.4f} "
+                f"{self.params[i] - self.previous[i]:+9.4f} {self.std.get(name, float('nan')):7.4f}"
+            )
+        tied = [n for n in self.changed() if n not in self.model.free]
+        for name in tied:
+            i = INDEX[name]
+            lines.append(
+                f"{name:>6} {UNITS[name]:>5} {self.previous[i]:10.4f} {self.params[i]:10.4f} "
+                f"{self.params[i] - self.previous[i]:+9.4f}    (tied)"
+            )
+        return "\n".join(lines)
+
+    def as_json(self) -> dict[str, Any]:
+        """The ``--json`` document (docs/calibration.md describes every key)."""
+        cal = self.calibration
+        ident = cal.identification if cal is not None else None
+        out: dict[str, Any] = {
+            "accepted": self.accepted,
+            "method": "paper",
+            "parameters": {
+                n: {
+                    "value": float(self.params[INDEX[n]]),
+                    "std": self.std.get(n),
+                    "previous": float(self.previous[INDEX[n]]),
+                    "unit": UNITS[n],
+                }
+                for n in self.model.free
+            },
+            "tied": {
+                n: float(self.params[INDEX[n]]) for n in self.changed() if n not in self.model.free
+            },
+            "indices": ident.indices.as_dict() if ident is not None else None,
+            "gates": [g.as_dict() for g in self.gates],
+            "poses": {
+                "found": len(self.poses),
+                "fit_candidates": int(len(self.fit)),
+                "selected": int(len(cal.selection.indices)) if cal is not None else 0,
+                "held_out": int(len(self.held_out)),
+                "scans": int(len(self.recording)),
+                "dropped_scans": self.poses.dropped,
+            },
+            "residual": {
+                "rms_mm2": ident.rms_residual if ident is not None else None,
+                "noise_volts": ident.sigma_volts if ident is not None else None,
+                "expected_noise_volts": self.expected_noise_volts,
+            },
+            "recordings": [str(f.path) for f in self.recording.files],
+            "seconds": round(self.seconds, 3),
+        }
+        out.update(self.extra)
+        return out
+
+    def provenance(self, *, since: int | None, until: int | None) -> dict[str, Any]:
+        """The ``[provenance]`` table written with the new values."""
+        cal = self.calibration
+        assert cal is not None
+        ident = cal.identification
+        rec = self.recording
+        first = int(rec.scans["stamp_ns"][0]) if len(rec) else None
+        last = int(rec.scans["stamp_ns"][-1]) if len(rec) else None
+
+        def iso(ns: int | None) -> str:
+            if ns is None:
+                return ""
+            return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="seconds")
+
+        return {
+            "written_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+            "loopcal": loopcal_version(),
+            "recordings": [f.path.name for f in rec.files],
+            "recorded_from_utc": iso(since if since is not None else first),
+            "recorded_until_utc": iso(until if until is not None else last),
+            "poses_found": len(self.poses),
+            "poses_used": int(ident.used.sum()),
+            "residual_rms_mm2": round(float(ident.rms_residual), 6),
+            "noise_volts": round(float(ident.sigma_volts), 6),
+            "identified": list(self.model.free),
+            "std": {n: round(float(v), 6) for n, v in self.std.items()},
+            "previous": {n: float(self.previous[INDEX[n]]) for n in self.changed()},
+        }
+
+
+def run_worker(
+    recording: Recording,
+    controller: ControllerConfig,
+    model: ParameterModel,
+    *,
+    n_select: int = N_SELECT,
+    progress: Callable[[str], None] = lambda _: None,
+) -> WorkerResult:
+    """Poses, fit and gates for one recording (one or many files, already loaded)."""
+    t0 = time.perf_counter()
+    start = np.array(controller.params, dtype=float)
+    poses = recorded_poses(recording)
+    progress(
+        f"{len(recording):,} scans: {len(poses)} still poses "
+        f"(median {int(np.median(poses.counts)) if len(poses) else 0} scans each)"
+    )
+    k = np.arange(len(poses))
+    held = k % G.HOLDOUT_EVERY == G.HOLDOUT_EVERY // 2
+    fit, held_out = k[~held], k[held]
+    result = WorkerResult(model, start, start.copy(), {}, [], poses, fit, held_out, None, recording)
+    gate = G.poses_gate(poses.volts)
+    result.gates.append(gate)
+    advice = G.coverage_advice(poses.volts, start)
+    if not gate.passed:
+        result.seconds = time.perf_counter() - t0
+        return result
+    progress(
+        f"selecting {n_select} of {len(fit)} poses and identifying {len(model.free)} parameters"
+    )
+    try:
+        cal = calibrate(poses.volts[fit], model, start, n_select=n_select)
+    except CalibrationError as exc:
+        result.gates.append(
+            G.Gate("converged", False, type(exc).__name__, "converged", str(exc), advice)
+        )
+        result.seconds = time.perf_counter() - t0
+        return result
+    ident = cal.identification
+    result.calibration = cal
+    result.params = ident.params.copy()
+    result.std = {n: float(s) for n, s in zip(model.free, ident.std, strict=True)}
+    advice = G.coverage_advice(poses.volts, ident.params)
+    chosen = fit[cal.selection.indices]
+    result.expected_noise_volts = G.expected_noise(poses.spread[chosen], poses.counts[chosen])
+    w = G.holdout_residuals(poses.volts[held_out], ident.params)
+    result.gates += [
+        G.converged_gate(ident.converged, ident.message),
+        G.condition_gate(ident.indices.condition, advice),
+        G.min_singular_gate(ident.indices.min_singular, advice),
+        G.noise_gate(ident.sigma_volts, result.expected_noise_volts),
+        G.holdout_gate(w, ident.sigma_volts),
+        G.plausible_gate(list(model.free), start, ident.params),
+        G.precision_gate(list(model.free), ident.std, advice),
+    ]
+    result.extra["holdout_rms_volts"] = float(np.sqrt(np.mean(w**2))) if len(w) else None
+    result.seconds = time.perf_counter() - t0
+    return result
+
+
+def describe_files(rec: Recording) -> str:
+    notes = [f"{Path(f.path).name}: {f.note}" for f in rec.files if f.note]
+    return "; ".join(notes)
