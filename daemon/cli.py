@@ -9,7 +9,16 @@ from types import ModuleType
 
 from calibration.errors import CalibrationError
 
-from .commands import calibrate, daemon, demo, init_config, observability, record, simulate
+from .commands import (
+    calibrate,
+    daemon,
+    demo,
+    init_config,
+    observability,
+    record,
+    replay,
+    simulate,
+)
 
 #: (name, module) in the order ``loopcal --help`` lists them
 COMMANDS: list[tuple[str, ModuleType]] = [
@@ -18,6 +27,7 @@ COMMANDS: list[tuple[str, ModuleType]] = [
     ("daemon", daemon),
     ("init-config", init_config),
     ("calibrate", calibrate),
+    ("replay", replay),
     ("simulate", simulate),
     ("observability", observability),
 ]

@@ -29,15 +29,16 @@ from scipy.stats import chi2
 
 from calibration.kinematics import base_points, forward_kinematics, volts_to_lengths
 from calibration.observability import CONDITION_OK
-from calibration.parameters import INDEX, UNITS
+from calibration.parameters import GAIN_NOMINAL, INDEX, UNITS
 from calibration.residuals import loop_residuals, noise_sensitivity, reference_points
 from calibration.simulate import NEAR_SINGULAR_MM
 from drivers import ldq412
 
 MIN_POSES = 30
 MIN_CHANNEL_RANGE_V = 0.5  # a channel that moves less than this over all poses is stuck
+BARELY_MOVED_V = 2.0  # every channel within this over all poses: the plate barely moved
 MIN_SINGULAR = 0.05
-NOISE_RATIO = 3.0
+NOISE_RATIO = 1.5
 HOLDOUT_EVERY = 5  # every fifth pose is kept out of the fit to validate it
 #: largest believable change per parameter group (a refitted LVDT moves its offset by mm)
 CHANGE_LIMITS = {"offset": 15.0, "geometry": 3.0, "gain": 0.05}
@@ -117,6 +118,17 @@ def poses_gate(volts: np.ndarray) -> Gate:
     n = len(volts)
     if n:
         span = np.ptp(volts, axis=0)
+        if span.max() < BARELY_MOVED_V:
+            return Gate(
+                "poses",
+                False,
+                n,
+                f">= {MIN_POSES} poses, every channel moving",
+                f"the plate barely moved: every channel stayed within {span.max():.2f} V "
+                f"({span.max() * GAIN_NOMINAL:.1f} mm of stroke) over all {n} still poses",
+                "move the plate by hand through its whole range (tilt it 25 deg or more "
+                "toward each sensor), holding each position still for about a second",
+            )
         stuck = [i + 1 for i in range(4) if span[i] < MIN_CHANNEL_RANGE_V]
         if stuck and len(stuck) < 4:
             names = ", ".join(f"sensor {i}" for i in stuck)
@@ -179,11 +191,11 @@ def min_singular_gate(s_min: float, advice: str) -> Gate:
     )
 
 
-def expected_noise(spread: np.ndarray, counts: np.ndarray) -> float:
-    """RMS noise of the poses' mean readings the poses themselves predict, V: their spread
-    over the square root of the scans averaged, and the 12-bit rounding, which averaging
-    a still reading does not remove."""
-    var = (spread**2) / counts[:, None] + LSB_VOLTS**2 / 12
+def expected_noise(scan_noise: np.ndarray, counts: np.ndarray) -> float:
+    """RMS noise of the poses' mean readings the poses themselves predict, V: the noise of
+    one reading over the square root of the scans averaged, and the 12-bit rounding, which
+    averaging a still reading does not remove."""
+    var = (scan_noise**2) / counts[:, None] + LSB_VOLTS**2 / 12
     return float(np.sqrt(var.mean()))
 
 

@@ -31,13 +31,16 @@ class RecordedPoses:
     """Still poses of a recording.
 
     volts: (k, 4) mean readings, V. spread: (k, 4) standard deviation of the readings within
-    each pose, V. counts: (k,) scans averaged. rows: (k, 2) first and one-past-last row of
+    each pose, V. scan_noise: (k, 4) the sensor noise of one reading within each pose, V,
+    from scan-to-scan differences (a slow creep of the plate adds to the spread, hardly to
+    the differences). counts: (k,) scans averaged. rows: (k, 2) first and one-past-last row of
     the recording's scans. stamp_ns: (k,) the pose's middle time. scan_rate_hz: of the
     recording. dropped: scans left out, by reason.
     """
 
     volts: np.ndarray
     spread: np.ndarray
+    scan_noise: np.ndarray
     counts: np.ndarray
     rows: np.ndarray
     stamp_ns: np.ndarray
@@ -49,8 +52,20 @@ class RecordedPoses:
 
     @property
     def noise_volts(self) -> np.ndarray:
-        """(k, 4) standard deviation of each pose's mean, V (spread / sqrt(count))."""
-        return self.spread / np.sqrt(self.counts)[:, None]
+        """(k, 4) standard deviation of each pose's mean, V (scan noise / sqrt(count))."""
+        return self.scan_noise / np.sqrt(self.counts)[:, None]
+
+
+def _difference_noise(volts: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+    """(k, 4) noise of one reading within each range [a, b), from first differences:
+    sqrt(mean(diff^2) / 2)."""
+    if len(ranges) == 0:
+        return np.zeros((0, 4))
+    d2 = np.concatenate([np.zeros((1, 4)), np.diff(volts, axis=0) ** 2])
+    c = np.concatenate([np.zeros((1, 4)), np.cumsum(d2, axis=0)])
+    # differences inside a range: rows a+1 .. b-1
+    a, b = ranges[:, 0] + 1, ranges[:, 1]
+    return np.sqrt((c[b] - c[a]) / np.maximum(b - a, 1)[:, None] / 2)
 
 
 def scan_rate(rec: Recording) -> float:
@@ -107,6 +122,7 @@ def recorded_poses(
     return RecordedPoses(
         volts=found.volts,
         spread=found.spread,
+        scan_noise=_difference_noise(scan_rows.volts(s), found.ranges),
         counts=found.counts,
         rows=found.ranges,
         stamp_ns=s["stamp_ns"][mid] if len(mid) else np.zeros(0, dtype=np.int64),

@@ -1044,7 +1044,7 @@ def read_recordings(
 ) -> Recording:
     """Load one or many recording files into numpy arrays.
 
-    paths: files, or a directory (all recordings in it). Files are put in time order by
+    paths: files or directories (all recordings in them). Files are put in time order by
     their first scan. since, until: keep scans with ``since <= stamp < until`` (ns since the
     Unix epoch, or aware datetimes); events likewise.
 
@@ -1052,11 +1052,10 @@ def read_recordings(
     and says so in its :class:`RecordingFile` note. Raises :class:`RecordingError` for a
     file that is missing, not MCAP, or not a loopcal recording.
     """
-    if isinstance(paths, (str, os.PathLike)):
-        p = Path(paths)
-        files = find_recordings(p) if p.is_dir() else [p]
-    else:
-        files = [Path(p) for p in paths]
+    items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
+    files: list[Path] = []
+    for item in map(Path, items):
+        files += find_recordings(item) if item.is_dir() else [item]
     lo, hi = _as_ns(since), _as_ns(until)
     if lo is not None and hi is not None and hi <= lo:
         raise ValueError(f"empty time window: until ({hi}) is not after since ({lo})")

@@ -185,9 +185,8 @@ def run_worker(
     if not gate.passed:
         result.seconds = time.perf_counter() - t0
         return result
-    progress(
-        f"selecting {n_select} of {len(fit)} poses and identifying {len(model.free)} parameters"
-    )
+    n_free = len(model.free)
+    progress(f"selecting up to {n_select} of {len(fit)} poses, identifying {n_free} parameters")
     try:
         cal = calibrate(poses.volts[fit], model, start, n_select=n_select)
     except CalibrationError as exc:
@@ -202,7 +201,7 @@ def run_worker(
     result.std = {n: float(s) for n, s in zip(model.free, ident.std, strict=True)}
     advice = G.coverage_advice(poses.volts, ident.params)
     chosen = fit[cal.selection.indices]
-    result.expected_noise_volts = G.expected_noise(poses.spread[chosen], poses.counts[chosen])
+    result.expected_noise_volts = G.expected_noise(poses.scan_noise[chosen], poses.counts[chosen])
     w = G.holdout_residuals(poses.volts[held_out], ident.params)
     result.gates += [
         G.converged_gate(ident.converged, ident.message),

@@ -138,6 +138,8 @@ class LDQ412:
     scan_rate_hz, ascii_checksum: power-on values of holding registers 0 and 4.
     serial_number, firmware: identity (input registers 513..515, ``$AAF``).
     truth_limit: None: :attr:`truth` keeps every scan; N: it keeps the latest N to 2N-1.
+    drained: the FIFO starts empty, as if a host had just read it (with initial_uptime_s:
+        a replay that starts in the middle of a power-on).
     """
 
     def __init__(
@@ -151,6 +153,7 @@ class LDQ412:
         ascii_checksum: bool = False,
         initial_uptime_s: float = 0.0,
         truth_limit: int | None = None,
+        drained: bool = False,
     ) -> None:
         if truth_limit is not None and truth_limit < 1:
             raise ValueError("truth_limit must be >= 1 or None")
@@ -188,6 +191,9 @@ class LDQ412:
             self._counter = skipped % U32_MOD
             self._overflow = True
         self.sync(now_ns)
+        if drained:  # as if a host had just read everything (a replay starting mid-power-on)
+            self._fifo.clear()
+            self._overflow = False
 
     # ------------------------------------------------------------------ time
 

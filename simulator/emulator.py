@@ -67,6 +67,7 @@ class Emulator:
     host, port: TCP listening address (port 0: a free port, reported in ``url``).
     truth_limit: None keeps every scan in :attr:`truth`; N keeps at least the latest N
         (bounded memory for long real-time runs).
+    drained: the FIFO starts empty (see :class:`~simulator.device.LDQ412`).
     """
 
     def __init__(
@@ -86,6 +87,7 @@ class Emulator:
         host: str = "127.0.0.1",
         port: int = 0,
         truth_limit: int | None = None,
+        drained: bool = False,
     ) -> None:
         if transport not in TRANSPORTS:
             raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
@@ -109,6 +111,7 @@ class Emulator:
             ascii_checksum=ascii_checksum,
             initial_uptime_s=initial_uptime_s,
             truth_limit=truth_limit,
+            drained=drained,
         )
         self.wire = WireFaults(rng=np.random.default_rng([seed, _GARBAGE_STREAM]))
         self.handle = DeviceHandle(self.device, self.clock, self.wire)

@@ -12,7 +12,6 @@ rotations (k, 3, 3), deterministically for its seed, whatever order it is asked 
 
 from __future__ import annotations
 
-import bisect
 from dataclasses import dataclass
 
 import numpy as np
@@ -168,13 +167,19 @@ class HandMoves(Scenario):
         while self._segments[-1].end <= t.max():
             self._extend()
         out = np.empty((t.size, 3, 3))
-        for k, tk in enumerate(t):
-            seg = self._segments[max(bisect.bisect_right(self._starts, tk) - 1, 0)]
+        # vectorised per segment: one slerp call for all the times in a move
+        seg_of = np.maximum(np.searchsorted(self._starts, t, side="right") - 1, 0)
+        order = np.argsort(seg_of, kind="stable")
+        bounds = np.flatnonzero(np.diff(seg_of[order])) + 1
+        for idx in np.split(order, bounds):
+            if not idx.size:
+                continue
+            seg = self._segments[seg_of[idx[0]]]
             if seg.slerp is None:
-                out[k] = seg.hold.as_matrix()
+                out[idx] = seg.hold.as_matrix()
             else:
-                tau = (tk - seg.start) / (seg.end - seg.start)
-                out[k] = seg.slerp(min_jerk(tau)).as_matrix()
+                tau = (t[idx] - seg.start) / (seg.end - seg.start)
+                out[idx] = seg.slerp(min_jerk(tau)).as_matrix()
         return out
 
     def describe(self) -> dict:

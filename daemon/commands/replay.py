@@ -1,0 +1,98 @@
+"""``loopcal replay REC.mcap ... [--transport modbus-tcp|modbus-rtu|ascii] [--speed X]``:
+serve a recording through the emulated DAQ, scan for scan.
+
+Prints the URL to open (for serial transports also the pseudo-terminal), like
+``loopcal simulate``, then plays the recording's scans with their counters, device times and
+codes: recording the replay gives them back. Each power-on of the module in the recording is
+one power-on of the emulated module. Exits 0 once everything was played (or on SIGINT /
+SIGTERM), 2 for bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from simulator.emulator import TRANSPORTS
+from simulator.replay import Player, RecordedPowerOn
+
+from ..poses import scan_rate
+from ..recording import RecordingError, read_recordings
+
+HELP = "serve a recording through the emulated DAQ, scan for scan"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "recordings",
+        nargs="+",
+        type=Path,
+        metavar="REC.mcap",
+        help="recording files, or a directory of them",
+    )
+    p.add_argument("--transport", choices=TRANSPORTS, default="modbus-tcp")
+    p.add_argument(
+        "--speed", type=float, default=1.0, help="device seconds per real second (default 1)"
+    )
+    p.add_argument("--host", default="127.0.0.1", help="TCP address (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=0, help="TCP port (default: a free one)")
+
+
+def power_ons(scans: np.ndarray) -> list[RecordedPowerOn]:
+    """The recording's scans split by power-on epoch, as arrays for the player."""
+    out = []
+    epochs = scans["epoch"]
+    cuts = np.flatnonzero(np.diff(epochs)) + 1
+    for part in np.split(scans, cuts):
+        if len(part):
+            out.append(
+                RecordedPowerOn(
+                    part["counter64"].astype(np.int64),
+                    part["time64_us"].astype(np.int64),
+                    part["codes"].astype(np.int64),
+                )
+            )
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        if not args.speed > 0:
+            raise ValueError("--speed must be positive")
+        rec = read_recordings(args.recordings)
+        if len(rec) == 0:
+            raise ValueError("the recordings hold no scans")
+        meta_rate = rec.files[0].metadata.get("device", {}).get("scan_rate_hz")
+        rate = int(meta_rate) if meta_rate else round(scan_rate(rec))
+        player = Player(
+            power_ons(rec.scans),
+            transport=args.transport,
+            rate_hz=rate,
+            speed=args.speed,
+            host=args.host,
+            port=args.port,
+        )
+    except (RecordingError, ValueError, OSError) as exc:
+        print(f"loopcal replay: error: {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    with player:
+        print(f"listening: {player.url}", flush=True)
+        if args.transport != "modbus-tcp":
+            print(f"serial device: {player.url.split('://', 1)[1].split('?')[0]}", flush=True)
+        print(
+            f"replaying {len(rec):,} scans in {len(player.power_ons)} power-on(s) at {rate} Hz, "
+            f"x{args.speed:g}",
+            flush=True,
+        )
+        done = player.run(stop)
+    print("replay finished" if done else "replay stopped", flush=True)
+    return 0

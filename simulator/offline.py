@@ -1,0 +1,52 @@
+"""Scans of a simulated mechanism computed offline, as arrays: no emulator, no clock.
+
+For benchmarks and tests that need hours of recording in seconds. The scans are the ones
+the emulated module would make with the same scenario, truth, noise and seed (scan ``j`` at
+``floor(j * 1e6 / rate)`` µs, channel ``i`` 250 µs after channel 1, oversampling 1), so a
+recording written from them is what ``loopcal record`` would have recorded.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calibration.kinematics import inverse_kinematics, lengths_to_volts
+from calibration.parameters import check_vector
+from calibration.simulate import NOISE_VOLTS
+from drivers.ldq412 import CHANNEL_SKEW_S, N_CHANNELS, volts_to_code
+
+from .scenarios import Scenario
+
+_CHUNK = 50_000
+_DIAG = np.arange(N_CHANNELS)
+
+
+def mechanism_scans(
+    scenario: Scenario,
+    truth: np.ndarray,
+    n_scans: int,
+    *,
+    rate_hz: int = 20,
+    noise_volts: float = NOISE_VOLTS,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The first ``n_scans`` scans after power-on: (time_us (n,) int64, codes (n, 4) int64).
+
+    The noise stream is the one :class:`simulator.mechanism.MechanismSource` draws with the
+    same seed, so the codes equal the emulator's, scan for scan.
+    """
+    p = check_vector(truth)
+    rng = np.random.default_rng(seed)
+    j = np.arange(n_scans, dtype=np.int64)
+    time_us = j * 1_000_000 // rate_hz
+    codes = np.empty((n_scans, N_CHANNELS), dtype=np.int64)
+    skew = np.arange(N_CHANNELS) * CHANNEL_SKEW_S
+    for a in range(0, n_scans, _CHUNK):
+        b = min(a + _CHUNK, n_scans)
+        t = (time_us[a:b] / 1e6)[:, None] + skew  # (m, 4): each channel at its own instant
+        R = scenario.rotation(t.reshape(-1))
+        d = inverse_kinematics(R, p).reshape(b - a, N_CHANNELS, N_CHANNELS)[:, _DIAG, _DIAG]
+        clean = lengths_to_volts(d, p)
+        noise = rng.normal(0.0, noise_volts, (b - a, N_CHANNELS))
+        codes[a:b] = volts_to_code(clean + noise)
+    return time_us, codes

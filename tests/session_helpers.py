@@ -1,0 +1,152 @@
+"""Technician sessions for the worker tests: recorded live through ``loopcal record``, or
+written straight from the simulator's offline scans (the same scans, much faster)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from recorder_helpers import Proc, record
+
+from calibration.parameters import NOMINAL, PAPER7
+from calibration.simulate import perturbed_truth
+from daemon import recording as rec
+from daemon import scans as S
+from simulator import Emulator, SimClock
+from simulator.mechanism import MechanismSource
+from simulator.offline import mechanism_scans
+from simulator.scenarios import HandMoves, Scenario
+
+T0 = 1_795_000_000_000_000_000
+#: a technician pausing about a second between moves
+PAUSE_S = (0.8, 1.5)
+
+
+@dataclass
+class Session:
+    directory: Path
+    truth: np.ndarray
+    seed: int
+
+
+def truth_for(seed: int) -> np.ndarray:
+    """A shoulder joint whose LVDTs were refitted (offsets up to 3 mm off) and whose
+    geometry differs from the blueprint by up to 0.5 mm."""
+    return perturbed_truth(np.random.default_rng([seed, 7]), model=PAPER7)
+
+
+def live_sessions(root: Path, seeds: list[int], *, minutes: float = 2.0, speed: float = 10.0):
+    """Record technician sessions through ``loopcal record`` over Modbus TCP, all at once
+    (the emulated modules run ``speed`` times as fast as wall time)."""
+    sessions, emus, procs = [], [], []
+    try:
+        for seed in seeds:
+            truth = truth_for(seed)
+            src = MechanismSource(
+                HandMoves(seed, params=truth, pause_s=PAUSE_S), truth, noise_volts=0.04, seed=seed
+            )
+            emu = Emulator(
+                "modbus-tcp", src, clock=SimClock(speed), seed=seed, truth_limit=5000
+            ).start()
+            emus.append(emu)
+            out = root / f"session-{seed}"
+            procs.append(record(emu.url, out, "--read-period", "0.05"))
+            sessions.append(Session(out, truth, seed))
+        for p in procs:
+            p.wait_for("recording to")
+        time.sleep(minutes * 60 / speed)
+        for p in procs:
+            rc, _ = p.stop()
+            assert rc == 0, p.text
+    finally:
+        for p in procs:
+            p.kill()
+        for e in emus:
+            e.close()
+    return sessions
+
+
+def rows_from(time_us: np.ndarray, codes: np.ndarray, *, t0: int = T0) -> np.ndarray:
+    """Scan rows as the recorder makes them, for offline scans of one power-on."""
+    rows = S.empty(len(time_us))
+    rows["counter64"] = np.arange(len(time_us))
+    rows["time64_us"] = time_us
+    rows["stamp_ns"] = t0 + time_us * 1000
+    rows["host_ns"] = rows["stamp_ns"] + 2_000_000
+    rows["codes"] = codes
+    rail = (codes == 0) | (codes == 4095)
+    rows["status"] = (rail * (1 << np.arange(4))).sum(axis=1)
+    rows["from_fifo"] = True
+    return rows
+
+
+def write_session(
+    path: Path,
+    scenario: Scenario,
+    truth: np.ndarray,
+    seconds: float,
+    *,
+    seed: int = 0,
+    rate: int = 20,
+    hours_per_file: float = 1.0,
+    edit=None,
+) -> int:
+    """Write an offline-simulated session as recording files in ``path``; returns scans.
+
+    edit: called with the codes (n, 4) to change them (a stuck sensor, say)."""
+    n = round(seconds * rate)
+    time_us, codes = mechanism_scans(scenario, truth, n, rate_hz=rate, noise_volts=0.04, seed=seed)
+    if edit is not None:
+        edit(codes)
+    rows = rows_from(time_us, codes)
+    path.mkdir(parents=True, exist_ok=True)
+    per_file = round(hours_per_file * 3600 * rate)
+    meta = rec.metadata_records(
+        device={"model": "LDQ412", "scan_rate_hz": str(rate)}, controller={}, command="tests"
+    )
+    for a in range(0, n, per_file):
+        part = rows[a : a + per_file]
+        w = rec.RecordingWriter(
+            path / rec.recording_name(int(part["stamp_ns"][0])),
+            metadata=meta,
+            params=NOMINAL,
+            fsync=False,
+        )
+        for k in range(0, len(part), rate):
+            w.write(part[k : k + rate])
+        w.close()
+    return n
+
+
+def loopcal(
+    *args: str, env: dict | None = None, timeout: float = 300
+) -> subprocess.CompletedProcess:
+    import os
+
+    return subprocess.run(
+        [sys.executable, "-m", "daemon.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env={**os.environ, **(env or {})},
+    )
+
+
+def fresh_config(path: Path) -> Path:
+    proc = loopcal("init-config", path, "--force")
+    assert proc.returncode == 0, proc.stderr
+    return path
+
+
+def calibrate_json(*args) -> tuple[int, dict, str]:
+    proc = loopcal("calibrate", *args, "--json")
+    doc = json.loads(proc.stdout) if proc.stdout.strip() else {}
+    return proc.returncode, doc, proc.stderr
+
+
+__all__ = ["Proc"]
