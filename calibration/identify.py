@@ -1,4 +1,4 @@
-"""Closed-loop identification by Levenberg-Marquardt with column scaling (MODEL.md section 5).
+"""Closed-loop identification by Levenberg-Marquardt with column scaling (docs/model.md section 5).
 
 Minimises ``f^T f`` over the free parameters, f the stacked loop residuals (mm^2) of m poses.
 Each iteration solves the damped, column-scaled normal equations
@@ -140,7 +140,7 @@ class Identification:
 
 def check_stroke(volts: np.ndarray, stroke_volts: float = STROKE_VOLTS) -> None:
     """Raise :class:`InputError` if a reading lies outside the LVDT's +-10 V span, which the
-    design matches to the actuator's +-37.5 mm stroke (MODEL.md section 10)."""
+    design matches to the actuator's +-37.5 mm stroke (docs/model.md section 10)."""
     bad = np.abs(volts) > stroke_volts
     if bad.any():
         k, i = np.argwhere(bad)[0]

@@ -2,7 +2,7 @@
 
 Conventions: rotations are arrays of shape ``(m, 3, 3)`` mapping plate (home) coordinates to
 base coordinates; lengths are ``(m, 4)`` in mm, ordered actuator 1..4. Actuators 1, 2 join A1,
-A2 to the plate point B1; actuators 3, 4 join A3, A4 to B2 (MODEL.md sections 1, 4).
+A2 to the plate point B1; actuators 3, 4 join A3, A4 to B2 (docs/model.md sections 1, 4).
 Z-Y-Z Euler angles are intrinsic, ``R = Rz(alpha) @ Ry(beta) @ Rz(gamma)``, in radians.
 """
 

@@ -1,4 +1,4 @@
-"""Column scaling, observability indices and identifiability analysis (MODEL.md sections 6, 7).
+"""Column scaling, observability indices and identifiability analysis (docs/model.md sections 6, 7).
 
 Scaling convention. The identification Jacobian ``g`` (rows: residuals, columns: free
 parameters) is scaled as ``g H`` with ``H = diag(sqrt(M) / ||g_j||)``, M the number of poses:
@@ -21,7 +21,7 @@ from .parameters import ParameterModel
 
 # Relative singular value below which a direction counts as not identifiable at all.
 UNOBSERVABLE_RTOL = 1e-8
-# The paper's acceptable condition number (MODEL.md section 11).
+# The paper's acceptable condition number (docs/model.md section 11).
 CONDITION_OK = 1000.0
 
 
@@ -55,7 +55,7 @@ def column_scales(J: np.ndarray, names: tuple[str, ...] | None = None) -> np.nda
 
 @dataclass(frozen=True)
 class ObservabilityIndices:
-    """The indices of MODEL.md section 7 from the scaled singular values.
+    """The indices of docs/model.md section 7 from the scaled singular values.
 
     singular_values: (L,) descending. min_singular: s_L (larger is better). condition:
     s_1 / s_L (smaller is better). volume: (s_1 ... s_L)^(1/L) / sqrt(M) with M poses (Borm and

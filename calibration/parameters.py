@@ -1,14 +1,14 @@
 """The 20 kinematic and sensor parameters, the reference geometry, and free/tied/fixed splits.
 
 A full parameter vector ``p`` is a float array of shape ``(20,)`` in the order of :data:`NAMES`.
-Lengths are in mm, gains in mm/V. Frame (MODEL.md section 1): origin at the plate's centre of
+Lengths are in mm, gains in mm/V. Frame (docs/model.md section 1): origin at the plate's centre of
 rotation O, x along O->A1, A2 in the xy-plane, z out of the base towards the plate; hence
 ``A1 = (A1x, 0, 0)`` and ``A2 = (A2x, A2y, 0)``.
 
 A :class:`ParameterModel` says which parameters are identified (free), which follow another
 one by construction (tied) and which are held (fixed). Ties act on changes: a follower moves
 by ``ratio`` times its leader's change, so ``A4x`` tied to ``A1x`` with ratio -1 keeps
-``A4x = -A1x`` whenever the start satisfies it (MODEL.md section 3).
+``A4x = -A1x`` whenever the start satisfies it (docs/model.md section 3).
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ BASE_COORDS: dict[tuple[int, int], int] = {
     (3, 0): 6, (3, 1): 7, (3, 2): 8,
 }  # fmt: skip
 
-# Reference design (MODEL.md section 10).
+# Reference design (docs/model.md section 10).
 STROKE_MM = 37.5
 GAIN_NOMINAL = 3.75  # mm/V: +-10 V spans the +-37.5 mm stroke
 STROKE_VOLTS = STROKE_MM / GAIN_NOMINAL  # 10 V, the LVDT conditioner's span

@@ -1,4 +1,4 @@
-"""Quasi-static poses from a stream of scans (MODEL.md section 8).
+"""Quasi-static poses from a stream of scans (docs/model.md section 8).
 
 While the plate moves, the four channels of a scan are converted 250 us apart, and a hand
 moves the plate quickly enough for that to matter; so calibration poses come from the still

@@ -1,4 +1,4 @@
-"""The paper's closed-loop residuals and their analytic Jacobian (MODEL.md section 5).
+"""The paper's closed-loop residuals and their analytic Jacobian (docs/model.md section 5).
 
 For pose k, loop i predicts sensor i's length from the other three and compares squares:
 ``f_i(k) = |B(k) - A_i|^2 - d_i(k)^2`` in mm^2, where the plate point B comes from two chained

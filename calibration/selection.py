@@ -1,5 +1,5 @@
 """Pose selection: choose K of N candidate poses that best identify the free parameters
-(MODEL.md section 8).
+(docs/model.md section 8).
 
 Every pose k contributes ``A_k = G_k^T G_k`` to the information matrix ``M(S) = sum_{k in S} A_k``
 of a set S, where ``G_k`` (4, n) is the pose's block of the scaled Jacobian. One fixed column

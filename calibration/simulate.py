@@ -1,6 +1,6 @@
 """Simulated poses of the reachable workspace, for tests, benchmarks and the emulated DAQ.
 
-The sensor model follows MODEL.md section 2 and the DAQ's 12-bit converter: a true length d
+The sensor model follows docs/model.md section 2 and the DAQ's 12-bit converter: a true length d
 gives ``V = (d - d0) / S``; Gaussian noise (default 40 mV, 1 sigma) is added; the converter
 quantises with ``code = clamp(floor((V + 10) * 4096 / 20), 0, 4095)`` and the reading is
 reconstructed at mid-code, ``(code + 0.5) * 20 / 4096 - 10``.

@@ -1,6 +1,6 @@
 """Intersection of three spheres, one centred at the origin, and its adjoint derivative.
 
-Used by the closed-loop residuals (MODEL.md section 5) and by forward kinematics. The point x
+Used by the closed-loop residuals (docs/model.md section 5) and by forward kinematics. The point x
 solves ``|x| = r0``, ``|x - P1| = r1``, ``|x - P2| = r2``. Writing
 ``x = a P1 + b P2 + g n`` with ``n = P1 x P2``, the two plane equations fix a and b, and the
 first sphere fixes ``g = +-h / |n|`` with ``h^2 = r0^2 - |a P1 + b P2|^2``. The two mirror

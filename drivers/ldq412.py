@@ -1,4 +1,4 @@
-"""Constants and pure conversions of the LDQ-412 DAQ module (shared/DATASHEET.md).
+"""Constants and pure conversions of the LDQ-412 DAQ module (docs/daq.md).
 
 This module is the single place where the datasheet's numbers live. The drivers use
 it to talk to the module; the simulator uses it to imitate the module. It does no I/O.

@@ -1,4 +1,4 @@
-"""The LDQ-412 device model (shared/DATASHEET.md): a pure state machine.
+"""The LDQ-412 device model (docs/daq.md): a pure state machine.
 
 No I/O, no threads, no clock of its own: the owner calls :meth:`LDQ412.sync` with the
 current time (integer nanoseconds of the emulator's clock) before every access, and the

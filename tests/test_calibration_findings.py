@@ -1,4 +1,4 @@
-"""The source paper's findings (MODEL.md section 11), reproduced in simulation.
+"""The source paper's findings (docs/model.md section 11), reproduced in simulation.
 
 Observability is a property of the design (poses and parameters), so the Jacobians here are
 taken at consistent, noise-free readings: with noisy readings the blind directions of the

@@ -21,7 +21,7 @@ from calibration.simulate import quantize_volts, sample_workspace, simulate_pose
 
 def test_reference_geometry_home_lengths_and_right_angle():
     d = inverse_kinematics(np.eye(3), NOMINAL)[0]
-    # MODEL.md: d0 = 97.4 mm is the actuator length at home (to the table's rounding)
+    # docs/model.md: d0 = 97.4 mm is the actuator length at home (to the table's rounding)
     assert np.allclose(d, 97.4, atol=0.03)
     b1, b2 = plate_home(NOMINAL)
     assert np.isclose(np.linalg.norm(b1), 100.0) and np.isclose(np.linalg.norm(b2), 100.0)

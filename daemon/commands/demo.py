@@ -1,99 +1,159 @@
-"""``loopcal demo``: the field job end to end, on the built-in emulated DAQ.
+"""``loopcal demo``: the field job for real, on the built-in emulated DAQ.
 
-A simulated shoulder joint whose LVDT offsets were lost is moved by hand; its emulated
-LDQ-412 is read through a real driver over a real transport; the still stretches become
-poses; the best are selected; the parameters are identified and compared with the truth.
+A simulated shoulder joint whose LVDTs were refitted (offsets lost, known only to the
+simulation) is moved by a technician's hand, pausing about a second at each position. Its
+emulated LDQ-412 is recorded by ``loopcal record`` through a real driver over a real
+transport; ``loopcal calibrate --write`` turns the recording into new values in a fresh
+controller config (``loopcal init-config``); and what was written is compared with the truth.
+The emulated module runs ``--speed`` times as fast as wall time, so two minutes of session
+take about twelve seconds.
 """
 
 from __future__ import annotations
 
 import argparse
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
-from calibration.parameters import NOMINAL
-from calibration.pipeline import calibrate
-from calibration.poses import still_poses
+from calibration.parameters import INDEX, UNITS, ParameterModel
 from calibration.simulate import perturbed_truth
-from drivers import open_daq
-from drivers.ldq412 import code_to_volts
-from simulator import Emulator, ManualClock
+from simulator import Emulator, SimClock
+from simulator.emulator import TRANSPORTS
 from simulator.mechanism import MechanismSource
 from simulator.scenarios import HandMoves
 
-from .model_options import add_model_options, model_from_args
+from .. import cli
+from ..controller_config import load_controller_config
 
-HELP = "calibrate a simulated shoulder joint whose LVDT offsets were lost, through its emulated DAQ"
+HELP = "the field job on an emulated DAQ: record a session, calibrate, write, check the truth"
 
-FIFO_STEP_S = 1.0  # device seconds between FIFO reads (the FIFO holds 12.8 s at 20 Hz)
+PAUSE_S = (0.8, 1.5)  # a technician pausing about a second at each position
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--transport", choices=TRANSPORTS, default="modbus-tcp")
+    p.add_argument("--minutes", type=float, default=2.0, help="session length (2)")
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=None,
+        help="device time per real second (default 10; 1 over ASCII, which polls)",
+    )
+    p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    p.add_argument("--noise-mv", type=float, default=40.0, help="sensor noise, mV (40)")
+    p.add_argument(
+        "--offset-error",
+        type=float,
+        default=3.0,
+        help="how far the refitted sensors' offsets moved, mm (3)",
+    )
+    p.add_argument("--free", default="paper7", help="what to identify (default paper7)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="keep the recording, config and report here (default: a temp dir)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    model = model_from_args(args)
     if args.minutes <= 0:
         raise ValueError("--minutes must be positive")
     if args.noise_mv < 0:
         raise ValueError("--noise-mv must not be negative")
-    rng = np.random.default_rng(args.seed)
-    truth = perturbed_truth(rng, offsets_mm=args.offset_error, model=model)
-    print(
-        f"Simulated shoulder joint: LVDTs refitted (offsets off by up to {args.offset_error} mm),"
-        f" sensor noise {args.noise_mv:g} mV; identifying {model.describe()}"
+    speed = args.speed if args.speed is not None else (1.0 if args.transport == "ascii" else 10.0)
+    if speed <= 0:
+        raise ValueError("--speed must be positive")
+    model = ParameterModel.parse(args.free)
+    if args.out is None:
+        work = Path(tempfile.mkdtemp(prefix="loopcal-demo-"))
+    else:
+        work = args.out
+        work.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    truth = perturbed_truth(
+        np.random.default_rng(args.seed), offsets_mm=args.offset_error, model=model
     )
-    t0 = time.perf_counter()
+    print(
+        f"A shoulder joint whose LVDTs were refitted (offsets off by up to "
+        f"{args.offset_error:g} mm), {args.noise_mv:g} mV of sensor noise; a technician moves "
+        f"it by hand for {args.minutes:g} min. Working in {work}."
+    )
     source = MechanismSource(
-        HandMoves(args.seed, params=truth), truth, noise_volts=args.noise_mv / 1000, seed=args.seed
+        HandMoves(args.seed, params=truth, pause_s=PAUSE_S),
+        truth,
+        noise_volts=args.noise_mv / 1000,
+        seed=args.seed,
     )
-    clock = ManualClock()
-    duration = 60.0 * args.minutes
-    with Emulator(args.transport, source, clock=clock, seed=args.seed) as emu:
-        with open_daq(emu.url, timeout=1.0) as daq:
-            ident = daq.identity
-            print(f"Emulated {ident.model} firmware {ident.firmware} at {emu.url}")
-            # ASCII has no FIFO: poll once per scan; the Modbus drivers drain the FIFO
-            step = FIFO_STEP_S if args.transport != "ascii" else 1.0 / 20
-            scans = []
-            for _ in range(round(duration / step)):
-                clock.advance(step)
-                scans += daq.read_scans()
-    codes = np.array([s.codes for s in scans])
-    valid = np.array([all(s.trustworthy) for s in scans])
-    missed = sum(s.missed for s in scans)
+    recordings = work / "recordings"
+    with Emulator(
+        args.transport, source, clock=SimClock(speed), seed=args.seed, truth_limit=10_000
+    ) as emu:
+        print(f"\n$ loopcal record --daq {emu.url} --out {recordings}   (x{speed:g})", flush=True)
+        rec = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "daemon.cli",
+                "record",
+                "--daq",
+                emu.url,
+                "--out",
+                str(recordings),
+                "--duration",
+                f"{args.minutes * 60 / speed:g}",
+                "--read-period",
+                "0.05",
+            ],
+            capture_output=True,
+            text=True,
+        )
+    lines = rec.stderr.strip().splitlines()
+    print("\n".join(lines[-1:]))
+    if rec.returncode != 0:
+        print(rec.stderr, file=sys.stderr)
+        return rec.returncode
+    config = work / "controller.toml"
+    print(f"\n$ loopcal init-config {config} --force")
+    cli.main(["init-config", str(config), "--force"])
     print(
-        f"Read {len(scans)} scans ({args.minutes:g} min of a technician moving the plate by "
-        f"hand): {missed} missed, {int((~valid).sum())} at the rail or faulted."
+        f"\n$ loopcal calibrate {recordings} --controller-config {config} --free {args.free} "
+        f"--write --report {work / 'report'}",
+        flush=True,
     )
-    poses = still_poses(code_to_volts(codes), valid=valid)
+    status = cli.main(
+        [
+            "calibrate",
+            str(recordings),
+            "--controller-config",
+            str(config),
+            "--free",
+            args.free,
+            "--write",
+            "--report",
+            str(work / "report"),
+        ]
+    )
+    written = load_controller_config(config)
+    print("\nWhat was written, against the truth the simulation knows:")
     print(
-        f"{len(poses)} still stretches averaged into poses "
-        f"(median {int(np.median(poses.counts)) if len(poses) else 0} scans each)."
+        f"{'param':>6} {'unit':>5} {'written':>10} {'truth':>10} {'error':>8} {'std':>7} "
+        f"{'err/std':>7}"
     )
-    cal = calibrate(poses.volts, model, NOMINAL, n_select=args.select)
-    sel, res = cal.selection, cal.identification
-    print(
-        f"Selected {len(sel.indices)} of {len(poses)} poses in {cal.rounds} round(s): "
-        f"s_min {sel.indices_own.min_singular:.3g}, condition {sel.indices_own.condition:.3g}; "
-        f"{100 * sel.bound_ratio:.1f} % of the certified best s_min."
-    )
-    print()
-    print(res.table(truth))
-    for problem in res.problems():
-        print(f"WARNING: {problem}")
-    print()
-    offsets = ", ".join(f"d0{i + 1} = {v:.3f} mm" for i, v in enumerate(res.params[16:20]))
-    print(f"New sensor offsets: {offsets}")
-    print(f"Done in {time.perf_counter() - t0:.1f} s.")
-    return 0 if not res.problems() else 1
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    add_model_options(p)
-    p.add_argument(
-        "--transport", choices=("modbus-tcp", "modbus-rtu", "ascii"), default="modbus-tcp"
-    )
-    p.add_argument("--minutes", type=float, default=5.0, help="recording length (5)")
-    p.add_argument("--select", type=int, default=50, help="poses selected (default 50)")
-    p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
-    p.add_argument("--noise-mv", type=float, default=40.0, help="sensor noise, mV (40)")
-    p.add_argument("--offset-error", type=float, default=3.0, help="how far offsets moved, mm")
+    std = (written.provenance or {}).get("std", {})
+    for name in model.free:
+        i = INDEX[name]
+        err = written.params[i] - truth[i]
+        s = std.get(name)
+        z = f"{err / s:+7.2f}" if s else "      -"
+        print(
+            f"{name:>6} {UNITS[name]:>5} {written.params[i]:10.4f} {truth[i]:10.4f} {err:+8.4f} "
+            f"{s if s else float('nan'):7.4f} {z}"
+        )
+    print(f"\nDone in {time.perf_counter() - t_start:.1f} s.")
+    return status
