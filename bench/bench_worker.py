@@ -1,0 +1,135 @@
+"""Time from recording to written controller config: 2 minutes, 1 hour, 24 hours of 20 Hz.
+
+Each recording is a technician's hand moving the simulated shoulder joint (pausing about a
+second between moves, 40 mV of noise), written once as the daemon writes it (hourly files,
+cached under ``--dir``; scans from :mod:`simulator.offline`, the emulator's own). For each
+length, the median of ``--repeats`` runs of the real command,
+``loopcal calibrate DIR --controller-config C --write`` in a subprocess on a fresh config,
+and, in this process, where the time goes (read, poses, fit and gates). The baseline,
+measured in the same run, is reading the recording alone: the growth of the rest against it
+shows how the worker scales. Target: a day in under 10 s.
+
+Run: ``python bench/bench_worker.py [--repeats 3] [--dir bench/results/worker]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
+from session_helpers import PAUSE_S, truth_for, write_session  # noqa: E402
+
+from daemon.controller_config import load_controller_config, write_initial_config  # noqa: E402
+from daemon.poses import recorded_poses  # noqa: E402
+from daemon.recording import find_recordings, read_recordings  # noqa: E402
+from daemon.worker import run_worker  # noqa: E402
+from simulator.scenarios import HandMoves  # noqa: E402
+
+LENGTHS = {"2 min": 120, "1 h": 3600, "24 h": 86400}
+
+
+def ensure(directory: Path, seconds: float, seed: int = 9) -> Path:
+    if directory.is_dir() and find_recordings(directory):
+        return directory
+    t = time.perf_counter()
+    truth = truth_for(seed)
+    write_session(
+        directory, HandMoves(seed, params=truth, pause_s=PAUSE_S), truth, seconds, seed=seed
+    )
+    print(f"  wrote {directory.name}: {time.perf_counter() - t:.0f} s", flush=True)
+    return directory
+
+
+def command(rec_dir: Path, work: Path) -> tuple[float, int]:
+    config = write_initial_config(work / "controller.toml", force=True)
+    for old in work.glob("controller.toml.*.prev"):
+        old.unlink()
+    t = time.perf_counter()
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "daemon.cli",
+            "calibrate",
+            str(rec_dir),
+            "--controller-config",
+            str(config),
+            "--write",
+        ],
+        capture_output=True,
+        text=True,
+    )
+    return time.perf_counter() - t, proc.returncode
+
+
+def stages(rec_dir: Path, work: Path) -> dict[str, float]:
+    config = load_controller_config(write_initial_config(work / "c.toml", force=True))
+    out: dict[str, float] = {}
+    t = time.perf_counter()
+    rec = read_recordings(rec_dir)
+    out["read"] = time.perf_counter() - t
+    t = time.perf_counter()
+    poses = recorded_poses(rec)
+    out["poses"] = time.perf_counter() - t
+    t = time.perf_counter()
+    res = run_worker(rec, config, config.model())
+    out["poses+fit+gates"] = time.perf_counter() - t
+    out["n_poses"] = len(poses)
+    out["accepted"] = res.accepted
+    out["scans"] = len(rec)
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--dir", type=Path, default=Path(__file__).parent / "results" / "worker")
+    ap.add_argument("--only", choices=list(LENGTHS), nargs="*", default=list(LENGTHS))
+    args = ap.parse_args()
+    work = args.dir / "work"
+    work.mkdir(parents=True, exist_ok=True)
+    print(f"recordings under {args.dir} (written once, cached):")
+    rows = []
+    for label in args.only:
+        rec_dir = ensure(args.dir / label.replace(" ", ""), LENGTHS[label])
+        runs = [command(rec_dir, work) for _ in range(args.repeats)]
+        st = [stages(rec_dir, work) for _ in range(args.repeats)]
+        med = {k: statistics.median(s[k] for s in st) for k in ("read", "poses", "poses+fit+gates")}
+        rows.append((label, statistics.median(t for t, _ in runs), runs[-1][1], med, st[-1]))
+    print()
+    print(
+        f"{'recording':>9} {'scans':>10} {'poses':>6} {'command':>8} {'read':>7} "
+        f"{'poses':>7} {'fit+gates':>9} {'accepted':>8}"
+    )
+    base = None
+    for label, total, rc, med, last in rows:
+        fit = med["poses+fit+gates"] - med["poses"]
+        print(
+            f"{label:>9} {last['scans']:>10,} {last['n_poses']:>6,} {total:7.2f}s "
+            f"{med['read']:6.2f}s {med['poses']:6.2f}s {fit:8.2f}s {str(rc == 0):>8}"
+        )
+        if base is None:
+            base = (last["scans"], total)
+    day = [r for r in rows if r[0] == "24 h"]
+    if day:
+        t = day[0][1]
+        print(
+            f"\na day of recording to a written config: {t:.1f} s "
+            f"(target < 10 s: {'met' if t < 10 else 'NOT met'})"
+        )
+    if len(rows) > 1 and base is not None:
+        (n0, t0), (n1, t1) = base, (rows[-1][4]["scans"], rows[-1][1])
+        print(
+            f"growth: {n1 / n0:,.0f}x the scans took {t1 / t0:.1f}x the time "
+            f"(the command's fixed cost, Python and imports, is in both)"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
