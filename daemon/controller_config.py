@@ -5,11 +5,11 @@ it to compute the plate's pose of every scan, and the calibration worker writes 
 back into it. It is read with :mod:`tomllib` and written with :mod:`tomlkit`, which keeps
 comments and layout when a value changes. Format::
 
-    # (a header saying what the file is)
+    # (a header saying what the file is, the units and the frame)
     [parameters]
     # Base point A1, x coordinate (A1 lies on the x axis by construction), mm
     A1x = 68.7
-    ... all 20, named as in the reference (A1x ... d04), mm or mm/V ...
+    ... all 20, named as in calibration.parameters.NAMES (A1x ... d04), mm or mm/V ...
 
     [calibration]
     # what a calibration identifies unless told otherwise
@@ -18,8 +18,9 @@ comments and layout when a value changes. Format::
 
     [provenance]   # optional: written by the calibration worker, kept as it is
 
-Any other table or key is an error, and so is a missing or malformed parameter; every
-message names the file and the key.
+Values are TOML floats or integers; lengths in mm, gains in mm/V. Any other table or key is
+an error, and so is a missing or malformed parameter; every message names the file and the
+key.
 """
 
 from __future__ import annotations
@@ -28,8 +29,10 @@ import difflib
 import hashlib
 import json
 import os
+import secrets
+import stat
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -37,9 +40,22 @@ import numpy as np
 import tomlkit
 
 from calibration.errors import ParameterError
-from calibration.parameters import NAMES, NOMINAL, UNITS, ParameterModel, check_vector
+from calibration.parameters import (
+    INDEX,
+    NAMES,
+    NOMINAL,
+    PRESETS,
+    UNITS,
+    ParameterModel,
+    check_vector,
+)
 
-_TABLES = ("parameters", "calibration", "provenance")
+#: the tables a controller config may have, in the order they are written
+TABLES: tuple[str, ...] = ("parameters", "calibration", "provenance")
+#: the keys of ``[calibration]``
+CALIBRATION_KEYS: tuple[str, ...] = ("free", "ties")
+#: ``[calibration].free`` when the file does not say
+DEFAULT_FREE = "paper7"
 
 #: what each parameter is (the unit follows from calibration.parameters.UNITS)
 DESCRIPTIONS: dict[str, str] = {
@@ -72,7 +88,8 @@ records how in [provenance]; comments and layout are kept."""
 
 
 class ControllerConfigError(ValueError):
-    """A controller config that cannot be used; the message names the file and the key."""
+    """A controller config that cannot be read, used or written; the message names the file
+    and, where there is one, the key."""
 
 
 @dataclass(frozen=True)
@@ -80,96 +97,122 @@ class ControllerConfig:
     """A controller config as read.
 
     path: the file, or None for the built-in reference geometry.
-    params: (20,) full parameter vector (read-only).
-    free: ``[calibration].free`` or None. ties: ``[calibration].ties``.
-    text: the file's exact text ("" for the reference). sha256: of its bytes ("" likewise).
-    provenance: the ``[provenance]`` table, or None.
+    params: (20,) full parameter vector in the order of ``NAMES``, mm and mm/V (read-only).
+    free: ``[calibration].free`` as written, or None if absent.
+    ties: ``[calibration].ties`` as written (empty if absent).
+    text: the file's exact text ("" for the reference geometry).
+    sha256: hex SHA-256 of the file's bytes ("" for the reference geometry).
+    provenance: the ``[provenance]`` table as tomllib read it, or None if absent.
+
+    Two configs compare equal when path, free, ties, text and sha256 do; the values follow
+    from the text.
     """
 
     path: Path | None
-    params: np.ndarray
+    params: np.ndarray = field(compare=False)
     free: str | None
     ties: tuple[str, ...]
     text: str
     sha256: str
-    provenance: dict[str, Any] | None = None
+    provenance: dict[str, Any] | None = field(default=None, compare=False)
 
     def model(self) -> ParameterModel:
-        """The free/tied/fixed split this config asks for (the paper's seven by default)."""
-        return ParameterModel.parse(self.free or "paper7", self.ties)
+        """The free/tied/fixed split the config asks for: ``ParameterModel.parse(free or
+        "paper7", ties)``. A loaded config is known to give one."""
+        return ParameterModel.parse(self.free or DEFAULT_FREE, self.ties)
 
     def as_metadata(self) -> dict[str, str]:
-        """A flat str -> str record for an MCAP metadata record."""
+        """A flat str -> str record for an MCAP metadata record: ``path`` ("" for the
+        reference geometry), ``sha256``, each parameter as ``repr(float)`` (exact: ``float()``
+        reads it back bit for bit), ``free`` ("" if absent), ``ties`` joined by "," and, if
+        present, ``provenance`` as compact JSON (dates and times as their ``str``)."""
         out = {"path": "" if self.path is None else str(self.path), "sha256": self.sha256}
         out.update({n: repr(float(v)) for n, v in zip(NAMES, self.params, strict=True)})
         out["free"] = self.free or ""
         out["ties"] = ",".join(self.ties)
         if self.provenance is not None:
-            out["provenance"] = json.dumps(self.provenance, sort_keys=True, default=str)
+            out["provenance"] = json.dumps(self.provenance, separators=(",", ":"), default=str)
         return out
 
 
 def nominal_config() -> ControllerConfig:
-    """The reference geometry, for when no controller config is given."""
+    """The reference geometry (``calibration.parameters.NOMINAL``), for when no controller
+    config is given; path None, free None (so the model is paper7), no ties."""
     return ControllerConfig(None, NOMINAL, None, (), "", "")
 
 
 def load_controller_config(path: str | os.PathLike) -> ControllerConfig:
-    """Read and check a controller config; raises ControllerConfigError naming the key."""
+    """Read and check a controller config.
+
+    Raises ControllerConfigError, naming the file and the key, if the file is missing,
+    unreadable, not UTF-8 or not TOML; if ``[parameters]`` lacks a parameter, has an unknown
+    one, or a value that is not a finite number or fails ``check_vector``; if there is a table
+    or key other than those of the format; or if ``[calibration]`` does not give a valid
+    free/tied split.
+    """
     p = Path(path)
     try:
         raw = p.read_bytes()
+    except FileNotFoundError:
+        raise ControllerConfigError(
+            f"{p}: no such file (write one with `loopcal init-config {p}`)"
+        ) from None
     except OSError as exc:
         raise ControllerConfigError(
             f"{p}: cannot read the controller config: {exc.strerror or exc}"
         ) from None
     try:
         text = raw.decode("utf-8")
-    except UnicodeDecodeError:
-        raise ControllerConfigError(f"{p}: not UTF-8 text") from None
+    except UnicodeDecodeError as exc:
+        raise ControllerConfigError(f"{p}: not UTF-8 text (byte {exc.start})") from None
+    if text.startswith("\ufeff"):
+        raise ControllerConfigError(f"{p}: starts with a byte order mark; save it without one")
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ControllerConfigError(f"{p}: not valid TOML: {exc}") from None
+    unknown = [key for key in doc if key not in TABLES]
+    if unknown:
+        raise ControllerConfigError(
+            f"{p}: unknown table or key {', '.join(map(repr, unknown))} (a controller config "
+            f"has {', '.join(f'[{t}]' for t in TABLES)})"
+        )
     for key, value in doc.items():
-        if key not in _TABLES:
-            raise ControllerConfigError(
-                f"{p}: unknown table or key {key!r} (a controller config has "
-                f"{', '.join(f'[{t}]' for t in _TABLES)})"
-            )
         if not isinstance(value, dict):
-            raise ControllerConfigError(f"{p}: {key!r} must be a table [{key}]")
+            raise ControllerConfigError(f"{p}: {key} = {value!r} must be a table [{key}]")
     params = _parameters(p, doc.get("parameters"))
     free, ties = _calibration(p, doc.get("calibration", {}))
-    cfg = ControllerConfig(
+    return ControllerConfig(
         p, params, free, ties, text, hashlib.sha256(raw).hexdigest(), doc.get("provenance")
     )
-    try:
-        cfg.model()
-    except ParameterError as exc:
-        raise ControllerConfigError(f"{p}: [calibration]: {exc}") from None
-    return cfg
 
 
-def _parameters(p: Path, table: Any) -> np.ndarray:
+def _parameters(p: Path, table: dict[str, Any] | None) -> np.ndarray:
     if table is None:
-        raise ControllerConfigError(f"{p}: no [parameters] table")
+        raise ControllerConfigError(f"{p}: no [parameters] table (it holds all 20 parameters)")
+    unknown = []
     for key in table:
         if key not in NAMES:
             close = difflib.get_close_matches(key, NAMES, n=1)
             hint = f" (did you mean {close[0]}?)" if close else ""
-            raise ControllerConfigError(f"{p}: [parameters].{key}: unknown parameter{hint}")
+            unknown.append(f"[parameters].{key}: unknown parameter{hint}")
+    if unknown:
+        raise ControllerConfigError(f"{p}: {'; '.join(unknown)}")
     missing = [n for n in NAMES if n not in table]
     if missing:
         raise ControllerConfigError(f"{p}: [parameters] lacks {', '.join(missing)}")
     values = []
     for name in NAMES:
         v = table[name]
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
+        if isinstance(v, bool) or not isinstance(v, int | float):
             raise ControllerConfigError(f"{p}: [parameters].{name} = {v!r} is not a number")
-        if not np.isfinite(v):
+        try:
+            f = float(v)
+        except OverflowError:  # TOML integers beyond a double
+            f = float("inf")
+        if not np.isfinite(f):
             raise ControllerConfigError(f"{p}: [parameters].{name} = {v!r} is not finite")
-        values.append(float(v))
+        values.append(f)
     try:
         params = check_vector(np.array(values))
     except ParameterError as exc:
@@ -178,26 +221,49 @@ def _parameters(p: Path, table: Any) -> np.ndarray:
     return params
 
 
-def _calibration(p: Path, table: dict) -> tuple[str | None, tuple[str, ...]]:
+def _calibration(p: Path, table: dict[str, Any]) -> tuple[str | None, tuple[str, ...]]:
     for key in table:
-        if key not in ("free", "ties"):
-            raise ControllerConfigError(f"{p}: [calibration].{key}: unknown key (free, ties)")
+        if key not in CALIBRATION_KEYS:
+            raise ControllerConfigError(
+                f"{p}: [calibration].{key}: unknown key (it has {', '.join(CALIBRATION_KEYS)})"
+            )
     free = table.get("free")
-    if free is not None and (not isinstance(free, str) or not free.strip()):
-        raise ControllerConfigError(
-            f"{p}: [calibration].free = {free!r}: give a preset or names as a string, "
-            'e.g. "paper7" or "d03"'
-        )
+    if free is not None:
+        if not isinstance(free, str) or not free.strip():
+            raise ControllerConfigError(
+                f"{p}: [calibration].free = {free!r}: give a preset or names as a string, "
+                'e.g. "paper7" or "d01,d02,A1x"'
+            )
+        try:
+            ParameterModel.parse(free)
+        except ParameterError as exc:
+            raise ControllerConfigError(f"{p}: [calibration].free = {free!r}: {exc}") from None
     ties = table.get("ties", [])
     if not isinstance(ties, list) or not all(isinstance(t, str) for t in ties):
         raise ControllerConfigError(
             f'{p}: [calibration].ties = {ties!r}: give a list of strings like ["A4x=-A1x"]'
         )
+    effective = (free or DEFAULT_FREE).strip()
+    if ties and effective in PRESETS and effective not in INDEX:
+        # with ties, ParameterModel.parse reads free as names, and this name is a preset's
+        raise ControllerConfigError(
+            f"{p}: [calibration].ties = {ties!r}: the preset {effective!r} brings its own ties; "
+            "give ties only with a list of names in [calibration].free"
+        )
+    try:
+        ParameterModel.parse(effective, ties)
+    except ParameterError as exc:
+        raise ControllerConfigError(f"{p}: [calibration].ties = {ties!r}: {exc}") from None
     return free, tuple(ties)
 
 
 def render_initial_config(params: np.ndarray | None = None) -> str:
-    """The commented TOML text of a controller config at ``params`` (default: reference)."""
+    """The commented TOML text of a controller config at ``params`` ((20,), mm and mm/V;
+    default the reference geometry), with ``free = "paper7"`` and no ties.
+
+    Floats are written in their shortest exact form, so the text loads back bit for bit.
+    Raises ParameterError if ``params`` fails ``check_vector``.
+    """
     p = check_vector(NOMINAL if params is None else params)
     doc = tomlkit.document()
     for line in _HEADER.splitlines():
@@ -209,10 +275,11 @@ def render_initial_config(params: np.ndarray | None = None) -> str:
         table.add(name, float(value))
     doc.add("parameters", table)
     cal = tomlkit.table()
-    cal.add(tomlkit.comment("What `loopcal calibrate` identifies unless --free says otherwise:"))
-    cal.add(tomlkit.comment('a preset (paper7, offsets, all, d01..d04) or names, e.g. "d03".'))
-    cal.add("free", "paper7")
-    cal.add(tomlkit.comment('Ties for a custom free set, e.g. ["A3x=-A2x", "A4x=-A1x"].'))
+    cal.add(tomlkit.comment("Parameters a calibration identifies unless told otherwise (--free):"))
+    cal.add(tomlkit.comment('a preset (paper7, offsets, all, d01..d04) or names, e.g. "d01,d03"'))
+    cal.add("free", DEFAULT_FREE)
+    cal.add(tomlkit.comment('Ties for a custom free set, e.g. ["A3x=-A2x", "A4x=-A1x"]'))
+    cal.add(tomlkit.comment("(presets bring their own)"))
     cal.add("ties", tomlkit.array())
     doc.add("calibration", cal)
     return tomlkit.dumps(doc)
@@ -221,27 +288,54 @@ def render_initial_config(params: np.ndarray | None = None) -> str:
 def write_initial_config(
     path: str | os.PathLike, *, force: bool = False, params: np.ndarray | None = None
 ) -> Path:
-    """Write a new controller config atomically (temporary file, fsync, rename, fsync of the
-    directory). Refuses to replace an existing file unless ``force``."""
+    """Write a new controller config at ``params`` (default the reference geometry) to
+    ``path`` and return it.
+
+    Atomic: the text goes to a temporary file in the same directory, which is flushed,
+    fsynced and renamed over ``path``; then the directory is fsynced. Refuses to replace an
+    existing file unless ``force`` (a replaced file's permission bits are kept). Creates no
+    directories. Raises ControllerConfigError for all of these.
+    """
     p = Path(path)
-    if p.exists() and not force:
-        raise ControllerConfigError(f"{p}: already exists; use --force to overwrite it")
-    if not p.parent.is_dir():
-        raise ControllerConfigError(f"{p}: directory {p.parent} does not exist")
-    text = render_initial_config(params)
-    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    parent = p.parent
     try:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, p)
-        fd = os.open(p.parent, os.O_RDONLY | os.O_DIRECTORY)
+        exists = os.path.lexists(p)
+        old_mode = stat.S_IMODE(os.stat(p).st_mode) if exists and p.is_file() else None
+        parent_is_dir = parent.is_dir()
+        parent_exists = os.path.lexists(parent)
+    except OSError as exc:
+        raise ControllerConfigError(f"{p}: cannot write: {exc.strerror or exc}") from None
+    if exists and not force:
+        raise ControllerConfigError(f"{p}: already exists; use --force to overwrite it")
+    if not parent_is_dir:
+        what = "is not a directory" if parent_exists else "does not exist"
+        raise ControllerConfigError(f"{p}: directory {parent} {what}")
+    data = render_initial_config(params).encode("utf-8")
+    tmp = parent / f".{p.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
+    try:
+        # O_EXCL: never write through a file or link already at the temporary name
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
         try:
+            with os.fdopen(fd, "wb", closefd=False) as fh:
+                fh.write(data)
+                fh.flush()
+            if old_mode is not None:
+                os.fchmod(fd, old_mode)
             os.fsync(fd)
         finally:
             os.close(fd)
+        os.replace(tmp, p)
     except OSError as exc:
         tmp.unlink(missing_ok=True)
         raise ControllerConfigError(f"{p}: cannot write: {exc.strerror or exc}") from None
+    try:
+        dfd = os.open(parent, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except OSError as exc:
+        raise ControllerConfigError(
+            f"{p}: written, but the directory could not be synced: {exc.strerror or exc}"
+        ) from None
     return p

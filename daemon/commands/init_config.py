@@ -1,5 +1,8 @@
 """``loopcal init-config PATH [--force]``: write a controller config (TOML) with the 20
-parameters at the reference geometry, each with a comment saying what it is and its unit."""
+parameters at the reference geometry, each with a comment saying what it is and its unit.
+
+The file is written atomically and never over an existing one unless ``--force``; its parent
+directory must exist. Exit status 0 when written, 2 when not (the reason on stderr)."""
 
 from __future__ import annotations
 
@@ -27,3 +30,13 @@ def run(args: argparse.Namespace) -> int:
         "(edit the gains S1..S4 to your bench values)"
     )
     return 0
+
+
+if __name__ == "__main__":
+    _parser = argparse.ArgumentParser(
+        prog="loopcal init-config",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_arguments(_parser)
+    sys.exit(run(_parser.parse_args()))
