@@ -179,7 +179,8 @@ class HandMoves(Scenario):
                 out[idx] = seg.hold.as_matrix()
             else:
                 tau = (t[idx] - seg.start) / (seg.end - seg.start)
-                out[idx] = seg.slerp(min_jerk(tau)).as_matrix()
+                # the polynomial can round a hair past 1 just before the end
+                out[idx] = seg.slerp(np.clip(min_jerk(tau), 0.0, 1.0)).as_matrix()
         return out
 
     def describe(self) -> dict:
