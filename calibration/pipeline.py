@@ -6,12 +6,19 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .errors import CalibrationError
 from .identify import Identification, identify
 from .observability import CONDITION_OK
 from .parameters import NOMINAL, PAPER7, ParameterModel
 from .residuals import check_volts
 from .selection import Selection, candidate_jacobian, select_poses
 from .simulate import NEAR_SINGULAR_MM
+
+#: above this many times n_select candidates, a first estimate comes from PRESTART_POSES
+PRESTART_FACTOR = 4
+PRESTART_POSES = 400
+#: candidates keep this many times the near-singular margin (with few, and with many)
+CANDIDATE_MARGIN, CANDIDATE_MARGIN_MANY = 1.5, 3.0
 
 
 @dataclass(frozen=True)
@@ -39,10 +46,25 @@ def calibrate(
 
     The first round designs the selection at ``start``; each further round designs it again
     at the previous estimate, where the Jacobian (and which poses are near-singular) is
-    closer to the truth, and identifies again. With N <= n_select every pose is used.
+    closer to the truth, and identifies again. With N <= n_select every pose is used. With
+    more than PRESTART_FACTOR x n_select candidates, the first round designs at an estimate
+    from PRESTART_POSES poses spread evenly over the recording instead of at ``start``.
     """
     V = check_volts(volts)
     p = np.asarray(start, dtype=float)
+    if len(V) > PRESTART_FACTOR * n_select:
+        # Many candidates: the best set lies at the edges of the workspace, where poses turn
+        # near-singular if the start is millimetres off. A first estimate from an even
+        # spread of poses puts the selection's screening where the mechanism really is.
+        spread = np.linspace(0, len(V) - 1, min(len(V), PRESTART_POSES)).round().astype(int)
+        try:
+            p = identify(V[spread], model, p, noise_volts=noise_volts).params
+        except CalibrationError:
+            pass  # select at the start, as for few candidates
+    # With many candidates the set can afford to stay further from singular poses: the best
+    # set otherwise gathers at the edge, where a small move of the estimate loses poses that
+    # carry a whole direction of the information.
+    margin = CANDIDATE_MARGIN_MANY if len(V) > PRESTART_FACTOR * n_select else CANDIDATE_MARGIN
     result: Identification | None = None
     previous: np.ndarray | None = None
     rounds_run = 0
@@ -50,7 +72,7 @@ def calibrate(
         rounds_run += 1
         # candidates keep a wider margin from singularity than identification demands, so
         # that a chosen pose stays usable as the estimate moves
-        cand = candidate_jacobian(V, model, p, near_singular_mm=1.5 * NEAR_SINGULAR_MM)
+        cand = candidate_jacobian(V, model, p, near_singular_mm=margin * NEAR_SINGULAR_MM)
         k = max(min(n_select, int(cand.usable.sum())), model.n_free)
         sel = select_poses(
             cand.jacobian, k, criterion=criterion, max_condition=max_condition,

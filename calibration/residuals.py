@@ -171,7 +171,18 @@ def noise_sensitivity(
     measure one loop-closure error. Returns its leading singular pair, u (m, 4) and s (m,) in
     mm^2/V, so that voltage noise e_k moves the residuals by about ``u_k s_k (v_k . e_k)``.
     """
+    u, s, _ = noise_directions(p, volts, ref)
+    return u, s
+
+
+def noise_directions(
+    p: np.ndarray, volts: np.ndarray, ref: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The leading singular triple of ``D_k = df_k / dV_k`` for each pose: u (m, 4), s (m,)
+    in mm^2/V and v (m, 4), the mix of the four channels' noise that opens the loop (a
+    pose's whitened loop-closure error ``u_k . f_k / s_k`` has variance
+    ``sum_i v_ki^2 sigma_i^2`` for channel noises sigma_i)."""
     offsets = np.eye(N_PARAMS)[:, SL_OFFSET]  # d f / d d0 = d f / d d(k) of each pose
     D = loop_residuals(p, volts, ref, directions=offsets).jacobian * p[SL_GAIN]
-    U, sv, _ = np.linalg.svd(D)
-    return U[:, :, 0], sv[:, 0]
+    U, sv, Vt = np.linalg.svd(D)
+    return U[:, :, 0], sv[:, 0], Vt[:, 0, :]

@@ -29,8 +29,8 @@ from scipy.stats import chi2
 
 from calibration.kinematics import base_points, forward_kinematics, volts_to_lengths
 from calibration.observability import CONDITION_OK
-from calibration.parameters import GAIN_NOMINAL, INDEX, UNITS
-from calibration.residuals import loop_residuals, noise_sensitivity, reference_points
+from calibration.parameters import GAIN_NOMINAL, INDEX, UNITS, ParameterModel
+from calibration.residuals import loop_residuals, noise_directions, reference_points
 from calibration.simulate import NEAR_SINGULAR_MM
 from drivers import ldq412
 
@@ -40,6 +40,9 @@ BARELY_MOVED_V = 2.0  # every channel within this over all poses: the plate bare
 MIN_SINGULAR = 0.05
 NOISE_RATIO = 1.5
 HOLDOUT_EVERY = 5  # every fifth pose is kept out of the fit to validate it
+#: allowance over the chi-square bound: the predicted noise is itself estimated, and the
+#: parameters' own uncertainty adds to the held-out poses' errors
+HOLDOUT_MARGIN = 1.15
 #: largest believable change per parameter group (a refitted LVDT moves its offset by mm)
 CHANGE_LIMITS = {"offset": 15.0, "geometry": 3.0, "gain": 0.05}
 PRECISION = {"mm": 0.25, "mm/V": 0.01}
@@ -218,22 +221,46 @@ def noise_gate(sigma_fit: float, expected: float) -> Gate:
     )
 
 
-def holdout_residuals(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
-    """Loop-closure error of each pose at ``params`` in volts of equivalent sensor noise
-    (the residuals projected on their noise direction), near-singular poses left out."""
+def holdout_residuals(
+    volts: np.ndarray,
+    params: np.ndarray,
+    noise: np.ndarray | None = None,
+    *,
+    model: ParameterModel | None = None,
+    covariance: np.ndarray | None = None,
+) -> np.ndarray:
+    """Loop-closure error of each pose at ``params``, near-singular poses left out.
+
+    In volts of equivalent sensor noise (the residuals projected on their noise direction);
+    or, given ``noise`` (m, 4), the standard deviation of each pose's mean reading per
+    channel, in units of the error's own predicted standard deviation, N(0, 1) each when the
+    parameters are right. With the fit's ``model`` and ``covariance`` (of its free
+    parameters), the prediction includes the parameters' own uncertainty (poses that were
+    not in the fit: held out)."""
     if len(volts) == 0:
         return np.zeros(0)
     ref = reference_points(volts, params)
-    r = loop_residuals(params, volts, ref, jacobian=False)
+    with_jac = model is not None and covariance is not None
+    r = loop_residuals(
+        params, volts, ref, jacobian=with_jac, directions=model.tie_matrix if with_jac else None
+    )
     ok = r.feasible.all(axis=1) & (r.separation.min(axis=1) >= NEAR_SINGULAR_MM)
     if not ok.any():
         return np.zeros(0)
-    u, s = noise_sensitivity(params, volts[ok], ref[ok])
-    return np.einsum("mi,mi->m", u, r.residuals[ok]) / s
+    u, s, v = noise_directions(params, volts[ok], ref[ok])
+    w = np.einsum("mi,mi->m", u, r.residuals[ok]) / s
+    if noise is None:
+        return w
+    var = np.einsum("mi,mi->m", v**2, noise[ok] ** 2 + LSB_VOLTS**2 / 12)
+    if with_jac:
+        g = np.einsum("mi,min->mn", u, r.jacobian[ok]) / s[:, None]  # d w / d x
+        var = var + np.einsum("mn,nq,mq->m", g, covariance, g)
+    return w / np.sqrt(var)
 
 
-def holdout_gate(w: np.ndarray, sigma_fit: float) -> Gate:
-    n = len(w)
+def holdout_gate(z: np.ndarray) -> Gate:
+    """z: the held-out poses' loop-closure errors over their predicted standard deviations."""
+    n = len(z)
     if n < 5:
         return Gate(
             "holdout",
@@ -243,18 +270,18 @@ def holdout_gate(w: np.ndarray, sigma_fit: float) -> Gate:
             f"only {n} poses were left to check the fit against",
             "record more still positions",
         )
-    ratio = float(np.sqrt(np.mean(w**2)) / sigma_fit)
-    limit = 1.2 * float(np.sqrt(chi2.ppf(0.999, n) / n))
-    ok = ratio <= limit
+    rms = float(np.sqrt(np.mean(z**2)))
+    limit = HOLDOUT_MARGIN * float(np.sqrt(chi2.ppf(0.999, n) / n))
+    ok = rms <= limit
     return Gate(
         "holdout",
         ok,
-        ratio,
-        f"<= {limit:.2f} (RMS over the fit's, {n} poses)",
+        rms,
+        f"<= {limit:.2f} (RMS in predicted standard deviations, {n} poses)",
         ""
         if ok
-        else f"{n} poses kept out of the fit close their loops {ratio:.1f} times worse "
-        "than the fitted ones: the fit describes its own poses, not the mechanism",
+        else f"{n} poses kept out of the fit open their loops {rms:.1f} times as wide "
+        "as their noise predicts: the fit describes its own poses, not the mechanism",
         ""
         if ok
         else "free the parameters that changed (for example the gain of a replaced "

@@ -202,17 +202,23 @@ def run_worker(
     advice = G.coverage_advice(poses.volts, ident.params)
     chosen = fit[cal.selection.indices]
     result.expected_noise_volts = G.expected_noise(poses.scan_noise[chosen], poses.counts[chosen])
-    w = G.holdout_residuals(poses.volts[held_out], ident.params)
+    z = G.holdout_residuals(
+        poses.volts[held_out],
+        ident.params,
+        poses.noise_volts[held_out],
+        model=model,
+        covariance=ident.covariance,
+    )
     result.gates += [
         G.converged_gate(ident.converged, ident.message),
         G.condition_gate(ident.indices.condition, advice),
         G.min_singular_gate(ident.indices.min_singular, advice),
         G.noise_gate(ident.sigma_volts, result.expected_noise_volts),
-        G.holdout_gate(w, ident.sigma_volts),
+        G.holdout_gate(z),
         G.plausible_gate(list(model.free), start, ident.params),
         G.precision_gate(list(model.free), ident.std, advice),
     ]
-    result.extra["holdout_rms_volts"] = float(np.sqrt(np.mean(w**2))) if len(w) else None
+    result.extra["holdout_rms_sigma"] = float(np.sqrt(np.mean(z**2))) if len(z) else None
     result.seconds = time.perf_counter() - t0
     return result
 

@@ -264,3 +264,52 @@ def test_every_parameter_named_in_json(offline, tmp_path):
     assert rc == 1  # all 20 cannot be identified: refused, with the reason
     assert set(doc["parameters"]) == set(NAMES)
     assert any("converged" == g["name"] and not g["passed"] for g in doc["gates"])
+
+
+def test_the_worker_units_way_and_the_configs_free_set(offline, tmp_path):
+    """--config takes the directory and controller config from the daemon's config (as the
+    systemd unit runs it); [calibration].free in the controller config picks the free set."""
+    rec_dir, _ = offline
+    config = fresh_config(tmp_path / "controller.toml")
+    doc = tomlkit.parse(config.read_text())
+    doc["calibration"]["free"] = "d01,d02,d03,d04,A1x,A2x,A2y"
+    config.write_text(tomlkit.dumps(doc))
+    daemon_toml = tmp_path / "daemon.toml"
+    daemon_toml.write_text(
+        f'[daq]\nurl = "modbus-tcp://10.0.0.9"\n[recording]\n'
+        f'directory = "{rec_dir}"\n[controller]\nconfig = "{config}"\n'
+    )
+    rc, doc, err = calibrate_json("--config", daemon_toml, "--last", "1h")
+    assert rc == 0, err
+    assert list(doc["parameters"]) == ["d01", "d02", "d03", "d04", "A1x", "A2x", "A2y"]
+    assert doc["config"] == str(config)
+
+
+def test_a_cut_recording_with_faults_and_gaps(offline, tmp_path):
+    """A file cut short by a crash, with a sensor fault and a gap in it: the scans around
+    them are dropped and counted, and the rest still calibrates."""
+    from daemon import recording as rec_mod
+
+    rec_dir, _ = offline
+    rows = read_recordings(rec_dir).scans.copy()
+    rows["status"][300:340] |= 1 << 5  # sensor 2 faulted for 2 s
+    rows["codes"][300:340, 1] = 4095
+    rows["missed"][900] = 3  # three scans lost before this one
+    w = rec_mod.RecordingWriter(
+        tmp_path / "cut.mcap",
+        params=NOMINAL,
+        metadata=rec_mod.metadata_records(device={}, controller={}, command="test"),
+    )
+    for k in range(0, len(rows), 20):
+        w.write(rows[k : k + 20])
+    size = w.durable_size
+    w.abandon()  # no summary: as after a crash
+    assert (tmp_path / "cut.mcap").stat().st_size == size
+    config = fresh_config(tmp_path / "controller.toml")
+    rc, doc, err = calibrate_json(tmp_path / "cut.mcap", "--controller-config", config)
+    assert "no summary" in err  # said, not hidden
+    assert doc["poses"]["scans"] == len(rows)
+    dropped = doc["poses"]["dropped_scans"]
+    assert dropped["channel at the rail or faulted"] == 40
+    assert dropped["next to a gap or restart"] == 10
+    assert rc == 0, doc["gates"]
