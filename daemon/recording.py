@@ -149,6 +149,13 @@ def _xyz(title: str, keys: str) -> dict[str, Any]:
     return {"title": title, "type": "object", "properties": {k: {"type": "number"} for k in keys}}
 
 
+_STRING = {"type": "string"}
+
+
+def _object(title: str, **properties: dict[str, Any]) -> dict[str, Any]:
+    return {"title": title, "type": "object", "properties": properties}
+
+
 def _array(items: dict[str, Any], n: int | None = None) -> dict[str, Any]:
     out: dict[str, Any] = {"type": "array", "items": items}
     if n is not None:
@@ -168,7 +175,8 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
             "kind": {"type": "string", "description": "event kind, e.g. gap, restart"},
             "level": {"type": "integer", "description": "1 debug, 2 info, 3 warning, 4 error"},
             "message": {"type": "string", "description": "one line for people"},
-            "details": {"type": "object", "description": "facts for programs"},
+            # Foxglove's schema parser needs "properties" on every object, even a free one
+            "details": {"type": "object", "properties": {}, "description": "facts for programs"},
         },
     },
     "foxglove.Log": {
@@ -229,8 +237,8 @@ def _scene_schema() -> dict[str, Any]:
             "id": {"type": "string"},
             "lifetime": duration,
             "frame_locked": {"type": "boolean"},
-            "metadata": _array({"type": "object"}),
-            **{k: _array({"type": "object"}) for k in
+            "metadata": _array(_object("foxglove.KeyValuePair", key=_STRING, value=_STRING)),
+            **{k: _array({"type": "object", "properties": {}}) for k in
                ("arrows", "cubes", "cylinders", "triangles", "models")},
             "spheres": _array(sphere),
             "lines": _array(line),
@@ -241,7 +249,17 @@ def _scene_schema() -> dict[str, Any]:
         "title": "foxglove.SceneUpdate",
         "description": "An update to the entities displayed in a 3D scene",
         "type": "object",
-        "properties": {"deletions": _array({"type": "object"}), "entities": _array(entity)},
+        "properties": {
+            "deletions": _array(
+                _object(
+                    "foxglove.SceneEntityDeletion",
+                    timestamp=_time_schema("Timestamp of the deletion"),
+                    type={"type": "integer", "description": "0 matching id, 1 all"},
+                    id=_STRING,
+                )
+            ),
+            "entities": _array(entity),
+        },
     }
 
 
