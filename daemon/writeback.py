@@ -62,6 +62,7 @@ def _write_durably(path: Path, data: bytes, mode: int, *, tmp_step: str, synced_
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, mode)
         try:
+            os.fchmod(fd, mode)  # the old file's mode, whatever the umask
             view = memoryview(data)
             while view:
                 view = view[os.write(fd, view) :]

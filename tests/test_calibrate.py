@@ -4,6 +4,7 @@ while it writes, replay round trips, and bad input."""
 
 from __future__ import annotations
 
+import os
 import signal
 import time
 from datetime import UTC, datetime
@@ -68,9 +69,15 @@ def test_sessions_calibrate_within_three_standard_deviations(sessions, tmp_path,
 def test_write_keeps_comments_and_the_previous_version(offline, tmp_path):
     rec_dir, truth = offline
     config = fresh_config(tmp_path / "controller.toml")
+    config.chmod(0o644)  # a controller reading it as another user
     before = config.read_text()
-    proc = loopcal("calibrate", rec_dir, "--controller-config", config, "--write")
+    old_umask = os.umask(0o027)  # as the systemd units' UMask: must not narrow the mode
+    try:
+        proc = loopcal("calibrate", rec_dir, "--controller-config", config, "--write")
+    finally:
+        os.umask(old_umask)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert config.stat().st_mode & 0o777 == 0o644
     assert "Wrote 10 value(s)" in proc.stdout
     prev = list(tmp_path.glob("controller.toml.*.prev"))
     assert len(prev) == 1 and prev[0].read_text() == before
