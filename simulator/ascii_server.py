@@ -54,6 +54,7 @@ class AsciiServer:
             self._buffer.clear()
 
     def _answer(self, frame: bytes) -> None:
+        self.handle.note_request()
         with self.handle.synced() as device:
             if not self.handle.responsive_locked():
                 return

@@ -9,6 +9,8 @@ Time is kept in integer nanoseconds so that scan schedules are exact and reprodu
 - :class:`SimClock`: wall time sped up (or slowed down) by a constant factor.
 - :class:`ManualClock`: time moves only when :meth:`ManualClock.advance` is called;
   the basis of every bit-exact test.
+- :class:`HeldClock`: wall time that stands at 0 until :meth:`HeldClock.release` (a
+  module switched on when its first client talks, whatever that client's start-up time).
 
 All clocks start at 0 when created.
 """
@@ -63,6 +65,33 @@ class SimClock:
 
     def now_ns(self) -> int:
         return int((time.monotonic_ns() - self._origin_ns) * self.speed)
+
+    def now(self) -> float:
+        return self.now_ns() / NS_PER_S
+
+
+class HeldClock:
+    """Wall time, ``speed`` times as fast, standing at 0 until :meth:`release`.
+
+    An emulator on a HeldClock releases it at the first request it receives.
+    """
+
+    def __init__(self, speed: float = 1.0) -> None:
+        if not speed > 0:
+            raise ValueError(f"speed must be > 0, got {speed!r}")
+        self.speed = float(speed)
+        self._origin_ns: int | None = None
+        self._lock = threading.Lock()
+
+    def release(self) -> None:
+        """Start the clock (later calls do nothing)."""
+        with self._lock:
+            if self._origin_ns is None:
+                self._origin_ns = time.monotonic_ns()
+
+    def now_ns(self) -> int:
+        origin = self._origin_ns
+        return 0 if origin is None else int((time.monotonic_ns() - origin) * self.speed)
 
     def now(self) -> float:
         return self.now_ns() / NS_PER_S

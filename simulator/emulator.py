@@ -132,6 +132,11 @@ class Emulator:
     # ------------------------------------------------------------------ public
 
     @property
+    def first_request(self) -> threading.Event:
+        """Set once a server has handled its first request (a driver is talking)."""
+        return self.handle.requested
+
+    @property
     def lock(self) -> threading.RLock:
         """Hold this to read :attr:`device` consistently while the servers run.
 

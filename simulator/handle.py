@@ -11,7 +11,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from .clock import Clock
+from .clock import Clock, HeldClock
 from .device import LDQ412
 from .wire import WireFaults
 
@@ -24,6 +24,15 @@ class DeviceHandle:
         self.clock = clock
         self.wire = wire
         self.lock = threading.RLock()
+        self.requested = threading.Event()  # set by the first request a server handles
+
+    def note_request(self) -> None:
+        """A server received a request: the first one sets :attr:`requested` and starts a
+        clock held until then (:class:`~simulator.clock.HeldClock`)."""
+        if not self.requested.is_set():
+            if isinstance(self.clock, HeldClock):
+                self.clock.release()
+            self.requested.set()
 
     @contextmanager
     def synced(self) -> Iterator[LDQ412]:

@@ -151,6 +151,7 @@ class ModbusAdapter:
         the echo) returns exactly the value written.
         """
         offset = address - start_address
+        self.handle.note_request()
         try:
             with self.handle.synced() as device:
                 if function_code == 4:

@@ -121,9 +121,18 @@ class Player:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def run(self, stop: threading.Event | None = None) -> bool:
-        """Advance the clock until the end (True) or ``stop`` (False)."""
+    def run(self, stop: threading.Event | None = None, *, wait_for_client: bool = False) -> bool:
+        """Advance the clock until the end (True) or ``stop`` (False).
+
+        wait_for_client: hold the first scan until a driver's first request, so that a
+        client that starts slowly (or a FIFO a few seconds deep at a high ``speed``) misses
+        nothing of the recording.
+        """
         stop = stop or threading.Event()
+        if wait_for_client:
+            while not self.emulator.first_request.wait(STEP_S):
+                if stop.is_set():
+                    return False
         cycles = list(self.cycles)
         wall0 = time.monotonic()
         while not stop.is_set():

@@ -35,7 +35,7 @@ from calibration.kinematics import euler_zyz
 from calibration.parameters import NAMES, ParameterModel, from_dict, to_dict
 from calibration.simulate import NOISE_VOLTS, perturbed_truth
 
-from .clock import RealClock, SimClock
+from .clock import Clock, HeldClock, RealClock, SimClock
 from .emulator import TRANSPORTS, Emulator
 from .faults import FaultInjector
 from .mechanism import MechanismSource, ReplaySource
@@ -178,6 +178,16 @@ def truth_parameters(args: argparse.Namespace) -> np.ndarray:
     return from_dict(overrides, p)
 
 
+def _pause(text: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give MIN,MAX seconds, e.g. 0.8,1.5") from None
+    if not 0 < lo <= hi:
+        raise argparse.ArgumentTypeError(f"{text!r}: need 0 < MIN <= MAX")
+    return lo, hi
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--transport", choices=TRANSPORTS, default="modbus-tcp")
     p.add_argument("--host", default="127.0.0.1", help="TCP address (default 127.0.0.1)")
@@ -187,6 +197,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checksum", action="store_true", help="ASCII checksum mode on at power-on")
     p.add_argument("--scan-rate", type=int, default=20, help="scan rate at power-on, Hz (20)")
     p.add_argument("--speed", type=float, default=1.0, help="device time per real second (1)")
+    p.add_argument(
+        "--wait-for-client",
+        action="store_true",
+        help="switch the module on at a client's first request (default: at once)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--scenario", choices=("hand", "static", "sweep", "replay"), default="hand")
     p.add_argument(
@@ -196,6 +211,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="with --scenario replay: a --truth-out file to play back (loops)",
     )
     p.add_argument("--noise-mv", type=float, default=1000 * NOISE_VOLTS)
+    p.add_argument(
+        "--pause",
+        type=_pause,
+        default=(1.0, 3.0),
+        metavar="MIN,MAX",
+        help="with --scenario hand: seconds the hand holds each position (default 1,3)",
+    )
     p.add_argument(
         "--offset-error",
         type=float,
@@ -241,7 +263,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             scenario = None
         else:
             scenario = {
-                "hand": lambda: HandMoves(args.seed, params=truth),
+                "hand": lambda: HandMoves(args.seed, params=truth, pause_s=args.pause),
                 "static": Static,
                 "sweep": Sweep,
             }[args.scenario]()
@@ -251,7 +273,12 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     except (ValueError, OSError) as exc:
         print(f"loopcal simulate: error: {exc}", file=sys.stderr)
         return 2
-    clock = RealClock() if args.speed == 1.0 else SimClock(args.speed)
+    if args.wait_for_client:
+        clock: Clock = HeldClock(args.speed)  # released by the emulator's first request
+    elif args.speed == 1.0:
+        clock = RealClock()
+    else:
+        clock = SimClock(args.speed)
     stop = stop or threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         if threading.current_thread() is threading.main_thread():

@@ -17,7 +17,7 @@ import numpy as np
 
 from calibration.parameters import NOMINAL
 from simulator import Emulator
-from simulator.clock import Clock
+from simulator.clock import HeldClock
 from simulator.mechanism import MechanismSource
 from simulator.scenarios import HandMoves
 
@@ -25,9 +25,13 @@ LOOPCAL = [sys.executable, "-m", "daemon.cli"]
 
 
 def hand_emulator(
-    transport: str = "modbus-tcp", *, rate: int = 20, clock: Clock | None = None, seed: int = 0
+    transport: str = "modbus-tcp", *, rate: int = 20, speed: float = 1.0, seed: int = 0
 ) -> Emulator:
-    """An emulated LDQ-412 on a technician-moved shoulder joint (not started)."""
+    """An emulated LDQ-412 on a technician-moved shoulder joint (not started), whose clock
+    (``speed`` times wall time) starts at the recorder's first request: however long the
+    recorder subprocess takes to start on a busy machine, the FIFO (1.28 s deep at 200 Hz)
+    does not overflow before it connects."""
+    clock = HeldClock(speed)  # the emulator starts it at the first request
     source = MechanismSource(HandMoves(seed), NOMINAL, noise_volts=0.04, seed=seed)
     return Emulator(transport, source, scan_rate_hz=rate, clock=clock, seed=seed)
 

@@ -17,10 +17,8 @@ from calibration.parameters import NOMINAL, PAPER7
 from calibration.simulate import perturbed_truth
 from daemon import recording as rec
 from daemon import scans as S
-from simulator import Emulator, SimClock
-from simulator.mechanism import MechanismSource
 from simulator.offline import mechanism_scans
-from simulator.scenarios import HandMoves, Scenario
+from simulator.scenarios import Scenario
 
 T0 = 1_795_000_000_000_000_000
 #: a technician pausing about a second between moves
@@ -41,21 +39,37 @@ def truth_for(seed: int) -> np.ndarray:
 
 
 def live_sessions(root: Path, seeds: list[int], *, minutes: float = 2.0, speed: float = 10.0):
-    """Record technician sessions through ``loopcal record`` over Modbus TCP, all at once
-    (the emulated modules run ``speed`` times as fast as wall time)."""
-    sessions, emus, procs = [], [], []
+    """Record technician sessions through ``loopcal record`` over Modbus TCP, all at once:
+    each emulated module is a ``loopcal simulate`` process of its own (the same scans as
+    in-process, with no Python thread of this process between the module and its reader),
+    running ``speed`` times as fast as wall time from the recorder's first request."""
+    from calibration.parameters import NAMES
+
+    sessions, sims, procs = [], [], []
     try:
         for seed in seeds:
             truth = truth_for(seed)
-            src = MechanismSource(
-                HandMoves(seed, params=truth, pause_s=PAUSE_S), truth, noise_volts=0.04, seed=seed
+            every = ",".join(f"{n}={float(truth[i])!r}" for i, n in enumerate(NAMES))
+            sim = Proc(
+                [
+                    "simulate",
+                    "--seed",
+                    str(seed),
+                    "--speed",
+                    f"{speed:g}",
+                    "--pause",
+                    f"{PAUSE_S[0]},{PAUSE_S[1]}",
+                    "--noise-mv",
+                    "40",
+                    "--truth",
+                    every,
+                    "--wait-for-client",
+                ]
             )
-            emu = Emulator(
-                "modbus-tcp", src, clock=SimClock(speed), seed=seed, truth_limit=5000
-            ).start()
-            emus.append(emu)
+            sims.append(sim)
+            url = sim.lines[sim.wait_for("listening: ")].split(": ", 1)[1]
             out = root / f"session-{seed}"
-            procs.append(record(emu.url, out, "--read-period", "0.05"))
+            procs.append(record(url, out, "--read-period", "0.05"))
             sessions.append(Session(out, truth, seed))
         for p in procs:
             p.wait_for("recording to")
@@ -64,11 +78,29 @@ def live_sessions(root: Path, seeds: list[int], *, minutes: float = 2.0, speed: 
             rc, _ = p.stop()
             assert rc == 0, p.text
     finally:
-        for p in procs:
+        for p in [*procs, *sims]:
             p.kill()
-        for e in emus:
-            e.close()
     return sessions
+
+
+def trim(src: Path, dst: Path, first: int, stop: int) -> Path:
+    """Copy the scans with counters first..stop-1 of a recording into a new one (so that a
+    test calibrates the same scans every run, whenever its recorder happened to start)."""
+    scans = rec.read_recordings(src).scans
+    keep = scans[(scans["counter64"] >= first) & (scans["counter64"] < stop)]
+    assert len(keep) == stop - first, f"{src}: scans {first}..{stop - 1} not all recorded"
+    dst.mkdir(parents=True, exist_ok=True)
+    meta = rec.metadata_records(device={"model": "LDQ412"}, controller={}, command="trim")
+    w = rec.RecordingWriter(
+        dst / rec.recording_name(int(keep["stamp_ns"][0])),
+        metadata=meta,
+        params=NOMINAL,
+        fsync=False,
+    )
+    for k in range(0, len(keep), 20):
+        w.write(keep[k : k + 20])
+    w.close()
+    return dst
 
 
 def rows_from(time_us: np.ndarray, codes: np.ndarray, *, t0: int = T0) -> np.ndarray:

@@ -11,7 +11,6 @@ import pytest
 from recorder_helpers import assert_matches_truth, hand_emulator, record
 
 from daemon.recording import find_recordings, read_recordings
-from simulator.clock import SimClock
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -158,8 +157,8 @@ def test_a_link_outage_is_an_event_and_costs_no_scan(tmp_path):
 
 
 def test_rotation_and_retention_at_an_accelerated_rate(tmp_path):
-    clock = SimClock(5.0)  # 200 Hz of device time, five times as fast: 1000 scans/s
-    with hand_emulator(rate=200, clock=clock) as emu:
+    # 200 Hz of device time, five times as fast: 1000 scans/s
+    with hand_emulator(rate=200, speed=5.0) as emu:
         rec = record(emu.url, tmp_path, "--rotate-seconds", "1", "--rotate-size", "150KiB",
                      "--disk-budget", "600KiB", "--read-period", "0.05",
                      "--flush-period", "0.25")  # fmt: skip

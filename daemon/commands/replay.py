@@ -39,6 +39,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--speed", type=float, default=1.0, help="device seconds per real second (default 1)"
     )
+    p.add_argument(
+        "--start-now",
+        action="store_true",
+        help="play at once (default: hold the first scan until a client's first request)",
+    )
     p.add_argument("--host", default="127.0.0.1", help="TCP address (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=0, help="TCP port (default: a free one)")
 
@@ -90,9 +95,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"serial device: {player.url.split('://', 1)[1].split('?')[0]}", flush=True)
         print(
             f"replaying {len(rec):,} scans in {len(player.power_ons)} power-on(s) at {rate} Hz, "
-            f"x{args.speed:g}",
+            f"x{args.speed:g}" + ("" if args.start_now else ", from a client's first request"),
             flush=True,
         )
-        done = player.run(stop)
+        done = player.run(stop, wait_for_client=not args.start_now)
     print("replay finished" if done else "replay stopped", flush=True)
     return 0
