@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import implicit
 from .errors import ConvergenceError, InputError
 from .observability import (
     CONDITION_OK,
@@ -60,10 +61,13 @@ class Identification:
 
     params: (20,) full estimate; start: (20,) the start; model: the free/tied/fixed split.
     std: (n,) predicted standard deviations of the free parameters (mm or mm/V);
-    covariance: (n, n). sigma_volts: the per-channel voltage noise used for them (given, or
-    estimated). rms_residual: RMS of f at the solution, mm^2. iterations; converged; message.
-    used: (m,) poses used; excluded: indices of near-singular or inconsistent poses left out.
-    indices: observability indices of the used poses at the solution.
+    covariance: (n, n). sigma_volts: the per-channel voltage noise of one scan used for them
+    (given, or estimated). rms_residual: RMS of the residuals at the solution: the loop
+    residuals f in mm^2 (paper), the readings' misfit in V (ml, as if every pose were one
+    scan). iterations; converged; message. used: (m,) poses used; excluded: indices of
+    near-singular or inconsistent poses left out. indices: observability indices of the used
+    poses at the solution (ml: of the information rows, one per pose). method: "ml" or
+    "paper". rotations: (m_used, 3, 3) the estimated plate rotations of the used poses (ml).
     """
 
     model: ParameterModel
@@ -81,6 +85,8 @@ class Identification:
     excluded: np.ndarray
     indices: ObservabilityIndices
     history: list[float] = field(default_factory=list, repr=False)
+    method: str = "paper"
+    rotations: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def free_values(self) -> np.ndarray:
@@ -151,12 +157,20 @@ def check_stroke(volts: np.ndarray, stroke_volts: float = STROKE_VOLTS) -> None:
         )
 
 
+METHODS = ("ml", "paper")
+#: the estimator used when none is named: maximum likelihood reaches the Cramér-Rao bound
+#: where the paper's method stays 1.2 to 1.5 times above it (bench/bench_ml.py)
+DEFAULT_METHOD = "ml"
+
+
 def identify(
     volts: np.ndarray,
     model: ParameterModel = PAPER7,
     start: np.ndarray = NOMINAL,
     *,
+    method: str = DEFAULT_METHOD,
     noise_volts: float | None = None,
+    scans_per_pose: np.ndarray | None = None,
     max_iter: int = 100,
     xtol: float = 1e-8,
     ftol: float = 1e-12,
@@ -166,18 +180,28 @@ def identify(
     """Identify the free parameters of ``model`` from m poses of sensor readings.
 
     volts: (m, 4) readings in V (quasi-static poses). start: full parameter vector (20,) to
-    start from; fixed parameters keep its values. noise_volts: known per-channel noise (1 sigma,
-    V) for the covariance; None estimates it from the residuals. near_singular_mm: poses whose
-    mirror solutions come closer than this (at the estimate) are excluded and reported.
-    max_change: a free parameter moving further than this from the start (in its unit) is
-    divergence. xtol: converged when no free parameter is estimated to be further than this (in
-    its unit) from the limit, judged from the step and the observed convergence rate; ftol: or
-    when the relative decrease of f^T f falls below it near the Gauss-Newton regime (damping <=
-    1).
+    start from; fixed parameters keep its values. method: "ml", maximum likelihood by the
+    implicit loop method (:mod:`calibration.implicit`: every pose's rotation is estimated
+    too, the readings are fitted directly, weighted by their noise), or "paper", the
+    paper's closed-loop residuals (docs/model.md section 5). noise_volts: known per-channel
+    noise of one scan (1 sigma, V) for the covariance; None estimates it from the residuals.
+    scans_per_pose: (m,) scans averaged into each pose, whose noise is then noise / sqrt(n)
+    (ml weights the poses by it; the paper's method does not weigh poses).
+    near_singular_mm (paper): poses whose mirror solutions come closer than this (at the
+    estimate) are excluded and reported; ml excludes poses whose rotation the lengths do
+    not determine (:data:`calibration.implicit.MIN_POSE_SIGMA_MM`). max_change: a free
+    parameter moving further than this from the start (in its unit) is divergence. xtol
+    (paper): converged when no free parameter is estimated to be further than this (in its
+    unit) from the limit, judged from the step and the observed convergence rate; ftol
+    (paper): or when the relative decrease of f^T f falls below it near the Gauss-Newton
+    regime (damping <= 1); ml stops when a step lowers the whitened misfit by less than
+    :data:`calibration.implicit.DECREMENT_TOL` of one residual's variance.
 
     Raises InputError (bad readings, too few usable poses), UnobservableError (the free set is
     rank deficient on these poses), ConvergenceError (divergence).
     """
+    if method not in METHODS:
+        raise InputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     V = check_volts(volts)
     p0 = check_vector(start).copy()
     check_stroke(V)
@@ -185,6 +209,8 @@ def identify(
     m = V.shape[0]
     if m < n:
         raise InputError(f"{m} poses cannot identify {n} free parameters; record at least {n}")
+    if method == "ml":
+        return _identify_ml(V, model, p0, noise_volts, scans_per_pose, max_iter, max_change)
 
     def margins(p: np.ndarray, ref: np.ndarray) -> np.ndarray:
         """Smallest branch separation of each pose, mm (-1 where spheres miss)."""
@@ -235,16 +261,9 @@ def identify(
         tight = tight or settled or attempt >= MAX_LOOSE_PASSES - 1
         used = now
     excluded = np.flatnonzero(~used)
-    x = model.free_values(p)
     cost = history[-1]
     it = total_iter
-    at_bound = np.abs(x - x0) >= max_change * 0.999
-    if at_bound.any():  # the fit ran into the bound: whatever it settled on is not a minimum
-        names = ", ".join(n for n, b in zip(model.free, at_bound, strict=True) if b)
-        raise ConvergenceError(
-            f"diverged: {names} moved more than {max_change} from the start; check the "
-            "start values, the free set and the readings"
-        )
+    _check_bound(model, p, p0, max_change)
 
     h = column_scales(g, model.free)
     G = g * h
@@ -283,6 +302,89 @@ def identify(
         excluded=excluded,
         indices=ObservabilityIndices(s, mu),
         history=history,
+    )
+
+
+def _check_bound(model: ParameterModel, p: np.ndarray, p0: np.ndarray, max_change: float):
+    """Raise ConvergenceError if the fit ran into the bound on the change: whatever it
+    settled on there is not a minimum."""
+    at_bound = np.abs(model.free_values(p) - model.free_values(p0)) >= max_change * 0.999
+    if at_bound.any():
+        names = ", ".join(n for n, b in zip(model.free, at_bound, strict=True) if b)
+        raise ConvergenceError(
+            f"diverged: {names} moved more than {max_change} from the start; check the "
+            "start values, the free set and the readings"
+        )
+
+
+def _identify_ml(V, model, p0, noise_volts, scans_per_pose, max_iter, max_change):
+    """The "ml" branch of :func:`identify` (inputs already checked)."""
+    n = model.n_free
+    m = len(V)
+    T = model.tie_matrix
+    w = implicit.pose_weights(m, noise_volts, scans_per_pose)
+    R, used = implicit.start_rotations(V, p0)
+    history: list[float] = []
+    p, total_iter = p0, 0
+    Rfit, fitted = R, used
+    for attempt in range(3):  # the usable set is judged again at the estimate
+        if used.sum() < n:
+            raise InputError(
+                f"only {int(used.sum())} of {m} poses are usable ({int((~used).sum())} "
+                f"near-singular or unsolvable); {n} free parameters need at least {n}"
+            )
+        _, Jp, Jr = implicit.model_jacobians(R[used], p, T)
+        rows = implicit.information_rows(Jp * w[used, :, None], Jr * w[used, :, None])
+        require_observable(rows[:, None, :], model)
+        p, Rfit, it, converged, message = implicit.fit(
+            V[used], w[used], R[used], T, p, max_iter=max_iter, max_change=max_change,
+            history=history,
+        )  # fmt: skip
+        total_iter += it
+        fitted = used
+        _check_bound(model, p, p0, max_change)
+        R_now, ok = implicit.start_rotations(V, p)
+        R_now[used] = Rfit  # the fitted rotations where the fit has them
+        R = R_now
+        if np.array_equal(ok, used) or attempt == 2:
+            break
+        used = ok
+    used = fitted
+    vhat, Jp, Jr = implicit.model_jacobians(Rfit, p, T)
+    wu = w[used]
+    r = (V[used] - vhat) * wu
+    rows = implicit.information_rows(Jp * wu[..., None], Jr * wu[..., None])
+    info = rows.T @ rows
+    cost = float(np.sum(r * r))
+    mu = int(used.sum())
+    if noise_volts is None:
+        # each pose leaves one degree of freedom (four readings, three angles)
+        scale = float(np.sqrt(cost / max(mu - n, 1)))
+        sigma, estimated = scale, True  # weights assumed 1 V: the scale is the noise
+    else:
+        scale, sigma, estimated = 1.0, float(np.mean(noise_volts)), False
+    cov = scale**2 * np.linalg.inv(info)
+    h = column_scales(rows[:, None, :], model.free)
+    sv = np.linalg.svd(rows * h, compute_uv=False)
+    misfit = r / implicit.pose_weights(1, noise_volts, None)  # V, as if one scan per pose
+    return Identification(
+        model=model,
+        params=p,
+        start=p0,
+        std=np.sqrt(np.diag(cov)),
+        covariance=cov,
+        sigma_volts=sigma,
+        sigma_estimated=estimated,
+        rms_residual=float(np.sqrt(np.mean(misfit**2))),
+        iterations=total_iter,
+        converged=converged,
+        message=message,
+        used=used,
+        excluded=np.flatnonzero(~used),
+        indices=ObservabilityIndices(sv, mu),
+        history=history,
+        method="ml",
+        rotations=Rfit,
     )
 
 

@@ -73,6 +73,23 @@ def plate_home(p: np.ndarray) -> np.ndarray:
     return np.stack([k1 * _U1, k2 * (np.cos(phi) * _U1 + np.sin(phi) * _W)])
 
 
+def home_derivative(p: np.ndarray) -> np.ndarray:
+    """dBh/dk of the plate points at home, shape (3, 2, 3): (k1, k2, k3) x (B1, B2) x xyz.
+
+    B1h = k1 u1; B2h = a u1 + b w with ``a = (k1^2 + k2^2 - k3^2) / (2 k1)`` and
+    ``b = sqrt(k2^2 - a^2)`` (see :func:`calibration.kinematics.plate_home`).
+    """
+    k1, k2, k3 = p[I_K1], p[I_K2], p[I_K3]
+    a = (k1 * k1 + k2 * k2 - k3 * k3) / (2 * k1)
+    b = np.sqrt(max(k2 * k2 - a * a, 1e-300))
+    da = np.array([0.5 - (k2 * k2 - k3 * k3) / (2 * k1 * k1), k2 / k1, -k3 / k1])
+    db = (np.array([0.0, k2, 0.0]) - a * da) / b
+    out = np.zeros((3, 2, 3))
+    out[0, 0] = _U1
+    out[:, 1] = da[:, None] * _U1 + db[:, None] * _W
+    return out
+
+
 def lengths_to_volts(lengths: np.ndarray, p: np.ndarray) -> np.ndarray:
     """Sensor voltages ``V = (d - d0) / S`` for lengths (m, 4) in mm."""
     return (np.asarray(lengths, dtype=float) - p[SL_OFFSET]) / p[SL_GAIN]

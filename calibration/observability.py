@@ -256,7 +256,7 @@ def analyse_identifiability(
 def require_observable(J: np.ndarray, model: ParameterModel) -> ObservabilityIndices:
     """Raise :class:`UnobservableError` naming the blind combinations if J is rank deficient."""
     rows, m = as_rows(J)
-    h = column_scales(rows, model.free)
+    h = column_scales(J, model.free)
     _, s, Vt = np.linalg.svd(rows * h, full_matrices=False)
     null = s <= s[0] * UNOBSERVABLE_RTOL
     if null.any():

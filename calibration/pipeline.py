@@ -6,12 +6,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .errors import CalibrationError
-from .identify import Identification, identify
+from .errors import CalibrationError, InputError
+from .identify import DEFAULT_METHOD, METHODS, Identification, identify
 from .observability import CONDITION_OK
 from .parameters import NOMINAL, PAPER7, ParameterModel
 from .residuals import check_volts
-from .selection import Selection, candidate_jacobian, select_poses
+from .selection import Selection, candidate_jacobian, ml_candidates, select_poses
 from .simulate import NEAR_SINGULAR_MM
 
 #: above this many times n_select candidates, a first estimate comes from PRESTART_POSES
@@ -41,8 +41,14 @@ def calibrate(
     max_condition: float = CONDITION_OK,
     rounds: int = 2,
     noise_volts: float | None = None,
+    method: str = DEFAULT_METHOD,
+    scans_per_pose: np.ndarray | None = None,
 ) -> Calibration:
     """Choose ``n_select`` of the recorded poses (readings (N, 4) in V) and identify.
+
+    method: the estimator, "ml" (default) or "paper" (see :func:`identify`); the poses are
+    selected on that estimator's information. scans_per_pose: (N,) scans averaged into each
+    pose (ml weighs the poses by them, in the selection and the fit).
 
     The first round designs the selection at ``start``; each further round designs it again
     at the previous estimate, where the Jacobian (and which poses are near-singular) is
@@ -50,15 +56,27 @@ def calibrate(
     more than PRESTART_FACTOR x n_select candidates, the first round designs at an estimate
     from PRESTART_POSES poses spread evenly over the recording instead of at ``start``.
     """
+    if method not in METHODS:
+        raise InputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     V = check_volts(volts)
     p = np.asarray(start, dtype=float)
+    counts = None if scans_per_pose is None else np.asarray(scans_per_pose, dtype=float)
+    if counts is not None and counts.shape != (len(V),):
+        raise InputError(f"scans_per_pose must hold one count per pose ({len(V)})")
+
+    def fit(idx: np.ndarray, p: np.ndarray) -> Identification:
+        return identify(
+            V[idx], model, p, method=method, noise_volts=noise_volts,
+            scans_per_pose=None if counts is None else counts[idx],
+        )  # fmt: skip
+
     if len(V) > PRESTART_FACTOR * n_select:
         # Many candidates: the best set lies at the edges of the workspace, where poses turn
         # near-singular if the start is millimetres off. A first estimate from an even
         # spread of poses puts the selection's screening where the mechanism really is.
         spread = np.linspace(0, len(V) - 1, min(len(V), PRESTART_POSES)).round().astype(int)
         try:
-            p = identify(V[spread], model, p, noise_volts=noise_volts).params
+            p = fit(spread, p).params
         except CalibrationError:
             pass  # select at the start, as for few candidates
     # With many candidates the set can afford to stay further from singular poses: the best
@@ -72,7 +90,10 @@ def calibrate(
         rounds_run += 1
         # candidates keep a wider margin from singularity than identification demands, so
         # that a chosen pose stays usable as the estimate moves
-        cand = candidate_jacobian(V, model, p, near_singular_mm=margin * NEAR_SINGULAR_MM)
+        if method == "ml":
+            cand = ml_candidates(V, model, p, scans_per_pose=counts)
+        else:
+            cand = candidate_jacobian(V, model, p, near_singular_mm=margin * NEAR_SINGULAR_MM)
         k = max(min(n_select, int(cand.usable.sum())), model.n_free)
         sel = select_poses(
             cand.jacobian, k, criterion=criterion, max_condition=max_condition,
@@ -80,7 +101,7 @@ def calibrate(
         )  # fmt: skip
         if previous is not None and np.array_equal(sel.indices, previous):
             break  # the same poses again: the estimate would not change
-        result = identify(V[sel.indices], model, p, noise_volts=noise_volts)
+        result = fit(sel.indices, p)
         previous, p = sel.indices, result.params
     # report against the caller's start, not the intermediate one of the last round
     return Calibration(replace(result, start=np.asarray(start, dtype=float)), sel, rounds_run)

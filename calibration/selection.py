@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import implicit
 from .errors import InputError
 from .observability import CONDITION_OK, ObservabilityIndices, as_rows, column_scales
 from .parameters import ParameterModel
@@ -171,6 +172,31 @@ def candidate_jacobian(
     return Candidates(J, ok, info[:, None, :])
 
 
+def ml_candidates(
+    volts: np.ndarray,
+    model: ParameterModel,
+    p: np.ndarray,
+    *,
+    scans_per_pose: np.ndarray | None = None,
+) -> Candidates:
+    """Prepare N candidate poses for the maximum-likelihood estimator at the estimate ``p``.
+
+    Each pose's information about the free parameters once its rotation is eliminated is
+    rank one (:func:`calibration.implicit.information_rows`); its row, per unit noise of one
+    scan (weighted by sqrt(scans_per_pose)), is both the pose's Jacobian and its
+    information, shape (N, 1, n). Poses whose rotation the lengths do not determine are
+    unusable (rows of zeros).
+    """
+    V = check_volts(volts)
+    w = implicit.pose_weights(len(V), None, scans_per_pose)
+    R, ok = implicit.start_rotations(V, p)
+    _, Jp, Jr = implicit.model_jacobians(R, p, model.tie_matrix)
+    a = implicit.information_rows(Jp * w[..., None], Jr * w[..., None])
+    ok &= np.isfinite(a).all(axis=1)
+    a = np.where(ok[:, None], a, 0.0)[:, None, :]
+    return Candidates(a, ok, a)
+
+
 def select_poses(
     J: np.ndarray,
     k: int,
@@ -183,7 +209,9 @@ def select_poses(
     max_passes: int = 20,
     information: np.ndarray | None = None,
 ) -> Selection:
-    """Choose k of the N candidate poses whose Jacobian is J ((N, 4, n) or (4N, n)).
+    """Choose k of the N candidate poses whose Jacobian is J ((N, r, n) or (4N, n)): the
+    paper's (N, 4, n) loop-residual Jacobian, or the (N, 1, n) information rows of the
+    maximum-likelihood model (:func:`ml_candidates`).
 
     criterion: one of :data:`CRITERIA` (maximise min_singular, volume, noise_amplification;
     minimise condition, a_optimality). max_condition: bound on the condition number of the
@@ -196,6 +224,7 @@ def select_poses(
     """
     rows, N = as_rows(J)
     n = rows.shape[1]
+    own_blocks = rows.reshape(N, -1, n)
     if criterion not in CRITERIA:
         raise InputError(f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)}")
     if not (n <= k <= N):
@@ -203,7 +232,7 @@ def select_poses(
     if not np.all(np.isfinite(rows)):
         raise InputError("the candidates' Jacobian contains NaN (near-singular poses?)")
     if information is None:
-        blocks = rows.reshape(N, 4, n)
+        blocks = own_blocks
     else:
         blocks = np.asarray(information, dtype=float)
         if blocks.ndim != 3 or blocks.shape[0] != N or blocks.shape[2] != n:
@@ -270,9 +299,9 @@ def select_poses(
     if criterion in ("condition", "a_optimality"):
         value = -value
     s = np.sqrt(np.maximum(lam[::-1], 0.0))
-    own_rows = rows.reshape(N, 4, n)[chosen].reshape(-1, n)
+    own_rows = own_blocks[chosen].reshape(-1, n)
     own = ObservabilityIndices(
-        np.linalg.svd(own_rows * column_scales(own_rows), compute_uv=False), k
+        np.linalg.svd(own_rows * column_scales(own_blocks[chosen]), compute_uv=False), k
     )
     return Selection(
         indices=chosen,

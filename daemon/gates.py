@@ -194,11 +194,14 @@ def min_singular_gate(s_min: float, advice: str) -> Gate:
     )
 
 
-def expected_noise(scan_noise: np.ndarray, counts: np.ndarray) -> float:
+def expected_noise(scan_noise: np.ndarray, counts: np.ndarray, *, per_scan: bool = False) -> float:
     """RMS noise of the poses' mean readings the poses themselves predict, V: the noise of
     one reading over the square root of the scans averaged, and the 12-bit rounding, which
-    averaging a still reading does not remove."""
+    averaging a still reading does not remove. per_scan: the same as the noise of one scan
+    (times the square root of the scans averaged), as the maximum-likelihood fit reports."""
     var = (scan_noise**2) / counts[:, None] + LSB_VOLTS**2 / 12
+    if per_scan:
+        var = var * counts[:, None]
     return float(np.sqrt(var.mean()))
 
 

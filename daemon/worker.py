@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from calibration.errors import CalibrationError
+from calibration.identify import DEFAULT_METHOD
 from calibration.parameters import INDEX, NAMES, UNITS, ParameterModel
 from calibration.pipeline import Calibration, calibrate
 
@@ -30,6 +31,7 @@ from .poses import RecordedPoses, recorded_poses
 from .recording import Recording, loopcal_version
 
 N_SELECT = 50
+METHOD_NAMES = {"ml": "maximum likelihood", "paper": "the paper's closed-loop residuals"}
 
 
 @dataclass
@@ -56,6 +58,7 @@ class WorkerResult:
     seconds: float = 0.0
     expected_noise_volts: float = float("nan")
     extra: dict[str, Any] = field(default_factory=dict)
+    method: str = DEFAULT_METHOD
 
     @property
     def accepted(self) -> bool:
@@ -70,6 +73,14 @@ class WorkerResult:
         return [n for n in NAMES if self.params[INDEX[n]] != self.previous[INDEX[n]]]
 
     # ------------------------------------------------------------------ output
+
+    @staticmethod
+    def _ml(ident) -> bool:
+        return ident is not None and ident.method == "ml"
+
+    @staticmethod
+    def _paper(ident) -> bool:
+        return ident is not None and ident.method == "paper"
 
     def table(self) -> str:
         """The change, parameter by parameter, with uncertainties."""
@@ -95,7 +106,7 @@ class WorkerResult:
         ident = cal.identification if cal is not None else None
         out: dict[str, Any] = {
             "accepted": self.accepted,
-            "method": "paper",
+            "method": self.method,
             "parameters": {
                 n: {
                     "value": float(self.params[INDEX[n]]),
@@ -119,7 +130,8 @@ class WorkerResult:
                 "dropped_scans": self.poses.dropped,
             },
             "residual": {
-                "rms_mm2": ident.rms_residual if ident is not None else None,
+                "rms_mm2": ident.rms_residual if self._paper(ident) else None,
+                "rms_volts": ident.rms_residual if self._ml(ident) else None,
                 "noise_volts": ident.sigma_volts if ident is not None else None,
                 "expected_noise_volts": self.expected_noise_volts,
             },
@@ -151,7 +163,10 @@ class WorkerResult:
             "recorded_until_utc": iso(until if until is not None else last),
             "poses_found": len(self.poses),
             "poses_used": int(ident.used.sum()),
-            "residual_rms_mm2": round(float(ident.rms_residual), 6),
+            "method": ident.method,
+            f"residual_rms_{'volts' if ident.method == 'ml' else 'mm2'}": round(
+                float(ident.rms_residual), 6
+            ),
             "noise_volts": round(float(ident.sigma_volts), 6),
             "identified": list(self.model.free),
             "std": {n: round(float(v), 6) for n, v in self.std.items()},
@@ -165,9 +180,13 @@ def run_worker(
     model: ParameterModel,
     *,
     n_select: int = N_SELECT,
+    method: str = DEFAULT_METHOD,
     progress: Callable[[str], None] = lambda _: None,
 ) -> WorkerResult:
-    """Poses, fit and gates for one recording (one or many files, already loaded)."""
+    """Poses, fit and gates for one recording (one or many files, already loaded).
+
+    method: the estimator (:func:`calibration.identify.identify`); "ml" weighs each pose by
+    the scans averaged into it."""
     t0 = time.perf_counter()
     start = np.array(controller.params, dtype=float)
     poses = recorded_poses(recording)
@@ -179,6 +198,7 @@ def run_worker(
     held = k % G.HOLDOUT_EVERY == G.HOLDOUT_EVERY // 2
     fit, held_out = k[~held], k[held]
     result = WorkerResult(model, start, start.copy(), {}, [], poses, fit, held_out, None, recording)
+    result.method = method
     gate = G.poses_gate(poses.volts)
     result.gates.append(gate)
     advice = G.coverage_advice(poses.volts, start)
@@ -186,9 +206,15 @@ def run_worker(
         result.seconds = time.perf_counter() - t0
         return result
     n_free = len(model.free)
-    progress(f"selecting up to {n_select} of {len(fit)} poses, identifying {n_free} parameters")
+    progress(
+        f"selecting up to {n_select} of {len(fit)} poses, identifying {n_free} parameters "
+        f"({METHOD_NAMES[method]})"
+    )
     try:
-        cal = calibrate(poses.volts[fit], model, start, n_select=n_select)
+        cal = calibrate(
+            poses.volts[fit], model, start, n_select=n_select, method=method,
+            scans_per_pose=poses.counts[fit],
+        )  # fmt: skip
     except CalibrationError as exc:
         result.gates.append(
             G.Gate("converged", False, type(exc).__name__, "converged", str(exc), advice)
@@ -201,7 +227,10 @@ def run_worker(
     result.std = {n: float(s) for n, s in zip(model.free, ident.std, strict=True)}
     advice = G.coverage_advice(poses.volts, ident.params)
     chosen = fit[cal.selection.indices]
-    result.expected_noise_volts = G.expected_noise(poses.scan_noise[chosen], poses.counts[chosen])
+    # the paper's fit reports the noise of a pose's mean reading, ml that of one scan
+    result.expected_noise_volts = G.expected_noise(
+        poses.scan_noise[chosen], poses.counts[chosen], per_scan=ident.method == "ml"
+    )
     z = G.holdout_residuals(
         poses.volts[held_out],
         ident.params,

@@ -98,16 +98,21 @@ def test_unobservable_free_set_is_refused_naming_the_combination():
     assert np.abs(scaled.residuals).max() < 1e-8
 
 
-def test_gain_error_beyond_tolerance_is_reported_not_hidden():
+@pytest.mark.parametrize(
+    ("method", "misfit", "exact_fit"), [("paper", 1.0, 1e-6), ("ml", 1e-3, 1e-9)]
+)
+def test_gain_error_beyond_tolerance_is_reported_not_hidden(method, misfit, exact_fit):
     # the paper: with gains held 1 % off, the offsets absorb the error; the fit must still
-    # end with a clear status and a residual far above the noise
+    # end with a clear status and a residual far above the noise (mm^2 for the paper's
+    # loop residuals, V for maximum likelihood)
     truth = perturbed_truth(np.random.default_rng(5))
     ps = simulate_poses(200, truth=truth, seed=5, noise_volts=0.0, quantize=False)
     start = from_dict({"S1": 3.75 * 1.01, "S3": 3.75 * 0.99})
-    res = identify(ps.volts, PAPER7, start)
-    assert res.rms_residual > 1.0
-    exact = identify(ps.volts, PAPER7, NOMINAL)
-    assert exact.rms_residual < 1e-6
+    res = identify(ps.volts, PAPER7, start, method=method)
+    assert res.converged and res.method == method
+    assert res.rms_residual > misfit
+    exact = identify(ps.volts, PAPER7, NOMINAL, method=method)
+    assert exact.rms_residual < exact_fit
 
 
 def test_readings_that_do_not_fit_are_flagged():

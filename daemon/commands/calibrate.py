@@ -19,12 +19,13 @@ from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from calibration.errors import CalibrationError
+from calibration.identify import DEFAULT_METHOD, METHODS
 from calibration.parameters import ParameterModel
 
 from ..controller_config import ControllerConfigError, load_controller_config
 from ..recording import RecordingError, find_recordings, read_recordings
 from ..settings import SettingsError, load_daemon_config
-from ..worker import describe_files, run_worker
+from ..worker import METHOD_NAMES, describe_files, run_worker
 from ..writeback import write_back
 
 HELP = "identify new parameters from recordings; --write puts them in the controller config"
@@ -90,6 +91,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="only the last DURATION of the recordings (e.g. 15m)",
     )
     p.add_argument("--select", type=int, default=50, metavar="N", help="poses selected (50)")
+    p.add_argument(
+        "--method",
+        choices=METHODS,
+        default=DEFAULT_METHOD,
+        help="estimator: ml, maximum likelihood (default), or paper, the paper's closed-loop "
+        "residuals",
+    )
     p.add_argument(
         "--write",
         action="store_true",
@@ -174,7 +182,9 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    result = run_worker(rec, config, model, n_select=args.select, progress=progress)
+    result = run_worker(
+        rec, config, model, n_select=args.select, method=args.method, progress=progress
+    )
     written = backup = None
     if args.write and result.accepted:
         try:
@@ -236,8 +246,13 @@ def _print_human(result, path, written, backup, asked_to_write: bool) -> None:
         ident = cal.identification
         print(
             f"{int(ident.used.sum())} of {len(cal.selection.indices)} selected poses used; "
-            f"{len(result.held_out)} held out to check; rms residual "
-            f"{ident.rms_residual:.4g} mm^2, equivalent noise {1000 * ident.sigma_volts:.1f} mV "
+            f"{len(result.held_out)} held out to check; {METHOD_NAMES[ident.method]}: "
+            + (
+                f"rms misfit {1000 * ident.rms_residual:.1f} mV per scan"
+                if ident.method == "ml"
+                else f"rms residual {ident.rms_residual:.4g} mm^2"
+            )
+            + f", equivalent noise {1000 * ident.sigma_volts:.1f} mV "
             f"(the poses' scatter predicts {1000 * result.expected_noise_volts:.1f} mV)"
         )
         print()

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calibration.identify import DEFAULT_METHOD, METHODS
 from calibration.parameters import INDEX, UNITS, ParameterModel
 from calibration.simulate import perturbed_truth
 from simulator import Emulator, SimClock
@@ -53,6 +54,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="how far the refitted sensors' offsets moved, mm (3)",
     )
     p.add_argument("--free", default="paper7", help="what to identify (default paper7)")
+    p.add_argument(
+        "--method",
+        choices=METHODS,
+        default=DEFAULT_METHOD,
+        help=f"estimator for loopcal calibrate (default {DEFAULT_METHOD})",
+    )
     p.add_argument(
         "--out",
         type=Path,
@@ -123,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     cli.main(["init-config", str(config), "--force"])
     print(
         f"\n$ loopcal calibrate {recordings} --controller-config {config} --free {args.free} "
-        f"--write --report {work / 'report'}",
+        f"--method {args.method} --write --report {work / 'report'}",
         flush=True,
     )
     status = cli.main(
@@ -134,6 +141,8 @@ def run(args: argparse.Namespace) -> int:
             str(config),
             "--free",
             args.free,
+            "--method",
+            args.method,
             "--write",
             "--report",
             str(work / "report"),
