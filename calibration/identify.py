@@ -136,7 +136,8 @@ class Identification:
         ix = self.indices
         lines.append(
             f"{self.iterations} iterations, {self.message}; poses used {int(self.used.sum())}"
-            f" (excluded {len(self.excluded)}); rms residual {self.rms_residual:.4g} mm^2; "
+            f" (excluded {len(self.excluded)}); {self.method}: rms residual "
+            f"{self.rms_residual:.4g} {'V' if self.method == 'ml' else 'mm^2'}; "
             f"noise {1000 * self.sigma_volts:.1f} mV"
             f" ({'estimated' if self.sigma_estimated else 'given'}); "
             f"s_min {ix.min_singular:.4g}, condition {ix.condition:.4g}"

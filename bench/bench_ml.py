@@ -1,0 +1,449 @@
+"""Maximum likelihood ("ml") against the paper's closed-loop residuals ("paper"): accuracy
+against the Cramér-Rao bound, time against pose count, and real recorded sessions.
+
+Three parts, all run by default (``--part`` runs one):
+
+``mc``: Monte Carlo over ``--sessions`` simulated sessions (450 random single-scan poses of
+a random mechanism, 40 mV, quantised). ``calibrate(method="ml")`` selects 50 poses and its
+identification is the ml estimate; the paper's method identifies from the SAME 50 poses. The
+Cramér-Rao bound (CRLB) of each session's pose set, at the true rotations and parameters,
+scales that session's errors. Per parameter and method: RMS error, RMS of error / CRLB std
+("RMS/CRLB", 1 is the best any unbiased estimator can do), the mean error and mean z with
+their standard errors ("biased" when |mean z| exceeds three of them), the median of the
+method's own reported std over the CRLB std (honesty of the reported uncertainty), RMS of
+error / own std, and failures. The paper's method is the baseline; target: ml's RMS/CRLB
+at most 1.05 for every parameter.
+
+``scale``: ``identify(method="ml")`` end to end on 500 .. 20,000 poses (median of
+``--repeats``): iterations, ms per iteration and us per pose per iteration, which should stay
+flat (linear cost). Baseline in the same run: the paper's method, end to end, up to 10,000
+poses. Target: 10,000 poses in under 1 s.
+
+``sessions``: technician sessions at the paper's noise recorded through the real
+``loopcal simulate`` + ``loopcal record`` subprocesses (``--seeds``, three at a time), cut to
+exactly two minutes and calibrated by ``loopcal calibrate --json`` with ``--method ml`` and
+``--method paper`` on the same recording. Per method: RMS error over the seeds, max |error|,
+RMS of error / reported std, and how many were accepted. Targets (ml): RMS error < 0.1 mm for
+d01..d04 and < 0.15 mm for A1x, A2x, A2y.
+
+Run: ``python bench/bench_ml.py [--part mc|scale|sessions] [--sessions 200] [--jobs 2]
+[--repeats 3] [--seeds 101 102 ...] [--dir DIR]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import multiprocessing as mp
+import os
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+from _timing import median_time
+
+sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
+
+from calibration.identify import identify  # noqa: E402
+from calibration.implicit import cramer_rao, start_rotations  # noqa: E402
+from calibration.parameters import INDEX, NOMINAL, PAPER7  # noqa: E402
+from calibration.pipeline import calibrate  # noqa: E402
+from calibration.simulate import simulate_poses  # noqa: E402
+
+METHODS = ("ml", "paper")
+NOISE_VOLTS = 0.040
+LSB_VOLTS = 20.0 / 4096
+#: the readings' noise after the 12-bit converter: Gaussian noise plus uniform rounding
+SIGMA_VOLTS = float(np.sqrt(NOISE_VOLTS**2 + LSB_VOLTS**2 / 12))
+N_POSES, N_SELECT = 450, 50
+ML_TARGET = 1.05
+SCALE_SIZES = (500, 1000, 2000, 5000, 10000, 20000)
+PAPER_MAX_POSES = 10000
+SESSION_TARGETS = {"d01": 0.1, "d02": 0.1, "d03": 0.1, "d04": 0.1}
+SESSION_TARGETS |= {"A1x": 0.15, "A2x": 0.15, "A2y": 0.15}
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+# ---------------------------------------------------------------------------- Monte Carlo
+
+
+def mc_session(seed: int) -> dict:
+    """One simulated session: errors of both methods on the same poses, and the CRLB."""
+    out: dict = {"seed": seed}
+    ps = simulate_poses(N_POSES, seed=seed, noise_volts=NOISE_VOLTS)
+    truth = PAPER7.free_values(ps.truth)
+    try:
+        cal = calibrate(ps.volts, PAPER7, NOMINAL, n_select=N_SELECT, method="ml")
+    except Exception as exc:  # counted; the run carries on
+        out["ml"] = {"failed": f"{type(exc).__name__}: {exc}"}
+        return out  # no pose set: the paper's method has nothing to run on
+    idx = cal.selection.indices
+    crlb = cramer_rao(ps.rotations[idx], ps.truth, PAPER7.tie_matrix, noise_volts=SIGMA_VOLTS)
+    out["crlb"] = np.sqrt(np.diag(crlb))
+    out["n"] = len(idx)
+    results = {"ml": lambda: cal.identification}
+    results["paper"] = lambda: identify(ps.volts[idx], PAPER7, NOMINAL, method="paper")
+    for method, get in results.items():
+        try:
+            r = get()
+        except Exception as exc:
+            out[method] = {"failed": f"{type(exc).__name__}: {exc}"}
+            continue
+        out[method] = {
+            "err": PAPER7.free_values(r.params) - truth,
+            "std": np.asarray(r.std),
+            "converged": bool(r.converged),
+            "used": int(np.sum(r.used)),
+            "iterations": int(r.iterations),
+        }
+    return out
+
+
+def _one_thread_workers() -> None:
+    for var in THREAD_VARS:
+        os.environ[var] = "1"
+
+
+@contextmanager
+def _environment(values: dict[str, str]):
+    """Set environment variables for the duration (spawned workers inherit them before they
+    import numpy, so the BLAS thread count takes)."""
+    old = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def run_mc(n_sessions: int, jobs: int, first_seed: int) -> None:
+    print(
+        f"== mc: {n_sessions} simulated sessions, {N_POSES} single-scan poses each, "
+        f"{1000 * NOISE_VOLTS:.0f} mV, quantised; {N_SELECT} selected by calibrate(ml), both "
+        "methods on the same poses"
+    )
+    print(
+        f"   CRLB at the true rotations and parameters, sigma = sqrt({NOISE_VOLTS}^2 + LSB^2/12)"
+        f" = {1000 * SIGMA_VOLTS:.3f} mV (LSB = 20 V / 4096: the converter's rounding adds "
+        "LSB^2/12)"
+    )
+    seeds = list(range(first_seed, first_seed + n_sessions))
+    t0 = time.perf_counter()
+    if jobs > 1:
+        with _environment({v: "1" for v in THREAD_VARS}):
+            ctx = mp.get_context("spawn")
+            with ctx.Pool(jobs, initializer=_one_thread_workers) as pool:
+                rows = pool.map(mc_session, seeds, chunksize=4)
+    else:
+        rows = [mc_session(s) for s in seeds]
+    wall = time.perf_counter() - t0
+    names = PAPER7.free
+    verdicts = []
+    for method in METHODS:
+        ok = [r for r in rows if method in r and "failed" not in r[method]]
+        failed = [r for r in rows if method in r and "failed" in r[method]]
+        skipped = n_sessions - len(ok) - len(failed)
+        print()
+        print(
+            f"-- {method}: {len(ok)} sessions, {len(failed)} failed"
+            + (f", {skipped} not run (no pose set)" if skipped else "")
+            + f", {sum(not r[method]['converged'] for r in ok)} not converged"
+            + (
+                f"; poses used median {statistics.median(r[method]['used'] for r in ok):.0f}"
+                f" (min {min(r[method]['used'] for r in ok)}) of {N_SELECT}"
+                f"; iterations median {statistics.median(r[method]['iterations'] for r in ok):.0f}"
+                if ok
+                else ""
+            )
+        )
+        for r in failed[:5]:
+            print(f"   seed {r['seed']}: {r[method]['failed']}")
+        if not ok:
+            verdicts.append((method, float("nan"), 0, ""))
+            continue
+        err = np.array([r[method]["err"] for r in ok])
+        std = np.array([r[method]["std"] for r in ok])
+        crlb = np.array([r["crlb"] for r in ok])
+        z = err / crlb
+        k = len(ok)
+        print(
+            f"   {'param':>5} {'RMS err':>8} {'RMS/CRLB':>8} {'mean err +- se':>17} "
+            f"{'mean z +- se':>15} {'':>6} {'std/CRLB':>8} {'RMS err/std':>11} {'MAD/CRLB':>8} "
+            f"{'all-used':>8}"
+        )
+        full = np.array([r[method]["used"] == r["n"] for r in ok])
+        ratios = []
+        for j, name in enumerate(names):
+            e, zz = err[:, j], z[:, j]
+            rms_z = float(np.sqrt(np.mean(zz**2)))
+            ratios.append(rms_z)
+            se_e = float(np.std(e, ddof=1) / np.sqrt(k))
+            se_z = float(np.std(zz, ddof=1) / np.sqrt(k))
+            biased = "biased" if abs(np.mean(zz)) > 3 * se_z else ""
+            print(
+                f"   {name:>5} {np.sqrt(np.mean(e**2)):8.4f} {rms_z:8.3f} "
+                f"{np.mean(e):+8.4f} +- {se_e:6.4f} {np.mean(zz):+6.3f} +- {se_z:5.3f} "
+                f"{biased:>6} {np.median(std[:, j] / crlb[:, j]):8.3f} "
+                f"{np.sqrt(np.mean((e / std[:, j]) ** 2)):11.3f} "
+                f"{1.4826 * np.median(np.abs(zz)):8.3f} "
+                f"{np.sqrt(np.mean(zz[full] ** 2)) if full.any() else np.nan:8.3f}"
+            )
+        worst = int(np.argmax(ratios))
+        verdicts.append((method, ratios[worst], k, names[worst]))
+        print(
+            "   (errors in mm; z = error / that session's CRLB std; MAD/CRLB = 1.4826 median |z|,\n"
+            "    what RMS/CRLB would be without outliers; all-used: RMS/CRLB over the "
+            f"{int(full.sum())} sessions\n    where the method used all {N_SELECT} poses)"
+        )
+    print()
+    for v in verdicts:
+        method, worst = v[0], v[1]
+        if v[2] == 0:
+            print(f"verdict {method}: no successful session")
+            continue
+        # the RMS of k Gaussian z's is known to about 1/sqrt(2k)
+        se = worst / np.sqrt(2 * v[2])
+        line = f"verdict {method:>5}: max RMS/CRLB {worst:.3f} +- {se:.3f} ({v[3]})"
+        if method == "ml":
+            line += f"; target <= {ML_TARGET}: {'met' if worst <= ML_TARGET else 'NOT met'}"
+        else:
+            line += " (baseline)"
+        print(line)
+    print(f"wall time {wall:.1f} s ({jobs} process(es))")
+
+
+# ---------------------------------------------------------------------------- scale
+
+
+@contextmanager
+def _counting(module, name: str):
+    """Count the calls of ``module.name`` (the model evaluations of a fit) while inside."""
+    original = getattr(module, name)
+    calls = [0]
+
+    def counted(*args, **kwargs):
+        calls[0] += 1
+        return original(*args, **kwargs)
+
+    setattr(module, name, counted)
+    try:
+        yield calls
+    finally:
+        setattr(module, name, original)
+
+
+def evaluations(volts: np.ndarray, method: str) -> int:
+    """Model evaluations (residuals and Jacobians of every pose) one identify() makes:
+    accepted and rejected LM steps, and the covariance at the end."""
+    # the package exports the function identify(), which hides its module's name
+    ident_mod = importlib.import_module("calibration.identify")
+    implicit_mod = importlib.import_module("calibration.implicit")
+    if method == "ml":
+        module, name = implicit_mod, "model_jacobians"
+    else:
+        module, name = ident_mod, "loop_residuals"
+    with _counting(module, name) as calls:
+        identify(volts, PAPER7, NOMINAL, method=method)
+    return calls[0]
+
+
+def run_scale(repeats: int) -> None:
+    print(
+        f"== scale: identify() end to end, median of {repeats}; "
+        f"simulate_poses(m, seed=1), {1000 * NOISE_VOLTS:.0f} mV"
+    )
+    print(
+        f"   {'method':>6} {'poses':>6} {'iter':>5} {'conv':>5} {'total s':>8} {'ms/iter':>8} "
+        f"{'us/pose/iter':>12} {'evals':>5} {'us/pose/eval':>12} {'FK start s':>10}"
+    )
+    times: dict[tuple[str, int], float] = {}
+    per: dict[tuple[str, int], float] = {}
+    per_eval: dict[tuple[str, int], float] = {}
+    stalled = []
+    for m in SCALE_SIZES:
+        ps = simulate_poses(m, seed=1, noise_volts=NOISE_VOLTS)
+        t_fk, _ = median_time(lambda ps=ps: start_rotations(ps.volts, NOMINAL), repeats)
+        for method in METHODS:
+            if method == "paper" and m > PAPER_MAX_POSES:
+                continue
+            t, r = median_time(
+                lambda ps=ps, method=method: identify(ps.volts, PAPER7, NOMINAL, method=method),
+                repeats,
+            )
+            it = max(r.iterations, 1)
+            ev = evaluations(ps.volts, method)  # a run of its own: the timed ones are bare
+            times[method, m] = t
+            per[method, m] = 1e6 * t / it / m
+            per_eval[method, m] = 1e6 * t / max(ev, 1) / m
+            if not r.converged:
+                stalled.append(f"{method} at {m} poses: {r.message}")
+            fk = f"{t_fk:10.3f}" if method == "ml" else f"{'':>10}"
+            print(
+                f"   {method:>6} {m:6d} {r.iterations:5d} {'yes' if r.converged else 'NO':>5} "
+                f"{t:8.3f} {1000 * t / it:8.2f} {per[method, m]:12.2f} {ev:5d} "
+                f"{per_eval[method, m]:12.2f} {fk}",
+                flush=True,
+            )
+    print("   (iter: LM iterations over all passes; evals: model evaluations, rejected LM trial")
+    print("    steps and the covariance included; FK start: the forward kinematics that ml")
+    print("    starts its rotations from, once per pass, inside the total)")
+    for line in stalled:
+        print(f"   not converged: {line}")
+    print()
+    for method in METHODS:
+        a, b = times.get((method, 1000)), times.get((method, 10000))
+        if a and b:
+            print(
+                f"{method:>5}: time(10000)/time(1000) = {b / a:.1f} (10x the poses); per pose "
+                f"per iteration {per[method, 10000] / per[method, 1000]:.2f}x, per pose per "
+                f"evaluation {per_eval[method, 10000] / per_eval[method, 1000]:.2f}x"
+            )
+    if ("ml", 10000) in times and ("paper", 10000) in times:
+        t_ml, t_p = times["ml", 10000], times["paper", 10000]
+        print(f"10,000 poses: ml {t_ml:.3f} s, paper {t_p:.3f} s (ml/paper {t_ml / t_p:.2f})")
+    if ("ml", 10000) in times:
+        t = times["ml", 10000]
+        print(f"target: ml on 10,000 poses < 1 s: {'met' if t < 1 else 'NOT met'} ({t:.3f} s)")
+
+
+# ---------------------------------------------------------------------------- sessions
+
+
+def run_sessions(seeds: list[int], directory: Path | None) -> None:
+    from session_helpers import calibrate_json, fresh_config, live_sessions, trim, truth_for
+
+    from daemon.recording import find_recordings
+
+    print(
+        f"== sessions: {len(seeds)} technician sessions, 40 mV, recorded through loopcal "
+        "simulate + loopcal record (3 at a time, 10x speed), cut to exactly two minutes "
+        "(scans 600..2999), calibrated by loopcal calibrate --json --method ml|paper"
+    )
+    with tempfile.TemporaryDirectory(prefix="bench_ml_") as tmp:
+        root = directory if directory is not None else Path(tmp)
+        root.mkdir(parents=True, exist_ok=True)
+        print(f"   recordings under {root}")
+        t0 = time.perf_counter()
+        two: dict[int, Path] = {}
+        todo = []
+        for s in seeds:
+            d = root / f"two-{s}"
+            if d.is_dir() and find_recordings(d):
+                two[s] = d  # a cached cut (the truth follows from the seed)
+            else:
+                todo.append(s)
+        for b in range(0, len(todo), 3):
+            batch = todo[b : b + 3]
+            for old in batch:
+                src = root / f"session-{old}"
+                if src.exists():  # a partial earlier run: start afresh
+                    shutil.rmtree(src)
+            try:
+                recorded = live_sessions(root, batch, minutes=2.7, speed=10.0)
+            except Exception as exc:
+                print(f"   recording seeds {batch} failed: {type(exc).__name__}: {exc}")
+                continue
+            for sess in recorded:
+                try:
+                    two[sess.seed] = trim(sess.directory, root / f"two-{sess.seed}", 600, 3000)
+                except AssertionError as exc:
+                    print(f"   seed {sess.seed}: {exc}")
+        t_rec = time.perf_counter() - t0
+        print(f"   recorded {len(todo)} session(s) in {t_rec:.0f} s; {len(two)} usable")
+        t0 = time.perf_counter()
+        results: dict[str, list] = {m: [] for m in METHODS}
+        failures: dict[str, list] = {m: [] for m in METHODS}
+        for s in seeds:
+            if s not in two:
+                continue
+            truth = truth_for(s)
+            config = fresh_config(root / f"controller-{s}.toml")
+            for method in METHODS:
+                rc, doc, err = calibrate_json(
+                    two[s], "--controller-config", config, "--method", method
+                )
+                if not doc.get("parameters"):
+                    failures[method].append((s, rc, err.strip().splitlines()[-1:] or [""]))
+                    continue
+                e = {n: doc["parameters"][n]["value"] - truth[INDEX[n]] for n in PAPER7.free}
+                sd = {n: doc["parameters"][n]["std"] for n in PAPER7.free}
+                results[method].append((s, e, sd, bool(doc.get("accepted"))))
+        t_cal = time.perf_counter() - t0
+    print(f"   calibrated {2 * len(two)} times in {t_cal:.0f} s")
+    for method in METHODS:
+        rows = results[method]
+        print()
+        print(
+            f"-- {method}: {len(rows)} calibrated, {sum(r[3] for r in rows)} accepted, "
+            f"{len(failures[method])} failed"
+        )
+        for s, rc, last in failures[method]:
+            print(f"   seed {s}: rc {rc}: {last[0]}")
+        if not rows:
+            continue
+        head = f"   {'param':>5} {'RMS err':>8} {'max |err|':>9} {'RMS err/std':>11}"
+        print(head + (f" {'target':>7}" if method == "ml" else ""))
+        met = True
+        for n in PAPER7.free:
+            e = np.array([r[1][n] for r in rows])
+            sd = np.array([r[2][n] for r in rows])
+            rms = float(np.sqrt(np.mean(e**2)))
+            line = (
+                f"   {n:>5} {rms:8.4f} {np.max(np.abs(e)):9.4f} "
+                f"{np.sqrt(np.mean((e / sd) ** 2)):11.3f}"
+            )
+            if method == "ml":
+                ok = rms < SESSION_TARGETS[n]
+                met &= ok
+                line += f"  < {SESSION_TARGETS[n]:.2f} {'met' if ok else 'NOT met'}"
+            print(line)
+        print("   (errors in mm, against the simulated truth)")
+        if method == "ml":
+            print(f"ml session targets: {'all met' if met else 'NOT all met'}")
+    if len(results["ml"]) and len(results["paper"]):
+        both = {r[0] for r in results["ml"]} & {r[0] for r in results["paper"]}
+        ratio = []
+        for n in PAPER7.free:
+            ml = np.array([r[1][n] for r in results["ml"] if r[0] in both])
+            pp = np.array([r[1][n] for r in results["paper"] if r[0] in both])
+            ratio.append(f"{n} {np.sqrt(np.mean(pp**2) / np.mean(ml**2)):.2f}")
+        print(f"RMS error paper/ml on the same {len(both)} recordings: " + ", ".join(ratio))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--part", choices=("mc", "scale", "sessions"), default=None)
+    ap.add_argument("--sessions", type=int, default=200, help="Monte Carlo sessions (200)")
+    ap.add_argument("--first-seed", type=int, default=1, help="first Monte Carlo seed (1)")
+    ap.add_argument("--jobs", type=int, default=2, help="Monte Carlo processes (2)")
+    ap.add_argument("--repeats", type=int, default=3, help="timing repeats (3)")
+    ap.add_argument(
+        "--seeds", type=int, nargs="+", default=list(range(101, 113)), help="session seeds"
+    )
+    ap.add_argument("--dir", type=Path, default=None, help="keep the recordings here")
+    args = ap.parse_args()
+    parts = [args.part] if args.part else ["mc", "scale", "sessions"]
+    for i, part in enumerate(parts):
+        if i:
+            print()
+        if part == "mc":
+            run_mc(args.sessions, args.jobs, args.first_seed)
+        elif part == "scale":
+            run_scale(args.repeats)
+        else:
+            run_sessions(args.seeds, args.dir)
+        sys.stdout.flush()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
