@@ -203,6 +203,7 @@ def fit(
         dU = np.diag(U).copy()
         dV = np.einsum("mii->mi", Vk).copy()
         step_taken = False
+        first_predicted = None  # the decrease the least damped step of this turn predicts
         while lam < 1e12:
             Vd = Vk + lam * dV[:, :, None] * np.eye(3)
             try:
@@ -228,6 +229,10 @@ def fit(
                 r_new, Jp_new, Jr_new = state(p_new, R_new)
                 new_cost = float(np.sum(r_new * r_new))
                 predicted = float(dx @ (lam * dU * dx - gp) + np.sum(dw * (lam * dV * dw - gk)))
+                if first_predicted is None:
+                    first_predicted = predicted
+                    if predicted <= 10 * DECREMENT_TOL * max(cost / dof, EXACT_FIT):
+                        break  # at the minimum to rounding: stop here, below
                 rho = (cost - new_cost) / predicted if predicted > 0 else -1.0
                 if np.isfinite(new_cost) and rho > 0:
                     lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
@@ -237,8 +242,13 @@ def fit(
             lam *= nu
             nu *= 2.0
         if not step_taken:
+            floor = DECREMENT_TOL * max(cost / dof, EXACT_FIT)
             if cost <= EXACT_FIT * r.size:
                 converged, message = True, "converged (exact fit)"
+            elif first_predicted is not None and first_predicted <= 10 * floor:
+                # at the minimum to rounding: even the Gauss-Newton step promises less than
+                # the tolerance, and rounding hides it
+                converged, message = True, "converged (at rounding level)"
             else:
                 message = "no step reduces the misfit (stalled)"
             break
