@@ -40,6 +40,11 @@ KINDS: dict[str, str] = {
     "disk_recovered": "writing works again (details: path, backlog scans, outage_s)",
     "backlog_dropped": "the in-memory backlog overflowed while the disk failed (details: scans)",
     "retention": "an old recording was deleted to stay under the disk budget (details: path)",
+    "offset_drift": "the loops no longer close at the controller config: a sensor's offset "
+    "moved (details: sensor 1..4, shift_mm, std_mm, statistic, threshold, margin, poses, "
+    "false_alarm)",
+    "offset_drift_cleared": "that sensor's loops close again (details: sensor, poses)",
+    "guidance": "the live guidance's verdict while recording (details: enough, reason)",
 }
 
 

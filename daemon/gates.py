@@ -85,6 +85,24 @@ def _group(name: str) -> str:
 # ---------------------------------------------------------------------------- workspace
 
 
+def coverage(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
+    """(4,) the largest tilt of the plate's output axis, deg, the poses (readings (k, 4))
+    reached toward each sensor's base point (within 45 deg of its azimuth); 0 where none."""
+    if len(volts) == 0:
+        return np.zeros(4)
+    fk = forward_kinematics(volts_to_lengths(volts, params), params)
+    axis = fk.rotations[:, :, 2]
+    tilt = np.degrees(np.arccos(np.clip(axis[:, 2], -1, 1)))
+    az = np.degrees(np.arctan2(axis[:, 1], axis[:, 0]))
+    A = base_points(params)
+    reach = np.zeros(4)
+    for i in range(4):
+        a = np.degrees(np.arctan2(A[i, 1], A[i, 0]))
+        near = np.abs((az - a + 180) % 360 - 180) <= 45
+        reach[i] = float(tilt[near].max()) if near.any() else 0.0
+    return reach
+
+
 def coverage_advice(volts: np.ndarray, params: np.ndarray) -> str:
     """Which way the technician should tilt the plate next, from where the poses went.
 
@@ -93,16 +111,7 @@ def coverage_advice(volts: np.ndarray, params: np.ndarray) -> str:
     azimuth). The sensor reached least is where to go."""
     if len(volts) == 0:
         return "move the plate by hand through its whole range, holding each position still"
-    fk = forward_kinematics(volts_to_lengths(volts, params), params)
-    axis = fk.rotations[:, :, 2]
-    tilt = np.degrees(np.arccos(np.clip(axis[:, 2], -1, 1)))
-    az = np.degrees(np.arctan2(axis[:, 1], axis[:, 0]))
-    A = base_points(params)
-    reach = []
-    for i in range(4):
-        a = np.degrees(np.arctan2(A[i, 1], A[i, 0]))
-        near = np.abs((az - a + 180) % 360 - 180) <= 45
-        reach.append(float(tilt[near].max()) if near.any() else 0.0)
+    reach = coverage(volts, params)
     worst = int(np.argmin(reach))
     if reach[worst] >= GOOD_TILT_DEG:
         return "record more still positions spread over the whole workspace"

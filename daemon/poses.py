@@ -70,7 +70,11 @@ def _difference_noise(volts: np.ndarray, ranges: np.ndarray) -> np.ndarray:
 
 def scan_rate(rec: Recording) -> float:
     """The recording's scan rate, Hz, from the device times of consecutive scans."""
-    s = rec.scans
+    return scan_rate_of(rec.scans)
+
+
+def scan_rate_of(s: np.ndarray) -> float:
+    """The scan rate, Hz, of scan rows, from the device times of consecutive scans."""
     if len(s) < 2:
         return 20.0
     same = (np.diff(s["epoch"]) == 0) & (np.diff(s["counter64"].astype(np.int64)) == 1)
@@ -93,9 +97,23 @@ def recorded_poses(
     0.2 V over 10 scans). gap_margin_s: scans this close to a gap or restart are left out.
     longest_s: longer still stretches are split into poses of at most this long.
     """
-    s = rec.scans
+    return poses_of_scans(
+        rec.scans, window_s=window_s, band_volts=band_volts, gap_margin_s=gap_margin_s,
+        longest_s=longest_s,
+    )  # fmt: skip
+
+
+def poses_of_scans(
+    s: np.ndarray,
+    *,
+    window_s: float = STILL_WINDOW_S,
+    band_volts: float = 0.25,
+    gap_margin_s: float = GAP_MARGIN_S,
+    longest_s: float = LONGEST_POSE_S,
+) -> RecordedPoses:
+    """:func:`recorded_poses` of scan rows (SCAN_DTYPE) held in memory."""
     n = len(s)
-    rate = scan_rate(rec)
+    rate = scan_rate_of(s)
     bad_channel = ~scan_rows.trustworthy(s).all(axis=1)
     breaks = np.flatnonzero((s["missed"] > 0) | s["restarted"])
     if n:

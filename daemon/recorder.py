@@ -30,6 +30,8 @@ import numpy as np
 from .acquisition import Acquisition, AcquisitionStats, Batch, DeviceInfo, ResumePoint
 from .controller_config import ControllerConfig, load_controller_config, nominal_config
 from .events import Event, Level
+from .health import HealthMonitor
+from .observers import AnalysisThread, Observer
 from .recording import (
     RecordingWriter,
     find_recordings,
@@ -111,7 +113,9 @@ class Recorder:
     settings: what to record and where. command: how the recorder was started (metadata).
     reload_settings: called on :meth:`request_reload` for the new settings (None: keep the
     settings, re-read the controller config). notifier: systemd notification (None: a
-    Notifier from the environment, a no-op outside systemd).
+    Notifier from the environment, a no-op outside systemd). observers: more observers of
+    the scans (:mod:`daemon.observers`) besides the loop-closure health monitor
+    (:mod:`daemon.health`, unless ``settings.health`` is off).
     """
 
     def __init__(
@@ -121,6 +125,7 @@ class Recorder:
         command: str,
         reload_settings: Callable[[], RecorderSettings] | None = None,
         notifier: Notifier | None = None,
+        observers: list[Observer] | None = None,
     ) -> None:
         self.settings = settings
         self.command = command
@@ -142,6 +147,13 @@ class Recorder:
         self._rotate = False
         self._writer_heartbeat = time.monotonic()
         self._local_events: list[Event] = []
+        self.health: HealthMonitor | None = None
+        if settings.health:
+            self.health = HealthMonitor(
+                self.controller, self._event, false_alarm=settings.health_false_alarm
+            )
+        watchers: list[Observer] = [self.health] if self.health is not None else []
+        self.analysis = AnalysisThread(watchers + list(observers or []))
 
     # ------------------------------------------------------------------ control
 
@@ -186,6 +198,7 @@ class Recorder:
             controller_config=str(self.controller.path or "reference geometry"),
             resume=None if resume is None else resume.__dict__,
         )
+        self.analysis.start()
         self._start_acquisition(resume)
         self._writer_thread = threading.Thread(
             target=self._writer_main, name="loopcal-writer", daemon=True
@@ -220,6 +233,7 @@ class Recorder:
             self._stop.wait(timeout)
         self.notifier.stopping(f"stopping: {self.exit_reason}")
         self._stop_acquisition()
+        self.analysis.stop()
         self._event("recorder_stop", Level.INFO, f"recorder stopping: {self.exit_reason}",
                     reason=self.exit_reason)  # fmt: skip
         self._writer_done.set()
@@ -262,6 +276,7 @@ class Recorder:
                 if a.connected
                 else f"DAQ unreachable: {a.last_error or 'connecting'}"
             )
+        parts += self.analysis.status()
         return "; ".join(parts)
 
     def _resume_point(self, directory: Path) -> ResumePoint | None:
@@ -276,7 +291,7 @@ class Recorder:
         self._acq_stop = threading.Event()
         self._acq = Acquisition(
             s.daq_url,
-            self._queue.put,
+            self._put,
             timeout=s.timeout_s,
             read_period=s.read_period_s,
             resume=resume,
@@ -286,6 +301,11 @@ class Recorder:
             daemon=True,
         )  # fmt: skip
         self._acq_thread.start()
+
+    def _put(self, batch: Batch) -> None:
+        """The acquisition's output: to the writer, and to the observers (never blocks)."""
+        self._queue.put(batch)
+        self.analysis.put(batch.rows)
 
     def _acq_main(self, acq: Acquisition, stop: threading.Event) -> None:
         try:
@@ -317,6 +337,8 @@ class Recorder:
             self.controller = controller
             self._queue.cap = new.max_backlog_scans
             self._rotate = True
+        if self.health is not None:
+            self.analysis.call(self.health.reset, controller)
         restart_daq = (new.daq_url, new.timeout_s, new.read_period_s) != (
             old.daq_url, old.timeout_s, old.read_period_s)  # fmt: skip
         if restart_daq:

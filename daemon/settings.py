@@ -18,6 +18,10 @@ The daemon's config file (every key; docs/daemon.md says the same)::
     [controller]
     config = "/etc/loopcal/controller.toml"        # the controller config the poses use
 
+    [health]
+    enabled = true           # watch loop closure and raise offset_drift events
+    false_alarm = 1e-8       # probability per still pose of an alarm when nothing moved
+
 Unknown tables or keys and bad values are refused with a message naming the key.
 """
 
@@ -53,6 +57,8 @@ class RecorderSettings:
     (0: keep all). max_backlog_scans: scans kept in memory while the disk refuses them.
     controller_config: the controller config file, or None for the reference geometry.
     duration_s: stop after this long (``loopcal record --duration``), or None.
+    health: watch loop closure (:mod:`daemon.health`); health_false_alarm: its false-alarm
+    probability per still pose.
     """
 
     daq_url: str
@@ -66,6 +72,8 @@ class RecorderSettings:
     max_backlog_scans: int = 500_000
     controller_config: Path | None = None
     duration_s: float | None = None
+    health: bool = True
+    health_false_alarm: float = 1e-8
 
     def checked(self, where: str = "") -> RecorderSettings:
         """Validate every value; raises SettingsError naming the key."""
@@ -99,6 +107,11 @@ class RecorderSettings:
             _positive(self.duration_s, "duration_s", bad)
         if str(self.directory) == "":
             raise bad("directory", "is empty")
+        if not isinstance(self.health, bool):
+            raise bad("health", f"must be true or false, got {self.health!r}")
+        fa = self.health_false_alarm
+        if isinstance(fa, bool) or not isinstance(fa, (int, float)) or not 0 < fa < 1e-2:
+            raise bad("health_false_alarm", f"must be a probability in (0, 0.01), got {fa!r}")
         return self
 
 
@@ -114,6 +127,8 @@ _KEY_NAMES = {
     "max_backlog_scans": "[recording].max_backlog_scans",
     "controller_config": "[controller].config",
     "duration_s": "--duration",
+    "health": "[health].enabled",
+    "health_false_alarm": "[health].false_alarm",
 }
 
 
@@ -154,6 +169,7 @@ _SCHEMA: dict[str, dict[str, str]] = {
         "max_backlog_scans": "max_backlog_scans",
     },
     "controller": {"config": "controller_config"},
+    "health": {"enabled": "health", "false_alarm": "health_false_alarm"},
 }
 _REQUIRED = {("daq", "url"), ("recording", "directory")}
 
@@ -211,6 +227,14 @@ def _convert(p: Path, table: str, key: str, field: str, v: Any) -> Any:
             return parse_size(v)
         except ValueError as exc:
             raise SettingsError(f"{where}: {exc}") from None
+    if field == "health":
+        if not isinstance(v, bool):
+            raise SettingsError(f"{where}: must be true or false, got {v!r}")
+        return v
+    if field == "health_false_alarm":
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise SettingsError(f"{where}: must be a probability, got {v!r}")
+        return float(v)
     if field == "max_backlog_scans":
         if isinstance(v, bool) or not isinstance(v, int):
             raise SettingsError(f"{where}: must be an integer, got {v!r}")

@@ -14,6 +14,7 @@ from calibration.kinematics import inverse_kinematics, lengths_to_volts
 from calibration.parameters import check_vector
 from calibration.simulate import NOISE_VOLTS
 
+from .drift import OffsetDrift, offset_shift
 from .scenarios import Scenario
 
 _DIAG = np.arange(4)
@@ -23,7 +24,9 @@ class MechanismSource:
     """:class:`~simulator.source.SignalSource` of a simulated mechanism.
 
     scenario: the plate's motion; truth: the mechanism's true parameters (20,);
-    noise_volts: 1-sigma noise per conversion; seed: the noise stream.
+    noise_volts: 1-sigma noise per conversion; seed: the noise stream; drifts: offset
+    drifts of the sensors (:mod:`simulator.drift`); more can be added later to
+    :attr:`drifts` (they act from their own start times).
     """
 
     def __init__(
@@ -33,6 +36,7 @@ class MechanismSource:
         *,
         noise_volts: float = NOISE_VOLTS,
         seed: int = 0,
+        drifts: tuple[OffsetDrift, ...] = (),
     ) -> None:
         if not np.isfinite(noise_volts) or noise_volts < 0:
             raise ValueError(f"noise must be a non-negative number of volts, got {noise_volts}")
@@ -40,11 +44,15 @@ class MechanismSource:
         self.truth = check_vector(truth).copy()
         self.noise_volts = float(noise_volts)
         self._rng = np.random.default_rng(seed)
+        self.drifts: list[OffsetDrift] = list(drifts)
 
     def clean(self, t: np.ndarray) -> np.ndarray:
         """Noise-free volts of the four channels at their instants t (4,)."""
-        R = self.scenario.rotation(np.asarray(t, dtype=float))  # one rotation per channel
+        t = np.asarray(t, dtype=float)
+        R = self.scenario.rotation(t)  # one rotation per channel
         d = inverse_kinematics(R, self.truth)[_DIAG, _DIAG]  # channel i at its own instant
+        if self.drifts:
+            d = d - offset_shift(self.drifts, t)
         return lengths_to_volts(d, self.truth)
 
     def convert(self, t: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ from calibration.parameters import check_vector
 from calibration.simulate import NOISE_VOLTS
 from drivers.ldq412 import CHANNEL_SKEW_S, N_CHANNELS, volts_to_code
 
+from .drift import OffsetDrift, offset_shift
 from .scenarios import Scenario
 
 _CHUNK = 50_000
@@ -29,11 +30,13 @@ def mechanism_scans(
     rate_hz: int = 20,
     noise_volts: float = NOISE_VOLTS,
     seed: int = 0,
+    drifts: tuple[OffsetDrift, ...] = (),
 ) -> tuple[np.ndarray, np.ndarray]:
     """The first ``n_scans`` scans after power-on: (time_us (n,) int64, codes (n, 4) int64).
 
     The noise stream is the one :class:`simulator.mechanism.MechanismSource` draws with the
-    same seed, so the codes equal the emulator's, scan for scan.
+    same seed, so the codes equal the emulator's, scan for scan. drifts: sensor offset
+    drifts (:mod:`simulator.drift`).
     """
     p = check_vector(truth)
     rng = np.random.default_rng(seed)
@@ -46,6 +49,8 @@ def mechanism_scans(
         t = (time_us[a:b] / 1e6)[:, None] + skew  # (m, 4): each channel at its own instant
         R = scenario.rotation(t.reshape(-1))
         d = inverse_kinematics(R, p).reshape(b - a, N_CHANNELS, N_CHANNELS)[:, _DIAG, _DIAG]
+        if drifts:
+            d = d - offset_shift(drifts, t)
         clean = lengths_to_volts(d, p)
         noise = rng.normal(0.0, noise_volts, (b - a, N_CHANNELS))
         codes[a:b] = volts_to_code(clean + noise)

@@ -15,6 +15,9 @@ Fault schedule, times in seconds of device time since start (repeatable ``--faul
     stuck@15+5:2=1000     channel 2 stuck at code 1000 from 15 s for 5 s
     sensor@15+5:3         sensor fault on channel 3 from 15 s for 5 s
     saturate@15+5:1=high  channel 1 at the high rail from 15 s for 5 s
+    offset@30:3=+0.5      sensor 3's offset steps by +0.5 mm at 30 s (held; +DUR: for DUR s)
+    creep@30:2=1.0        sensor 2's offset creeps by 1.0 mm per minute from 30 s
+                          (for ever; +DUR: for DUR s, then held)
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from calibration.parameters import NAMES, ParameterModel, from_dict, to_dict
 from calibration.simulate import NOISE_VOLTS, perturbed_truth
 
 from .clock import Clock, HeldClock, RealClock, SimClock
+from .drift import OffsetDrift
 from .emulator import TRANSPORTS, Emulator
 from .faults import FaultInjector
 from .mechanism import MechanismSource, ReplaySource
@@ -44,7 +48,11 @@ from .scenarios import HandMoves, Static, Sweep
 _FAULT = re.compile(
     r"^(?P<kind>[a-z]+)@(?P<at>\d+(?:\.\d*)?)(?:\+(?P<dur>\d+(?:\.\d*)?))?(?::(?P<arg>.+))?$"
 )
-_KINDS = ("restart", "stall", "disconnect", "garbage", "corrupt", "stuck", "sensor", "saturate")
+_KINDS = (
+    "restart", "stall", "disconnect", "garbage", "corrupt", "stuck", "sensor", "saturate",
+    "offset", "creep",
+)  # fmt: skip
+DRIFT_KINDS = {"offset": "step", "creep": "creep"}
 
 
 @dataclass(frozen=True)
@@ -71,7 +79,7 @@ class FaultEvent:
         channel = value = None
         if kind in ("stall", "disconnect", "stuck", "sensor", "saturate") and dur is None:
             raise ValueError(f"fault {text!r} needs a duration: {kind}@SECONDS+DURATION")
-        if kind in ("stuck", "sensor", "saturate"):
+        if kind in ("stuck", "sensor", "saturate", "offset", "creep"):
             ch, _, value = (arg or "").partition("=")
             if ch not in ("1", "2", "3", "4"):
                 raise ValueError(f"fault {text!r} needs a channel 1..4 after ':'")
@@ -80,11 +88,28 @@ class FaultEvent:
                 raise ValueError(f"fault {text!r}: stuck needs a code 0..4095 (:CH=CODE)")
             if kind == "saturate" and value not in ("high", "low"):
                 raise ValueError(f"fault {text!r}: saturate needs :CH=high or :CH=low")
+            if kind in DRIFT_KINDS:
+                try:
+                    ok = np.isfinite(float(value))
+                except ValueError:
+                    ok = False
+                if not ok:
+                    unit = "mm" if kind == "offset" else "mm per minute"
+                    raise ValueError(f"fault {text!r}: {kind} needs :CH=AMOUNT in {unit}")
         elif kind in ("garbage", "corrupt"):
             value = arg or ("16" if kind == "garbage" else "1")
             if not value.isdigit() or int(value) < 1:
                 raise ValueError(f"fault {text!r}: {kind} takes a positive count")
         return cls(kind, float(m["at"]), dur, channel, value)
+
+    def drift(self) -> OffsetDrift | None:
+        """The offset drift this fault is (offset, creep), else None: drifts are functions
+        of device time inside the simulated mechanism, not switched by the fault loop."""
+        if self.kind not in DRIFT_KINDS:
+            return None
+        return OffsetDrift(
+            DRIFT_KINDS[self.kind], self.channel, self.at, float(self.value), self.duration
+        )
 
     def switch_on(self, f: FaultInjector) -> None:
         k = self.kind
@@ -256,9 +281,12 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             raise ValueError("--speed must be positive")
         if args.noise_mv < 0:
             raise ValueError("--noise-mv must not be negative")
+        drifts = tuple(d for d in (e.drift() for e in faults) if d is not None)
         if args.scenario == "replay":
             if args.replay is None:
                 raise ValueError("--scenario replay needs --replay FILE")
+            if drifts:
+                raise ValueError("offset and creep faults need a simulated mechanism, not a replay")
             source = ReplaySource.from_truth_file(args.replay, loop=True)
             scenario = None
         else:
@@ -268,7 +296,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
                 "sweep": Sweep,
             }[args.scenario]()
             source = MechanismSource(
-                scenario, truth, noise_volts=args.noise_mv / 1000, seed=args.seed
+                scenario, truth, noise_volts=args.noise_mv / 1000, seed=args.seed, drifts=drifts
             )
     except (ValueError, OSError) as exc:
         print(f"loopcal simulate: error: {exc}", file=sys.stderr)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -18,6 +19,7 @@ import numpy as np
 from calibration.parameters import NOMINAL
 from simulator import Emulator
 from simulator.clock import HeldClock
+from simulator.drift import OffsetDrift
 from simulator.mechanism import MechanismSource
 from simulator.scenarios import HandMoves
 
@@ -25,14 +27,19 @@ LOOPCAL = [sys.executable, "-m", "daemon.cli"]
 
 
 def hand_emulator(
-    transport: str = "modbus-tcp", *, rate: int = 20, speed: float = 1.0, seed: int = 0
+    transport: str = "modbus-tcp",
+    *,
+    rate: int = 20,
+    speed: float = 1.0,
+    seed: int = 0,
+    drifts: tuple[OffsetDrift, ...] = (),
 ) -> Emulator:
     """An emulated LDQ-412 on a technician-moved shoulder joint (not started), whose clock
     (``speed`` times wall time) starts at the recorder's first request: however long the
     recorder subprocess takes to start on a busy machine, the FIFO (1.28 s deep at 200 Hz)
     does not overflow before it connects."""
     clock = HeldClock(speed)  # the emulator starts it at the first request
-    source = MechanismSource(HandMoves(seed), NOMINAL, noise_volts=0.04, seed=seed)
+    source = MechanismSource(HandMoves(seed), NOMINAL, noise_volts=0.04, seed=seed, drifts=drifts)
     return Emulator(transport, source, scan_rate_hz=rate, clock=clock, seed=seed)
 
 
@@ -141,3 +148,37 @@ def cpu_seconds(pid: int) -> float:
     """User + system CPU time of a process so far, s."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def write_config(path: Path, url: str, directory: Path, extra: str = "") -> Path:
+    path.write_text(
+        f'[daq]\nurl = "{url}"\n\n[recording]\ndirectory = "{directory}"\n{extra}',
+        encoding="utf-8",
+    )
+    return path
+
+
+class NotifySocket:
+    """The manager's end of the notify protocol: a unix datagram socket."""
+
+    def __init__(self, path: Path) -> None:
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.sock.settimeout(0.2)
+        self.path = path
+        self.messages: list[dict[str, str]] = []
+
+    def wait_for(self, key: str, value: str | None = None, timeout: float = 10.0) -> dict:
+        deadline = time.monotonic() + timeout
+        seen = len(self.messages)
+        while time.monotonic() < deadline:
+            for m in self.messages[seen:]:
+                if key in m and (value is None or m[key] == value):
+                    return m
+            seen = len(self.messages)
+            try:
+                data = self.sock.recv(4096)
+            except TimeoutError:
+                continue
+            self.messages.append(dict(line.split("=", 1) for line in data.decode().splitlines()))
+        raise AssertionError(f"no {key}={value} within {timeout} s: {self.messages}")

@@ -8,7 +8,6 @@ import re
 import resource
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -16,20 +15,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from recorder_helpers import Proc, assert_matches_truth, cpu_seconds, hand_emulator, record
+from recorder_helpers import (
+    NotifySocket,
+    Proc,
+    assert_matches_truth,
+    cpu_seconds,
+    hand_emulator,
+    record,
+    write_config,
+)
 
 from daemon.recording import find_recordings, read_recordings
 from daemon.settings import RecorderSettings, SettingsError, load_daemon_config, parse_size
 
 pytestmark = pytest.mark.timeout(120)
-
-
-def write_config(path: Path, url: str, directory: Path, extra: str = "") -> Path:
-    path.write_text(
-        f'[daq]\nurl = "{url}"\n\n[recording]\ndirectory = "{directory}"\n{extra}',
-        encoding="utf-8",
-    )
-    return path
 
 
 def consecutive(rows: np.ndarray) -> bool:
@@ -128,32 +127,6 @@ def test_daemon_exits_2_naming_the_problem(tmp_path):
 
 
 # ---------------------------------------------------------------------------- systemd
-
-
-class NotifySocket:
-    """The manager's end of the notify protocol: a unix datagram socket."""
-
-    def __init__(self, path: Path) -> None:
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self.sock.bind(str(path))
-        self.sock.settimeout(0.2)
-        self.path = path
-        self.messages: list[dict[str, str]] = []
-
-    def wait_for(self, key: str, value: str | None = None, timeout: float = 10.0) -> dict:
-        deadline = time.monotonic() + timeout
-        seen = len(self.messages)
-        while time.monotonic() < deadline:
-            for m in self.messages[seen:]:
-                if key in m and (value is None or m[key] == value):
-                    return m
-            seen = len(self.messages)
-            try:
-                data = self.sock.recv(4096)
-            except TimeoutError:
-                continue
-            self.messages.append(dict(line.split("=", 1) for line in data.decode().splitlines()))
-        raise AssertionError(f"no {key}={value} within {timeout} s: {self.messages}")
 
 
 def test_daemon_speaks_the_notify_protocol_and_reloads_on_sighup(tmp_path):

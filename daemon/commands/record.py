@@ -1,16 +1,27 @@
 """``loopcal record``: record the DAQ to MCAP files in the foreground, for a technician or a
 test. The same engine as ``loopcal daemon``; stops after ``--duration`` or on SIGINT/SIGTERM
 with the file properly closed; SIGHUP re-reads the controller config and starts a new file.
+
+With ``--until-enough`` it guides the technician live (:mod:`daemon.guidance`): a display
+redrawn about once a second (plain lines when stdout is not a terminal, one JSON object per
+update with ``--json``), and it stops by itself once every offset's predicted standard
+deviation is at or below ``--target-mm`` and the calibration's acceptance gates would pass.
+Exit status then: 0 enough, 1 stopped before it was enough.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 from pathlib import Path
 
+from calibration.errors import ParameterError
+
 from ..controller_config import ControllerConfigError
+from ..events import Level
+from ..guidance import OFFSETS, Guidance, GuidanceUpdate
 from ..process import run_recorder, setup_logging
 from ..recorder import Recorder
 from ..settings import RecorderSettings, SettingsError, parse_size
@@ -103,6 +114,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help=f"scans kept in memory while the disk fails (default {d.max_backlog_scans})",
     )
+    p.add_argument(
+        "--until-enough",
+        action="store_true",
+        help="guide the technician live and stop once the recording calibrates well enough",
+    )
+    p.add_argument(
+        "--target-mm",
+        type=float,
+        default=0.1,
+        metavar="MM",
+        help="with --until-enough: every offset's standard deviation to reach (default 0.1)",
+    )
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="with --until-enough: one JSON object per update on stdout instead of a display",
+    )
+    p.add_argument(
+        "--no-health",
+        action="store_true",
+        help="do not watch loop closure (no offset_drift events)",
+    )
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")  # fmt: skip
 
 
@@ -119,15 +152,31 @@ def settings_from_args(args: argparse.Namespace) -> RecorderSettings:
         max_backlog_scans=args.max_backlog_scans,
         controller_config=args.controller_config,
         duration_s=args.duration,
+        health=not args.no_health,
     ).checked()
 
 
 def run(args: argparse.Namespace) -> int:
     setup_logging(args.verbose)
+    guide: Guidance | None = None
     try:
+        if (args.json or args.target_mm != 0.1) and not args.until_enough:
+            raise SettingsError("--json and --target-mm go with --until-enough")
         settings = settings_from_args(args)
-        recorder = Recorder(settings, command="loopcal record " + " ".join(sys.argv[2:]))
-    except (SettingsError, ControllerConfigError) as exc:
+        observers = []
+        if args.until_enough:
+            controller = Recorder._load_controller(settings)
+            show = Display(json_lines=args.json)
+            guide = Guidance(
+                controller, controller.model(), target_mm=args.target_mm, on_update=show.update
+            )
+            observers.append(guide)
+        recorder = Recorder(
+            settings, command="loopcal record " + " ".join(sys.argv[2:]), observers=observers
+        )
+        if guide is not None:
+            guide.on_enough = lambda u: _enough(recorder, u)
+    except (SettingsError, ControllerConfigError, ParameterError, ValueError) as exc:
         print(f"loopcal record: error: {_flag_names(str(exc))}", file=sys.stderr)
         return 2
     status = run_recorder(recorder)
@@ -142,7 +191,45 @@ def run(args: argparse.Namespace) -> int:
         why = acq.last_error if acq is not None and acq.last_error else "no scan arrived"
         log.error("nothing was recorded: %s", why)
         return 1
+    if guide is not None and status == 0 and not guide.done:
+        log.warning("stopped before the recording was enough to calibrate")
+        return 1
     return status
+
+
+def _enough(recorder: Recorder, u: GuidanceUpdate) -> None:
+    worst = max(u.std.get(n, 0.0) for n in OFFSETS)
+    recorder._event(
+        "guidance", Level.INFO,
+        f"enough: {u.poses} still poses, every offset within {worst:.3f} mm (target "
+        f"{u.target_mm:g} mm), every acceptance gate passes",
+        enough=True, poses=u.poses, std=u.std, target_mm=u.target_mm,
+    )  # fmt: skip
+    recorder.request_stop("enough to calibrate")
+
+
+class Display:
+    """The live guidance on stdout: redrawn in place on a terminal (plain ANSI, fine over
+    SSH), a block per update otherwise, or one JSON object per line."""
+
+    def __init__(self, *, json_lines: bool) -> None:
+        self.json_lines = json_lines
+        self.tty = sys.stdout.isatty()
+        self._lines = 0
+
+    def update(self, u: GuidanceUpdate) -> None:
+        if self.json_lines:
+            print(json.dumps(u.as_json()), flush=True)
+            return
+        lines = u.render()
+        if self.tty:
+            # back to the top of the previous display, clear it, draw again
+            up = f"\x1b[{self._lines}F" if self._lines else ""
+            sys.stdout.write(up + "\x1b[J" + "\n".join(lines) + "\n")
+            sys.stdout.flush()
+            self._lines = len(lines)
+        else:
+            print("\n".join(lines) + "\n", flush=True)
 
 
 def _flag_names(message: str) -> str:

@@ -1,0 +1,198 @@
+"""Loop closure of still poses at given parameters, and which sensor's offset moved.
+
+With four sensors for three degrees of freedom, every still pose tells whether the loops
+still close at the parameters in force. At parameters p, forward kinematics places the
+plate; what is left of the readings orthogonal to every rotation (:mod:`calibration.implicit`:
+the unit vector q_k orthogonal to the columns of the pose's whitened rotation Jacobian) is
+the pose's loop-closure error
+
+    e_k = q_k^T W_k (V_k - Vhat_k(R_k; p)),     W_k = diag(1 / sigma_ki),
+
+N(0, 1) when the parameters are right and sigma_ki is the noise of the pose's mean reading.
+If sensor i's offset has moved by delta mm, sensor i reads ``-delta / S_i`` V differently
+and ``e_k = h_ki delta + noise`` with ``h_ki = -q_ki / (sigma_ki S_i)``. The pattern h_i
+across poses differs from sensor to sensor (q_k turns with the pose), which is what
+attributes a shift to one sensor.
+
+The parameters in force are themselves uncertain (a calibration has standard deviations):
+an error ``dp`` adds ``a_k^T dp`` to e_k (a_k the pose's information row). Over a window of
+poses the errors are therefore correlated, with covariance ``Sigma = I + A C A^T`` (C the
+parameters' covariance), and the generalised likelihood-ratio test of "sensor i moved" is
+
+    z_i = h_i^T Sigma^-1 e,   F_i = h_i^T Sigma^-1 h_i,   delta_i = z_i / F_i,
+    T_i = z_i^2 / F_i ~ chi^2(1) when nothing moved,
+
+with standard error ``1 / sqrt(F_i)`` on delta_i. A shift that began within the window
+(a step, a creep) is tested at every change point: h_i is zero for the poses before it,
+which then serve as the reference; the alarm threshold accounts for the number of change
+points tried.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from . import implicit
+from .errors import InputError
+from .parameters import N_PARAMS, SL_GAIN, SL_OFFSET, check_vector
+from .residuals import check_volts
+
+
+@dataclass(frozen=True)
+class Closure:
+    """Loop closure of m poses at the parameters in force.
+
+    error: (m,) whitened loop-closure errors e_k (N(0, 1) if nothing moved).
+    offset_pattern: (m, 4) h_ki, the change of e_k per mm of shift of sensor i's offset.
+    information: (m, 20) a_k, the change of e_k per unit change of each parameter.
+    usable: (m,) False for poses whose rotation the lengths do not determine (their rows
+    are zero).
+    """
+
+    error: np.ndarray
+    offset_pattern: np.ndarray
+    information: np.ndarray
+    usable: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.error)
+
+
+def loop_closure(volts: np.ndarray, p: np.ndarray, sigma_volts: np.ndarray) -> Closure:
+    """The loop-closure errors of still poses.
+
+    volts: (m, 4) mean readings, V; p: (20,) parameters in force; sigma_volts: (m, 4) or (4,)
+    standard deviation of each mean reading, V (one scan's noise over the square root of
+    the scans averaged, with the converter's rounding).
+    """
+    V = check_volts(volts)
+    p = check_vector(p)
+    sigma = np.broadcast_to(np.asarray(sigma_volts, dtype=float), V.shape)
+    if not (np.all(np.isfinite(sigma)) and np.all(sigma > 0)):
+        raise InputError("sigma_volts must be positive and finite")
+    R, ok = implicit.start_rotations(V, p)
+    w = 1.0 / sigma
+    vhat, Jp, Jr = implicit.model_jacobians(R, p)
+    U, _, _ = np.linalg.svd(Jr * w[..., None], full_matrices=True)
+    q = U[:, :, 3]
+    e = np.einsum("mi,mi->m", q, (V - vhat) * w)
+    a = -np.einsum("mrn,mr->mn", Jp * w[..., None], q)
+    h = -q * w / p[SL_GAIN]
+    ok &= np.isfinite(e)
+    zero = ~ok
+    e[zero], h[zero], a[zero] = 0.0, 0.0, 0.0
+    return Closure(e, h, a, ok)
+
+
+@dataclass(frozen=True)
+class DriftTest:
+    """The likelihood-ratio test of "sensor i's offset moved" over a window of poses.
+
+    shift_mm: (4,) estimated shift of each sensor's offset, mm; std_mm: (4,) their standard
+    errors; statistic: (4,) T_i, chi^2(1) when nothing moved; all three at the change point
+    that explains the loops best, if several were tried; affected: how many of the latest
+    poses that change point leaves shifted; shape: "step" (the same shift on each of
+    them) or "creep" (growing linearly from the change point; shift_mm is then the shift at
+    the latest pose); poses: poses in the window; chi2_rms: RMS of the whitened errors
+    (about 1 when nothing moved). margin: the best sensor's statistic minus the best any
+    other sensor reaches under any hypothesis (2 ln of their likelihood ratio: how clearly
+    the pattern points at it).
+    """
+
+    shift_mm: np.ndarray
+    std_mm: np.ndarray
+    statistic: np.ndarray
+    affected: int
+    shape: str
+    margin: float
+    poses: int
+    chi2_rms: float
+
+    @property
+    def sensor(self) -> int:
+        """1..4: the sensor that explains the loops best."""
+        return int(np.argmax(self.statistic)) + 1
+
+
+def drift_test(
+    closure: Closure,
+    covariance: np.ndarray | None = None,
+    *,
+    change_points: bool = False,
+    creep: bool = False,
+) -> DriftTest:
+    """Test every sensor for an offset shift over the poses of ``closure`` (oldest first).
+
+    covariance: (20, 20) covariance of the parameters in force (None: taken as exact).
+    change_points: False tests a shift of all the poses; True tests a shift of the latest
+    k poses for every k (a change that began within the window: the poses before it are the
+    reference), and reports the change point with the largest statistic (m hypotheses per
+    sensor). creep: with change points, also test a shift growing linearly over the latest
+    k poses (2 m hypotheses per sensor; it fits a step almost as well, so it blurs which
+    sensor moved).
+    """
+    use = closure.usable
+    e = closure.error[use]
+    H = closure.offset_pattern[use]
+    m = len(e)
+    if m == 0:
+        nan = np.full(4, np.nan)
+        return DriftTest(nan, nan, np.zeros(4), 0, "step", 0.0, m, float("nan"))
+    Sigma = np.eye(m)
+    if covariance is not None:
+        C = np.asarray(covariance, dtype=float)
+        if C.shape != (N_PARAMS, N_PARAMS):
+            raise InputError(f"covariance must be ({N_PARAMS}, {N_PARAMS}), got {C.shape}")
+        A = closure.information[use]
+        Sigma = Sigma + A @ C @ A.T
+    L = np.linalg.cholesky(Sigma)
+    ew = np.linalg.solve(L, e)
+    onsets = np.arange(m) if change_points else np.zeros(1, dtype=int)
+    # the pattern of a shift that began at pose o: zero before it; a step, or a ramp that
+    # reaches the estimated shift at the latest pose
+    k = np.arange(m)[None, :]
+    o = onsets[:, None]
+    step = (k >= o).astype(float)  # (O, m)
+    ramp = step * (k - o + 1) / (m - o)
+    masks = np.concatenate([step, ramp]) if change_points and creep else step
+    shapes = ["step"] * len(onsets) + (["creep"] * len(onsets) if change_points and creep else [])
+    onsets = np.concatenate([onsets, onsets]) if change_points and creep else onsets
+    Hm = masks[:, :, None] * H[None]  # (O, m, 4)
+    Hw = np.linalg.solve(L[None], Hm)  # (O, m, 4)
+    z = np.einsum("omi,m->oi", Hw, ew)
+    F = np.einsum("omi,omi->oi", Hw, Hw)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        T = np.where(F > 0, z * z / F, 0.0)
+    b = int(np.argmax(T.max(axis=1)))  # the hypothesis that explains the loops best
+    with np.errstate(divide="ignore", invalid="ignore"):
+        shift = z[b] / F[b]
+        std = 1.0 / np.sqrt(F[b])
+    rms = float(np.sqrt(np.mean(ew * ew)))
+    best = int(np.argmax(T[b]))
+    others = np.delete(T.max(axis=0), best)
+    margin = float(T[b, best] - others.max())
+    return DriftTest(shift, std, T[b], int(m - onsets[b]), shapes[b], margin, m, rms)
+
+
+def threshold(false_alarm: float, tests: int = 4) -> float:
+    """The statistic an alarm needs so that, when nothing moved, the largest of ``tests``
+    chi^2(1) statistics (four sensors, times the change points tried) exceeds it with
+    probability at most ``false_alarm`` (Bonferroni)."""
+    if not 0 < false_alarm < 1:
+        raise InputError(f"false_alarm must lie in (0, 1), got {false_alarm}")
+    return float(chi2.isf(false_alarm / tests, 1))
+
+
+def offsets_covariance(std_mm: dict[int, float]) -> np.ndarray:
+    """A (20, 20) diagonal covariance with the given standard deviations (by parameter
+    index), e.g. the offsets' from a calibration's provenance."""
+    C = np.zeros((N_PARAMS, N_PARAMS))
+    for i, s in std_mm.items():
+        C[i, i] = float(s) ** 2
+    return C
+
+
+OFFSET_INDEX = np.arange(SL_OFFSET.start, SL_OFFSET.stop)

@@ -1,0 +1,246 @@
+"""Live guidance for the technician: while the plate is moved by hand, what has been
+collected, how well it identifies the parameters, what to do next, and when it is enough.
+
+About once a second the guidance runs the calibration worker itself
+(:func:`daemon.worker.run_worker`: still poses, held-out poses, selection, maximum-likelihood
+fit, acceptance gates) on every scan recorded so far, so its prediction is what
+``loopcal calibrate`` will report on the recording. Before there are enough poses for the
+worker, each free parameter's standard deviation is predicted from the poses'
+maximum-likelihood information at the controller config and the noise the poses show.
+
+It is *enough* once every offset's standard deviation is at or below the target and every
+acceptance gate passes; ``loopcal record --until-enough`` then stops, with the file closed.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from calibration import implicit
+from calibration.parameters import INDEX, SL_OFFSET, UNITS, ParameterModel
+
+from . import gates as G
+from .controller_config import ControllerConfig
+from .poses import RecordedPoses, poses_of_scans
+from .recording import Recording
+from .worker import run_worker
+
+PERIOD_S = 1.0
+OFFSETS = tuple(n for n in INDEX if SL_OFFSET.start <= INDEX[n] < SL_OFFSET.stop)
+#: in the last RECENT_S seconds, less than this share of scans in still poses means the
+#: technician is not holding the positions long enough
+RECENT_S, STILL_SHARE = 20.0, 0.3
+
+
+@dataclass
+class GuidanceUpdate:
+    """One update of the live guidance.
+
+    elapsed_s: since the first scan; scans, poses: collected so far. reach_deg: (4,) the
+    largest tilt reached toward each sensor. min_singular, condition: of the poses the
+    worker selected (None before it can run). std: {name: predicted standard deviation}
+    of each free parameter. gates: {name: passed} (empty before the worker can run).
+    enough: the target is met and every gate passes. instruction: what to do next.
+    """
+
+    elapsed_s: float
+    scans: int
+    poses: int
+    reach_deg: list[float]
+    min_singular: float | None
+    condition: float | None
+    std: dict[str, float]
+    target_mm: float
+    gates: dict[str, bool] = field(default_factory=dict)
+    enough: bool = False
+    instruction: str = ""
+
+    def as_json(self) -> dict[str, Any]:
+        def num(x: float | None) -> float | None:
+            return None if x is None or not np.isfinite(x) else round(float(x), 6)
+
+        return {
+            "elapsed_s": round(self.elapsed_s, 1),
+            "scans": self.scans,
+            "poses": self.poses,
+            "reach_deg": {f"sensor{i + 1}": round(r, 1) for i, r in enumerate(self.reach_deg)},
+            "min_singular": num(self.min_singular),
+            "condition": num(self.condition),
+            "std": {n: num(s) for n, s in self.std.items()},
+            "target_mm": self.target_mm,
+            "gates": self.gates,
+            "enough": self.enough,
+            "instruction": self.instruction,
+        }
+
+    def render(self) -> list[str]:
+        """The lines of the terminal display."""
+        m, s = divmod(int(self.elapsed_s), 60)
+        lines = [
+            f"loopcal guidance  {m:d}:{s:02d}  scans {self.scans:,}  still poses {self.poses}"
+            f" (need {G.MIN_POSES})",
+            f"coverage, largest tilt toward each sensor (aim for {G.GOOD_TILT_DEG:.0f} deg):",
+        ]
+        for i, r in enumerate(self.reach_deg):
+            bar = "#" * int(min(r, 45) / 45 * 30)
+            lines.append(f"  sensor {i + 1} {r:5.1f} deg |{bar:<30}|")
+        if self.min_singular is not None:
+            lines.append(
+                f"selection: min singular value {self.min_singular:.3f}, condition "
+                f"{self.condition:.1f}"
+            )
+        lines.append(f"predicted standard deviations (target {self.target_mm:g} mm on offsets):")
+        for name, sd in self.std.items():
+            unit = UNITS[name]
+            mark = ""
+            if name in OFFSETS:
+                mark = "ok" if sd <= self.target_mm else "  "
+            text = f"{sd:7.3f}" if np.isfinite(sd) else "      -"
+            lines.append(f"  {name:>4} {text} {unit:<4} {mark}")
+        if self.gates:
+            lines.append(
+                "gates: " + " ".join(f"{n}{'+' if ok else '-'}" for n, ok in self.gates.items())
+            )
+        lines.append(("ENOUGH: " if self.enough else "next: ") + self.instruction)
+        return lines
+
+
+class Guidance:
+    """An observer of the recorder's scans (:mod:`daemon.observers`) that predicts the
+    calibration and says what to do next.
+
+    controller: the config in force (the calibration's start). model: the free set.
+    target_mm: every offset's standard deviation must reach this. on_update: called with
+    each :class:`GuidanceUpdate`; on_enough: called once when it is enough.
+    """
+
+    name = "live guidance"
+
+    def __init__(
+        self,
+        controller: ControllerConfig,
+        model: ParameterModel,
+        *,
+        target_mm: float = 0.1,
+        on_update: Callable[[GuidanceUpdate], None] = lambda _: None,
+        on_enough: Callable[[GuidanceUpdate], None] = lambda _: None,
+        period_s: float = PERIOD_S,
+    ) -> None:
+        if not (np.isfinite(target_mm) and target_mm > 0):
+            raise ValueError(f"the target must be a positive number of mm, got {target_mm!r}")
+        self.controller = controller
+        self.model = model
+        self.target_mm = float(target_mm)
+        self.on_update = on_update
+        self.on_enough = on_enough
+        self.period_s = period_s
+        self._chunks: list[np.ndarray] = []
+        self._next = 0.0
+        self.last: GuidanceUpdate | None = None
+        self.done = False
+
+    def feed(self, rows: np.ndarray) -> None:
+        self._chunks.append(rows)
+        now = time.monotonic()
+        if now >= self._next and not self.done:
+            self._next = now + self.period_s
+            self.update()
+
+    def status(self) -> str:
+        u = self.last
+        if u is None:
+            return "guidance: waiting for scans"
+        worst = max((u.std[n] for n in OFFSETS if n in u.std), default=float("nan"))
+        return (
+            f"guidance: {u.poses} poses, offsets std {worst:.3f} mm (target "
+            f"{u.target_mm:g}){', ENOUGH' if u.enough else ''}"
+        )
+
+    # ------------------------------------------------------------------ the prediction
+
+    def update(self) -> GuidanceUpdate:
+        """Assess everything recorded so far (also called by :meth:`feed`)."""
+        scans = np.concatenate(self._chunks) if self._chunks else None
+        if scans is None or len(scans) == 0:
+            raise ValueError("no scans yet")
+        self._chunks = [scans]
+        elapsed = (int(scans["stamp_ns"][-1]) - int(scans["stamp_ns"][0])) / 1e9
+        start = np.array(self.controller.params, dtype=float)
+        poses = poses_of_scans(scans)
+        reach = G.coverage(poses.volts, start)
+        u = GuidanceUpdate(elapsed, len(scans), len(poses), [float(r) for r in reach], None,
+                           None, {}, self.target_mm)  # fmt: skip
+        if len(poses) >= G.MIN_POSES:
+            self._from_worker(u, Recording(scans, [], []))
+        else:
+            u.std = self._predicted_std(poses, start)
+            u.instruction = self._instruction(poses, scans, start, [])
+        self.last = u
+        self.on_update(u)
+        if u.enough and not self.done:
+            self.done = True
+            self.on_enough(u)
+        return u
+
+    def _from_worker(self, u: GuidanceUpdate, rec: Recording) -> None:
+        result = run_worker(rec, self.controller, self.model)
+        u.gates = {g.name: bool(g.passed) for g in result.gates}
+        u.std = {n: float(result.std.get(n, np.inf)) for n in self.model.free}
+        cal = result.calibration
+        if cal is not None:
+            u.min_singular = cal.identification.indices.min_singular
+            u.condition = cal.identification.indices.condition
+        offsets_ok = all(u.std.get(n, 0.0) <= self.target_mm for n in OFFSETS if n in u.std)
+        u.enough = bool(result.accepted and offsets_ok)
+        if u.enough:
+            u.instruction = (
+                "enough: the recording is complete; put the plate down "
+                "(loopcal calibrate will write the new offsets)"
+            )
+            return
+        failed = result.failed
+        if failed and failed[0].advice:
+            u.instruction = failed[0].advice
+        else:
+            params = result.params if cal is not None else np.array(self.controller.params)
+            u.instruction = self._instruction(result.poses, rec.scans, params, failed)
+
+    def _predicted_std(self, poses: RecordedPoses, p: np.ndarray) -> dict[str, float]:
+        """Each free parameter's standard deviation from the poses' ML information at the
+        config (inf while the poses cannot identify them all)."""
+        n = self.model.n_free
+        out = dict.fromkeys(self.model.free, float("inf"))
+        if len(poses) < n:
+            return out
+        scan = np.sqrt(np.mean(poses.scan_noise**2, axis=0))
+        sigma = np.sqrt(scan**2 + poses.counts[:, None] * G.LSB_VOLTS**2 / 12)  # per scan
+        w = np.sqrt(poses.counts)[:, None] / sigma
+        R, ok = implicit.start_rotations(poses.volts, p)
+        if ok.sum() < n:
+            return out
+        _, Jp, Jr = implicit.model_jacobians(R[ok], p, self.model.tie_matrix)
+        a = implicit.information_rows(Jp * w[ok, :, None], Jr * w[ok, :, None])
+        info = a.T @ a
+        if np.linalg.cond(info) > 1e12:
+            return out
+        std = np.sqrt(np.diag(np.linalg.inv(info)))
+        return {name: float(s) for name, s in zip(self.model.free, std, strict=True)}
+
+    def _instruction(self, poses: RecordedPoses, scans: np.ndarray, p, failed) -> str:
+        recent = scans["stamp_ns"] >= scans["stamp_ns"][-1] - int(RECENT_S * 1e9)
+        first_recent = int(np.argmax(recent))
+        in_pose = np.zeros(len(scans), dtype=bool)
+        for a, b in poses.rows:
+            in_pose[a:b] = True
+        share = float(in_pose[first_recent:].mean()) if recent.any() else 0.0
+        span = (int(scans["stamp_ns"][-1]) - int(scans["stamp_ns"][first_recent])) / 1e9
+        if span >= RECENT_S / 2 and share < STILL_SHARE:
+            return "hold each position still for about a second before moving on"
+        if span >= RECENT_S / 2 and share > 0.95:
+            return "move the plate to a new position (tilt it by hand), then hold it still"
+        return G.coverage_advice(poses.volts, p)

@@ -1,0 +1,213 @@
+"""Loop-closure health: the daemon watches whether the loops still close at the controller
+config in force, and names the sensor whose offset moved.
+
+Scans -> still poses -> loop closure -> drift test -> events. The recorder feeds every scan
+it receives (:meth:`HealthMonitor.feed`); still poses are found as the worker finds them
+(:func:`daemon.poses.poses_of_scans`), each as soon as the plate moves on, and each new pose
+runs the likelihood-ratio test of :mod:`calibration.closure` over the last 30 poses:
+"sensor i's offset moved, and the latest k poses show it", for each sensor and every k (a
+creep is tested as the step it has made so far),
+against the noise of the poses' own readings and the uncertainty of the config's
+calibration.
+
+An alarm (event ``offset_drift``, a warning in the log and the MCAP events, and the systemd
+STATUS line) needs the best sensor's statistic above the threshold that gives a
+false-alarm probability of ``false_alarm`` per pose when nothing moved (Bonferroni over the
+four sensors and the change points), the best change point to leave at least
+:data:`MIN_AFFECTED` poses shifted (fewer do not tell the sensors apart), and the pattern to
+point clearly at that sensor (its statistic at least :data:`ATTRIBUTION_MARGIN` above the
+runner-up's, and the same sensor when a creep is tested too). It is raised again if the
+estimated shift grows by :data:`REPORT_STEP_MM` (a creep; at most every
+:data:`REPORT_EVERY_S` of recording), and cleared (event ``offset_drift_cleared``) once that
+sensor's statistic falls below :data:`CLEAR_STATISTIC`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from calibration.closure import DriftTest, drift_test, loop_closure, threshold
+from calibration.parameters import INDEX, SL_OFFSET
+
+from .controller_config import ControllerConfig
+from .events import Level
+from .gates import LSB_VOLTS
+from .poses import LONGEST_POSE_S, poses_of_scans
+
+WINDOW = 30  # poses per test
+MIN_AFFECTED = 6  # a shift must show in at least this many of the latest poses
+CHANGE_POINTS = WINDOW
+ATTRIBUTION_MARGIN = float(chi2.isf(1e-6, 1))  # 23.9: the sensor is 1.5e5x likelier
+CLEAR_STATISTIC = float(chi2.isf(1e-2 / CHANGE_POINTS, 1))  # 12.1
+REPORT_STEP_MM = 0.5
+REPORT_EVERY_S = 60.0  # a growing shift of the same sensor is reported at most this often
+#: the offsets' standard deviation assumed for a config without a calibration's provenance
+DEFAULT_CONFIG_STD_MM = 0.05
+FALSE_ALARM = 1e-8
+BUFFER_S = 3 * LONGEST_POSE_S  # scans kept while no pose is found (the plate moving)
+
+Emit = Callable[..., None]  # (kind, level, message, **details)
+
+
+@dataclass
+class HealthState:
+    """What the status line shows: poses checked, the latest test, the active alarm."""
+
+    poses: int = 0
+    last: DriftTest | None = None
+    alarm_sensor: int | None = None
+    alarm_shift_mm: float = 0.0
+    alarm_stamp_ns: int = 0
+
+
+def config_covariance(controller: ControllerConfig) -> np.ndarray:
+    """(20, 20) covariance of the config's parameters: the standard deviations its
+    ``[provenance]`` records (a loopcal calibration), else :data:`DEFAULT_CONFIG_STD_MM` on
+    the four offsets."""
+    C = np.zeros((20, 20))
+    std = (controller.provenance or {}).get("std") or {}
+    if isinstance(std, dict) and std:
+        for name, s in std.items():
+            if name in INDEX and isinstance(s, (int, float)) and np.isfinite(s):
+                C[INDEX[name], INDEX[name]] = float(s) ** 2
+    else:
+        for i in range(SL_OFFSET.start, SL_OFFSET.stop):
+            C[i, i] = DEFAULT_CONFIG_STD_MM**2
+    return C
+
+
+class HealthMonitor:
+    """Watches loop closure over the scans fed to it; calls ``emit`` for events.
+
+    controller: the config in force. false_alarm: probability per pose of an alarm when
+    nothing moved.
+    """
+
+    name = "loop-closure health"
+
+    def __init__(
+        self, controller: ControllerConfig, emit: Emit, *, false_alarm: float = FALSE_ALARM
+    ) -> None:
+        self.emit = emit
+        self.false_alarm = false_alarm
+        self.threshold = threshold(false_alarm, tests=4 * CHANGE_POINTS)
+        self.state = HealthState()
+        self._buf: np.ndarray | None = None
+        self._last_key: tuple[int, int] = (-1, -1)  # (epoch, counter) of the last pose's end
+        self.reset(controller)
+
+    def reset(self, controller: ControllerConfig) -> None:
+        """Start over at a new controller config (a reload): earlier poses no longer count."""
+        self.params = np.array(controller.params, dtype=float)
+        self.covariance = config_covariance(controller)
+        self._volts: list[np.ndarray] = []
+        self._noise: list[np.ndarray] = []
+        self._counts: list[int] = []
+        self._stamps: list[int] = []
+        self.state = HealthState()
+
+    # ------------------------------------------------------------------ input
+
+    def feed(self, rows: np.ndarray) -> None:
+        """New scans (SCAN_DTYPE rows, in order); tests every still pose they complete."""
+        if len(rows) == 0:
+            return
+        buf = rows if self._buf is None else np.concatenate([self._buf, rows])
+        P = poses_of_scans(buf)
+        keep_from = 0
+        for k in range(len(P)):
+            a, b = P.rows[k]
+            if b >= len(buf):  # still growing: the plate has not moved on yet
+                break
+            key = (int(buf["epoch"][a]), int(buf["counter64"][a]))
+            if key <= self._last_key:
+                continue
+            self._last_key = (int(buf["epoch"][b - 1]), int(buf["counter64"][b - 1]))
+            keep_from = b
+            self._add(P.volts[k], P.scan_noise[k], int(P.counts[k]), int(P.stamp_ns[k]))
+        rate = P.scan_rate_hz
+        keep_from = max(keep_from, len(buf) - int(BUFFER_S * rate))
+        self._buf = buf[keep_from:].copy()
+
+    def _add(self, volts: np.ndarray, noise: np.ndarray, count: int, stamp_ns: int) -> None:
+        n = WINDOW
+        self._volts = [*self._volts[-(n - 1) :], volts]
+        self._noise = [*self._noise[-(n - 1) :], noise]
+        self._counts = [*self._counts[-(n - 1) :], count]
+        self._stamps = [*self._stamps[-(n - 1) :], stamp_ns]
+        self.state.poses += 1
+        if len(self._volts) >= MIN_AFFECTED:
+            self._test()
+
+    # ------------------------------------------------------------------ the test
+
+    def _test(self) -> None:
+        V = np.array(self._volts)
+        counts = np.array(self._counts, dtype=float)
+        # one scan's noise per channel, pooled over the window (a pose's own estimate from
+        # a second of scans scatters by 15 %); the converter's rounding does not average out
+        scan = np.sqrt(np.mean(np.square(self._noise), axis=0))
+        sigma = np.sqrt(scan**2 / counts[:, None] + LSB_VOLTS**2 / 12)
+        closure = loop_closure(V, self.params, sigma)
+        best = drift_test(closure, self.covariance, change_points=True)
+        self.state.last = best
+        st = self.state
+        if st.alarm_sensor is not None:
+            if best.statistic[st.alarm_sensor - 1] < CLEAR_STATISTIC:
+                self.emit(
+                    "offset_drift_cleared", Level.INFO,
+                    f"sensor {st.alarm_sensor}'s loops close again at the controller config "
+                    f"(over the last {best.poses} poses)",
+                    sensor=st.alarm_sensor, poses=best.poses,
+                )  # fmt: skip
+                st.alarm_sensor = None
+                return
+        T = float(np.max(best.statistic))
+        if T < self.threshold or best.affected < MIN_AFFECTED or best.margin < ATTRIBUTION_MARGIN:
+            return
+        # a creep fits a step of the wrong sensor now and then, and a step a creep: both
+        # shapes must name the same sensor
+        if drift_test(closure, self.covariance, change_points=True, creep=True).sensor != (
+            best.sensor
+        ):
+            return
+        sensor = best.sensor
+        shift = float(best.shift_mm[sensor - 1])
+        now = self._stamps[-1]
+        if st.alarm_sensor == sensor and (
+            abs(shift - st.alarm_shift_mm) < REPORT_STEP_MM
+            or np.sign(shift) != np.sign(st.alarm_shift_mm)  # on its way back: see the clear
+            or now - st.alarm_stamp_ns < REPORT_EVERY_S * 1e9
+        ):
+            return
+        st.alarm_sensor, st.alarm_shift_mm, st.alarm_stamp_ns = sensor, shift, now
+        std = float(best.std_mm[sensor - 1])
+        self.emit(
+            "offset_drift", Level.WARNING,
+            f"offset drift: sensor {sensor}'s offset has moved by {shift:+.2f} mm "
+            f"(+-{std:.2f}) against the controller config; check that LVDT's mounting "
+            "and recalibrate (loopcal calibrate)",
+            sensor=sensor, shift_mm=round(shift, 4), std_mm=round(std, 4),
+            statistic=round(T, 2), threshold=round(self.threshold, 2),
+            margin=round(best.margin, 2), poses=best.affected, shape=best.shape,
+            false_alarm=self.false_alarm,
+        )  # fmt: skip
+
+    # ------------------------------------------------------------------ output
+
+    def status(self) -> str:
+        """A few words for the STATUS line."""
+        st = self.state
+        if st.alarm_sensor is not None:
+            return f"OFFSET DRIFT sensor {st.alarm_sensor} {st.alarm_shift_mm:+.2f} mm"
+        if st.last is None:
+            return f"loop closure: {st.poses} still poses (need {MIN_AFFECTED})"
+        worst = int(np.argmax(np.abs(st.last.shift_mm)))
+        return (
+            f"loops close ({st.last.poses} poses; largest offset change sensor {worst + 1} "
+            f"{st.last.shift_mm[worst]:+.2f} +- {st.last.std_mm[worst]:.2f} mm)"
+        )

@@ -1,0 +1,86 @@
+"""The analysis thread: every scan the recorder receives also goes to its observers (the
+loop-closure health monitor, the technician's live guidance), in a thread of their own, so
+that neither reading the DAQ nor writing the recording ever waits for them.
+
+An observer that fails is logged and dropped; the recording goes on.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import deque
+from typing import Protocol
+
+import numpy as np
+
+log = logging.getLogger("daemon.observers")
+
+MAX_PENDING_BATCHES = 10_000  # beyond this (observers far behind) the oldest are dropped
+PERIOD_S = 0.25
+
+
+class Observer(Protocol):
+    name: str
+
+    def feed(self, rows: np.ndarray) -> None: ...
+
+    def status(self) -> str: ...
+
+
+class AnalysisThread:
+    """Feeds queued scan rows to the observers, in order, about every PERIOD_S seconds."""
+
+    def __init__(self, observers: list[Observer]) -> None:
+        self.observers = list(observers)
+        self._pending: deque[np.ndarray] = deque(maxlen=MAX_PENDING_BATCHES)
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._run, name="loopcal-analysis", daemon=True)
+
+    def start(self) -> AnalysisThread:
+        if self.observers:
+            self._thread.start()
+        return self
+
+    def put(self, rows: np.ndarray) -> None:
+        """Queue scan rows (never blocks)."""
+        if self.observers and len(rows):
+            self._pending.append(rows)
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Feed what is queued, then stop."""
+        self._stop.set()
+        self._wake.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    def call(self, fn, *args) -> None:
+        """Run ``fn(*args)`` between two feeds (to change an observer's state safely)."""
+        with self._lock:
+            fn(*args)
+
+    def status(self) -> list[str]:
+        with self._lock:
+            return [o.status() for o in self.observers]
+
+    def _run(self) -> None:
+        while True:
+            stopping = self._stop.is_set()
+            batches = []
+            while self._pending:
+                batches.append(self._pending.popleft())
+            if batches:
+                rows = np.concatenate(batches)
+                with self._lock:
+                    for o in list(self.observers):
+                        try:
+                            o.feed(rows)
+                        except Exception:  # noqa: BLE001 - an observer never stops recording
+                            log.exception("%s failed and is switched off", o.name)
+                            self.observers.remove(o)
+            if stopping:
+                return
+            self._wake.wait(PERIOD_S)
+            self._wake.clear()
