@@ -24,7 +24,7 @@ from calibration.parameters import INDEX, UNITS  # noqa: E402
 from calibration.selection import candidate_jacobian, select_poses  # noqa: E402
 
 from .gates import holdout_residuals  # noqa: E402
-from .worker import WorkerResult  # noqa: E402
+from .worker import METHOD_NAMES, WorkerResult  # noqa: E402
 
 
 def _axis_angles(volts: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -223,7 +223,8 @@ figure {{ display: inline-block; margin: 8px; }} img {{ max-width: 470px; }}
 <h1>Calibration report</h1>
 <p class="verdict">{e(verdict)}</p>
 <p>{len(res.recording):,} scans, {len(res.poses)} still poses ({len(res.held_out)} held out);
-free parameters: {e(res.model.describe())}. Made {datetime.now(UTC):%Y-%m-%d %H:%M} UTC.</p>
+free parameters: {e(res.model.describe())}; estimator: {e(METHOD_NAMES[res.method])}.
+Made {datetime.now(UTC):%Y-%m-%d %H:%M} UTC.</p>
 <h2>Parameters</h2>
 <table><tr><th>name</th><th>unit</th><th>previous</th><th>new</th><th>change</th>
 <th>std</th></tr>{"".join(rows)}</table>

@@ -169,6 +169,6 @@ def test_the_daemon_raises_offset_drift_in_events_log_and_status(tmp_path):
 def test_record_without_health_raises_nothing(tmp_path):
     drift = (OffsetDrift("step", 1, 2.0, 2.0),)
     with hand_emulator(rate=20, speed=10.0, drifts=drift) as emu:
-        rec = record(emu.url, tmp_path, "--no-health", "--duration", "8")
+        rec = record(emu.url, tmp_path, "--no-health", "--duration", "6")
         assert rec.wait(60) == 0, rec.text
     assert read_recordings(tmp_path).events_of("offset_drift") == []
