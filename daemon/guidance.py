@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from calibration import implicit
+from calibration.observability import ObservabilityIndices, column_scales
 from calibration.parameters import INDEX, SL_OFFSET, UNITS, ParameterModel
 
 from . import gates as G
@@ -41,11 +42,13 @@ RECENT_S, STILL_SHARE = 20.0, 0.3
 class GuidanceUpdate:
     """One update of the live guidance.
 
-    elapsed_s: since the first scan; scans, poses: collected so far. reach_deg: (4,) the
-    largest tilt reached toward each sensor. min_singular, condition: of the poses the
-    worker selected (None before it can run). std: {name: predicted standard deviation}
-    of each free parameter. gates: {name: passed} (empty before the worker can run).
-    enough: the target is met and every gate passes. instruction: what to do next.
+    elapsed_s: the plate's time since the first scan (scans over the scan rate); scans,
+    poses: collected so far. reach_deg: (4,) the largest tilt reached toward each sensor.
+    min_singular, condition: of the poses the worker selected (before it can run: of all
+    the poses' maximum-likelihood information; None before they identify every parameter).
+    std: {name: predicted standard deviation} of each free parameter. gates: {name:
+    passed} (empty before the worker can run). enough: the target is met and every gate
+    passes. instruction: what to do next.
     """
 
     elapsed_s: float
@@ -169,16 +172,18 @@ class Guidance:
         if scans is None or len(scans) == 0:
             raise ValueError("no scans yet")
         self._chunks = [scans]
-        elapsed = (int(scans["stamp_ns"][-1]) - int(scans["stamp_ns"][0])) / 1e9
         start = np.array(self.controller.params, dtype=float)
         poses = poses_of_scans(scans)
+        elapsed = len(scans) / poses.scan_rate_hz  # of the plate's time, whatever the clock
         reach = G.coverage(poses.volts, start)
         u = GuidanceUpdate(elapsed, len(scans), len(poses), [float(r) for r in reach], None,
                            None, {}, self.target_mm)  # fmt: skip
         if len(poses) >= G.MIN_POSES:
             self._from_worker(u, Recording(scans, [], []))
         else:
-            u.std = self._predicted_std(poses, start)
+            u.std, indices = self._predicted_std(poses, start)
+            if indices is not None:
+                u.min_singular, u.condition = indices.min_singular, indices.condition
             u.instruction = self._instruction(poses, scans, start, [])
         self.last = u
         self.on_update(u)
@@ -210,26 +215,32 @@ class Guidance:
             params = result.params if cal is not None else np.array(self.controller.params)
             u.instruction = self._instruction(result.poses, rec.scans, params, failed)
 
-    def _predicted_std(self, poses: RecordedPoses, p: np.ndarray) -> dict[str, float]:
+    def _predicted_std(
+        self, poses: RecordedPoses, p: np.ndarray
+    ) -> tuple[dict[str, float], ObservabilityIndices | None]:
         """Each free parameter's standard deviation from the poses' ML information at the
-        config (inf while the poses cannot identify them all)."""
+        config (inf while the poses cannot identify them all), and the poses' indices."""
         n = self.model.n_free
         out = dict.fromkeys(self.model.free, float("inf"))
         if len(poses) < n:
-            return out
+            return out, None
         scan = np.sqrt(np.mean(poses.scan_noise**2, axis=0))
         sigma = np.sqrt(scan**2 + poses.counts[:, None] * G.LSB_VOLTS**2 / 12)  # per scan
         w = np.sqrt(poses.counts)[:, None] / sigma
         R, ok = implicit.start_rotations(poses.volts, p)
         if ok.sum() < n:
-            return out
+            return out, None
         _, Jp, Jr = implicit.model_jacobians(R[ok], p, self.model.tie_matrix)
         a = implicit.information_rows(Jp * w[ok, :, None], Jr * w[ok, :, None])
         info = a.T @ a
         if np.linalg.cond(info) > 1e12:
-            return out
+            return out, None
         std = np.sqrt(np.diag(np.linalg.inv(info)))
-        return {name: float(s) for name, s in zip(self.model.free, std, strict=True)}
+        rows = a[:, None, :]
+        indices = ObservabilityIndices(
+            np.linalg.svd(a * column_scales(rows), compute_uv=False), len(a)
+        )
+        return {name: float(s) for name, s in zip(self.model.free, std, strict=True)}, indices
 
     def _instruction(self, poses: RecordedPoses, scans: np.ndarray, p, failed) -> str:
         recent = scans["stamp_ns"] >= scans["stamp_ns"][-1] - int(RECENT_S * 1e9)

@@ -5,10 +5,9 @@ Scans -> still poses -> loop closure -> drift test -> events. The recorder feeds
 it receives (:meth:`HealthMonitor.feed`); still poses are found as the worker finds them
 (:func:`daemon.poses.poses_of_scans`), each as soon as the plate moves on, and each new pose
 runs the likelihood-ratio test of :mod:`calibration.closure` over the last 30 poses:
-"sensor i's offset moved, and the latest k poses show it", for each sensor and every k (a
-creep is tested as the step it has made so far),
-against the noise of the poses' own readings and the uncertainty of the config's
-calibration.
+"sensor i's offset moved, and the latest k poses show it", for each sensor and every k (as a
+step, and as a creep growing over those poses), against the noise of the poses' own
+readings and the uncertainty of the config's calibration.
 
 An alarm (event ``offset_drift``, a warning in the log and the MCAP events, and the systemd
 STATUS line) needs the best sensor's statistic above the threshold that gives a
@@ -171,10 +170,11 @@ class HealthMonitor:
             return
         # a creep fits a step of the wrong sensor now and then, and a step a creep: both
         # shapes must name the same sensor
-        if drift_test(closure, self.covariance, change_points=True, creep=True).sensor != (
-            best.sensor
-        ):
+        shaped = drift_test(closure, self.covariance, change_points=True, creep=True)
+        if shaped.sensor != best.sensor:
             return
+        if shaped.shape == "creep":  # still moving: the creep's estimate is its shift now
+            best = shaped
         sensor = best.sensor
         shift = float(best.shift_mm[sensor - 1])
         now = self._stamps[-1]
@@ -189,8 +189,9 @@ class HealthMonitor:
         self.emit(
             "offset_drift", Level.WARNING,
             f"offset drift: sensor {sensor}'s offset has moved by {shift:+.2f} mm "
-            f"(+-{std:.2f}) against the controller config; check that LVDT's mounting "
-            "and recalibrate (loopcal calibrate)",
+            f"(+-{std:.2f}){' and is still moving' if best.shape == 'creep' else ''} against "
+            "the controller config; check that LVDT's mounting and recalibrate "
+            "(loopcal calibrate)",
             sensor=sensor, shift_mm=round(shift, 4), std_mm=round(std, 4),
             statistic=round(T, 2), threshold=round(self.threshold, 2),
             margin=round(best.margin, 2), poses=best.affected, shape=best.shape,
