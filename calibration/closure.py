@@ -37,7 +37,7 @@ from scipy.stats import chi2
 
 from . import implicit
 from .errors import InputError
-from .parameters import N_PARAMS, SL_GAIN, SL_OFFSET, check_vector
+from .parameters import N_PARAMS, SL_GAIN, check_vector
 from .residuals import check_volts
 
 
@@ -76,8 +76,7 @@ def loop_closure(volts: np.ndarray, p: np.ndarray, sigma_volts: np.ndarray) -> C
     R, ok = implicit.start_rotations(V, p)
     w = 1.0 / sigma
     vhat, Jp, Jr = implicit.model_jacobians(R, p)
-    U, _, _ = np.linalg.svd(Jr * w[..., None], full_matrices=True)
-    q = U[:, :, 3]
+    q = implicit.loop_direction(Jr * w[..., None])
     e = np.einsum("mi,mi->m", q, (V - vhat) * w)
     a = -np.einsum("mrn,mr->mn", Jp * w[..., None], q)
     h = -q * w / p[SL_GAIN]
@@ -184,15 +183,3 @@ def threshold(false_alarm: float, tests: int = 4) -> float:
     if not 0 < false_alarm < 1:
         raise InputError(f"false_alarm must lie in (0, 1), got {false_alarm}")
     return float(chi2.isf(false_alarm / tests, 1))
-
-
-def offsets_covariance(std_mm: dict[int, float]) -> np.ndarray:
-    """A (20, 20) diagonal covariance with the given standard deviations (by parameter
-    index), e.g. the offsets' from a calibration's provenance."""
-    C = np.zeros((N_PARAMS, N_PARAMS))
-    for i, s in std_mm.items():
-        C[i, i] = float(s) ** 2
-    return C
-
-
-OFFSET_INDEX = np.arange(SL_OFFSET.start, SL_OFFSET.stop)

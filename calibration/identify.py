@@ -334,8 +334,7 @@ def _identify_ml(V, model, p0, noise_volts, scans_per_pose, max_iter, max_change
                 f"only {int(used.sum())} of {m} poses are usable ({int((~used).sum())} "
                 f"near-singular or unsolvable); {n} free parameters need at least {n}"
             )
-        _, Jp, Jr = implicit.model_jacobians(R[used], p, T)
-        rows = implicit.information_rows(Jp * w[used, :, None], Jr * w[used, :, None])
+        rows = implicit.weighted_information(R[used], p, T, w[used])
         require_observable(rows[:, None, :], model)
         p, Rfit, it, converged, message = implicit.fit(
             V[used], w[used], R[used], T, p, max_iter=max_iter, max_change=max_change,

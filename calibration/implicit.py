@@ -101,16 +101,31 @@ def model_jacobians(
     return vhat, G @ Wd, Jr
 
 
+def loop_direction(Jr: np.ndarray) -> np.ndarray:
+    """q (m, 4): for each pose the unit vector orthogonal to the columns of its (whitened)
+    rotation Jacobian Jr (m, 4, 3): the part of its readings no rotation explains. Its sign
+    is arbitrary."""
+    # the left singular vector of Jr_k for its zero singular value
+    U, _, _ = np.linalg.svd(Jr, full_matrices=True)
+    return U[:, :, 3]
+
+
 def information_rows(Jp: np.ndarray, Jr: np.ndarray) -> np.ndarray:
     """Each pose's information about the parameters once its rotation is eliminated.
 
     Jp: (m, 4, n) and Jr: (m, 4, 3) Jacobians of whitened residuals. Returns a (m, n): the
     pose's information matrix is ``a_k a_k^T`` (rank one: four readings, three angles).
     """
-    # q_k: the left singular vector of Jr_k for its zero singular value
-    U, _, _ = np.linalg.svd(Jr, full_matrices=True)
-    q = U[:, :, 3]
-    return np.einsum("mrn,mr->mn", Jp, q)
+    return np.einsum("mrn,mr->mn", Jp, loop_direction(Jr))
+
+
+def weighted_information(
+    R: np.ndarray, p: np.ndarray, directions: np.ndarray, weights: np.ndarray
+) -> np.ndarray:
+    """:func:`information_rows` (m, n) of poses at rotations R (m, 3, 3) and parameters p,
+    along ``directions`` (20, n), with the readings whitened by ``weights`` (m, 4), 1/sigma."""
+    _, Jp, Jr = model_jacobians(R, p, directions)
+    return information_rows(Jp * weights[..., None], Jr * weights[..., None])
 
 
 def pose_weights(
@@ -147,9 +162,7 @@ def cramer_rao(
     """
     R = check_rotations(R)
     p = check_vector(p)
-    w = pose_weights(len(R), noise_volts, scans_per_pose)
-    _, Jp, Jr = model_jacobians(R, p, directions)
-    a = information_rows(Jp * w[..., None], Jr * w[..., None])
+    a = weighted_information(R, p, directions, pose_weights(len(R), noise_volts, scans_per_pose))
     return np.linalg.inv(a.T @ a)
 
 

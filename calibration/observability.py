@@ -110,7 +110,7 @@ def observability_indices(J: np.ndarray, scales: np.ndarray | None = None) -> Ob
     example that of a candidate pool) to compare subsets on one scale.
     """
     rows, m = as_rows(J)
-    h = column_scales(rows) if scales is None else np.asarray(scales, dtype=float)
+    h = column_scales(J) if scales is None else np.asarray(scales, dtype=float)
     s = np.linalg.svd(rows * h, compute_uv=False)
     return ObservabilityIndices(s, m)
 

@@ -190,8 +190,7 @@ def ml_candidates(
     V = check_volts(volts)
     w = implicit.pose_weights(len(V), None, scans_per_pose)
     R, ok = implicit.start_rotations(V, p)
-    _, Jp, Jr = implicit.model_jacobians(R, p, model.tie_matrix)
-    a = implicit.information_rows(Jp * w[..., None], Jr * w[..., None])
+    a = implicit.weighted_information(R, p, model.tie_matrix, w)
     ok &= np.isfinite(a).all(axis=1)
     a = np.where(ok[:, None], a, 0.0)[:, None, :]
     return Candidates(a, ok, a)

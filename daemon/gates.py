@@ -203,12 +203,18 @@ def min_singular_gate(s_min: float, advice: str) -> Gate:
     )
 
 
+def pose_mean_noise(scan_noise: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(k, 4) standard deviation of each pose's mean reading, V: the noise of one reading
+    (scan_noise, (k, 4) or (4,)) over the square root of the scans averaged (counts, (k,)),
+    and the 12-bit rounding, which averaging a still reading does not remove."""
+    return np.sqrt(np.square(scan_noise) / counts[:, None] + LSB_VOLTS**2 / 12)
+
+
 def expected_noise(scan_noise: np.ndarray, counts: np.ndarray, *, per_scan: bool = False) -> float:
-    """RMS noise of the poses' mean readings the poses themselves predict, V: the noise of
-    one reading over the square root of the scans averaged, and the 12-bit rounding, which
-    averaging a still reading does not remove. per_scan: the same as the noise of one scan
-    (times the square root of the scans averaged), as the maximum-likelihood fit reports."""
-    var = (scan_noise**2) / counts[:, None] + LSB_VOLTS**2 / 12
+    """RMS noise of the poses' mean readings the poses themselves predict, V
+    (:func:`pose_mean_noise`). per_scan: the same as the noise of one scan (times the
+    square root of the scans averaged), as the maximum-likelihood fit reports."""
+    var = pose_mean_noise(scan_noise, counts) ** 2
     if per_scan:
         var = var * counts[:, None]
     return float(np.sqrt(var.mean()))

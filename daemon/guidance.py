@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from calibration import implicit
-from calibration.observability import ObservabilityIndices, column_scales
+from calibration.observability import ObservabilityIndices, observability_indices
 from calibration.parameters import INDEX, SL_OFFSET, UNITS, ParameterModel
 
 from . import gates as G
@@ -224,22 +224,17 @@ class Guidance:
         out = dict.fromkeys(self.model.free, float("inf"))
         if len(poses) < n:
             return out, None
-        scan = np.sqrt(np.mean(poses.scan_noise**2, axis=0))
-        sigma = np.sqrt(scan**2 + poses.counts[:, None] * G.LSB_VOLTS**2 / 12)  # per scan
-        w = np.sqrt(poses.counts)[:, None] / sigma
+        scan = np.sqrt(np.mean(poses.scan_noise**2, axis=0))  # pooled over the poses
+        w = 1.0 / G.pose_mean_noise(scan, poses.counts)
         R, ok = implicit.start_rotations(poses.volts, p)
         if ok.sum() < n:
             return out, None
-        _, Jp, Jr = implicit.model_jacobians(R[ok], p, self.model.tie_matrix)
-        a = implicit.information_rows(Jp * w[ok, :, None], Jr * w[ok, :, None])
+        a = implicit.weighted_information(R[ok], p, self.model.tie_matrix, w[ok])
         info = a.T @ a
         if np.linalg.cond(info) > 1e12:
             return out, None
         std = np.sqrt(np.diag(np.linalg.inv(info)))
-        rows = a[:, None, :]
-        indices = ObservabilityIndices(
-            np.linalg.svd(a * column_scales(rows), compute_uv=False), len(a)
-        )
+        indices = observability_indices(a[:, None, :])
         return {name: float(s) for name, s in zip(self.model.free, std, strict=True)}, indices
 
     def _instruction(self, poses: RecordedPoses, scans: np.ndarray, p, failed) -> str:

@@ -23,6 +23,7 @@ sensor's statistic falls below :data:`CLEAR_STATISTIC`.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -34,7 +35,7 @@ from calibration.parameters import INDEX, SL_OFFSET
 
 from .controller_config import ControllerConfig
 from .events import Level
-from .gates import LSB_VOLTS
+from .gates import pose_mean_noise
 from .poses import LONGEST_POSE_S, poses_of_scans
 
 WINDOW = 30  # poses per test
@@ -94,7 +95,6 @@ class HealthMonitor:
         self.emit = emit
         self.false_alarm = false_alarm
         self.threshold = threshold(false_alarm, tests=4 * CHANGE_POINTS)
-        self.state = HealthState()
         self._buf: np.ndarray | None = None
         self._last_key: tuple[int, int] = (-1, -1)  # (epoch, counter) of the last pose's end
         self.reset(controller)
@@ -103,10 +103,8 @@ class HealthMonitor:
         """Start over at a new controller config (a reload): earlier poses no longer count."""
         self.params = np.array(controller.params, dtype=float)
         self.covariance = config_covariance(controller)
-        self._volts: list[np.ndarray] = []
-        self._noise: list[np.ndarray] = []
-        self._counts: list[int] = []
-        self._stamps: list[int] = []
+        # the last WINDOW poses: (mean volts (4,), scan noise (4,), scans averaged, stamp ns)
+        self._poses: deque[tuple[np.ndarray, np.ndarray, int, int]] = deque(maxlen=WINDOW)
         self.state = HealthState()
 
     # ------------------------------------------------------------------ input
@@ -127,30 +125,25 @@ class HealthMonitor:
                 continue
             self._last_key = (int(buf["epoch"][b - 1]), int(buf["counter64"][b - 1]))
             keep_from = b
-            self._add(P.volts[k], P.scan_noise[k], int(P.counts[k]), int(P.stamp_ns[k]))
+            self._poses.append((P.volts[k], P.scan_noise[k], int(P.counts[k]),
+                                int(P.stamp_ns[k])))  # fmt: skip
+            self.state.poses += 1
+            if len(self._poses) >= MIN_AFFECTED:
+                self._test()
         rate = P.scan_rate_hz
         keep_from = max(keep_from, len(buf) - int(BUFFER_S * rate))
         self._buf = buf[keep_from:].copy()
 
-    def _add(self, volts: np.ndarray, noise: np.ndarray, count: int, stamp_ns: int) -> None:
-        n = WINDOW
-        self._volts = [*self._volts[-(n - 1) :], volts]
-        self._noise = [*self._noise[-(n - 1) :], noise]
-        self._counts = [*self._counts[-(n - 1) :], count]
-        self._stamps = [*self._stamps[-(n - 1) :], stamp_ns]
-        self.state.poses += 1
-        if len(self._volts) >= MIN_AFFECTED:
-            self._test()
-
     # ------------------------------------------------------------------ the test
 
     def _test(self) -> None:
-        V = np.array(self._volts)
-        counts = np.array(self._counts, dtype=float)
+        volts, noise, counts, stamps = zip(*self._poses, strict=True)
+        V = np.array(volts)
+        counts = np.array(counts, dtype=float)
         # one scan's noise per channel, pooled over the window (a pose's own estimate from
         # a second of scans scatters by 15 %); the converter's rounding does not average out
-        scan = np.sqrt(np.mean(np.square(self._noise), axis=0))
-        sigma = np.sqrt(scan**2 / counts[:, None] + LSB_VOLTS**2 / 12)
+        scan = np.sqrt(np.mean(np.square(noise), axis=0))
+        sigma = pose_mean_noise(scan, counts)
         closure = loop_closure(V, self.params, sigma)
         best = drift_test(closure, self.covariance, change_points=True)
         self.state.last = best
@@ -177,7 +170,7 @@ class HealthMonitor:
             best = shaped
         sensor = best.sensor
         shift = float(best.shift_mm[sensor - 1])
-        now = self._stamps[-1]
+        now = stamps[-1]
         if st.alarm_sensor == sensor and (
             abs(shift - st.alarm_shift_mm) < REPORT_STEP_MM
             or np.sign(shift) != np.sign(st.alarm_shift_mm)  # on its way back: see the clear

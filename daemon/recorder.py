@@ -113,9 +113,9 @@ class Recorder:
     settings: what to record and where. command: how the recorder was started (metadata).
     reload_settings: called on :meth:`request_reload` for the new settings (None: keep the
     settings, re-read the controller config). notifier: systemd notification (None: a
-    Notifier from the environment, a no-op outside systemd). observers: more observers of
-    the scans (:mod:`daemon.observers`) besides the loop-closure health monitor
-    (:mod:`daemon.health`, unless ``settings.health`` is off).
+    Notifier from the environment, a no-op outside systemd). The scans also go to the
+    loop-closure health monitor (:mod:`daemon.health`, unless ``settings.health`` is off)
+    and to any observer added with :meth:`add_observer`.
     """
 
     def __init__(
@@ -125,7 +125,6 @@ class Recorder:
         command: str,
         reload_settings: Callable[[], RecorderSettings] | None = None,
         notifier: Notifier | None = None,
-        observers: list[Observer] | None = None,
     ) -> None:
         self.settings = settings
         self.command = command
@@ -152,10 +151,13 @@ class Recorder:
             self.health = HealthMonitor(
                 self.controller, self._event, false_alarm=settings.health_false_alarm
             )
-        watchers: list[Observer] = [self.health] if self.health is not None else []
-        self.analysis = AnalysisThread(watchers + list(observers or []))
+        self.analysis = AnalysisThread([self.health] if self.health is not None else [])
 
     # ------------------------------------------------------------------ control
+
+    def add_observer(self, observer: Observer) -> None:
+        """Feed the scans to ``observer`` too (:mod:`daemon.observers`); before :meth:`run`."""
+        self.analysis.observers.append(observer)
 
     def request_stop(self, reason: str = "stop requested") -> None:
         """Stop: close the file properly and return from :meth:`run` (signal-safe)."""

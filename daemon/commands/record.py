@@ -163,19 +163,15 @@ def run(args: argparse.Namespace) -> int:
         if (args.json or args.target_mm != 0.1) and not args.until_enough:
             raise SettingsError("--json and --target-mm go with --until-enough")
         settings = settings_from_args(args)
-        observers = []
+        recorder = Recorder(settings, command="loopcal record " + " ".join(sys.argv[2:]))
         if args.until_enough:
-            controller = Recorder._load_controller(settings)
-            show = Display(json_lines=args.json)
+            controller = recorder.controller
             guide = Guidance(
-                controller, controller.model(), target_mm=args.target_mm, on_update=show.update
-            )
-            observers.append(guide)
-        recorder = Recorder(
-            settings, command="loopcal record " + " ".join(sys.argv[2:]), observers=observers
-        )
-        if guide is not None:
-            guide.on_enough = lambda u: _enough(recorder, u)
+                controller, controller.model(), target_mm=args.target_mm,
+                on_update=Display(json_lines=args.json).update,
+                on_enough=lambda u: _enough(recorder, u),
+            )  # fmt: skip
+            recorder.add_observer(guide)
     except (SettingsError, ControllerConfigError, ParameterError, ValueError) as exc:
         print(f"loopcal record: error: {_flag_names(str(exc))}", file=sys.stderr)
         return 2
