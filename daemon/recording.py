@@ -37,31 +37,16 @@ import re
 import socket
 import struct
 import sys
-import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from importlib import metadata as importlib_metadata
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
-import zstandard
-from mcap.data_stream import ReadDataStream
-from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.reader import FOOTER_SIZE, SeekingReader
-from mcap.records import (
-    Channel,
-    Chunk,
-    Footer,
-    Message,
-    MessageIndex,
-    Metadata,
-    Statistics,
-    SummaryOffset,
-)
-from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
+from mcap.records import Channel, Metadata
 from mcap.writer import CompressionType, Writer
 from scipy.spatial.transform import Rotation
 
@@ -76,6 +61,21 @@ from calibration.parameters import check_vector
 
 from . import scans as scan_rows
 from .events import Event
+from .mcap_records import (
+    FOOTER_BYTES,
+    MAGIC,
+    PARSE_ERRORS,
+    RECORD_HEAD,
+    ChunkRecords,
+    Damage,
+    Summary,
+    parse_record,
+    read_chunk,
+    read_header,
+    read_summary,
+    record_at,
+    walk,
+)
 from .scans import SCAN_DTYPE, SCAN_FIELDS
 
 FORMAT_VERSION = "1"
@@ -441,7 +441,7 @@ class JointStates:
 
     volts (n, 4) V; lengths (n, 4) mm; channel_ok (n, 4); pose_ok (n,); quat (n, 4) as
     x, y, z, w (NaN where not pose_ok); euler_deg (n, 3); tilt_deg, swivel_deg,
-    closure_rms_mm (n,).
+    closure_rms_mm (n,). error: why no pose could be computed at all ("" normally).
     """
 
     volts: np.ndarray
@@ -453,13 +453,16 @@ class JointStates:
     tilt_deg: np.ndarray
     swivel_deg: np.ndarray
     closure_rms_mm: np.ndarray
+    error: str = ""
 
 
 def joint_states(rows: np.ndarray, params: np.ndarray) -> JointStates:
     """Volts, lengths and the plate orientation (forward kinematics) of each scan.
 
     rows: SCAN_DTYPE (n,); params: the full parameter vector (20,) of the controller config.
-    Only scans whose four channels are trustworthy get a pose.
+    Only scans whose four channels are trustworthy get a pose. If forward kinematics fails
+    altogether (parameters that describe no mechanism), no scan gets one and ``error`` says
+    why: the views must never stop the raw scans from being recorded.
     """
     n = len(rows)
     v = scan_rows.volts(rows)
@@ -469,10 +472,16 @@ def joint_states(rows: np.ndarray, params: np.ndarray) -> JointStates:
     euler = np.full((n, 3), np.nan)
     rms = np.full(n, np.nan)
     pose_ok = np.zeros(n, dtype=bool)
-    idx = np.flatnonzero(ok.all(axis=1))
+    idx = np.flatnonzero(ok.all(axis=1) & np.isfinite(lengths).all(axis=1))
+    error = ""
     if idx.size:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            fk = forward_kinematics(lengths[idx], params)
+        try:
+            with np.errstate(all="ignore"):
+                fk = forward_kinematics(lengths[idx], params)
+        except Exception as exc:  # noqa: BLE001 - reported in ``error``, never raised
+            error = f"{type(exc).__name__}: {exc}"
+            idx = idx[:0]
+    if idx.size:
         good = fk.converged & np.isfinite(fk.rotations).all(axis=(1, 2))
         sel = idx[good]
         if sel.size:
@@ -483,7 +492,7 @@ def joint_states(rows: np.ndarray, params: np.ndarray) -> JointStates:
             pose_ok[sel] = True
     a, b, g = euler.T
     swivel = np.degrees(np.angle(np.exp(1j * np.radians(a + g))))
-    return JointStates(v, lengths, ok, pose_ok, quat, euler, b, swivel, rms)
+    return JointStates(v, lengths, ok, pose_ok, quat, euler, b, swivel, rms, error)
 
 
 def _secs(stamps: np.ndarray, arr: np.ndarray) -> None:
@@ -638,6 +647,9 @@ class RecordingWriter:
         self.first_stamp_ns: int | None = None
         self.last_stamp_ns: int | None = None
         self.durable_size = 0
+        #: why the per-scan poses could not be computed ("" while they can); the raw scans
+        #: are written regardless
+        self.views_error = ""
         self._blocks = 0
         self._scene_done = False
         self._closed = False
@@ -711,6 +723,8 @@ class RecordingWriter:
     def _write_views(self, rows: np.ndarray) -> None:
         w, ch = self._writer, self._channels
         js = joint_states(rows, self.params)
+        if js.error and not self.views_error:
+            self.views_error = js.error
         stamps, hosts = rows["stamp_ns"], rows["host_ns"]
         seq = rows["counter64"] & 0xFFFFFFFF
         if not self._scene_done:
@@ -806,15 +820,36 @@ def metadata_records(
 # ---------------------------------------------------------------------------- reader
 
 
+@dataclass(frozen=True)
+class Loss:
+    """Scans a file should hold and does not: a counter gap between two of its scans that
+    no recorded ``missed`` count explains (a damaged or missing chunk).
+
+    epoch: the power-on epoch. first: counter64 of the first missing scan. count: how many.
+    after_ns, before_ns: stamps of the scans on either side.
+    """
+
+    epoch: int
+    first: int
+    count: int
+    after_ns: int
+    before_ns: int
+
+
 @dataclass
 class RecordingFile:
-    """What one file of a recording held.
+    """What one file of a recording held, and what of it could not be read.
 
-    complete: closed normally (summary and index present).
-    scans: scans read from it (before any time window).
+    complete: closed normally (summary and index present and intact).
+    scans: scans read from it (within the time window, duplicates dropped).
     first_stamp_ns, last_stamp_ns: the first and last scan's stamps, or None.
     metadata: name -> {key: value}.
-    note: how an incomplete or damaged file was read (empty for a complete one).
+    note: how the file was read when it was not closed normally (empty for a complete one).
+    damage: the parts that could not be trusted (byte ranges, what was wrong, the time span
+        of the messages they held where known).
+    lost: scans known to be missing from the file (counter gaps no ``missed`` explains).
+    duplicates: scans that appeared more than once (each is returned once).
+    bad_messages: scan blocks or events inside intact chunks that did not decode.
     """
 
     path: Path
@@ -824,6 +859,58 @@ class RecordingFile:
     last_stamp_ns: int | None = None
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     note: str = ""
+    damage: list[Damage] = field(default_factory=list)
+    lost: list[Loss] = field(default_factory=list)
+    duplicates: int = 0
+    bad_messages: int = 0
+    #: byte offset of the last intact chunk that held scans (-1: none)
+    last_scan_chunk: int = -1
+
+    @property
+    def lost_scans(self) -> int:
+        """How many scans are known to be missing (see :attr:`lost`)."""
+        return sum(x.count for x in self.lost)
+
+    @property
+    def intact(self) -> bool:
+        """Nothing damaged, missing or duplicated."""
+        return not (self.damage or self.lost or self.duplicates or self.bad_messages)
+
+    @property
+    def warning(self) -> str:
+        """One line naming the file and what of it was lost, or "" if it read intact."""
+        if self.intact:
+            return ""
+        parts: list[str] = []
+        if self.lost:
+            spans = ", ".join(
+                f"counters {x.first}-{x.first + x.count - 1} of epoch {x.epoch} "
+                f"({_utc(x.after_ns)} to {_utc(x.before_ns)})"
+                for x in self.lost[:3]
+            )
+            more = f" and {len(self.lost) - 3} more gap(s)" if len(self.lost) > 3 else ""
+            parts.append(f"{self.lost_scans} scan(s) missing: {spans}{more}")
+        tail = [d for d in self.damage if self._after_last_scan(d)]
+        if tail:
+            d = tail[0]
+            span = f" (messages of {_utc(d.start_ns)} to {_utc(d.end_ns)})" if d.end_ns else ""
+            parts.append(f"the scans after {_utc(self.last_stamp_ns)} are lost: {d.what} at "
+                         f"byte {d.offset}{span}" if self.last_stamp_ns is not None else
+                         f"no scan could be read: {d.what} at byte {d.offset}{span}")  # fmt: skip
+        inner = [d for d in self.damage if d not in tail]
+        if inner:
+            what = "; ".join(f"{d.what} at byte {d.offset}" for d in inner[:3])
+            more = f"; {len(inner) - 3} more" if len(inner) > 3 else ""
+            cost = "" if self.lost else " (no scan missing around them)"
+            parts.append(f"{len(inner)} damaged part(s): {what}{more}{cost}")
+        if self.duplicates:
+            parts.append(f"{self.duplicates} duplicated scan(s) dropped (each kept once)")
+        if self.bad_messages:
+            parts.append(f"{self.bad_messages} undecodable message(s) skipped")
+        return f"{self.path}: " + "; ".join(parts)
+
+    def _after_last_scan(self, d: Damage) -> bool:
+        return d.offset > self.last_scan_chunk
 
 
 @dataclass
@@ -852,8 +939,24 @@ class Recording:
         """(n,) acquisition times, s since the Unix epoch."""
         return self.scans["stamp_ns"] * 1e-9
 
+    @property
+    def warnings(self) -> list[str]:
+        """One line per damaged or partly read file, naming it and what was lost."""
+        return [f.warning for f in self.files if f.warning]
+
     def events_of(self, kind: str) -> list[Event]:
         return [e for e in self.events if e.kind == kind]
+
+
+def _utc(ns: int | None) -> str:
+    if ns is None:
+        return "?"
+    sec, rest = divmod(int(ns), _NS)
+    try:
+        t = datetime.fromtimestamp(sec, UTC)
+    except (OverflowError, OSError, ValueError):
+        return f"{ns} ns"
+    return f"{t:%Y-%m-%d %H:%M:%S}.{rest // 10_000_000:02d} UTC"
 
 
 def _as_ns(t: int | float | datetime | None) -> int | None:
@@ -866,192 +969,285 @@ def _as_ns(t: int | float | datetime | None) -> int | None:
     return int(t)
 
 
-_READ_ERRORS = (McapError, EOFError, struct.error, ValueError, KeyError, IndexError,
-                UnicodeDecodeError, zstandard.ZstdError, zlib.error)  # fmt: skip
+#: channel ids our writer gives the topics (in CHANNELS order, from 1), for a file of ours
+#: whose channel records were lost with its first chunk
+_OUR_CHANNEL_IDS = {topic: i for i, topic in enumerate(CHANNELS, start=1)}
 
 
 class _FileReader:
-    """Reads the scans, events and metadata of one file."""
+    """Reads the scans, events and metadata of one file, trusting only what checks out."""
 
     def __init__(self, path: Path, since: int | None, until: int | None) -> None:
         self.path = path
         self.since, self.until = since, until
         self.blocks: list[bytes] = []
-        self.events: list[Event] = []
+        self.event_data: list[bytes] = []
         self.metadata: dict[str, dict[str, str]] = {}
         self.channels: dict[int, Channel] = {}
-        self.bad_chunks = 0
+        self.damage: dict[int, Damage] = {}
+        self.ours = True
+        self._messages: list[tuple[int, int, bytes]] = []  # (chunk offset, channel, data)
 
-    def read(self) -> tuple[np.ndarray, RecordingFile]:
+    # -------------------------------------------------------------- whole file
+
+    def read(self) -> tuple[np.ndarray, RecordingFile, list[Event]]:
         try:
-            f = open(self.path, "rb")  # noqa: SIM115
+            with open(self.path, "rb") as f:
+                data = f.read()
         except OSError as exc:
-            raise RecordingError(f"{self.path}: cannot open: {exc.strerror or exc}") from None
-        with f:
-            if os.fstat(f.fileno()).st_size == 0:
-                return scan_rows.empty(), RecordingFile(
-                    self.path, complete=False, note="empty file (created, nothing written)"
-                )
-            if f.read(8) != b"\x89MCAP0\r\n":
+            raise RecordingError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
+        info = RecordingFile(self.path, complete=False)
+        if not data:
+            info.note = "empty file (created, nothing written)"
+            return scan_rows.empty(), info, []
+        buf = memoryview(data)
+        if not data.startswith(MAGIC):
+            if MAGIC.startswith(data):
+                info.note = f"only {len(data)} bytes (created, nothing written)"
+                return scan_rows.empty(), info, []
+            if _NAME_RE.match(self.path.name) is None and not _has_intact_chunk(buf):
                 raise RecordingError(f"{self.path}: not an MCAP file (no MCAP magic bytes)")
-            f.seek(0)
-            summary = None
-            try:
-                summary = SeekingReader(f).get_summary()
-            except _READ_ERRORS:
-                pass
-            if summary is not None and summary.chunk_indexes:
-                self._read_indexed(f, summary)
-                info = RecordingFile(self.path, complete=True)
-            else:
-                f.seek(0)
-                note = self._read_stream(f)
-                info = RecordingFile(self.path, complete=False, note=note)
+        header = read_header(buf)
+        self.ours = header is None or header.library.startswith("loopcal")
+        summary, why = read_summary(buf, strict=self.ours)
+        if summary is not None and (summary.chunk_indexes or summary.statistics is not None):
+            self._read_indexed(buf, summary)
+            info.complete = True
+        else:
+            self._read_stream(buf)
+            info.note = (f"no summary ({why}): read record by record up to its last intact "
+                         "chunk")  # fmt: skip
+            if why not in ("no footer (the file was not closed)", "no summary section"):
+                info.damage.append(Damage(len(buf), 0, f"index unusable ({why})"))
         self._check_is_recording()
-        try:
-            rows = decode_scan_blocks(self.blocks)
-        except ValueError as exc:
-            raise RecordingError(f"{self.path}: {exc}") from None
-        if self.bad_chunks:
-            info.note = (info.note + "; " if info.note else "") + (
-                f"{self.bad_chunks} damaged chunk(s) skipped"
-            )
+        rows, events, bad, info.last_scan_chunk = self._decode()
+        info.bad_messages = bad
         info.metadata = self.metadata
+        info.damage += sorted(self.damage.values(), key=lambda d: d.offset)
+        rows = self._window(rows)
+        rows, info.duplicates = _unique_scans(rows)
+        info.lost = _losses(rows)
         info.scans = len(rows)
         if len(rows):
             info.first_stamp_ns = int(rows["stamp_ns"][0])
             info.last_stamp_ns = int(rows["stamp_ns"][-1])
-        return rows, info
+        return rows, info, events
 
     def _check_is_recording(self) -> None:
-        topics = {c.topic: c for c in self.channels.values()}
-        if TOPIC_SCANS not in topics and "loopcal" not in self.metadata:
-            listed = ", ".join(sorted(topics)) or "none"
-            raise RecordingError(
-                f"{self.path}: an MCAP file but not a loopcal recording: it has no {TOPIC_SCANS} "
-                f"channel (its topics: {listed})"
-            )
+        topics = {c.topic for c in self.channels.values()}
+        if TOPIC_SCANS not in topics and "loopcal" not in self.metadata and not self.blocks:
+            if not self.ours or (not self.damage and self.channels):
+                listed = ", ".join(sorted(topics)) or "none"
+                raise RecordingError(
+                    f"{self.path}: an MCAP file but not a loopcal recording: it has no "
+                    f"{TOPIC_SCANS} channel (its topics: {listed})"
+                )
         fmt = self.metadata.get("loopcal", {}).get("format")
         if fmt is not None and fmt != FORMAT_VERSION:
             raise RecordingError(
                 f"{self.path}: recording format {fmt}, this loopcal reads format {FORMAT_VERSION}"
             )
 
-    def _wanted(self) -> set[int]:
-        return {i for i, c in self.channels.items() if c.topic in (TOPIC_SCANS, TOPIC_EVENTS)}
+    # -------------------------------------------------------------- records
 
-    def _take(self, records: list) -> None:
-        for rec in records:
-            if isinstance(rec, Channel):
-                self.channels[rec.id] = rec
-            elif isinstance(rec, Message):
-                channel = self.channels.get(rec.channel_id)
-                topic = channel.topic if channel is not None else None
-                if topic == TOPIC_SCANS:
-                    self.blocks.append(rec.data)
-                elif topic == TOPIC_EVENTS:
-                    self.events.append(Event.from_json(json.loads(rec.data)))
-
-    def _chunk(self, chunk: Chunk) -> None:
-        try:
-            records = breakup_chunk(chunk, validate_crc=True)
-        except _READ_ERRORS:
-            self.bad_chunks += 1
-            return
-        self._take(records)
+    def _ids(self, *topics: str) -> set[int]:
+        ids = {i for i, c in self.channels.items() if c.topic in topics}
+        if not ids and self.ours and not self.channels:
+            ids = {_OUR_CHANNEL_IDS[t] for t in topics}
+        return ids
 
     def _in_window(self, start: int, end: int) -> bool:
         if self.since is not None and end + BLOCK_SPAN_NS < self.since:
             return False
         return not (self.until is not None and start >= self.until)
 
-    def _read_indexed(self, f: IO[bytes], summary) -> None:
+    def _take(self, got: ChunkRecords | Damage) -> None:
+        if isinstance(got, Damage):
+            self.damage.setdefault(got.offset, got)
+            return
+        for ch in got.channels:
+            self.channels.setdefault(ch.id, ch)
+        self._messages += [(got.offset, cid, data) for cid, _t, data in got.messages]
+
+    def _read_indexed(self, buf: memoryview, summary: Summary) -> None:
         self.channels = dict(summary.channels)
-        wanted = self._wanted()
         for idx in summary.metadata_indexes:
-            f.seek(idx.offset)
-            rec = next(StreamReader(f, skip_magic=True).records)
-            if isinstance(rec, Metadata):
-                self.metadata[rec.name] = dict(rec.metadata)
+            at = record_at(buf, idx.offset, len(buf))
+            if at is None or at[0] != Opcode.METADATA or idx.length != RECORD_HEAD + at[1]:
+                self.damage.setdefault(idx.offset, Damage(idx.offset, idx.length,
+                                                          "no metadata where the index says"))
+                continue
+            try:
+                rec = parse_record(Opcode.METADATA, buf[idx.offset + RECORD_HEAD :
+                                                         idx.offset + idx.length])
+            except PARSE_ERRORS:
+                self.damage.setdefault(idx.offset, Damage(idx.offset, idx.length,
+                                                          "damaged metadata record"))
+                continue
+            self.metadata[rec.name] = dict(rec.metadata)
+        wanted = self._ids(TOPIC_SCANS, TOPIC_EVENTS)
         for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
             offsets = ci.message_index_offsets
             if offsets and wanted.isdisjoint(offsets):
                 continue
             if not self._in_window(ci.message_start_time, ci.message_end_time):
                 continue
-            f.seek(ci.chunk_start_offset + 9)  # opcode (1) and record length (8)
-            try:
-                chunk = Chunk.read(ReadDataStream(f))
-            except _READ_ERRORS:
-                self.bad_chunks += 1
-                continue
-            self._chunk(chunk)
+            got = read_chunk(buf, ci.chunk_start_offset, strict=self.ours, wanted=wanted,
+                             expected_length=ci.chunk_length)  # fmt: skip
+            if isinstance(got, Damage) and got.end_ns is None:
+                got = Damage(got.offset, got.length, got.what, ci.message_start_time,
+                             ci.message_end_time)  # fmt: skip
+            self._take(got)
 
-    def _read_stream(self, f: IO[bytes]) -> str:
-        """Read a file without a usable summary record by record; returns the note."""
-        records = StreamReader(f, skip_magic=False, emit_chunks=True).records
-        pending: Chunk | None = None
-        pending_ids: set[int] = set()
-        note = "no summary (the recorder did not close it): read up to its last complete chunk"
-
-        def settle() -> None:
-            if pending is None:
-                return
-            wanted = self._wanted()
-            if not wanted:  # channels not known yet: they come in the first chunks
-                self._chunk(pending)
-            elif not pending_ids or not wanted.isdisjoint(pending_ids):
-                if self._in_window(pending.message_start_time, pending.message_end_time):
-                    self._chunk(pending)
-
-        while True:
-            pos = f.tell()
-            try:
-                rec = next(records)
-            except StopIteration:
-                break
-            except _READ_ERRORS as exc:
-                size = os.fstat(f.fileno()).st_size
-                if pos < size:
-                    note += f" (stopped at byte {pos} of {size}: {type(exc).__name__})"
-                break
-            if isinstance(rec, MessageIndex):
-                pending_ids.add(rec.channel_id)
-                continue
-            settle()
-            pending, pending_ids = None, set()
-            if isinstance(rec, Chunk):
-                pending = rec
+    def _read_stream(self, buf: memoryview) -> None:
+        """Every chunk in file order (the message indexes after a chunk are not trusted to
+        say what it holds: a flipped channel id there would hide scans)."""
+        for rec in walk(buf, strict=self.ours, wanted=lambda: None):
+            if isinstance(rec, ChunkRecords):
+                if self._in_window(rec.start_ns, rec.end_ns):
+                    self._take(rec)
+                else:
+                    self._take(ChunkRecords(rec.offset, rec.start_ns, rec.end_ns, rec.channels))
+            elif isinstance(rec, Damage):
+                self._take(rec)
             elif isinstance(rec, Metadata):
-                self.metadata[rec.name] = dict(rec.metadata)
+                self.metadata.setdefault(rec.name, dict(rec.metadata))
             elif isinstance(rec, Channel):
-                self.channels[rec.id] = rec
-        settle()
-        return note
+                self.channels.setdefault(rec.id, rec)
+
+    def _decode(self) -> tuple[np.ndarray, list[Event], int, int]:
+        """Scan rows, events, how many messages did not decode, and the offset of the last
+        chunk that gave scans."""
+        scans_ids = self._ids(TOPIC_SCANS)
+        event_ids = self._ids(TOPIC_EVENTS)
+        parts: list[np.ndarray] = []
+        events: list[Event] = []
+        bad = 0
+        last_chunk = -1
+        for offset, cid, data in self._messages:
+            if cid in scans_ids:
+                try:
+                    parts.append(decode_scan_blocks([data]))
+                except ValueError:
+                    bad += 1
+                else:
+                    last_chunk = max(last_chunk, offset)
+            elif cid in event_ids:
+                try:
+                    events.append(Event.from_json(json.loads(data)))
+                except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
+                    bad += 1
+        rows = np.concatenate(parts) if parts else scan_rows.empty()
+        seen: set[tuple[int, str, str]] = set()
+        unique = []
+        for e in events:  # a chunk read twice repeats its events
+            key = (e.stamp_ns, e.kind, e.message)
+            if key not in seen:
+                seen.add(key)
+                unique.append(e)
+        return rows, unique, bad, last_chunk
+
+    def _window(self, rows: np.ndarray) -> np.ndarray:
+        if self.since is None and self.until is None:
+            return rows
+        s = rows["stamp_ns"]
+        mask = np.ones(len(rows), dtype=bool)
+        if self.since is not None:
+            mask &= s >= self.since
+        if self.until is not None:
+            mask &= s < self.until
+        return rows[mask]
+
+
+def _has_intact_chunk(buf: memoryview) -> bool:
+    """Whether a file without MCAP magic still holds a chunk that checks out (a damaged
+    start), as opposed to bytes that were never a recording."""
+    for rec in walk(buf, strict=False, wanted=lambda: set()):
+        if isinstance(rec, ChunkRecords):
+            return True
+    return False
+
+
+def _in_order(rows: np.ndarray) -> bool:
+    e, c = rows["epoch"], rows["counter64"]
+    return bool(np.all((e[1:] > e[:-1]) | ((e[1:] == e[:-1]) & (c[1:] > c[:-1]))))
+
+
+def _unique_scans(rows: np.ndarray) -> tuple[np.ndarray, int]:
+    """Rows in (epoch, counter64) order, each key once (the first kept); and how many
+    repeats were dropped. Within a file a key names one scan."""
+    if len(rows) < 2 or _in_order(rows):
+        return rows, 0
+    rows = rows[np.lexsort((rows["counter64"], rows["epoch"]))]
+    e, c = rows["epoch"], rows["counter64"]
+    keep = np.ones(len(rows), dtype=bool)
+    keep[1:] = (e[1:] != e[:-1]) | (c[1:] != c[:-1])
+    return rows[keep], int(len(rows) - keep.sum())
+
+
+def _losses(rows: np.ndarray) -> list[Loss]:
+    """Counter gaps between consecutive scans of a file that their ``missed`` counts do not
+    explain: within an epoch, ``counter - previous - 1 > missed``; at a new epoch's first
+    scan in the file, ``counter > missed``."""
+    if len(rows) < 2:
+        return []
+    e, c, m = rows["epoch"], rows["counter64"], rows["missed"].astype(np.uint64)
+    same = e[1:] == e[:-1]
+    step = np.where(same, c[1:] - c[:-1] - np.uint64(1), c[1:])
+    out = []
+    for i in np.flatnonzero(step > m[1:]):
+        first = int(c[i]) + 1 if same[i] else int(m[i + 1])
+        out.append(Loss(int(e[i + 1]), first, int(step[i] - m[i + 1]),
+                        int(rows["stamp_ns"][i]), int(rows["stamp_ns"][i + 1])))  # fmt: skip
+    return out
+
+
+def _identity(rows: np.ndarray) -> list[bytes]:
+    """What makes a scan the same scan in two files: epoch, counter, device time, codes."""
+    packed = np.zeros(len(rows), dtype=[("e", "<u4"), ("c", "<u8"), ("t", "<u8"),
+                                        ("k", "<u2", (4,))])  # fmt: skip
+    packed["e"], packed["c"] = rows["epoch"], rows["counter64"]
+    packed["t"], packed["k"] = rows["time64_us"], rows["codes"]
+    raw = packed.tobytes()
+    k = packed.dtype.itemsize
+    return [raw[i : i + k] for i in range(0, len(raw), k)]
+
+
+def _key_range(rows: np.ndarray) -> tuple[tuple[int, int], tuple[int, int]]:
+    return ((int(rows["epoch"][0]), int(rows["counter64"][0])),
+            (int(rows["epoch"][-1]), int(rows["counter64"][-1])))  # fmt: skip
+
+
+def _read_tail_summary(path: Path) -> Summary | None:
+    """The summary of a closed file, reading only its first and last bytes."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+            size = os.fstat(f.fileno()).st_size
+            if size < 8 + FOOTER_BYTES + 8 or not head.startswith(MAGIC):
+                return None
+            f.seek(size - 8 - FOOTER_BYTES)
+            footer = f.read(FOOTER_BYTES + 8)
+            (start,) = struct.unpack_from("<Q", footer, RECORD_HEAD)
+            if not 8 <= start <= size - 8 - FOOTER_BYTES:
+                return None
+            f.seek(start)
+            tail = f.read()
+    except (OSError, struct.error):
+        return None
+    header = read_header(memoryview(head))
+    ours = header is None or header.library.startswith("loopcal")
+    summary, _ = read_summary(memoryview(tail), strict=ours, base=start)
+    return summary
 
 
 def message_time_range(path: Path) -> tuple[int, int] | None:
-    """(first, last) message log time of a complete file from its statistics record alone
-    (footer -> summary offsets -> statistics), or None if the file has none."""
-    try:
-        with open(path, "rb") as f:
-            f.seek(-(FOOTER_SIZE + MAGIC_SIZE), os.SEEK_END)
-            footer = next(StreamReader(f, skip_magic=True).records)
-            if not isinstance(footer, Footer) or not footer.summary_offset_start:
-                return None
-            f.seek(footer.summary_offset_start)
-            for rec in StreamReader(f, skip_magic=True).records:
-                if not isinstance(rec, SummaryOffset):
-                    return None
-                if rec.group_opcode == Opcode.STATISTICS:
-                    f.seek(rec.group_start)
-                    stats = next(StreamReader(f, skip_magic=True).records)
-                    if isinstance(stats, Statistics) and stats.message_count:
-                        return stats.message_start_time, stats.message_end_time
-                    return None
-    except (OSError, *_READ_ERRORS):
+    """(first, last) message log time of a closed file from its statistics record alone
+    (footer -> summary, checked by its CRC), or None if the file has no intact one."""
+    summary = _read_tail_summary(path)
+    if summary is None or summary.statistics is None or not summary.statistics.message_count:
         return None
-    return None
+    return summary.statistics.message_start_time, summary.statistics.message_end_time
 
 
 def read_recordings(
@@ -1066,17 +1262,24 @@ def read_recordings(
     their first scan. since, until: keep scans with ``since <= stamp < until`` (ns since the
     Unix epoch, or aware datetimes); events likewise.
 
-    A file that was not closed (crash, power loss) is read up to its last complete chunk,
-    and says so in its :class:`RecordingFile` note. Raises :class:`RecordingError` for a
-    file that is missing, not MCAP, or not a loopcal recording.
+    Whatever the bytes, it returns the scans that are intact, each once, and says in each
+    file's :class:`RecordingFile` what could not be read (:attr:`Recording.warnings` has one
+    line per damaged or partly read file). A file that was not closed (crash, power loss)
+    is read up to its last intact chunk. Nothing that fails a check (a CRC, a length, an
+    index offset) is returned. Raises :class:`RecordingError` for a file that is missing or
+    unreadable, not MCAP at all, not a loopcal recording, or of another format version,
+    and ValueError for an empty time window.
     """
     items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
     files: list[Path] = []
     for item in map(Path, items):
         files += find_recordings(item) if item.is_dir() else [item]
+    files = list(dict.fromkeys(files))  # a file named twice is read once
     lo, hi = _as_ns(since), _as_ns(until)
     if lo is not None and hi is not None and hi <= lo:
-        raise ValueError(f"empty time window: until ({hi}) is not after since ({lo})")
+        raise ValueError(
+            f"empty time window: until ({_utc(hi)}) is not after since ({_utc(lo)})"
+        )
     parts: list[tuple[np.ndarray, RecordingFile, list[Event]]] = []
     for path in files:
         if not path.exists():
@@ -1087,61 +1290,58 @@ def read_recordings(
                 (lo is None or span[1] + BLOCK_SPAN_NS >= lo) and (hi is None or span[0] < hi)
             ):
                 continue
-        reader = _FileReader(path, lo, hi)
-        rows, info = reader.read()
-        parts.append((rows, info, reader.events))
+        parts.append(_FileReader(path, lo, hi).read())
     parts.sort(key=lambda x: (x[1].first_stamp_ns is None, x[1].first_stamp_ns or 0, x[1].path))
     kept: list[np.ndarray] = []
-    tail: set[tuple] = set()
+    ranges: list[tuple[tuple[int, int], tuple[int, int]]] = []
     events: list[Event] = []
-    for rows, _, evs in parts:
-        if tail and len(rows):
-            head = rows[:_OVERLAP]
-            dup = np.fromiter((_key(r) in tail for r in head), bool, len(head))
-            if dup.any():
-                rows = np.concatenate([head[~dup], rows[_OVERLAP:]])
+    for rows, info, evs in parts:
         if len(rows):
-            tail = {_key(r) for r in rows[-_OVERLAP:]}
-        kept.append(rows)
+            lo_k, hi_k = _key_range(rows)
+            overlapping = [i for i, (a, b) in enumerate(ranges) if a <= hi_k and lo_k <= b]
+            if overlapping:  # the same scan in two files (copies, or a recorder restart)
+                seen = {k for i in overlapping for k in _identity(kept[i])}
+                dup = np.fromiter((k in seen for k in _identity(rows)), bool, len(rows))
+                if dup.any():
+                    rows = rows[~dup]
+                    info.scans = len(rows)
+            if len(rows):
+                ranges.append(_key_range(rows))
+                kept.append(rows)
         events += evs
     rows = np.concatenate(kept) if kept else scan_rows.empty()
     if lo is not None or hi is not None:
-        s = rows["stamp_ns"]
-        mask = np.ones(len(rows), dtype=bool)
-        if lo is not None:
-            mask &= s >= lo
-        if hi is not None:
-            mask &= s < hi
-        rows = rows[mask]
         events = [e for e in events if (lo is None or e.stamp_ns >= lo)
                   and (hi is None or e.stamp_ns < hi)]  # fmt: skip
     events.sort(key=lambda e: e.stamp_ns)
     return Recording(rows, events, [info for _, info, _ in parts])
 
 
-#: scans at the start of a file compared with the end of the previous one for duplicates
-_OVERLAP = 512
-
-
-def _key(row: np.void) -> tuple:
-    return (int(row["counter64"]), int(row["time64_us"]), bytes(row["codes"]))
-
-
-def last_scan(directory: str | os.PathLike) -> tuple[np.void, dict[str, dict[str, str]]] | None:
+def last_scan(
+    directory: str | os.PathLike, problems: list[str] | None = None
+) -> tuple[np.void, dict[str, dict[str, str]]] | None:
     """The newest scan recorded in a directory and its file's metadata, or None.
 
     For a recorder that starts again: it continues the power-on epoch and counts the scans
-    lost while it was down. Unreadable files are skipped (newest first).
+    lost while it was down. Files are tried newest first; a damaged one gives its last
+    intact scan, an unreadable one is skipped. What was wrong with each file is appended to
+    ``problems`` (one line each), for the recorder to report.
     """
     try:
         files = find_recordings(directory)
-    except RecordingError:
+    except RecordingError as exc:
+        if problems is not None:
+            problems.append(str(exc))
         return None
     for path in reversed(files):
         try:
             rec = read_recordings([path])
-        except RecordingError:
+        except RecordingError as exc:
+            if problems is not None:
+                problems.append(f"{exc}; skipped")
             continue
+        if problems is not None:
+            problems += rec.warnings
         if len(rec):
             return rec.scans[-1], rec.files[0].metadata
     return None

@@ -263,6 +263,9 @@ def test_a_damaged_chunk_is_skipped_and_reported(tmp_path):
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(bytes(data))
     out = rec.read_recordings(bad)
-    assert "damaged chunk" in out.files[0].note
+    warning = out.files[0].warning
+    assert "chunk does not decompress" in warning or "chunk CRC mismatch" in warning
+    assert "20 scan(s) missing: counters 20-39 of epoch 3" in warning, warning
+    assert out.warnings == [warning] and warning.startswith(str(bad))
     assert len(out) == 80 and np.array_equal(out.scans, np.concatenate([rows[:20], rows[40:]]))
     shutil.copy(path, tmp_path / "ok.mcap")

@@ -1,0 +1,207 @@
+"""Damaging real recordings the way storage does, and judging what the reader made of them.
+
+Shared by the hypothesis tests (tests/test_recording_damage.py) and the long fuzz run
+(bench/fuzz_parsers.py). A mutation is a plain function of the file's bytes and a few
+integers, so hypothesis can draw the integers and shrink them.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from mcap.exceptions import EndOfFile
+from mcap.records import Chunk, DataEnd
+from mcap.stream_reader import StreamReader
+from numpy.lib.recfunctions import repack_fields
+
+from calibration.parameters import NOMINAL
+from calibration.simulate import simulate_poses
+from daemon import recording as rec
+from daemon import scans as S
+from daemon.events import Event, Level
+from drivers.ldq412 import volts_to_code
+
+T0 = 1_795_000_000_000_000_000  # ns, late 2026
+
+
+def make_rows(n: int, *, start: int = 0, seed: int = 0, t0: int = T0, epoch: int = 3) -> np.ndarray:
+    """n consecutive scans of a 20 Hz module, codes of simulated poses."""
+    ps = simulate_poses(max(n, 10), seed=seed)
+    rows = S.empty(n)
+    c = np.arange(start, start + n, dtype=np.uint64)
+    rows["counter64"] = c
+    rows["time64_us"] = c * 50_000 + 7
+    rows["stamp_ns"] = t0 + (c * 50_000_000).astype(np.int64)
+    rows["host_ns"] = rows["stamp_ns"] + 2_500_000
+    rows["epoch"] = epoch
+    rows["codes"] = volts_to_code(ps.volts[:n])
+    rows["from_fifo"] = True
+    return rows
+
+
+def write_recording(path: Path, rows: np.ndarray, *, per: int = 20, close: bool = True,
+                    events: bool = True) -> list[int]:  # fmt: skip
+    """A recording of ``rows`` written by the daemon's writer, ``per`` scans a flush, with
+    an event every 100 scans; returns the durable size after each flush."""
+    w = rec.RecordingWriter(
+        path,
+        metadata=rec.metadata_records(
+            device={"model": "LDQ412", "serial": "12648430"},
+            controller={"path": "", "d01": "97.4"},
+            command="pytest",
+        ),
+        params=NOMINAL,
+    )
+    sizes = []
+    for k in range(0, len(rows), per):
+        block = rows[k : k + per]
+        evs = []
+        if events and k % 100 == 0:
+            evs = [Event(int(block["stamp_ns"][0]), "gap", Level.WARNING, f"test {k}", {"k": k})]
+        w.write(block, evs)
+        sizes.append(w.durable_size)
+    if close:
+        w.close()
+    return sizes
+
+
+def chunk_spans(data: bytes) -> list[tuple[int, int]]:
+    """(offset, length) of every chunk record of an intact file, in file order (found by
+    walking its records with the mcap library's stream reader)."""
+    import io
+
+    spans, pos = [], 8
+    stream = io.BytesIO(data)
+    stream.seek(8)
+    records = StreamReader(stream, skip_magic=True, emit_chunks=True).records
+    while True:
+        try:
+            record = next(records)
+        except (StopIteration, EndOfFile):  # an unclosed file ends after its last record
+            return spans
+        end = stream.tell()  # the reader has consumed exactly this record
+        if isinstance(record, Chunk):
+            spans.append((pos, end - pos))
+        if isinstance(record, DataEnd):
+            return spans
+        pos = end
+
+
+# ---------------------------------------------------------------------------- mutations
+
+
+def flip_bits(data: bytes, positions: list[int]) -> bytes:
+    out = bytearray(data)
+    for p in positions:
+        out[(p // 8) % len(out)] ^= 1 << (p % 8)
+    return bytes(out)
+
+
+def truncate(data: bytes, at: int) -> bytes:
+    return data[: at % (len(data) + 1)]
+
+
+def zero_run(data: bytes, at: int, length: int) -> bytes:
+    at %= len(data)
+    out = bytearray(data)
+    out[at : at + length] = bytes(len(out[at : at + length]))
+    return bytes(out)
+
+
+def zero_tail(data: bytes, keep: int, extra: int) -> bytes:
+    """Power loss on ext4: the size grew, the last blocks are zeros."""
+    keep %= len(data) + 1
+    return data[:keep] + bytes(extra)
+
+
+def duplicate_chunk(data: bytes, k: int) -> bytes:
+    spans = chunk_spans(data)
+    off, n = spans[k % len(spans)]
+    return data[: off + n] + data[off : off + n] + data[off + n :]
+
+
+def swap_chunks(data: bytes, k: int) -> bytes:
+    spans = chunk_spans(data)
+    if len(spans) < 2:
+        return data
+    i = k % (len(spans) - 1)
+    (a, na), (b, nb) = spans[i], spans[i + 1]
+    # both records (and the message indexes between them) keep their bytes, in swapped order
+    middle = data[a + na : b]
+    return data[:a] + data[b : b + nb] + middle + data[a : a + na] + data[b + nb :]
+
+
+def bad_length(data: bytes, k: int, value: int) -> bytes:
+    """Overwrite a chunk record's 8-byte length field."""
+    spans = chunk_spans(data)
+    off, _ = spans[k % len(spans)]
+    out = bytearray(data)
+    struct.pack_into("<Q", out, off + 1, value % (1 << 64))
+    return bytes(out)
+
+
+def overwrite(data: bytes, at: int, junk: bytes) -> bytes:
+    at %= len(data)
+    out = bytearray(data)
+    out[at : at + len(junk)] = junk[: len(out) - at]
+    return bytes(out)
+
+
+MUTATIONS: dict[str, Callable[..., bytes]] = {
+    "flip": flip_bits,
+    "truncate": truncate,
+    "zero_run": zero_run,
+    "zero_tail": zero_tail,
+    "dup_chunk": duplicate_chunk,
+    "swap_chunks": swap_chunks,
+    "bad_length": bad_length,
+    "overwrite": overwrite,
+}
+
+
+# ---------------------------------------------------------------------------- verdicts
+
+
+def identities(rows: np.ndarray) -> list[bytes]:
+    """Each scan's fields as bytes (without the layout's padding, which copies leave
+    undefined)."""
+    packed = repack_fields(rows)
+    raw, k = packed.tobytes(), packed.dtype.itemsize
+    return [raw[i : i + k] for i in range(0, len(raw), k)]
+
+
+def judge(original: np.ndarray, path: Path) -> str:
+    """What ``read_recordings`` made of a damaged copy of ``original``:
+
+    - "intact": every scan, once, no warning needed;
+    - "reported": some scans missing or duplicates dropped, and the file's warning says so
+      (or its note says it was not closed and was read up to its last intact chunk: a cut
+      that falls exactly between two flushes looks like a recorder that stopped there);
+    - "declared": it raised RecordingError (its documented error);
+    - "silent loss": scans missing and no warning;
+    - "duplicated": a scan returned twice;
+    - "fabricated": a scan returned that was never written (a lie);
+    - "undeclared: <type>": any other exception.
+    """
+    try:
+        out = rec.read_recordings(path)
+    except rec.RecordingError:
+        return "declared"
+    except Exception as exc:  # noqa: BLE001 - this is what the verdict is about
+        return f"undeclared: {type(exc).__name__}: {exc}"[:200]
+    got = identities(out.scans)
+    if len(set(got)) != len(got):
+        return "duplicated"
+    known = set(identities(original))
+    if not set(got) <= known:
+        return "fabricated"
+    said = bool(out.warnings) or any(f.note for f in out.files)
+    if len(got) < len(known):
+        return "reported" if said else "silent loss"
+    return "reported" if out.warnings else "intact"
+
+
+ACCEPTABLE = {"intact", "reported", "declared"}
