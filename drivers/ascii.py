@@ -180,22 +180,20 @@ class AsciiDAQ(DAQ):
             raise
 
     @classmethod
-    def from_url(cls, url: DaqUrl, *, timeout: float, check_identity: bool) -> AsciiDAQ:
+    def url_options(cls, url: DaqUrl) -> dict[str, object]:
         if not url.path:
-            raise ValueError(f"{url.raw}: no serial port")
+            raise ValueError(f"{url.raw}: no serial port (ascii:///dev/ttyUSB0)")
         addr_text = url.params.get("addr", f"{ldq412.ASCII_DEFAULT_ADDR:02X}")
         if not 1 <= len(addr_text) <= 2:
             raise ValueError(f"{url.raw}: addr={addr_text!r} is not two hex digits")
-        return cls(
-            url.path,
-            baud=url.get_int("baud", ldq412.SERIAL_BAUD),
-            addr=url.get_int("addr", ldq412.ASCII_DEFAULT_ADDR, base=16),
-            checksum=url.get_bool("checksum", False),
-            parity=url.params.get("parity", "N").upper(),
-            stopbits=url.get_int("stopbits", 1),
-            timeout=timeout,
-            check_identity=check_identity,
-        )
+        return {
+            "port": url.path,
+            "baud": url.get_int("baud", ldq412.SERIAL_BAUD, lo=1, hi=4_000_000),
+            "addr": url.get_int("addr", ldq412.ASCII_DEFAULT_ADDR, base=16, lo=0, hi=0xFF),
+            "checksum": url.get_bool("checksum", False),
+            "parity": url.get_choice("parity", "N", ("N", "E", "O")),
+            "stopbits": url.get_int("stopbits", 1, lo=1, hi=2),
+        }
 
     # -- transport -----------------------------------------------------------------------
 

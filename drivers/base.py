@@ -178,15 +178,32 @@ class DaqUrl:
     params: Mapping[str, str] = field(default_factory=lambda: MappingProxyType({}))
     raw: str = ""
 
-    def get_int(self, key: str, default: int, *, base: int = 10) -> int:
-        """Integer query parameter, or default if absent. Raises ValueError if malformed."""
+    def get_int(
+        self, key: str, default: int, *, base: int = 10, lo: int | None = None,
+        hi: int | None = None,
+    ) -> int:  # fmt: skip
+        """Integer query parameter, or default if absent. Raises ValueError if malformed or
+        outside ``lo..hi``."""
         value = self.params.get(key)
         if value is None:
             return default
-        try:
-            return int(value, base)
-        except ValueError:
-            raise ValueError(f"{self.raw}: {key}={value!r} is not an integer") from None
+        digits = _HEX_RE if base == 16 else _INT_RE
+        if not digits.match(value):  # int() would also take " 1", "1_0" and "+1"
+            kind = "a hexadecimal number" if base == 16 else "an integer"
+            raise ValueError(f"{self.raw}: {key}={value!r} is not {kind}")
+        out = int(value, base)
+        if (lo is not None and out < lo) or (hi is not None and out > hi):
+            raise ValueError(f"{self.raw}: {key}={value} is outside {lo}..{hi}")
+        return out
+
+    def get_choice(self, key: str, default: str, choices: tuple[str, ...]) -> str:
+        """Query parameter that must be one of ``choices`` (case-insensitive)."""
+        value = self.params.get(key)
+        if value is None:
+            return default
+        if value.upper() not in choices:
+            raise ValueError(f"{self.raw}: {key}={value!r} is not one of {', '.join(choices)}")
+        return value.upper()
 
     def get_bool(self, key: str, default: bool) -> bool:
         """0/1 (also false/true, no/yes, off/on) query parameter."""
@@ -202,6 +219,8 @@ class DaqUrl:
 
 
 _SCHEME_RE = re.compile(r"^[a-z][a-z0-9+.-]*$")
+_INT_RE = re.compile(r"^-?[0-9]{1,20}\Z")
+_HEX_RE = re.compile(r"^[0-9A-Fa-f]{1,16}\Z")
 
 
 def parse_url(url: str) -> DaqUrl:
@@ -271,6 +290,7 @@ def driver_for_url(url: str) -> tuple[type[DAQ], DaqUrl]:
             f"{url}: unknown parameter(s) {sorted(unknown)} for {parsed.scheme} "
             f"(allowed: {sorted(cls.url_params)})"
         )
+    cls.url_options(parsed)  # every value checked now, not when the driver connects
     return cls, parsed
 
 
@@ -308,9 +328,15 @@ class DAQ(ABC):
     url: str
 
     @classmethod
-    @abstractmethod
+    def url_options(cls, url: DaqUrl) -> dict[str, object]:
+        """The constructor's keyword arguments that a parsed URL gives, every value checked
+        without connecting. Raises ValueError naming the URL, the parameter and the value."""
+        return {}
+
+    @classmethod
     def from_url(cls, url: DaqUrl, *, timeout: float, check_identity: bool) -> DAQ:
         """Connect to the module the parsed URL describes (used by open_daq)."""
+        return cls(**cls.url_options(url), timeout=timeout, check_identity=check_identity)
 
     @abstractmethod
     def read_scans(self) -> list[Scan]:

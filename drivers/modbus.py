@@ -26,7 +26,7 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
 
 from . import ldq412
-from .base import DAQ, Identity, Scan
+from .base import DAQ, DaqUrl, Identity, Scan
 from .errors import (
     DAQDisconnected,
     DAQIdentityError,
@@ -95,6 +95,14 @@ class ModbusDAQ(DAQ):
     """
 
     url_params: ClassVar[frozenset[str]] = frozenset({"unit", "fifo"})
+
+    @staticmethod
+    def common_options(url: DaqUrl) -> dict[str, object]:
+        """``unit`` (1..247) and ``fifo`` (0/1) from a URL, checked."""
+        return {
+            "unit": url.get_int("unit", ldq412.MODBUS_UNIT, lo=1, hi=247),
+            "use_fifo": url.get_bool("fifo", True),
+        }
 
     def __init__(
         self, *, url: str, unit: int, timeout: float, use_fifo: bool, check_identity: bool

@@ -18,6 +18,8 @@ from . import ldq412
 from .base import DaqUrl, register_scheme
 from .modbus import ModbusDAQ
 
+#: the fastest line a URL may ask for (RS-485 transceivers top out around here)
+MAX_BAUD = 4_000_000
 #: silence on the line that ends a drain after an error, s (many RTU frame times)
 QUIET_S = 0.005
 
@@ -58,19 +60,16 @@ class ModbusRtuDAQ(ModbusDAQ):
         )
 
     @classmethod
-    def from_url(cls, url: DaqUrl, *, timeout: float, check_identity: bool) -> ModbusRtuDAQ:
+    def url_options(cls, url: DaqUrl) -> dict[str, object]:
         if not url.path:
-            raise ValueError(f"{url.raw}: no serial port")
-        return cls(
-            url.path,
-            baud=url.get_int("baud", ldq412.SERIAL_BAUD),
-            parity=url.params.get("parity", "N").upper(),
-            stopbits=url.get_int("stopbits", 1),
-            unit=url.get_int("unit", ldq412.MODBUS_UNIT),
-            timeout=timeout,
-            use_fifo=url.get_bool("fifo", True),
-            check_identity=check_identity,
-        )
+            raise ValueError(f"{url.raw}: no serial port (modbus-rtu:///dev/ttyUSB0)")
+        return {
+            "port": url.path,
+            "baud": url.get_int("baud", ldq412.SERIAL_BAUD, lo=1, hi=MAX_BAUD),
+            "parity": url.get_choice("parity", "N", ("N", "E", "O")),
+            "stopbits": url.get_int("stopbits", 1, lo=1, hi=2),
+            **ModbusDAQ.common_options(url),
+        }
 
     def _make_client(self, trace: Callable[[bool, bytes], bytes]) -> ModbusBaseSyncClient:
         return ModbusSerialClient(

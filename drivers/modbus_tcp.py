@@ -40,17 +40,16 @@ class ModbusTcpDAQ(ModbusDAQ):
         )
 
     @classmethod
-    def from_url(cls, url: DaqUrl, *, timeout: float, check_identity: bool) -> ModbusTcpDAQ:
+    def url_options(cls, url: DaqUrl) -> dict[str, object]:
         if not url.host:
-            raise ValueError(f"{url.raw}: no host")
-        return cls(
-            url.host,
-            url.port or ldq412.MODBUS_TCP_PORT,
-            unit=url.get_int("unit", ldq412.MODBUS_UNIT),
-            timeout=timeout,
-            use_fifo=url.get_bool("fifo", True),
-            check_identity=check_identity,
-        )
+            raise ValueError(f"{url.raw}: no host (modbus-tcp://HOST[:PORT])")
+        if url.port == 0:
+            raise ValueError(f"{url.raw}: port 0 is not a port (default 502)")
+        return {
+            "host": url.host,
+            "port": url.port or ldq412.MODBUS_TCP_PORT,
+            **ModbusDAQ.common_options(url),
+        }
 
     def _make_client(self, trace: Callable[[bool, bytes], bytes]) -> ModbusBaseSyncClient:
         return ModbusTcpClient(
