@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .errors import InputError
+from .errors import InputError, ParameterError
 from .parameters import (
     B1_AZIMUTH_DEG,
     B2_AZIMUTH_DEG,
@@ -23,9 +23,12 @@ from .parameters import (
     I_K1,
     I_K2,
     I_K3,
+    NAMES,
     SL_GAIN,
     SL_OFFSET,
     STROKE_MM,
+    STROKE_VOLTS,
+    UNITS,
     check_vector,
 )
 from .spheres import intersect_three_spheres
@@ -231,3 +234,43 @@ def forward_kinematics(
 def in_stroke(lengths: np.ndarray, p: np.ndarray, stroke_mm: float = STROKE_MM) -> np.ndarray:
     """(m, 4) bool: each length within ``d0_i +- stroke_mm``."""
     return np.abs(np.asarray(lengths) - p[SL_OFFSET]) <= stroke_mm
+
+
+#: the largest |value| a parameter of this mechanism can plausibly have: ten times the
+#: reference design's size (its plate radius is 100 mm, its gains 3.75 mm/V)
+PLAUSIBLE_MM = 1000.0
+PLAUSIBLE_GAIN = 100.0
+
+
+def check_geometry(p: np.ndarray) -> np.ndarray:
+    """Validate a full parameter vector as a description of this mechanism.
+
+    Beyond :func:`calibration.parameters.check_vector` (shape, finite, positive plate sizes
+    and gains, a plate triangle): every length within +-:data:`PLAUSIBLE_MM` mm, every gain
+    at most :data:`PLAUSIBLE_GAIN` mm/V, and at the home pose (identity rotation) every
+    actuator's length inside its sensor's range ``d0 +- 10 V * S``. A vector that fails
+    would make forward kinematics meaningless (or fail outright); the ParameterError names
+    the parameters to look at. Returns the vector as a float array.
+    """
+    p = check_vector(p)
+    for name, value in zip(NAMES, p, strict=True):
+        limit = PLAUSIBLE_GAIN if UNITS[name] == "mm/V" else PLAUSIBLE_MM
+        if abs(value) > limit:
+            raise ParameterError(
+                f"{name} = {value:g} {UNITS[name]} is outside the plausible range "
+                f"-{limit:g}..{limit:g} {UNITS[name]} for this mechanism"
+            )
+    B = plate_home(p)[list(LEG_POINT)]
+    home = np.linalg.norm(B - base_points(p), axis=-1)
+    volts = lengths_to_volts(home, p)
+    for i in np.flatnonzero(np.abs(volts) > STROKE_VOLTS):
+        n = i + 1
+        point = "B1" if LEG_POINT[i] == 0 else "B2"
+        raise ParameterError(
+            f"actuator {n} would be {home[i]:.1f} mm long at the home pose (A{n} to {point}), "
+            f"outside its sensor's range d0{n} +- 10 V * S{n} = "
+            f"{p[SL_OFFSET][i] - STROKE_VOLTS * p[SL_GAIN][i]:.1f}.."
+            f"{p[SL_OFFSET][i] + STROKE_VOLTS * p[SL_GAIN][i]:.1f} mm: check the A{n} "
+            f"coordinates, k1..k3, d0{n} and S{n}"
+        )
+    return p

@@ -29,8 +29,6 @@ import difflib
 import hashlib
 import json
 import os
-import secrets
-import stat
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,6 +38,7 @@ import numpy as np
 import tomlkit
 
 from calibration.errors import ParameterError
+from calibration.kinematics import check_geometry
 from calibration.parameters import (
     INDEX,
     NAMES,
@@ -49,6 +48,8 @@ from calibration.parameters import (
     ParameterModel,
     check_vector,
 )
+
+from . import durable
 
 #: the tables a controller config may have, in the order they are written
 TABLES: tuple[str, ...] = ("parameters", "calibration", "provenance")
@@ -214,7 +215,7 @@ def _parameters(p: Path, table: dict[str, Any] | None) -> np.ndarray:
             raise ControllerConfigError(f"{p}: [parameters].{name} = {v!r} is not finite")
         values.append(f)
     try:
-        params = check_vector(np.array(values))
+        params = check_geometry(np.array(values))
     except ParameterError as exc:
         raise ControllerConfigError(f"{p}: [parameters]: {exc}") from None
     params.setflags(write=False)
@@ -289,53 +290,33 @@ def write_initial_config(
     path: str | os.PathLike, *, force: bool = False, params: np.ndarray | None = None
 ) -> Path:
     """Write a new controller config at ``params`` (default the reference geometry) to
-    ``path`` and return it.
+    ``path``; returns the file written (``path``'s symlink target when it is a link).
 
-    Atomic: the text goes to a temporary file in the same directory, which is flushed,
-    fsynced and renamed over ``path``; then the directory is fsynced. Refuses to replace an
-    existing file unless ``force`` (a replaced file's permission bits are kept). Creates no
-    directories. Raises ControllerConfigError for all of these.
+    Atomic (:func:`daemon.durable.replace`: a temporary file in the same directory, fsynced
+    and renamed over, then the directory fsynced), under the config's write lock. Refuses to
+    replace an existing file unless ``force`` (a replaced file's permission bits are kept).
+    A symlink stays a link: its target is written. Creates no directories. Raises
+    ControllerConfigError for all of these.
     """
     p = Path(path)
-    parent = p.parent
     try:
         exists = os.path.lexists(p)
-        old_mode = stat.S_IMODE(os.stat(p).st_mode) if exists and p.is_file() else None
-        parent_is_dir = parent.is_dir()
-        parent_exists = os.path.lexists(parent)
+        target = durable.target_of(p)
+        parent_is_dir = target.parent.is_dir()
+        parent_exists = os.path.lexists(target.parent)
     except OSError as exc:
         raise ControllerConfigError(f"{p}: cannot write: {exc.strerror or exc}") from None
     if exists and not force:
         raise ControllerConfigError(f"{p}: already exists; use --force to overwrite it")
+    if target.exists() and not target.is_file():
+        raise ControllerConfigError(f"{p}: cannot write: {target} is not a regular file")
     if not parent_is_dir:
         what = "is not a directory" if parent_exists else "does not exist"
-        raise ControllerConfigError(f"{p}: directory {parent} {what}")
+        raise ControllerConfigError(f"{p}: directory {target.parent} {what}")
     data = render_initial_config(params).encode("utf-8")
-    tmp = parent / f".{p.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
     try:
-        # O_EXCL: never write through a file or link already at the temporary name
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
-        try:
-            with os.fdopen(fd, "wb", closefd=False) as fh:
-                fh.write(data)
-                fh.flush()
-            if old_mode is not None:
-                os.fchmod(fd, old_mode)
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, p)
+        with durable.locked(target):
+            durable.replace(target, data)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
         raise ControllerConfigError(f"{p}: cannot write: {exc.strerror or exc}") from None
-    try:
-        dfd = os.open(parent, os.O_RDONLY | os.O_DIRECTORY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    except OSError as exc:
-        raise ControllerConfigError(
-            f"{p}: written, but the directory could not be synced: {exc.strerror or exc}"
-        ) from None
-    return p
+    return target

@@ -2,26 +2,31 @@
 
 Only values change: the file is edited with tomlkit, so its comments and layout survive,
 and ``[provenance]`` records where the values came from. Nothing already configured can be
-lost or half written:
+lost or half written (the mechanics are :mod:`daemon.durable`'s):
 
-1. the file is read again and must be byte for byte what the calibration started from
-   (someone may have edited it meanwhile);
-2. the current version is copied beside it, ``NAME.YYYYmmddTHHMMSSZ.prev``, durably
-   (temporary file, fsync, rename, fsync of the directory);
-3. the new version goes to a temporary file in the same directory, is fsynced, renamed over
-   the config (atomic), and the directory is fsynced.
+1. the config's real file is found through any symlinks (the link stays a link; its target
+   is what is replaced, in the target's own directory, with the target's mode);
+2. the writer takes the config's advisory lock, so a second calibration writing at the
+   same time waits for the first;
+3. holding it, the file is read again and must be byte for byte what the calibration
+   started from (compare-and-swap: someone, or another calibration, may have written it
+   meanwhile; then nothing is written and the calibration must be run again);
+4. the current version is copied beside it, ``NAME.YYYYmmddTHHMMSSZ.prev`` (a name no
+   other writer has taken), durably;
+5. the new version goes to a temporary file in the same directory, is fsynced, renamed over
+   the file (atomic), and the directory is fsynced; then the lock is released.
 
 Killed at any point, the config is the old version or the new one, never a mix.
 
 For tests, ``LOOPCAL_KILL_AT`` set to one of :data:`STEPS` makes the process SIGKILL itself
-right after that step (fault injection, like the emulator's).
+right after that step, and ``LOOPCAL_PAUSE_AT=STEP:SECONDS`` holds it there.
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
-import signal
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -31,50 +36,26 @@ import tomlkit
 
 from calibration.parameters import NAMES
 
+from . import durable
 from .controller_config import ControllerConfig, ControllerConfigError
 
-STEPS = (
-    "backup-written",
-    "backup-synced",
-    "backup-renamed",
-    "new-written",
-    "new-synced",
-    "renamed",
-    "dir-synced",
-)
+#: the write sequence's steps, in order (the config is new from ``new-renamed`` on)
+STEPS = ("locked", "backup-written", "backup-renamed", "new-written", "new-renamed",
+         "new-synced")  # fmt: skip
 
 
-def _step(name: str) -> None:
-    if os.environ.get("LOOPCAL_KILL_AT") == name:
-        os.kill(os.getpid(), signal.SIGKILL)
+@dataclass(frozen=True)
+class Written:
+    """Where write_back put things: the config path as given, the file actually replaced
+    (its symlink target, or the same path), and the previous version kept beside it."""
 
+    path: Path
+    target: Path
+    backup: Path
 
-def _fsync_dir(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _write_durably(path: Path, data: bytes, mode: int, *, tmp_step: str, synced_step: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, mode)
-        try:
-            os.fchmod(fd, mode)  # the old file's mode, whatever the umask
-            view = memoryview(data)
-            while view:
-                view = view[os.write(fd, view) :]
-            _step(tmp_step)
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        _step(synced_step)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    @property
+    def through_link(self) -> bool:
+        return self.target != self.path
 
 
 def updated_text(text: str, new: dict[str, float], provenance: dict[str, Any]) -> str:
@@ -98,47 +79,74 @@ def updated_text(text: str, new: dict[str, float], provenance: dict[str, Any]) -
     return tomlkit.dumps(doc)
 
 
-def write_back(
-    config: ControllerConfig, params: np.ndarray, provenance: dict[str, Any]
-) -> tuple[Path, Path]:
-    """Write every parameter whose value differs from the config's into it, with
-    ``provenance``. Returns (config path, path of the previous version kept beside it).
+def check_writable(config: ControllerConfig) -> Path:
+    """Fail early, before a calibration runs, if its result could not be written: the
+    config's real file must exist and its directory take new files. Returns the real file.
+    Raises ControllerConfigError."""
+    path = config.path
+    if path is None:
+        raise ControllerConfigError("no controller config file to write to")
+    try:
+        target = durable.target_of(path)
+    except OSError as exc:
+        raise ControllerConfigError(f"{path}: {exc.strerror or exc}") from None
+    try:
+        durable.check_can_replace(target)
+    except OSError as exc:
+        raise ControllerConfigError(
+            f"{path}: cannot be replaced in {target.parent}: {exc.strerror or exc}"
+        ) from None
+    return target
 
-    Raises ControllerConfigError if the file changed since it was read, or cannot be written
+
+def write_back(
+    config: ControllerConfig, params: np.ndarray, provenance: dict[str, Any], *,
+    lock_timeout: float = durable.LOCK_TIMEOUT_S,
+) -> Written:  # fmt: skip
+    """Write every parameter whose value differs from the config's into it, with
+    ``provenance``. Returns where it wrote.
+
+    Raises ControllerConfigError if the file changed since it was read (nothing written:
+    run the calibration again), another writer held it too long, or it cannot be written
     (the config is then as it was).
     """
     path = config.path
     if path is None:
         raise ControllerConfigError("no controller config file to write to")
     try:
-        raw = path.read_bytes()
-        mode = os.stat(path).st_mode & 0o777
-    except OSError as exc:
-        raise ControllerConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    if hashlib.sha256(raw).hexdigest() != config.sha256:
-        raise ControllerConfigError(
-            f"{path}: changed since the calibration read it; run the calibration again"
-        )
-    new = {n: float(v) for n, v, old in zip(NAMES, params, config.params, strict=True) if v != old}
-    text = updated_text(config.text, new, provenance)
-    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
-    backup = path.with_name(f"{path.name}.{stamp}.prev")
-    n = 1
-    while backup.exists():
-        n += 1
-        backup = path.with_name(f"{path.name}.{stamp}-{n}.prev")
-    try:
-        _write_durably(backup, raw, mode, tmp_step="backup-written", synced_step="backup-synced")
-        _step("backup-renamed")
-        _fsync_dir(path.parent)
-        _write_durably(
-            path, text.encode("utf-8"), mode, tmp_step="new-written", synced_step="new-synced"
-        )
-        _step("renamed")
-        _fsync_dir(path.parent)
-        _step("dir-synced")
+        target = durable.target_of(path)
+        with durable.locked(target, timeout=lock_timeout):
+            durable.step("locked")
+            raw = target.read_bytes()
+            mode = os.stat(target).st_mode & 0o7777
+            if hashlib.sha256(raw).hexdigest() != config.sha256:
+                raise ControllerConfigError(
+                    f"{path}: changed since the calibration read it (another calibration or "
+                    "an edit wrote it meanwhile); nothing written: run the calibration again"
+                )
+            new = {n: float(v) for n, v, old in zip(NAMES, params, config.params, strict=True)
+                   if v != old}  # fmt: skip
+            text = updated_text(config.text, new, provenance)
+            backup = _keep_previous(target, raw, mode)
+            durable.replace(target, text.encode("utf-8"), mode=mode, prefix="new-")
+    except durable.Busy as exc:
+        raise ControllerConfigError(f"{path}: {exc.strerror}; nothing written") from None
     except OSError as exc:
         raise ControllerConfigError(
             f"{path}: cannot write the new values: {exc.strerror or exc} (unchanged)"
         ) from None
-    return path, backup
+    return Written(path, target, backup)
+
+
+def _keep_previous(target: Path, raw: bytes, mode: int) -> Path:
+    """Copy the current version beside the target under a name nobody has taken."""
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    n = 1
+    while True:
+        suffix = stamp if n == 1 else f"{stamp}-{n}"
+        backup = target.with_name(f"{target.name}.{suffix}.prev")
+        try:
+            durable.create_new(backup, raw, mode, prefix="backup-")
+            return backup
+        except FileExistsError:
+            n += 1

@@ -8,6 +8,7 @@ import json
 import os
 import subprocess
 import sys
+import tomllib
 
 import numpy as np
 import pytest
@@ -99,7 +100,11 @@ def test_any_valid_vector_is_written_and_read_back_bit_for_bit(tmp_path):
     extremes = [0.0, -0.0, 5e-324, -1e-300, 1e17, 0.1 + 0.2, np.nextafter(97.4, 98.0), 1 / 3]
     for k in range(40):
         p = NOMINAL * (1 + 1e-3 * rng.standard_normal(NOMINAL.shape))
-        p[:9] = rng.choice(extremes, 9) if k % 2 else p[:9]
+        if k % 2:  # the text round-trips any float (these describe no mechanism: not loaded)
+            p[:9] = rng.choice(extremes, 9)
+            doc = tomllib.loads(render_initial_config(p))["parameters"]
+            assert bits(np.array([doc[n] for n in NAMES])) == bits(p)
+            continue
         path = write_initial_config(tmp_path / "c.toml", force=True, params=p)
         assert bits(load_controller_config(path).params) == bits(p)
     with pytest.raises(ParameterError, match="positive"):

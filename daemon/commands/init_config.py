@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from ..controller_config import ControllerConfigError, write_initial_config
 
@@ -25,8 +26,11 @@ def run(args: argparse.Namespace) -> int:
     except ControllerConfigError as exc:
         print(f"loopcal init-config: error: {exc}", file=sys.stderr)
         return 2
+    where = str(path)
+    if path != Path(args.path):
+        where += f" (through the symlink {args.path}, which stays a link)"
     print(
-        f"wrote {path}: the 20 parameters at the reference geometry "
+        f"wrote {where}: the 20 parameters at the reference geometry "
         "(edit the gains S1..S4 to your bench values)"
     )
     return 0
