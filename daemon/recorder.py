@@ -42,7 +42,7 @@ from .recording import (
 )
 from .scans import SCAN_DTYPE
 from .sdnotify import Notifier
-from .settings import RecorderSettings
+from .settings import RecorderSettings, SettingsError
 
 log = logging.getLogger("daemon.recorder")
 
@@ -53,6 +53,47 @@ ACQUISITION_STALE_S = 10.0  # no loop turn for this long: stop feeding the watch
 MAX_PENDING_EVENTS = 1000
 BACKLOG_PIECE_NS = 10_000_000_000  # a backlog is written and made durable 10 s at a time
 STILL_FAILING_LOG_S = 60.0
+
+
+#: errors that no retry will cure: the directory is wrong, not the disk momentarily full
+_FATAL_DIR_ERRNOS = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EEXIST,
+                     errno.ELOOP, errno.ENAMETOOLONG, errno.EISDIR}  # fmt: skip
+
+
+def prepare_directory(directory: Path) -> None:
+    """Create the recording directory if needed and check that a file can be created in it.
+
+    Raises SettingsError (naming ``[recording].directory``) when it cannot be created or
+    written for a reason retrying will not cure (permissions, a read-only file system, a
+    file in the way). A full or failing disk is not refused here: the writer keeps the
+    scans in memory and retries (a ``disk_error`` event).
+    """
+
+    def refuse(what: str, exc: OSError | None = None) -> SettingsError:
+        why = f": {exc.strerror or exc}" if exc is not None else ""
+        return SettingsError(f"[recording].directory: {directory}: {what}{why}")
+
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise refuse("exists and is not a directory") from None
+    except OSError as exc:
+        if exc.errno in _FATAL_DIR_ERRNOS:
+            raise refuse("cannot create the recording directory", exc) from None
+        return
+    if not directory.is_dir():
+        raise refuse("exists and is not a directory")
+    probe = directory / f".loopcal-write-test.{os.getpid()}"
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
+    except FileExistsError:
+        return
+    except OSError as exc:
+        if exc.errno in _FATAL_DIR_ERRNOS:
+            raise refuse("cannot write in the recording directory", exc) from None
+        return
+    os.close(fd)
+    probe.unlink(missing_ok=True)
 
 
 class ScanQueue:
@@ -130,6 +171,7 @@ class Recorder:
         self.command = command
         self._reload_settings = reload_settings
         self.notifier = notifier if notifier is not None else Notifier()
+        prepare_directory(settings.directory)
         self.controller = self._load_controller(settings)
         self.status = RecorderStatus()
         self.exit_reason = ""
@@ -282,11 +324,23 @@ class Recorder:
         return "; ".join(parts)
 
     def _resume_point(self, directory: Path) -> ResumePoint | None:
-        found = last_scan(directory) if directory.is_dir() else None
-        if found is None:
-            return None
-        row, meta = found
-        return ResumePoint.from_row(row, meta.get("device", {}))
+        """Where the last recording of the directory ended. Damaged or unreadable files
+        never stop the recorder: each is reported as a ``damaged_recording`` event, and it
+        carries on from the last intact scan (or from nothing)."""
+        problems: list[str] = []
+        found = None
+        try:
+            found = last_scan(directory, problems) if directory.is_dir() else None
+            resume = None if found is None else ResumePoint.from_row(found[0], found[1].get(
+                "device", {}))  # fmt: skip
+        except Exception as exc:  # noqa: BLE001 - an old file must never stop the recording
+            log.exception("cannot look for the last recorded scan in %s", directory)
+            problems.append(f"{directory}: the last recorded scan could not be read ({exc!r}); "
+                            "starting a new power-on epoch")  # fmt: skip
+            resume = None
+        for text in problems:
+            self._event("damaged_recording", Level.WARNING, text, directory=str(directory))
+        return resume
 
     def _start_acquisition(self, resume: ResumePoint | None) -> None:
         s = self.settings
@@ -328,6 +382,8 @@ class Recorder:
         try:
             new = self._reload_settings() if self._reload_settings is not None else old
             controller = self._load_controller(new)
+            if new.directory != old.directory:
+                prepare_directory(new.directory)
         except (ValueError, OSError) as exc:
             self._event("config_reload", Level.ERROR,
                         f"reload failed, keeping the running configuration: {exc}",
@@ -380,6 +436,7 @@ class _Writer:
         self.failing_logged = 0.0
         self.retry_at = 0.0
         self.next_retention = 0.0
+        self.views_reported: Path | None = None
 
     def run(self) -> None:
         rec = self.rec
@@ -519,6 +576,14 @@ class _Writer:
             self.rec.status.scans_written += b - a
             self.rows, self.n_rows = [rows[b:]], len(rows) - b
         self.rows, self.n_rows = [], 0
+        if f.views_error and self.views_reported != f.path:
+            self.views_reported = f.path
+            ev = Event(time.time_ns(), "views_failed", Level.ERROR,
+                       f"no plate poses for {f.path.name}: the controller config's parameters "
+                       f"give no forward kinematics ({f.views_error}); the raw scans are "
+                       "recorded", {"path": str(f.path), "error": f.views_error})  # fmt: skip
+            ev.log(log)
+            self.events.append(ev)
 
     def _flush(self, now: float) -> None:
         rec = self.rec

@@ -221,19 +221,36 @@ def test_a_file_size_limit_is_a_disk_error_and_nothing_is_lost(tmp_path):
     assert all(f.scans for f in out.files)  # no empty husks left behind
 
 
-def test_an_unwritable_directory_recovers_when_fixed(tmp_path):
+def test_a_directory_that_cannot_be_made_is_refused_at_start(tmp_path):
     blocker = tmp_path / "rec"
     blocker.write_text("a file where the directory should be")
+    for out in (blocker, blocker / "sub"):
+        rec = record("modbus-tcp://127.0.0.1:1", out, "--duration", "5")
+        assert rec.wait(30) == 2, rec.text
+        assert f"--out: {out}: " in rec.text and "Traceback" not in rec.text
+    config = write_config(tmp_path / "daemon.toml", "modbus-tcp://127.0.0.1:1", blocker / "sub")
+    proc = Proc(["daemon", "--config", str(config)])
+    assert proc.wait(30) == 2, proc.text
+    assert "[recording].directory" in proc.text and "Not a directory" in proc.text
+
+
+def test_a_directory_that_becomes_unwritable_recovers_when_fixed(tmp_path):
+    top = tmp_path / "rec"
     with hand_emulator() as emu:
-        rec = record(emu.url, blocker / "sub")
+        rec = record(emu.url, top / "sub")
+        rec.wait_for("recording to")
+        time.sleep(1.0)
+        top.rename(tmp_path / "moved")  # the open file goes on in moved/sub
+        top.write_text("a file where the directory should be")
+        rec.signal(signal.SIGHUP)  # a new file: it cannot be created
         rec.wait_for(r"disk_error: cannot write .*rec/sub", timeout=15)
         time.sleep(1.0)
-        blocker.unlink()
+        top.unlink()
         rec.wait_for("disk_recovered", timeout=15)
         time.sleep(1.0)
         rc, _ = rec.stop()
     assert rc == 0, rec.text
-    out = read_recordings(blocker / "sub")
+    out = read_recordings([tmp_path / "moved" / "sub", top / "sub"])
     assert consecutive(out.scans) and out.scans["counter64"][0] == 0
     assert out.events_of("disk_error")[0].details["errno"] in (20, 17, 2)  # ENOTDIR etc.
 

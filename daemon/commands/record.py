@@ -184,7 +184,11 @@ def run(args: argparse.Namespace) -> int:
     )  # fmt: skip
     if status == 0 and st.scans_written == 0:
         acq = recorder.acquisition_stats
-        why = acq.last_error if acq is not None and acq.last_error else "no scan arrived"
+        if acq is not None and acq.scans:
+            why = (f"{acq.scans} scans arrived but none could be written to "
+                   f"{settings.directory}: {st.disk_error or 'see the errors above'}")  # fmt: skip
+        else:
+            why = acq.last_error if acq is not None and acq.last_error else "no scan arrived"
         log.error("nothing was recorded: %s", why)
         return 1
     if guide is not None and status == 0 and not guide.done:
