@@ -170,7 +170,7 @@ def test_killed_while_writing_leaves_the_old_config_or_the_new(offline, tmp_path
     assert proc.returncode == -signal.SIGKILL, proc.stdout + proc.stderr
     now = config.read_bytes()
     cfg = load_controller_config(config)  # parses: never a partial file
-    if STEPS.index(step) < STEPS.index("renamed"):
+    if STEPS.index(step) < STEPS.index("new-renamed"):
         assert now == old
     else:
         assert now != old and cfg.provenance is not None

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import sys
 from datetime import UTC, datetime, timedelta
@@ -22,11 +23,12 @@ from calibration.errors import CalibrationError
 from calibration.identify import DEFAULT_METHOD, METHODS
 from calibration.parameters import ParameterModel
 
+from .. import durable
 from ..controller_config import ControllerConfigError, load_controller_config
 from ..recording import RecordingError, find_recordings, read_recordings
 from ..settings import SettingsError, load_daemon_config
 from ..worker import METHOD_NAMES, describe_files, run_worker
-from ..writeback import write_back
+from ..writeback import Written, check_writable, write_back
 
 HELP = "identify new parameters from recordings; --write puts them in the controller config"
 
@@ -44,12 +46,21 @@ def parse_time(text: str) -> datetime:
     return t if t.tzinfo else t.replace(tzinfo=UTC)
 
 
+#: the longest --last that makes sense: more than any recording kept on a controller
+MAX_DURATION = timedelta(days=3650)
+
+
 def parse_duration(text: str) -> timedelta:
     m = _DURATION.match(text.strip())
     if not m:
         raise argparse.ArgumentTypeError(f"{text!r} is not a duration (e.g. 90s, 15m, 2h, 1d)")
     unit = {"s": 1, "m": 60, "min": 60, "h": 3600, "d": 86400}[m.group(2)]
-    return timedelta(seconds=float(m.group(1)) * unit)
+    seconds = float(m.group(1)) * unit
+    if not 0 < seconds <= MAX_DURATION.total_seconds():
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: a duration must be more than 0 and at most {MAX_DURATION.days} days"
+        )
+    return timedelta(seconds=seconds)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -149,13 +160,40 @@ def _inputs(args: argparse.Namespace) -> tuple[list[Path], Path]:
     return out, controller
 
 
+def _check_report_dir(directory: Path) -> None:
+    """The report's directory must be one (or creatable) and take files, before anything
+    is computed or written."""
+    if directory.exists() and not directory.is_dir():
+        raise _Fail(f"--report {directory}: exists and is not a directory")
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        probe = directory / f".loopcal-write-test.{os.getpid()}"
+        probe.touch(exist_ok=False)
+        probe.unlink()
+    except OSError as exc:
+        raise _Fail(f"--report {directory}: cannot write there: {exc.strerror or exc}") from None
+
+
+def _window_text(since: datetime | None, until: datetime | None) -> str:
+    fmt = "%Y-%m-%d %H:%M:%S UTC"
+    lo = since.astimezone(UTC).strftime(fmt) if since else "the start"
+    hi = until.astimezone(UTC).strftime(fmt) if until else "the end"
+    return f"from {lo} to {hi}"
+
+
 def run(args: argparse.Namespace) -> int:
     def progress(text: str) -> None:
         print(text, file=sys.stderr if args.json else sys.stdout, flush=True)
 
     try:
+        if args.ties is not None and not args.free:
+            raise _Fail("--ties goes with --free (ties tie parameters of a custom free set)")
+        if args.report is not None:
+            _check_report_dir(args.report)
         files, controller_path = _inputs(args)
         config = load_controller_config(controller_path)
+        if args.write:
+            check_writable(config)
         free = ",".join(args.free) if args.free else (config.free or "paper7")
         ties = args.ties if args.free else (",".join(config.ties) or None)
         model = ParameterModel.parse(free, ties or ())
@@ -164,7 +202,13 @@ def run(args: argparse.Namespace) -> int:
             if since is not None:
                 raise _Fail("give --since or --last, not both")
             end = until or _latest(files)
-            since = end - args.last
+            try:
+                since = end - args.last
+            except OverflowError:
+                since = datetime.min.replace(tzinfo=UTC)
+        if since is not None and until is not None and until <= since:
+            raise _Fail(f"empty time window: --until is not after --since "
+                        f"({_window_text(since, until)})")  # fmt: skip
         if args.select < model.n_free:
             raise _Fail(f"--select {args.select}: at least {model.n_free} poses are needed")
         progress(f"reading {len(files)} recording file(s)")
@@ -175,20 +219,32 @@ def run(args: argparse.Namespace) -> int:
     notes = describe_files(rec)
     if notes:
         progress(f"note: {notes}")
+    for line in rec.warnings:
+        progress(f"warning: {line}")
     if len(rec) == 0:
         print(
             "loopcal calibrate: error: no scans in the recordings"
-            + (" within the time window" if since or until else ""),
+            + (f" {_window_text(since, until)}" if since or until else ""),
             file=sys.stderr,
         )
         return 2
     result = run_worker(
         rec, config, model, n_select=args.select, method=args.method, progress=progress
     )
-    written = backup = None
+    if args.report is not None:  # every other output first: the config is written last
+        from ..report import write_report  # matplotlib only when a report is asked for
+
+        try:
+            page = write_report(result, args.report, progress=progress)
+        except OSError as exc:
+            print(f"loopcal calibrate: error: cannot write the report in {args.report}: "
+                  f"{exc.strerror or exc}; nothing written", file=sys.stderr)  # fmt: skip
+            return 2
+        progress(f"report: {page}")
+    written = None
     if args.write and result.accepted:
         try:
-            written, backup = write_back(
+            written = write_back(
                 config,
                 result.params,
                 result.provenance(since=_ns(since), until=_ns(until)),
@@ -196,36 +252,43 @@ def run(args: argparse.Namespace) -> int:
         except ControllerConfigError as exc:
             print(f"loopcal calibrate: error: {exc}", file=sys.stderr)
             return 2
-    if args.report is not None:
-        from ..report import write_report  # matplotlib only when a report is asked for
-
-        page = write_report(result, args.report, progress=progress)
-        progress(f"report: {page}")
     if args.json:
         doc = result.as_json()
         doc.update(
             {
                 "written": written is not None,
                 "config": str(config.path),
-                "previous_version": str(backup) if backup else None,
+                "target": str(written.target if written else durable.target_of(config.path)),
+                "previous_version": str(written.backup) if written else None,
+                "warnings": rec.warnings,
             }
         )
         print(json.dumps(doc, indent=1, default=_jsonable))
     else:
-        _print_human(result, config.path, written, backup, args.write)
+        _print_human(result, config.path, written, args.write)
     return 0 if result.accepted else 1
 
 
 def _latest(files: list[Path]) -> datetime:
     from ..recording import message_time_range
 
-    ends = [r[1] for r in (message_time_range(f) for f in files) if r is not None]
-    if not ends:  # cut files: read them to find out
-        rec = read_recordings(files)
-        if not len(rec):
-            raise _Fail("no scans in the recordings")
-        ends = [int(rec.scans["stamp_ns"][-1])]
-    return datetime.fromtimestamp(max(ends) / 1e9, UTC) + timedelta(microseconds=1)
+    ends, unclosed = [], []
+    for f in files:
+        span = message_time_range(f)
+        if span is None:
+            unclosed.append(f)  # a file still being written, or cut: read it to find out
+        else:
+            ends.append(span[1])
+    if unclosed:
+        rec = read_recordings(unclosed)
+        if len(rec):
+            ends.append(int(rec.scans["stamp_ns"].max()))
+    if not ends:
+        raise _Fail("no scans in the recordings")
+    try:
+        return datetime.fromtimestamp(max(ends) / 1e9, UTC) + timedelta(microseconds=1)
+    except (OverflowError, OSError, ValueError):
+        raise _Fail(f"the recordings end at an impossible time ({max(ends)} ns)") from None
 
 
 def _ns(t: datetime | None) -> int | None:
@@ -238,7 +301,7 @@ def _jsonable(obj):
     raise TypeError(f"not JSON serialisable: {obj!r}")
 
 
-def _print_human(result, path, written, backup, asked_to_write: bool) -> None:
+def _print_human(result, path, written: Written | None, asked_to_write: bool) -> None:
     cal = result.calibration
     print()
     print(f"Free parameters: {result.model.describe()}")
@@ -266,9 +329,12 @@ def _print_human(result, path, written, backup, asked_to_write: bool) -> None:
         names = ", ".join(g.name for g in result.failed)
         print(f"REFUSED ({names}): {path} is unchanged.")
     elif written is not None:
+        where = str(written.target)
+        if written.through_link:
+            where += f" (through the symlink {written.path}, which stays a link)"
         print(
-            f"Wrote {len(result.changed())} value(s) to {written}; the previous version is "
-            f"{backup}."
+            f"Wrote {len(result.changed())} value(s) to {where}; the previous version is "
+            f"{written.backup}."
         )
     elif asked_to_write:
         print(f"Nothing to write: {path} already holds these values.")
