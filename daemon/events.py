@@ -40,6 +40,11 @@ KINDS: dict[str, str] = {
     "disk_recovered": "writing works again (details: path, backlog scans, outage_s)",
     "backlog_dropped": "the in-memory backlog overflowed while the disk failed (details: scans)",
     "retention": "an old recording was deleted to stay under the disk budget (details: path)",
+    "damaged_recording": "a recording already in the directory is damaged or unreadable: what "
+    "of it was lost (the recorder carries on from its last intact scan; details: directory)",
+    "views_failed": "the plate's poses could not be computed for a file (the controller "
+    "config's parameters give no forward kinematics); its raw scans are recorded "
+    "(details: path, error)",
     "offset_drift": "the loops no longer close at the controller config: a sensor's offset "
     "moved (details: sensor 1..4, shift_mm, std_mm, statistic, threshold, margin, poses, "
     "false_alarm)",

@@ -26,6 +26,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import socket
 import threading
 from typing import Any
 
@@ -50,6 +51,17 @@ TICK_S = 0.01
 _START_TIMEOUT_S = 5.0
 _STOP_TIMEOUT_S = 5.0
 _GARBAGE_STREAM = 0x6A756E6B  # second seed word: the garbage rng differs from the source's
+
+
+def _root_cause(exc: BaseException) -> str:
+    """The innermost OS error of an exception chain (pymodbus wraps "address already in
+    use" in a vaguer message), else the exception itself."""
+    seen = exc
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.strerror:
+            return seen.strerror
+        seen = seen.__cause__ or seen.__context__
+    return str(exc)
 
 
 class Emulator:
@@ -159,6 +171,15 @@ class Emulator:
         """Start the servers; returns once :attr:`url` is reachable. Idempotent."""
         if self._thread is not None:
             return self
+        if self.transport == "modbus-tcp" and self.port:
+            # pymodbus reports a taken port only as "could not start listen": ask the OS
+            try:
+                with socket.create_server((self.host, self.port), reuse_port=False):
+                    pass
+            except OSError as exc:
+                raise RuntimeError(
+                    f"cannot listen on {self.host}:{self.port}: {exc.strerror or exc}"
+                ) from None
         ready = threading.Event()
         self._thread = threading.Thread(
             target=self._run, args=(ready,), name=f"ldq412-emulator[{self.transport}]", daemon=True
@@ -168,8 +189,10 @@ class Emulator:
             self.close()
             raise TimeoutError("emulator did not start")
         if self._startup_error is not None:
+            err = self._startup_error
             self.close()
-            raise RuntimeError("emulator failed to start") from self._startup_error
+            where = f" on {self.host}:{self.port}" if self.transport == "modbus-tcp" else ""
+            raise RuntimeError(f"emulator failed to start{where}: {_root_cause(err)}") from err
         return self
 
     def close(self) -> None:

@@ -26,8 +26,10 @@ import argparse
 import json
 import re
 import signal
+import socket
 import sys
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
@@ -213,14 +215,49 @@ def _pause(text: str) -> tuple[float, float]:
     return lo, hi
 
 
+def int_in(lo: int, hi: int, *, base: int = 10) -> Callable[[str], int]:
+    """An argparse type: an integer in lo..hi (hexadecimal digits with base 16)."""
+
+    def parse(text: str) -> int:
+        digits = "0123456789abcdefABCDEF"[: 10 if base == 10 else 22]
+        if not text or not all(c in digits for c in text.lstrip("-" if base == 10 else "")):
+            kind = "hexadecimal digits" if base == 16 else "an integer"
+            raise argparse.ArgumentTypeError(f"{text!r} is not {kind}")
+        value = int(text, base)
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"{text} is outside {lo}..{hi}")
+        return value
+
+    return parse
+
+
+#: a TCP port to listen on (0: a free one)
+tcp_port = int_in(0, 65535)
+
+
+def listen_host(text: str) -> str:
+    """An argparse type: an address (or name) this machine can listen on."""
+    try:
+        socket.getaddrinfo(text, None, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an address: {exc}") from None
+    return text
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--transport", choices=TRANSPORTS, default="modbus-tcp")
-    p.add_argument("--host", default="127.0.0.1", help="TCP address (default 127.0.0.1)")
-    p.add_argument("--port", type=int, default=0, help="TCP port (default: a free one)")
-    p.add_argument("--unit", type=int, default=1, help="Modbus unit id (default 1)")
-    p.add_argument("--addr", type=lambda s: int(s, 16), default=1, help="ASCII address, hex")
+    p.add_argument(
+        "--host", type=listen_host, default="127.0.0.1", help="TCP address (default 127.0.0.1)"
+    )
+    p.add_argument("--port", type=tcp_port, default=0, help="TCP port (default: a free one)")
+    p.add_argument("--unit", type=int_in(1, 247), default=1, help="Modbus unit id (default 1)")
+    p.add_argument(
+        "--addr", type=int_in(0, 0xFF, base=16), default=1, help="ASCII address, hex (01)"
+    )
     p.add_argument("--checksum", action="store_true", help="ASCII checksum mode on at power-on")
-    p.add_argument("--scan-rate", type=int, default=20, help="scan rate at power-on, Hz (20)")
+    p.add_argument(
+        "--scan-rate", type=int_in(1, 200), default=20, help="scan rate at power-on, Hz (20)"
+    )
     p.add_argument("--speed", type=float, default=1.0, help="device time per real second (1)")
     p.add_argument(
         "--wait-for-client",
@@ -298,8 +335,13 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             source = MechanismSource(
                 scenario, truth, noise_volts=args.noise_mv / 1000, seed=args.seed, drifts=drifts
             )
+        if args.duration is not None and not args.duration > 0:
+            raise ValueError("--duration must be positive")
+        # opened now: a truth file that cannot be written is an error before anything runs
+        out = open(args.truth_out, "w", encoding="utf-8") if args.truth_out else None  # noqa: SIM115
     except (ValueError, OSError) as exc:
-        print(f"loopcal simulate: error: {exc}", file=sys.stderr)
+        what = f"--truth-out {args.truth_out}: " if isinstance(exc, OSError) else ""
+        print(f"loopcal simulate: error: {what}{exc}", file=sys.stderr)
         return 2
     if args.wait_for_client:
         clock: Clock = HeldClock(args.speed)  # released by the emulator's first request
@@ -324,8 +366,12 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         port=args.port,
         truth_limit=max(20_000, int(60 * args.scan_rate * args.speed)),
     )
-    out = open(args.truth_out, "w", encoding="utf-8") if args.truth_out else None  # noqa: SIM115
     try:
+        try:
+            emu.start()
+        except RuntimeError as exc:
+            print(f"loopcal simulate: error: {exc}", file=sys.stderr)
+            return 2
         with emu:
             print(f"listening: {emu.url}", flush=True)
             if args.transport != "modbus-tcp":

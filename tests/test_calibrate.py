@@ -325,3 +325,99 @@ def test_a_cut_recording_with_faults_and_gaps(offline, tmp_path):
     assert dropped["channel at the rail or faulted"] == 40
     assert dropped["next to a gap or restart"] == 10
     assert rc == 0, doc["gates"]
+
+
+def _locked_by_someone(directory) -> bool:
+    import fcntl
+
+    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+    return False
+
+
+def test_two_writers_at_once_never_lose_an_update(offline, tmp_path):
+    """A holds the config's lock (paused right after taking it); B starts then, reads the
+    old config, calibrates and waits for the lock; A writes; B must see that the file
+    changed and refuse rather than overwrite A's update."""
+    rec_dir, _ = offline
+    config = fresh_config(tmp_path / "controller.toml")
+    original = config.read_bytes()
+    a = Proc(["calibrate", str(rec_dir), "--controller-config", str(config), "--write",
+              "--json"], env={"LOOPCAL_PAUSE_AT": "locked:8"})  # fmt: skip
+    deadline = time.monotonic() + 60
+    while not _locked_by_someone(tmp_path):
+        assert time.monotonic() < deadline and a.proc.poll() is None, a.text
+        time.sleep(0.05)
+    b = Proc(["calibrate", str(rec_dir), "--controller-config", str(config), "--write",
+              "--json"])  # fmt: skip
+    assert a.wait(120) == 0, a.text
+    assert b.wait(120) == 2, b.text
+    assert "changed since the calibration read it" in b.text and "nothing written" in b.text
+    prev = list(tmp_path.glob("controller.toml.*.prev"))
+    assert len(prev) == 1 and prev[0].read_bytes() == original  # A's backup, and only A's
+    assert load_controller_config(config).provenance is not None
+
+
+def test_a_symlinked_config_stays_a_link_and_its_target_is_written(offline, tmp_path):
+    rec_dir, _ = offline
+    robot = tmp_path / "opt" / "robot"
+    robot.mkdir(parents=True)
+    target = fresh_config(robot / "config.toml")
+    target.chmod(0o640)
+    etc = tmp_path / "etc"
+    etc.mkdir()
+    link = etc / "controller.toml"
+    link.symlink_to(target)
+    before = target.read_bytes()
+    proc = loopcal("calibrate", rec_dir, "--controller-config", link, "--write")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert link.is_symlink() and link.resolve() == target
+    assert f"through the symlink {link}" in proc.stdout
+    assert target.read_bytes() != before and target.stat().st_mode & 0o777 == 0o640
+    [prev] = robot.glob("config.toml.*.prev")
+    assert prev.read_bytes() == before and not list(etc.glob("*.prev"))
+    proc = loopcal("init-config", link, "--force")
+    assert proc.returncode == 0 and "through the symlink" in proc.stdout, proc.stderr
+    assert link.is_symlink() and target.stat().st_mode & 0o777 == 0o640
+    assert load_controller_config(link).provenance is None  # the reference config again
+
+
+def test_backups_never_share_a_name(offline, tmp_path):
+    from daemon.writeback import write_back
+
+    config = fresh_config(tmp_path / "controller.toml")
+    written = []
+    for k in range(3):  # within the same second
+        cfg = load_controller_config(config)
+        p = cfg.params.copy()
+        p[INDEX["d01"]] += 0.1 * (k + 1)
+        written.append(write_back(cfg, p, {"method": "test"}).backup)
+    assert len(set(written)) == 3 and all(b.exists() for b in written)
+
+
+def test_json_warnings_name_the_damaged_file(offline, tmp_path):
+    import shutil
+
+    from fuzz_helpers import chunk_spans
+
+    rec_dir, _ = offline
+    copy = tmp_path / "rec"
+    shutil.copytree(rec_dir, copy)
+    [path] = sorted(copy.glob("*.mcap"))
+    data = bytearray(path.read_bytes())
+    off, length = chunk_spans(bytes(data))[200]  # a flush's raw chunk
+    data[off + 50 : off + length - 5] = bytes(length - 55)
+    path.write_bytes(bytes(data))
+    config = fresh_config(tmp_path / "controller.toml")
+    rc, doc, err = calibrate_json(copy, "--controller-config", config)
+    assert len(doc["warnings"]) == 1 and str(path) in doc["warnings"][0]
+    assert "scan(s) missing" in doc["warnings"][0] and "UTC" in doc["warnings"][0]
+    assert "warning: " + doc["warnings"][0] in err
+    proc = loopcal("calibrate", copy, "--controller-config", config)
+    assert doc["warnings"][0] in proc.stdout
+    assert rc in (0, 1)

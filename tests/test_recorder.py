@@ -262,3 +262,52 @@ def test_a_daq_that_never_answers(tmp_path):
     assert "disconnect: DAQDisconnected" in rec.text
     assert "nothing was recorded" in rec.text
     assert find_recordings(tmp_path) == []
+
+
+def _damaged(kind: str, data_closed: bytes, data_open: bytes) -> bytes:
+    """The newest recording as power loss or flaky storage leaves it."""
+    import struct
+
+    from fuzz_helpers import chunk_spans
+
+    if kind == "30 bytes":  # created, never flushed
+        return data_open[:30]
+    if kind == "summary bit":
+        out = bytearray(data_closed)
+        out[-60] ^= 0x08
+        return bytes(out)
+    out = bytearray(data_open)  # "huge chunk length"
+    off, _ = chunk_spans(data_open)[6]
+    struct.pack_into("<Q", out, off + 1, 1 << 62)
+    return bytes(out)
+
+
+@pytest.mark.parametrize("kind", ["30 bytes", "summary bit", "huge chunk length"])
+def test_a_damaged_newest_recording_never_stops_the_recorder(tmp_path, kind):
+    from fuzz_helpers import make_rows, write_recording
+
+    from daemon.recording import recording_name
+
+    t0 = time.time_ns() - 3600 * 10**9
+    rows = make_rows(400, t0=t0, epoch=2)
+    write_recording(tmp_path / recording_name(t0), rows)  # a good, older recording
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    write_recording(scratch / "c.mcap", rows)
+    write_recording(scratch / "o.mcap", rows, close=False)
+    newest = tmp_path / recording_name(t0 + 60 * 10**9)
+    newest.write_bytes(_damaged(kind, (scratch / "c.mcap").read_bytes(),
+                                (scratch / "o.mcap").read_bytes()))  # fmt: skip
+    before = newest.read_bytes()
+    with hand_emulator() as emu:
+        proc = record(emu.url, tmp_path, "--duration", "3")
+        assert proc.wait(60) == 0, proc.text
+    assert "Traceback" not in proc.text
+    out = read_recordings(tmp_path)
+    new = out.scans[out.scans["stamp_ns"] > time.time_ns() - 600 * 10**9]
+    assert len(new) >= 40 and consecutive(new)
+    assert new["epoch"][0] > 2  # carried on from the intact scans: a new power-on epoch
+    assert newest.read_bytes() == before  # nothing already recorded is touched
+    warned = [e for e in out.events_of("damaged_recording") if newest.name in e.message]
+    if kind != "summary bit" or warned:  # a damaged summary alone costs no scan
+        assert warned, [e.message for e in out.events]

@@ -81,7 +81,12 @@ def run(args: argparse.Namespace) -> int:
         work = Path(tempfile.mkdtemp(prefix="loopcal-demo-"))
     else:
         work = args.out
-        work.mkdir(parents=True, exist_ok=True)
+        if work.exists() and not work.is_dir():
+            raise ValueError(f"--out {work}: exists and is not a directory")
+        try:
+            work.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ValueError(f"--out {work}: cannot create it: {exc.strerror or exc}") from None
     t_start = time.perf_counter()
     truth = perturbed_truth(
         np.random.default_rng(args.seed), offsets_mm=args.offset_error, model=model

@@ -20,6 +20,7 @@ import numpy as np
 
 from simulator.emulator import TRANSPORTS
 from simulator.replay import Player, RecordedPowerOn
+from simulator.run import listen_host, tcp_port
 
 from ..poses import scan_rate
 from ..recording import RecordingError, read_recordings
@@ -44,8 +45,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="play at once (default: hold the first scan until a client's first request)",
     )
-    p.add_argument("--host", default="127.0.0.1", help="TCP address (default 127.0.0.1)")
-    p.add_argument("--port", type=int, default=0, help="TCP port (default: a free one)")
+    p.add_argument(
+        "--host", type=listen_host, default="127.0.0.1", help="TCP address (default 127.0.0.1)"
+    )
+    p.add_argument("--port", type=tcp_port, default=0, help="TCP port (default: a free one)")
 
 
 def power_ons(scans: np.ndarray) -> list[RecordedPowerOn]:
@@ -71,7 +74,10 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError("--speed must be positive")
         rec = read_recordings(args.recordings)
         if len(rec) == 0:
-            raise ValueError("the recordings hold no scans")
+            names = ", ".join(str(p) for p in args.recordings)
+            raise ValueError(f"{names}: no scans in the recording(s)")
+        for line in rec.warnings:
+            print(f"warning: {line}", file=sys.stderr, flush=True)
         meta_rate = rec.files[0].metadata.get("device", {}).get("scan_rate_hz")
         rate = int(meta_rate) if meta_rate else round(scan_rate(rec))
         player = Player(
@@ -82,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
             host=args.host,
             port=args.port,
         )
-    except (RecordingError, ValueError, OSError) as exc:
+        player.start()
+    except (RecordingError, ValueError, OSError, RuntimeError) as exc:
         print(f"loopcal replay: error: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()
