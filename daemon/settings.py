@@ -42,6 +42,11 @@ _UNITS = {None: 1, "B": 1, "KiB": 1 << 10, "MiB": 1 << 20, "GiB": 1 << 30, "TiB"
           "kB": 10**3, "MB": 10**6, "GB": 10**9, "TB": 10**12}  # fmt: skip
 
 
+_MAX_SIZE = float(1 << 62)
+#: the most scans the backlog may hold in memory (about 560 MB)
+MAX_BACKLOG_SCANS = 10_000_000
+
+
 class SettingsError(ValueError):
     """A bad setting; the message names the file (if any) and the key."""
 
@@ -100,9 +105,10 @@ class RecorderSettings:
                 f"{self.disk_budget_bytes} bytes is less than two files of rotate_size "
                 f"({self.rotate_bytes} bytes); raise it or lower rotate_size",
             )
-        if not isinstance(self.max_backlog_scans, int) or self.max_backlog_scans < 1000:
-            raise bad("max_backlog_scans", f"must be an integer >= 1000, got "
-                      f"{self.max_backlog_scans!r}")  # fmt: skip
+        if (not isinstance(self.max_backlog_scans, int)
+                or not 1000 <= self.max_backlog_scans <= MAX_BACKLOG_SCANS):  # fmt: skip
+            raise bad("max_backlog_scans", f"must be an integer in 1000..{MAX_BACKLOG_SCANS}, "
+                      f"got {self.max_backlog_scans!r}")  # fmt: skip
         if self.duration_s is not None:
             _positive(self.duration_s, "duration_s", bad)
         if str(self.directory) == "":
@@ -153,7 +159,10 @@ def parse_size(value: Any) -> int:
     if isinstance(value, str):
         m = _SIZE_RE.match(value)
         if m:
-            return int(float(m.group(1)) * _UNITS[m.group(2)])
+            size = float(m.group(1)) * _UNITS[m.group(2)]
+            if size < _MAX_SIZE:
+                return int(size)
+            raise ValueError(f"{value!r} is more than any disk holds")
     raise ValueError(f'{value!r} is not a size (bytes, or e.g. "256 MiB", "20 GiB")')
 
 
@@ -216,7 +225,7 @@ def _convert(p: Path, table: str, key: str, field: str, v: Any) -> Any:
             raise SettingsError(f"{where}: must be a string, got {v!r}")
         return v
     if field in ("directory", "controller_config"):
-        if not isinstance(v, str) or not v:
+        if not isinstance(v, str) or not v or "\0" in v:
             raise SettingsError(f"{where}: must be a path (a non-empty string), got {v!r}")
         path = Path(v)
         if not path.is_absolute():

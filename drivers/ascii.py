@@ -123,7 +123,7 @@ def parse_ack(body: bytes, addr: int) -> bytes:
 
 def parse_firmware(payload: bytes) -> str:
     """``$AAF`` payload ``M.mm`` -> "M.mm"."""
-    m = _FIRMWARE_RE.match(payload.decode("ascii"))
+    m = _FIRMWARE_RE.match(payload.decode("ascii", errors="replace"))
     if not m:
         raise DAQProtocolError(f"firmware version {payload!r} is not M.mm")
     return f"{int(m.group(1))}.{m.group(2)}"

@@ -228,6 +228,8 @@ def parse_url(url: str) -> DaqUrl:
 
     Raises ValueError on a missing scheme, a repeated query key, or a malformed port.
     """
+    if any(ord(c) < 0x20 or ord(c) == 0x7F for c in url):
+        raise ValueError(f"{url!r}: control characters in a DAQ URL")
     parts = urlsplit(url)
     scheme = parts.scheme.lower()
     if not scheme or not _SCHEME_RE.match(scheme) or "://" not in url:
