@@ -16,7 +16,7 @@ The daemon's config file (every key; docs/daemon.md says the same)::
     max_backlog_scans = 500000  # scans kept in memory while the disk refuses them
 
     [controller]
-    config = "/etc/loopcal/controller.toml"        # the controller config the poses use
+    config = "/etc/loopcal/controller/controller.toml"        # the controller config the poses use
 
     [health]
     enabled = true           # watch loop closure and raise offset_drift events

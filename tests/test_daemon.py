@@ -56,7 +56,7 @@ disk_budget = "2 GiB"
 max_backlog_scans = 100000
 
 [controller]
-config = "/etc/loopcal/controller.toml"
+config = "/etc/loopcal/controller/controller.toml"
 """,
         encoding="utf-8",
     )
@@ -65,7 +65,7 @@ config = "/etc/loopcal/controller.toml"
     assert (s.timeout_s, s.read_period_s, s.flush_period_s) == (0.2, 0.5, 0.5)
     assert (s.rotate_seconds, s.rotate_bytes, s.disk_budget_bytes) == (600, 64 << 20, 2 << 30)
     assert s.max_backlog_scans == 100_000
-    assert s.controller_config == Path("/etc/loopcal/controller.toml")
+    assert s.controller_config == Path("/etc/loopcal/controller/controller.toml")
 
 
 @pytest.mark.parametrize(

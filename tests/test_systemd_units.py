@@ -112,6 +112,7 @@ def test_the_daemon_unit_is_what_the_daemon_needs():
     s = u["Service"]
     assert s["Type"] == "notify" and s["NotifyAccess"] == "main"
     assert int(s["WatchdogSec"]) >= 10 and s["Restart"] == "on-failure"
+    assert s["RestartPreventExitStatus"] == "2"  # a config error: no restart loop
     assert "StartLimitIntervalSec" in u["Unit"] and "StartLimitBurst" in u["Unit"]
     assert s["User"] == "loopcal" and "dialout" in s["SupplementaryGroups"]
     assert s["ProtectSystem"] == "strict" and s["NoNewPrivileges"] == "yes"
@@ -130,7 +131,8 @@ def test_the_daemon_unit_is_what_the_daemon_needs():
 
 def test_the_worker_unit_is_a_hardened_one_shot_that_may_write_the_config():
     d, c = unit("loopcal.service")["Service"], unit("loopcal-calibrate.service")["Service"]
-    assert c["Type"] == "oneshot" and "/etc/loopcal" in c["ReadWritePaths"].split()
+    # the controller config's own directory, and not the daemon's config beside it
+    assert c["Type"] == "oneshot" and c["ReadWritePaths"].split() == ["/etc/loopcal/controller"]
     assert c["ExecStart"].startswith(f"{INSTALLED_BINARY} calibrate --config ")
     assert "--write" in c["ExecStart"].split()
     assert "WatchdogSec" not in c and "Restart" not in c
@@ -146,8 +148,9 @@ def test_tmpfiles_agrees_with_the_units_directory_modes():
     s = unit("loopcal.service")["Service"]
     # a mismatch makes systemd warn (ConfigurationDirectory=) or chmod (StateDirectory=)
     assert dirs["/var/lib/loopcal"] == (s["StateDirectoryMode"], "loopcal", "loopcal")
-    assert dirs["/etc/loopcal"] == (s["ConfigurationDirectoryMode"], "root", "loopcal")
-    assert int(dirs["/etc/loopcal"][0], 8) & 0o020  # the worker replaces files in it
+    assert dirs["/etc/loopcal"] == (s["ConfigurationDirectoryMode"], "root", "root")
+    assert not int(dirs["/etc/loopcal"][0], 8) & 0o022  # daemon.toml: root's alone
+    assert dirs["/etc/loopcal/controller"] == ("0775", "root", "loopcal")  # the worker's
 
 
 def test_sysusers_and_tmpfiles_make_the_user_and_directories(tmp_path):
@@ -179,4 +182,6 @@ def test_sysusers_and_tmpfiles_make_the_user_and_directories(tmp_path):
         st = (root / d).stat()
         assert (st.st_mode & 0o777, st.st_uid, st.st_gid) == (0o750, uid, gid), d
     st = (root / "etc" / "loopcal").stat()
+    assert (st.st_mode & 0o777, st.st_uid, st.st_gid) == (0o755, 0, 0)
+    st = (root / "etc" / "loopcal" / "controller").stat()
     assert (st.st_mode & 0o777, st.st_uid, st.st_gid) == (0o775, 0, gid)

@@ -16,7 +16,7 @@ HELP = "write a controller config (TOML) with the 20 parameters at the reference
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", help="where to write it, e.g. /etc/loopcal/controller.toml")
+    p.add_argument("path", help="where to write it, e.g. /etc/loopcal/controller/controller.toml")
     p.add_argument("--force", action="store_true", help="overwrite an existing file")
 
 
