@@ -38,11 +38,36 @@ def truth_for(seed: int) -> np.ndarray:
     return perturbed_truth(np.random.default_rng([seed, 7]), model=PAPER7)
 
 
-def live_sessions(root: Path, seeds: list[int], *, minutes: float = 2.0, speed: float = 10.0):
+def live_sessions(root: Path, seeds: list[int], *, minutes: float = 2.0, speed: float = 10.0,
+                  attempts: int = 2):  # fmt: skip
     """Record technician sessions through ``loopcal record`` over Modbus TCP, all at once:
     each emulated module is a ``loopcal simulate`` process of its own (the same scans as
     in-process, with no Python thread of this process between the module and its reader),
-    running ``speed`` times as fast as wall time from the recorder's first request."""
+    running ``speed`` times as fast as wall time from the recorder's first request.
+
+    Each recorder is stopped once its recording holds every scan of ``minutes`` (not after
+    a fixed sleep: on a loaded machine a recorder may lag behind its module). A session
+    whose recording misses scans (its FIFO overflowed while the machine was too busy to
+    let the recorder read: an ``overflow``/``gap`` in the recording, never silent) is
+    recorded again, up to ``attempts`` times in all.
+    """
+    wanted = int(minutes * 60 * 20)
+    todo = list(seeds)
+    done: dict[int, Session] = {}
+    for attempt in range(attempts):
+        for s in _record_sessions(root / f"attempt-{attempt}", todo, wanted, speed):
+            scans = rec.read_recordings(s.directory).scans
+            c = scans["counter64"][scans["counter64"] < wanted].astype(np.int64)
+            if len(c) and c[-1] - c[0] + 1 == len(c) and c[0] <= 600:
+                done[s.seed] = s
+        todo = [seed for seed in seeds if seed not in done]
+        if not todo:
+            break
+    assert not todo, f"sessions {todo} lost scans in every attempt"
+    return [done[seed] for seed in seeds]
+
+
+def _record_sessions(root: Path, seeds: list[int], wanted: int, speed: float) -> list[Session]:
     from calibration.parameters import NAMES
 
     sessions, sims, procs = [], [], []
@@ -73,10 +98,18 @@ def live_sessions(root: Path, seeds: list[int], *, minutes: float = 2.0, speed: 
             sessions.append(Session(out, truth, seed))
         for p in procs:
             p.wait_for("recording to")
-        time.sleep(minutes * 60 / speed)
-        for p in procs:
-            rc, _ = p.stop()
-            assert rc == 0, p.text
+        time.sleep(wanted / 20 / speed)
+        pending = list(zip(sessions, procs, strict=True))
+        deadline = time.monotonic() + 120
+        while pending:  # each recorder stops once it has recorded the last wanted scan
+            for s, p in list(pending):
+                scans = rec.read_recordings(s.directory).scans
+                if len(scans) and scans["counter64"][-1] >= wanted:
+                    rc, _ = p.stop()
+                    assert rc == 0, p.text
+                    pending.remove((s, p))
+            assert time.monotonic() < deadline, "recorders did not catch up in 120 s"
+            time.sleep(0.5)
     finally:
         for p in [*procs, *sims]:
             p.kill()

@@ -270,3 +270,26 @@ def test_summary_crc_is_what_the_writer_computes(originals):
     footer = len(d) - 8 - 29
     start, offsets_at, crc = struct.unpack_from("<QQI", d, footer + 9)
     assert crc == zlib.crc32(d[start : footer + 25]) != 0
+
+
+def test_parameters_without_forward_kinematics_never_stop_the_raw_scans(tmp_path):
+    """A1x = 1e300 passes the vector check but no forward kinematics: the views say so and
+    every raw scan is written all the same."""
+    from calibration.parameters import NOMINAL
+
+    params = NOMINAL.copy()
+    params[0] = 1e300
+    rows = make_rows(100)
+    w = rec.RecordingWriter(
+        tmp_path / "v.mcap",
+        metadata=rec.metadata_records(device={}, controller={}, command="pytest"),
+        params=params,
+    )
+    for k in range(0, 100, 20):
+        w.write(rows[k : k + 20])
+    w.close()
+    assert w.views_error and w.scans_written == 100
+    out = rec.read_recordings(tmp_path / "v.mcap")
+    assert np.array_equal(out.scans, rows) and out.warnings == []
+    js = rec.joint_states(rows, params)
+    assert js.error and not js.pose_ok.any()
