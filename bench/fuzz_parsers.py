@@ -44,6 +44,7 @@ from daemon.recording import recording_name  # noqa: E402
 from daemon.settings import SettingsError, load_daemon_config  # noqa: E402
 from drivers import DAQInvalidCommand, DAQProtocolError, driver_for_url  # noqa: E402
 from drivers import ascii as ascii_proto  # noqa: E402
+from drivers.ldq412 import ascii_checksum  # noqa: E402
 
 HANG_S = 10
 
@@ -133,8 +134,11 @@ def _near(rnd: random.Random, good: bytes) -> bytes:
 
 
 def ascii_case(rnd: random.Random) -> str:
-    line = _near(rnd, rnd.choice(ANSWERS))
     checksum = rnd.random() < 0.5
+    good = rnd.choice(ANSWERS)
+    if checksum:  # the same answer as a module in checksum mode sends it
+        good = good[:-1] + ascii_checksum(good[:-1]) + good[-1:]
+    line = _near(rnd, good) if rnd.random() < 0.9 else good
     addr = rnd.randrange(256) if rnd.random() < 0.2 else 1
     try:
         body = ascii_proto.unframe(line, checksum=checksum)
