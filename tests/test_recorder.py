@@ -311,3 +311,30 @@ def test_a_damaged_newest_recording_never_stops_the_recorder(tmp_path, kind):
     warned = [e for e in out.events_of("damaged_recording") if newest.name in e.message]
     if kind != "summary bit" or warned:  # a damaged summary alone costs no scan
         assert warned, [e.message for e in out.events]
+
+
+def test_the_daemon_too_starts_over_a_damaged_newest_recording(tmp_path):
+    from fuzz_helpers import make_rows, write_recording
+    from recorder_helpers import Proc, write_config
+
+    from daemon.recording import recording_name
+
+    t0 = time.time_ns() - 3600 * 10**9
+    rows = make_rows(400, t0=t0, epoch=2)
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    write_recording(scratch / "o.mcap", rows, close=False)
+    rec_dir = tmp_path / "rec"
+    rec_dir.mkdir()
+    newest = rec_dir / recording_name(t0)
+    newest.write_bytes(_damaged("huge chunk length", b"", (scratch / "o.mcap").read_bytes()))
+    with hand_emulator() as emu:
+        daemon = Proc(["daemon", "--config", str(write_config(tmp_path / "d.toml", emu.url,
+                                                              rec_dir))])  # fmt: skip
+        daemon.wait_for("recording to", timeout=30)
+        time.sleep(2.0)
+        rc, _ = daemon.stop()
+    assert rc == 0 and "Traceback" not in daemon.text, daemon.text
+    out = read_recordings(rec_dir)
+    assert any(newest.name in e.message for e in out.events_of("damaged_recording"))
+    assert len(out.scans[out.scans["epoch"] > 2]) >= 20

@@ -82,7 +82,8 @@ def test_calibration_from_wire_data_recovers_the_offsets():
     src = MechanismSource(HandMoves(1, params=truth), truth, seed=1)
     clock = ManualClock()
     with Emulator("modbus-tcp", src, clock=clock) as emu:
-        daq = open_daq(emu.url)
+        # not a timing test: an answer slowed by a busy machine must not end it
+        daq = open_daq(emu.url, timeout=2.0)
         scans = []
         for _ in range(300):
             clock.advance(1.0)
