@@ -181,16 +181,9 @@ def read_header(buf: memoryview) -> Header | None:
         return None
 
 
-def read_summary(
-    buf: memoryview, *, strict: bool, base: int = 0
-) -> tuple[Summary | None, str]:
-    """The summary of a closed file, or (None, why not).
-
-    buf: the file's bytes from offset ``base`` to its end (the whole file by default; a
-    reader that wants only the summary passes its tail). Trusted only if the file ends in
-    magic and footer, the footer's offsets point inside the file, and the summary's CRC
-    matches (a CRC of 0 is refused when ``strict``).
-    """
+def _footer(buf: memoryview, *, strict: bool, base: int) -> tuple[Footer | None, str]:
+    """The footer of a file whose summary's CRC matches, or (None, why not). ``buf`` holds
+    the file from offset ``base`` to its end."""
     n = len(buf)
     if n < FOOTER_BYTES + 8 or bytes(buf[n - 8 :]) != MAGIC:
         return None, "no footer (the file was not closed)"
@@ -214,8 +207,25 @@ def read_summary(
             return None, "summary without CRC"
     elif zlib.crc32(buf[start : fpos + RECORD_HEAD + 16]) != footer.summary_crc:
         return None, "summary CRC mismatch"
+    return footer, ""
+
+
+def read_summary(
+    buf: memoryview, *, strict: bool, base: int = 0
+) -> tuple[Summary | None, str]:
+    """The summary of a closed file, or (None, why not).
+
+    buf: the file's bytes from offset ``base`` to its end (the whole file by default; a
+    reader that wants only the summary passes its tail). Trusted only if the file ends in
+    magic and footer, the footer's offsets point inside the file, and the summary's CRC
+    matches (a CRC of 0 is refused when ``strict``).
+    """
+    footer, why = _footer(buf, strict=strict, base=base)
+    if footer is None:
+        return None, why
+    fpos = len(buf) - 8 - FOOTER_BYTES
     summary = Summary({}, None, [], [])
-    pos = start
+    pos = footer.summary_start - base
     while pos < fpos:
         at = record_at(buf, pos, fpos)
         if at is None or not _known_opcode(at[0]):
@@ -223,7 +233,7 @@ def read_summary(
         op, length = at
         body = buf[pos + RECORD_HEAD : pos + RECORD_HEAD + length]
         try:
-            rec = parse_record(op, body)
+            rec = _chunk_index(body) if op == Opcode.CHUNK_INDEX else parse_record(op, body)
         except PARSE_ERRORS:
             return None, f"damaged summary record at byte {base + pos}"
         if isinstance(rec, Channel):
@@ -236,6 +246,69 @@ def read_summary(
             summary.statistics = rec
         pos += RECORD_HEAD + length
     return summary, ""
+
+
+def read_statistics(buf: memoryview, *, strict: bool, base: int = 0) -> Statistics | None:
+    """The statistics record of a closed file (as :func:`read_summary` trusts it), found
+    through the summary offsets without parsing the rest of the summary; None if absent."""
+    footer, _ = _footer(buf, strict=strict, base=base)
+    if footer is None:
+        return None
+    fpos = len(buf) - 8 - FOOTER_BYTES
+    pos = footer.summary_offset_start - base
+    if footer.summary_offset_start == 0:
+        summary, _ = read_summary(buf, strict=strict, base=base)
+        return None if summary is None else summary.statistics
+    try:
+        while pos < fpos:
+            at = record_at(buf, pos, fpos)
+            if at is None or at[0] != Opcode.SUMMARY_OFFSET:
+                return None
+            rec = parse_record(Opcode.SUMMARY_OFFSET, buf[pos + RECORD_HEAD :
+                                                          pos + RECORD_HEAD + at[1]])
+            pos += RECORD_HEAD + at[1]
+            if rec.group_opcode == Opcode.STATISTICS:
+                g = rec.group_start - base
+                at = record_at(buf, g, fpos)
+                if at is None or at[0] != Opcode.STATISTICS:
+                    return None
+                return parse_record(Opcode.STATISTICS, buf[g + RECORD_HEAD :
+                                                           g + RECORD_HEAD + at[1]])
+    except PARSE_ERRORS:
+        return None
+    return None
+
+
+_INDEX_FIXED = struct.Struct("<QQQQI")  # start, end, chunk offset, chunk length, map bytes
+_INDEX_ENTRY = struct.Struct("<HQ")  # channel id, message index offset
+_INDEX_TAIL = struct.Struct("<QQ")  # compressed size, uncompressed size
+
+
+def _chunk_index(body: memoryview) -> ChunkIndex:
+    """A chunk index record's body, parsed with every length checked (a day of recording has
+    86,400 of them: the library's field-by-field reader is the slow part of a read). Raises
+    ValueError if the fields do not fill the body exactly."""
+    n = len(body)
+    if n < _INDEX_FIXED.size + 8 + 4 + 16:
+        raise ValueError("short chunk index")
+    start, end, offset, length, map_len = _INDEX_FIXED.unpack_from(body, 0)
+    pos = _INDEX_FIXED.size
+    if map_len % _INDEX_ENTRY.size or pos + map_len + 12 > n:
+        raise ValueError("chunk index map overruns the record")
+    offsets = dict(_INDEX_ENTRY.iter_unpack(body[pos : pos + map_len]))
+    pos += map_len
+    (index_len,) = _U64.unpack_from(body, pos)
+    (clen,) = struct.unpack_from("<I", body, pos + 8)
+    pos += 12
+    if pos + clen + _INDEX_TAIL.size != n:
+        raise ValueError("chunk index fields do not fill the record")
+    compression = bytes(body[pos : pos + clen]).decode("utf-8")
+    csize, usize = _INDEX_TAIL.unpack_from(body, pos + clen)
+    return ChunkIndex(
+        message_start_time=start, message_end_time=end, chunk_start_offset=offset,
+        chunk_length=length, message_index_offsets=offsets, message_index_length=index_len,
+        compression=compression, compressed_size=csize, uncompressed_size=usize,
+    )  # fmt: skip
 
 
 # ---------------------------------------------------------------------------- chunks
@@ -440,6 +513,7 @@ __all__ = [
     "parse_record",
     "read_chunk",
     "read_header",
+    "read_statistics",
     "read_summary",
     "record_at",
     "walk",

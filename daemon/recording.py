@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 from mcap.opcode import Opcode
-from mcap.records import Channel, Metadata
+from mcap.records import Channel, Metadata, Statistics
 from mcap.writer import CompressionType, Writer
 from scipy.spatial.transform import Rotation
 
@@ -72,6 +72,7 @@ from .mcap_records import (
     parse_record,
     read_chunk,
     read_header,
+    read_statistics,
     read_summary,
     record_at,
     walk,
@@ -409,22 +410,42 @@ def encode_scan_block(rows: np.ndarray) -> bytes:
     return _CDR_LE + struct.pack("<I4x", len(rows)) + body
 
 
+def _block_rows(data: bytes) -> bytes | None:
+    """The rows of one ``/daq/scans`` message as SCAN_DTYPE bytes, or None if it is not a
+    well-formed block."""
+    if len(data) < 8 or data[:4] != _CDR_LE:
+        return None
+    (n,) = struct.unpack_from("<I", data, 4)
+    if len(data) != (_ROWS_AT + n * SCAN_DTYPE.itemsize - _TAIL if n else 8):
+        return None
+    return data[_ROWS_AT:] + _PAD if n else b""
+
+
+_PAD = b"\x00" * _TAIL
+
+
+def decode_scan_blocks_checked(messages: Iterable[bytes]) -> tuple[np.ndarray, int]:
+    """Rows (SCAN_DTYPE) of ``/daq/scans`` messages, in order, and how many messages were
+    not well-formed blocks (skipped)."""
+    parts = [_block_rows(data) for data in messages]
+    good = [p for p in parts if p is not None]
+    rows = np.frombuffer(b"".join(good), dtype=SCAN_DTYPE).copy()
+    return rows, len(parts) - len(good)
+
+
 def decode_scan_blocks(messages: Iterable[bytes]) -> np.ndarray:
     """Rows (SCAN_DTYPE) of ``/daq/scans`` messages, in order. Raises ValueError if one is
     not a well-formed block."""
-    parts = []
-    pad = b"\x00" * _TAIL
-    for data in messages:
-        if data[:4] != _CDR_LE or len(data) < 8:
+    messages = list(messages)
+    rows, bad = decode_scan_blocks_checked(messages)
+    if bad:
+        first = next(m for m in messages if _block_rows(m) is None)
+        if first[:4] != _CDR_LE or len(first) < 8:
             raise ValueError("scan block is not little-endian CDR")
-        (n,) = struct.unpack_from("<I", data, 4)
-        expected = _ROWS_AT + n * SCAN_DTYPE.itemsize - _TAIL if n else 8
-        if len(data) != expected:
-            raise ValueError(f"scan block of {n} scans has {len(data)} bytes, not {expected}")
-        if n:
-            parts.append(data[_ROWS_AT:])
-            parts.append(pad)
-    return np.frombuffer(b"".join(parts), dtype=SCAN_DTYPE).copy()
+        (n,) = struct.unpack_from("<I", first, 4)
+        raise ValueError(f"scan block of {n} scans has {len(first)} bytes, not "
+                         f"{_ROWS_AT + n * SCAN_DTYPE.itemsize - _TAIL if n else 8}")  # fmt: skip
+    return rows
 
 
 # ---------------------------------------------------------------------------- views
@@ -1120,24 +1141,21 @@ class _FileReader:
         chunk that gave scans."""
         scans_ids = self._ids(TOPIC_SCANS)
         event_ids = self._ids(TOPIC_EVENTS)
-        parts: list[np.ndarray] = []
+        blocks: list[bytes] = []
         events: list[Event] = []
         bad = 0
         last_chunk = -1
         for offset, cid, data in self._messages:
             if cid in scans_ids:
-                try:
-                    parts.append(decode_scan_blocks([data]))
-                except ValueError:
-                    bad += 1
-                else:
-                    last_chunk = max(last_chunk, offset)
+                blocks.append(data)
+                last_chunk = max(last_chunk, offset)
             elif cid in event_ids:
                 try:
                     events.append(Event.from_json(json.loads(data)))
                 except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
                     bad += 1
-        rows = np.concatenate(parts) if parts else scan_rows.empty()
+        rows, bad_blocks = decode_scan_blocks_checked(blocks)
+        bad += bad_blocks
         seen: set[tuple[int, str, str]] = set()
         unique = []
         for e in events:  # a chunk read twice repeats its events
@@ -1218,8 +1236,8 @@ def _key_range(rows: np.ndarray) -> tuple[tuple[int, int], tuple[int, int]]:
             (int(rows["epoch"][-1]), int(rows["counter64"][-1])))  # fmt: skip
 
 
-def _read_tail_summary(path: Path) -> Summary | None:
-    """The summary of a closed file, reading only its first and last bytes."""
+def _read_tail_statistics(path: Path) -> Statistics | None:
+    """The statistics record of a closed file, reading only its first and last bytes."""
     try:
         with open(path, "rb") as f:
             head = f.read(4096)
@@ -1237,17 +1255,17 @@ def _read_tail_summary(path: Path) -> Summary | None:
         return None
     header = read_header(memoryview(head))
     ours = header is None or header.library.startswith("loopcal")
-    summary, _ = read_summary(memoryview(tail), strict=ours, base=start)
-    return summary
+    return read_statistics(memoryview(tail), strict=ours, base=start)
 
 
 def message_time_range(path: Path) -> tuple[int, int] | None:
     """(first, last) message log time of a closed file from its statistics record alone
-    (footer -> summary, checked by its CRC), or None if the file has no intact one."""
-    summary = _read_tail_summary(path)
-    if summary is None or summary.statistics is None or not summary.statistics.message_count:
+    (footer -> summary offsets -> statistics, the summary checked by its CRC), or None if
+    the file has no intact one."""
+    stats = _read_tail_statistics(path)
+    if stats is None or not stats.message_count:
         return None
-    return summary.statistics.message_start_time, summary.statistics.message_end_time
+    return stats.message_start_time, stats.message_end_time
 
 
 def read_recordings(
