@@ -1,4 +1,4 @@
-"""Loop-closure health (:mod:`daemon.health`): false alarms, detection delay, cost.
+"""Loop-closure health (:mod:`daemon.live.health`): false alarms, detection delay, cost.
 
 The monitor is fed a technician's hand-moved session (pausing about a second between
 moves, 40 mV of noise, a mechanism whose offsets are up to 3 mm off nominal) a quarter
@@ -43,8 +43,8 @@ from recorder_helpers import Proc  # noqa: E402
 from session_helpers import PAUSE_S, rows_from, truth_for  # noqa: E402
 
 from calibration.parameters import NAMES  # noqa: E402
-from daemon.controller_config import nominal_config, write_initial_config  # noqa: E402
-from daemon.health import HealthMonitor  # noqa: E402
+from daemon.config.controller import nominal_config, write_initial_config  # noqa: E402
+from daemon.live.health import HealthMonitor  # noqa: E402
 from daemon.recording import read_recordings  # noqa: E402
 from simulator.drift import OffsetDrift  # noqa: E402
 from simulator.offline import mechanism_scans  # noqa: E402

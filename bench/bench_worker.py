@@ -24,10 +24,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
 from session_helpers import PAUSE_S, truth_for, write_session  # noqa: E402
 
-from daemon.controller_config import load_controller_config, write_initial_config  # noqa: E402
-from daemon.poses import recorded_poses  # noqa: E402
+from daemon.config.controller import load_controller_config, write_initial_config  # noqa: E402
 from daemon.recording import find_recordings, read_recordings  # noqa: E402
-from daemon.worker import run_worker  # noqa: E402
+from daemon.worker.poses import recorded_poses  # noqa: E402
+from daemon.worker.run import run_worker  # noqa: E402
 from simulator.scenarios import HandMoves  # noqa: E402
 
 LENGTHS = {"2 min": 120, "1 h": 3600, "24 h": 86400}

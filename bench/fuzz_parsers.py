@@ -35,13 +35,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from fuzz_helpers import ACCEPTABLE, MUTATIONS, judge, make_rows, write_recording  # noqa: E402
 
-from daemon.controller_config import (  # noqa: E402
+from daemon.config.controller import (  # noqa: E402
     ControllerConfigError,
     load_controller_config,
     render_initial_config,
 )
+from daemon.recorder.settings import SettingsError, load_daemon_config  # noqa: E402
 from daemon.recording import recording_name  # noqa: E402
-from daemon.settings import SettingsError, load_daemon_config  # noqa: E402
 from drivers import DAQInvalidCommand, DAQProtocolError, driver_for_url  # noqa: E402
 from drivers import ascii as ascii_proto  # noqa: E402
 from drivers.ldq412 import ascii_checksum  # noqa: E402

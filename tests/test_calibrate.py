@@ -25,9 +25,9 @@ from session_helpers import (
 )
 
 from calibration.parameters import INDEX, NAMES, NOMINAL
-from daemon.controller_config import load_controller_config
+from daemon.config.controller import load_controller_config
 from daemon.recording import read_recordings
-from daemon.writeback import STEPS
+from daemon.worker.writeback import STEPS
 from simulator.scenarios import HandMoves, Static, Sweep
 
 pytestmark = pytest.mark.timeout(300)
@@ -388,7 +388,7 @@ def test_a_symlinked_config_stays_a_link_and_its_target_is_written(offline, tmp_
 
 
 def test_backups_never_share_a_name(offline, tmp_path):
-    from daemon.writeback import write_back
+    from daemon.worker.writeback import write_back
 
     config = fresh_config(tmp_path / "controller.toml")
     written = []

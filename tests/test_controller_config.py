@@ -16,7 +16,7 @@ import tomlkit
 
 from calibration.errors import ParameterError
 from calibration.parameters import NAMES, NOMINAL, PRESETS, UNITS
-from daemon.controller_config import (
+from daemon.config.controller import (
     ControllerConfig,
     ControllerConfigError,
     load_controller_config,

@@ -25,8 +25,8 @@ from recorder_helpers import (
     write_config,
 )
 
+from daemon.recorder.settings import RecorderSettings, SettingsError, load_daemon_config, parse_size
 from daemon.recording import find_recordings, read_recordings
-from daemon.settings import RecorderSettings, SettingsError, load_daemon_config, parse_size
 
 pytestmark = pytest.mark.timeout(120)
 

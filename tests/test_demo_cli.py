@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from daemon.controller_config import load_controller_config
+from daemon.config.controller import load_controller_config
 
 
 def run_demo(*args: str) -> subprocess.CompletedProcess:

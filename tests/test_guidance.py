@@ -11,10 +11,10 @@ from recorder_helpers import Proc, record
 from session_helpers import PAUSE_S, calibrate_json, fresh_config, rows_from, truth_for
 
 from calibration.parameters import INDEX, NAMES, PAPER7
-from daemon.controller_config import nominal_config
-from daemon.guidance import Guidance
+from daemon.config.controller import nominal_config
+from daemon.live.guidance import Guidance
 from daemon.recording import Recording, read_recordings
-from daemon.worker import run_worker
+from daemon.worker.run import run_worker
 from simulator.offline import mechanism_scans
 from simulator.scenarios import HandMoves
 

@@ -12,10 +12,10 @@ from recorder_helpers import NotifySocket, Proc, hand_emulator, record, write_co
 from session_helpers import PAUSE_S, rows_from, truth_for
 
 from calibration.closure import drift_test, loop_closure, threshold
-from daemon.controller_config import nominal_config
-from daemon.health import HealthMonitor
+from daemon.config.controller import nominal_config
+from daemon.live.health import HealthMonitor
+from daemon.recorder.settings import SettingsError, load_daemon_config
 from daemon.recording import read_recordings
-from daemon.settings import SettingsError, load_daemon_config
 from simulator.drift import OffsetDrift
 from simulator.offline import mechanism_scans
 from simulator.run import FaultEvent

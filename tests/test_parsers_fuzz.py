@@ -18,12 +18,12 @@ import string
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from daemon.controller_config import (
+from daemon.config.controller import (
     ControllerConfigError,
     load_controller_config,
     render_initial_config,
 )
-from daemon.settings import SettingsError, load_daemon_config
+from daemon.recorder.settings import SettingsError, load_daemon_config
 from drivers import DAQInvalidCommand, DAQProtocolError, driver_for_url
 from drivers import ascii as ascii_proto
 

@@ -23,12 +23,12 @@ from calibration.errors import CalibrationError
 from calibration.identify import DEFAULT_METHOD, METHODS
 from calibration.parameters import ParameterModel
 
-from .. import durable
-from ..controller_config import ControllerConfigError, load_controller_config
+from ..config import durable
+from ..config.controller import ControllerConfigError, load_controller_config
+from ..recorder.settings import SettingsError, load_daemon_config
 from ..recording import RecordingError, find_recordings, read_recordings
-from ..settings import SettingsError, load_daemon_config
-from ..worker import METHOD_NAMES, describe_files, run_worker
-from ..writeback import Written, check_writable, write_back
+from ..worker.run import METHOD_NAMES, describe_files, run_worker
+from ..worker.writeback import Written, check_writable, write_back
 
 HELP = "identify new parameters from recordings; --write puts them in the controller config"
 
@@ -232,7 +232,7 @@ def run(args: argparse.Namespace) -> int:
         rec, config, model, n_select=args.select, method=args.method, progress=progress
     )
     if args.report is not None:  # every other output first: the config is written last
-        from ..report import write_report  # matplotlib only when a report is asked for
+        from ..worker.report import write_report  # matplotlib only when a report is asked for
 
         try:
             page = write_report(result, args.report, progress=progress)

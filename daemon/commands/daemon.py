@@ -1,7 +1,7 @@
 """``loopcal daemon --config PATH``: the acquisition daemon, as systemd runs it.
 
 Reads the TOML config (every key is described in docs/daemon.md and in
-:mod:`daemon.settings`), records until SIGTERM, reloads the config and starts a new file on
+:mod:`daemon.recorder.settings`), records until SIGTERM, reloads the config and starts a new file on
 SIGHUP, and speaks the systemd notify protocol (READY, STATUS, WATCHDOG) when systemd
 gives it a socket.
 """
@@ -12,10 +12,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..controller_config import ControllerConfigError
-from ..process import run_recorder, setup_logging
-from ..recorder import Recorder
-from ..settings import SettingsError, load_daemon_config
+from ..config.controller import ControllerConfigError
+from ..recorder.engine import Recorder
+from ..recorder.process import run_recorder, setup_logging
+from ..recorder.settings import SettingsError, load_daemon_config
 
 HELP = "the acquisition daemon (systemd's entry point): record the DAQ for months"
 

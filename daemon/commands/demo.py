@@ -29,7 +29,7 @@ from simulator.mechanism import MechanismSource
 from simulator.scenarios import HandMoves
 
 from .. import cli
-from ..controller_config import load_controller_config
+from ..config.controller import load_controller_config
 
 HELP = "the field job on an emulated DAQ: record a session, calibrate, write, check the truth"
 

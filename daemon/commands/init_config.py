@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..controller_config import ControllerConfigError, write_initial_config
+from ..config.controller import ControllerConfigError, write_initial_config
 
 HELP = "write a controller config (TOML) with the 20 parameters at the reference geometry"
 

@@ -2,7 +2,7 @@
 test. The same engine as ``loopcal daemon``; stops after ``--duration`` or on SIGINT/SIGTERM
 with the file properly closed; SIGHUP re-reads the controller config and starts a new file.
 
-With ``--until-enough`` it guides the technician live (:mod:`daemon.guidance`): a display
+With ``--until-enough`` it guides the technician live (:mod:`daemon.live.guidance`): a display
 redrawn about once a second (plain lines when stdout is not a terminal, one JSON object per
 update with ``--json``), and it stops by itself once every offset's predicted standard
 deviation is at or below ``--target-mm`` and the calibration's acceptance gates would pass.
@@ -19,12 +19,12 @@ from pathlib import Path
 
 from calibration.errors import ParameterError
 
-from ..controller_config import ControllerConfigError
+from ..config.controller import ControllerConfigError
 from ..events import Level
-from ..guidance import OFFSETS, Guidance, GuidanceUpdate
-from ..process import run_recorder, setup_logging
-from ..recorder import Recorder
-from ..settings import RecorderSettings, SettingsError, parse_size
+from ..live.guidance import OFFSETS, Guidance, GuidanceUpdate
+from ..recorder.engine import Recorder
+from ..recorder.process import run_recorder, setup_logging
+from ..recorder.settings import RecorderSettings, SettingsError, parse_size
 
 HELP = "record the DAQ to MCAP files in the foreground"
 

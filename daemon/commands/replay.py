@@ -22,8 +22,8 @@ from simulator.emulator import TRANSPORTS
 from simulator.replay import Player, RecordedPowerOn
 from simulator.run import listen_host, tcp_port
 
-from ..poses import scan_rate
 from ..recording import RecordingError, read_recordings
+from ..worker.poses import scan_rate
 
 HELP = "serve a recording through the emulated DAQ, scan for scan"
 

@@ -14,7 +14,7 @@ from typing import Protocol
 
 import numpy as np
 
-log = logging.getLogger("daemon.observers")
+log = logging.getLogger("daemon.recorder.observers")
 
 MAX_PENDING_BATCHES = 10_000  # beyond this (observers far behind) the oldest are dropped
 PERIOD_S = 0.25

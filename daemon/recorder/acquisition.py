@@ -38,10 +38,10 @@ import numpy as np
 
 from drivers import DAQ, DAQError, Scan, ldq412, open_daq
 
-from .events import Event, Level
-from .scans import SCAN_DTYPE
+from ..events import Event, Level
+from ..scans import SCAN_DTYPE
 
-log = logging.getLogger("daemon.acquisition")
+log = logging.getLogger("daemon.recorder.acquisition")
 
 BACKOFF_MIN_S = 0.1
 BACKOFF_MAX_S = 2.0

@@ -14,7 +14,7 @@ import signal
 import sys
 import threading
 
-from .recorder import Recorder
+from .engine import Recorder
 
 _SYSLOG_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3,
                     logging.CRITICAL: 2}  # fmt: skip

@@ -2,7 +2,7 @@
 
 Only values change: the file is edited with tomlkit, so its comments and layout survive,
 and ``[provenance]`` records where the values came from. Nothing already configured can be
-lost or half written (the mechanics are :mod:`daemon.durable`'s):
+lost or half written (the mechanics are :mod:`daemon.config.durable`'s):
 
 1. the config's real file is found through any symlinks (the link stays a link; its target
    is what is replaced, in the target's own directory, with the target's mode);
@@ -36,8 +36,8 @@ import tomlkit
 
 from calibration.parameters import NAMES
 
-from . import durable
-from .controller_config import ControllerConfig, ControllerConfigError
+from ..config import durable
+from ..config.controller import ControllerConfig, ControllerConfigError
 
 #: the write sequence's steps, in order (the config is new from ``new-renamed`` on)
 STEPS = ("locked", "backup-written", "backup-renamed", "new-written", "new-renamed",

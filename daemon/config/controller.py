@@ -292,7 +292,7 @@ def write_initial_config(
     """Write a new controller config at ``params`` (default the reference geometry) to
     ``path``; returns the file written (``path``'s symlink target when it is a link).
 
-    Atomic (:func:`daemon.durable.replace`: a temporary file in the same directory, fsynced
+    Atomic (:func:`daemon.config.durable.replace`: a temporary file in the same directory, fsynced
     and renamed over, then the directory fsynced), under the config's write lock. Refuses to
     replace an existing file unless ``force`` (a replaced file's permission bits are kept).
     A symlink stays a link: its target is written. Creates no directories. Raises

@@ -59,9 +59,10 @@ from calibration.kinematics import (
 )
 from calibration.parameters import check_vector
 
-from . import scans as scan_rows
-from .events import Event
-from .mcap_records import (
+from .. import scans as scan_rows
+from ..events import Event
+from ..scans import SCAN_DTYPE, SCAN_FIELDS
+from .records import (
     FOOTER_BYTES,
     MAGIC,
     PARSE_ERRORS,
@@ -77,7 +78,6 @@ from .mcap_records import (
     record_at,
     walk,
 )
-from .scans import SCAN_DTYPE, SCAN_FIELDS
 
 FORMAT_VERSION = "1"
 

@@ -62,7 +62,7 @@ class RecorderSettings:
     (0: keep all). max_backlog_scans: scans kept in memory while the disk refuses them.
     controller_config: the controller config file, or None for the reference geometry.
     duration_s: stop after this long (``loopcal record --duration``), or None.
-    health: watch loop closure (:mod:`daemon.health`); health_false_alarm: its false-alarm
+    health: watch loop closure (:mod:`daemon.live.health`); health_false_alarm: its false-alarm
     probability per still pose.
     """
 

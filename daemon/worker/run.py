@@ -2,11 +2,11 @@
 
 MCAP -> poses -> fit -> gates: the worker reads the recordings
 (:func:`daemon.recording.read_recordings`), takes their still poses
-(:func:`daemon.poses.recorded_poses`), keeps every fifth out of the fit to check it
+(:func:`daemon.worker.poses.recorded_poses`), keeps every fifth out of the fit to check it
 against, selects the best of the others and identifies the free parameters from them
 (:func:`calibration.pipeline.calibrate`, started from the controller config), and runs the
-acceptance gates (:mod:`daemon.gates`). Writing the result into the controller config is
-:mod:`daemon.writeback`'s job, and only done when every gate passed.
+acceptance gates (:mod:`daemon.worker.gates`). Writing the result into the controller config is
+:mod:`daemon.worker.writeback`'s job, and only done when every gate passed.
 """
 
 from __future__ import annotations
@@ -25,10 +25,10 @@ from calibration.identify import DEFAULT_METHOD
 from calibration.parameters import INDEX, NAMES, UNITS, ParameterModel
 from calibration.pipeline import Calibration, calibrate
 
+from ..config.controller import ControllerConfig
+from ..recording import Recording, loopcal_version
 from . import gates as G
-from .controller_config import ControllerConfig
 from .poses import RecordedPoses, recorded_poses
-from .recording import Recording, loopcal_version
 
 N_SELECT = 50
 METHOD_NAMES = {"ml": "maximum likelihood", "paper": "the paper's closed-loop residuals"}

@@ -18,8 +18,8 @@ import numpy as np
 
 from calibration.poses import still_poses
 
-from . import scans as scan_rows
-from .recording import Recording
+from .. import scans as scan_rows
+from ..recording import Recording
 
 STILL_WINDOW_S = 0.5  # a pose spans at least this long
 GAP_MARGIN_S = 0.25  # scans this close to a gap or restart are not used

@@ -2,8 +2,8 @@
 
 Three threads share the work so that a slow or full disk never delays reading the DAQ:
 
-- the acquisition thread (:class:`daemon.acquisition.Acquisition`) reads the module and puts
-  batches on a :class:`ScanQueue` without ever waiting;
+- the acquisition thread (:class:`~daemon.recorder.acquisition.Acquisition`) reads the
+  module and puts batches on a :class:`ScanQueue` without ever waiting;
 - the writer thread takes them off, and every flush period writes them to the current file
   (:class:`daemon.recording.RecordingWriter`) and fsyncs; it rotates files by age, size,
   reload and device change, deletes the oldest recordings to stay under the disk budget, and
@@ -27,12 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .acquisition import Acquisition, AcquisitionStats, Batch, DeviceInfo, ResumePoint
-from .controller_config import ControllerConfig, load_controller_config, nominal_config
-from .events import Event, Level
-from .health import HealthMonitor
-from .observers import AnalysisThread, Observer
-from .recording import (
+from ..config.controller import ControllerConfig, load_controller_config, nominal_config
+from ..events import Event, Level
+from ..live.health import HealthMonitor
+from ..recording import (
     RecordingWriter,
     find_recordings,
     last_scan,
@@ -40,11 +38,13 @@ from .recording import (
     metadata_records,
     recording_name,
 )
-from .scans import SCAN_DTYPE
+from ..scans import SCAN_DTYPE
+from .acquisition import Acquisition, AcquisitionStats, Batch, DeviceInfo, ResumePoint
+from .observers import AnalysisThread, Observer
 from .sdnotify import Notifier
 from .settings import RecorderSettings, SettingsError
 
-log = logging.getLogger("daemon.recorder")
+log = logging.getLogger("daemon.recorder.engine")
 
 DISK_RETRY_S = 5.0  # how often to try again while the disk refuses to write
 RETENTION_CHECK_S = 30.0
@@ -155,7 +155,7 @@ class Recorder:
     reload_settings: called on :meth:`request_reload` for the new settings (None: keep the
     settings, re-read the controller config). notifier: systemd notification (None: a
     Notifier from the environment, a no-op outside systemd). The scans also go to the
-    loop-closure health monitor (:mod:`daemon.health`, unless ``settings.health`` is off)
+    loop-closure health monitor (:mod:`daemon.live.health`, unless ``settings.health`` is off)
     and to any observer added with :meth:`add_observer`.
     """
 
@@ -198,7 +198,8 @@ class Recorder:
     # ------------------------------------------------------------------ control
 
     def add_observer(self, observer: Observer) -> None:
-        """Feed the scans to ``observer`` too (:mod:`daemon.observers`); before :meth:`run`."""
+        """Feed the scans to ``observer`` too (:mod:`~daemon.recorder.observers`); before
+        :meth:`run`."""
         self.analysis.observers.append(observer)
 
     def request_stop(self, reason: str = "stop requested") -> None:

@@ -2,7 +2,7 @@
 collected, how well it identifies the parameters, what to do next, and when it is enough.
 
 About once a second the guidance runs the calibration worker itself
-(:func:`daemon.worker.run_worker`: still poses, held-out poses, selection, maximum-likelihood
+(:func:`daemon.worker.run.run_worker`: still poses, held-out poses, selection, maximum-likelihood
 fit, acceptance gates) on every scan recorded so far, so its prediction is what
 ``loopcal calibrate`` will report on the recording. Before there are enough poses for the
 worker, each free parameter's standard deviation is predicted from the poses'
@@ -25,11 +25,11 @@ from calibration import implicit
 from calibration.observability import ObservabilityIndices, observability_indices
 from calibration.parameters import INDEX, SL_OFFSET, UNITS, ParameterModel
 
-from . import gates as G
-from .controller_config import ControllerConfig
-from .poses import RecordedPoses, poses_of_scans
-from .recording import Recording
-from .worker import run_worker
+from ..config.controller import ControllerConfig
+from ..recording import Recording
+from ..worker import gates as G
+from ..worker.poses import RecordedPoses, poses_of_scans
+from ..worker.run import run_worker
 
 PERIOD_S = 1.0
 OFFSETS = tuple(n for n in INDEX if SL_OFFSET.start <= INDEX[n] < SL_OFFSET.stop)
@@ -114,7 +114,7 @@ class GuidanceUpdate:
 
 
 class Guidance:
-    """An observer of the recorder's scans (:mod:`daemon.observers`) that predicts the
+    """An observer of the recorder's scans (:mod:`daemon.recorder.observers`) that predicts the
     calibration and says what to do next.
 
     controller: the config in force (the calibration's start). model: the free set.

@@ -3,7 +3,7 @@ config in force, and names the sensor whose offset moved.
 
 Scans -> still poses -> loop closure -> drift test -> events. The recorder feeds every scan
 it receives (:meth:`HealthMonitor.feed`); still poses are found as the worker finds them
-(:func:`daemon.poses.poses_of_scans`), each as soon as the plate moves on, and each new pose
+(:func:`daemon.worker.poses.poses_of_scans`), each as soon as the plate moves on, and each new pose
 runs the likelihood-ratio test of :mod:`calibration.closure` over the last 30 poses:
 "sensor i's offset moved, and the latest k poses show it", for each sensor and every k (as a
 step, and as a creep growing over those poses), against the noise of the poses' own
@@ -33,10 +33,10 @@ from scipy.stats import chi2
 from calibration.closure import DriftTest, drift_test, loop_closure, threshold
 from calibration.parameters import INDEX, SL_OFFSET
 
-from .controller_config import ControllerConfig
-from .events import Level
-from .gates import pose_mean_noise
-from .poses import LONGEST_POSE_S, poses_of_scans
+from ..config.controller import ControllerConfig
+from ..events import Level
+from ..worker.gates import pose_mean_noise
+from ..worker.poses import LONGEST_POSE_S, poses_of_scans
 
 WINDOW = 30  # poses per test
 MIN_AFFECTED = 6  # a shift must show in at least this many of the latest poses

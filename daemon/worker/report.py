@@ -24,7 +24,7 @@ from calibration.parameters import INDEX, UNITS  # noqa: E402
 from calibration.selection import candidate_jacobian, select_poses  # noqa: E402
 
 from .gates import holdout_residuals  # noqa: E402
-from .worker import METHOD_NAMES, WorkerResult  # noqa: E402
+from .run import METHOD_NAMES, WorkerResult  # noqa: E402
 
 
 def _axis_angles(volts: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
