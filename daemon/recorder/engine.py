@@ -30,17 +30,12 @@ import numpy as np
 from ..config.controller import ControllerConfig, load_controller_config, nominal_config
 from ..events import Event, Level
 from ..live.health import HealthMonitor
-from ..recording import (
-    RecordingWriter,
-    find_recordings,
-    last_scan,
-    loopcal_version,
-    metadata_records,
-    recording_name,
-)
+from ..recording import RecordingWriter, find_recordings, metadata_records, recording_name
 from ..scans import SCAN_DTYPE
+from ..version import loopcal_version
 from .acquisition import Acquisition, AcquisitionStats, Batch, DeviceInfo, ResumePoint
 from .observers import AnalysisThread, Observer
+from .resume import last_scan
 from .sdnotify import Notifier
 from .settings import RecorderSettings, SettingsError
 

@@ -26,7 +26,8 @@ from calibration.parameters import INDEX, NAMES, UNITS, ParameterModel
 from calibration.pipeline import Calibration, calibrate
 
 from ..config.controller import ControllerConfig
-from ..recording import Recording, loopcal_version
+from ..recording import Recording
+from ..version import loopcal_version
 from . import gates as G
 from .poses import RecordedPoses, recorded_poses
 

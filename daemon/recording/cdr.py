@@ -1,0 +1,141 @@
+"""CDR encoding, vectorised: numpy dtypes laid out as the CDR of fixed-size ROS 2 messages,
+and the ``/daq/scans`` blocks whose body is scan rows back to back."""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterable
+from typing import Any
+
+import numpy as np
+
+from ..scans import SCAN_DTYPE
+from .schemas import BASE_FRAME, CDR_LE, PLATE_FRAME
+
+_CDR_PRIMITIVES = {"bool": "?", "uint8": "u1", "uint16": "<u2", "int32": "<i4", "uint32": "<u4",
+                   "int64": "<i8", "uint64": "<u8", "float32": "<f4", "float64": "<f8"}  # fmt: skip
+
+
+def cdr_dtype(fields: Iterable[tuple[str, str, int]]) -> np.dtype:
+    """The CDR layout of a flat message as a numpy dtype.
+
+    fields: (name, ROS 2 primitive type, count) in message order; count > 1 is a fixed-size
+    array. A type ``"string=TEXT"`` is a string field that always holds TEXT (it becomes
+    two fields: ``NAME_len``, the CDR length prefix, and ``NAME``, the bytes and NUL).
+    The dtype's itemsize is the message length (CDR pads nothing after the last field).
+    """
+    names: list[str] = []
+    formats: list[Any] = []
+    offsets: list[int] = []
+    pos = 0
+
+    def add(name: str, fmt: Any, size: int, align: int) -> None:
+        nonlocal pos
+        pos = -(-pos // align) * align
+        names.append(name)
+        formats.append(fmt)
+        offsets.append(pos)
+        pos += size
+
+    for name, typ, count in fields:
+        if typ.startswith("string="):
+            n = len(typ[7:].encode()) + 1
+            add(name + "_len", "<u4", 4, 4)
+            add(name, f"S{n}", n, 1)
+            continue
+        code = np.dtype(_CDR_PRIMITIVES[typ])
+        add(name, (code, (count,)) if count > 1 else code, code.itemsize * count, code.itemsize)
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": pos})
+
+
+_TIME_FIELDS = [("sec", "int32", 1), ("nanosec", "uint32", 1)]
+JOINT_STATE_DTYPE = cdr_dtype(
+    [*_TIME_FIELDS, ("epoch", "uint32", 1), ("counter", "uint64", 1), ("volts", "float32", 4),
+     ("lengths_mm", "float32", 4), ("channel_ok", "bool", 4), ("pose_ok", "bool", 1),
+     ("euler_zyz_deg", "float32", 3), ("tilt_deg", "float32", 1), ("swivel_deg", "float32", 1),
+     ("closure_rms_mm", "float32", 1)]
+)  # fmt: skip
+FRAME_TRANSFORM_DTYPE = cdr_dtype(
+    [*_TIME_FIELDS, ("parent_frame_id", f"string={BASE_FRAME}", 1),
+     ("child_frame_id", f"string={PLATE_FRAME}", 1), ("translation", "float64", 3),
+     ("rotation", "float64", 4)]
+)  # fmt: skip
+
+
+def cdr_messages(arr: np.ndarray) -> list[bytes]:
+    """One CDR message (encapsulation header + body) per element of a cdr_dtype array."""
+    k = arr.dtype.itemsize
+    body = np.ascontiguousarray(arr).tobytes()
+    return [CDR_LE + body[i : i + k] for i in range(0, len(body), k)]
+
+
+def fill_string_fields(arr: np.ndarray) -> None:
+    for name in arr.dtype.names:
+        if name + "_len" in arr.dtype.names:
+            arr[name + "_len"] = arr.dtype[name].itemsize
+            arr[name] = FRAME_TRANSFORM_CONSTANTS[name]
+
+
+FRAME_TRANSFORM_CONSTANTS = {"parent_frame_id": BASE_FRAME.encode(),
+                             "child_frame_id": PLATE_FRAME.encode()}  # fmt: skip
+
+
+# ---------------------------------------------------------------------------- CDR blocks
+
+# CDR little-endian encapsulation, then the sequence length; the first row's uint64 aligns
+# to 8 bytes after the encapsulation header, so the rows start at byte 4 + 8.
+_ROWS_AT = 4 + 8
+# CDR does not pad a struct's tail: the last row ends at its last field.
+_LAST_FIELD_END = max(
+    SCAN_DTYPE.fields[name][1] + SCAN_DTYPE.fields[name][0].itemsize for name in SCAN_DTYPE.names
+)
+_TAIL = SCAN_DTYPE.itemsize - _LAST_FIELD_END
+
+
+def encode_scan_block(rows: np.ndarray) -> bytes:
+    """One ``loopcal_msgs/msg/ScanBlock`` message (CDR) holding ``rows`` (SCAN_DTYPE)."""
+    rows = np.ascontiguousarray(rows, dtype=SCAN_DTYPE)
+    if not len(rows):
+        return CDR_LE + struct.pack("<I", 0)
+    body = rows.tobytes()
+    if _TAIL:
+        body = body[:-_TAIL]
+    return CDR_LE + struct.pack("<I4x", len(rows)) + body
+
+
+def _block_rows(data: bytes) -> bytes | None:
+    """The rows of one ``/daq/scans`` message as SCAN_DTYPE bytes, or None if it is not a
+    well-formed block."""
+    if len(data) < 8 or data[:4] != CDR_LE:
+        return None
+    (n,) = struct.unpack_from("<I", data, 4)
+    if len(data) != (_ROWS_AT + n * SCAN_DTYPE.itemsize - _TAIL if n else 8):
+        return None
+    return data[_ROWS_AT:] + _PAD if n else b""
+
+
+_PAD = b"\x00" * _TAIL
+
+
+def decode_scan_blocks_checked(messages: Iterable[bytes]) -> tuple[np.ndarray, int]:
+    """Rows (SCAN_DTYPE) of ``/daq/scans`` messages, in order, and how many messages were
+    not well-formed blocks (skipped)."""
+    parts = [_block_rows(data) for data in messages]
+    good = [p for p in parts if p is not None]
+    rows = np.frombuffer(b"".join(good), dtype=SCAN_DTYPE).copy()
+    return rows, len(parts) - len(good)
+
+
+def decode_scan_blocks(messages: Iterable[bytes]) -> np.ndarray:
+    """Rows (SCAN_DTYPE) of ``/daq/scans`` messages, in order. Raises ValueError if one is
+    not a well-formed block."""
+    messages = list(messages)
+    rows, bad = decode_scan_blocks_checked(messages)
+    if bad:
+        first = next(m for m in messages if _block_rows(m) is None)
+        if first[:4] != CDR_LE or len(first) < 8:
+            raise ValueError("scan block is not little-endian CDR")
+        (n,) = struct.unpack_from("<I", first, 4)
+        raise ValueError(f"scan block of {n} scans has {len(first)} bytes, not "
+                         f"{_ROWS_AT + n * SCAN_DTYPE.itemsize - _TAIL if n else 8}")  # fmt: skip
+    return rows

@@ -1,0 +1,40 @@
+"""File names of recordings: ``loopcal-YYYYmmddTHHMMSS.ffffffZ.mcap``, sorting by the UTC
+time they start."""
+
+from __future__ import annotations
+
+import os
+import re
+from datetime import UTC, datetime
+from pathlib import Path
+
+from .errors import RecordingError
+from .schemas import NS_PER_S
+
+NAME_RE = re.compile(r"^loopcal-(\d{8}T\d{6}\.\d{6})Z\.mcap$")
+
+# ---------------------------------------------------------------------------- names
+
+
+def recording_name(utc_ns: int) -> str:
+    """``loopcal-YYYYmmddTHHMMSS.ffffffZ.mcap``: names sort by the UTC time they start."""
+    sec, ns = divmod(int(utc_ns), NS_PER_S)
+    t = datetime.fromtimestamp(sec, UTC)
+    return f"loopcal-{t:%Y%m%dT%H%M%S}.{ns // 1000:06d}Z.mcap"
+
+
+def name_time_ns(path: str | os.PathLike) -> int | None:
+    """The UTC start time a recording's name gives, ns, or None if not a recording name."""
+    m = NAME_RE.match(Path(path).name)
+    if not m:
+        return None
+    t = datetime.strptime(m.group(1), "%Y%m%dT%H%M%S.%f").replace(tzinfo=UTC)
+    return int(t.timestamp()) * NS_PER_S + t.microsecond * 1000
+
+
+def find_recordings(directory: str | os.PathLike) -> list[Path]:
+    """The recordings in a directory (by their names), oldest first."""
+    d = Path(directory)
+    if not d.is_dir():
+        raise RecordingError(f"{d}: not a directory")
+    return sorted(p for p in d.iterdir() if NAME_RE.match(p.name) and p.is_file())

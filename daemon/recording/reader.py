@@ -1,0 +1,192 @@
+"""read_recordings: one or many recording files (or directories of them) into numpy arrays,
+oldest first, each scan once, with a line per damaged file."""
+
+from __future__ import annotations
+
+import os
+import struct
+from collections.abc import Iterable
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+from mcap.records import Statistics
+
+from .. import scans as scan_rows
+from ..events import Event
+from .errors import RecordingError
+from .filereader import FileReader, RecordingFile, utc_text
+from .names import find_recordings
+from .records import (
+    FOOTER_BYTES,
+    MAGIC,
+    RECORD_HEAD,
+    read_header,
+    read_statistics,
+)
+from .schemas import BLOCK_SPAN_NS, NS_PER_S
+
+
+@dataclass
+class Recording:
+    """Scans and events of one or several recording files, oldest first.
+
+    scans: SCAN_DTYPE rows (n,), each scan once (a scan in two files is kept once).
+    events: events, in time order.
+    files: one entry per file read.
+    """
+
+    scans: np.ndarray
+    events: list[Event]
+    files: list[RecordingFile]
+
+    def __len__(self) -> int:
+        return len(self.scans)
+
+    @property
+    def volts(self) -> np.ndarray:
+        """(n, 4) channel voltages, V (mid-code reconstruction)."""
+        return scan_rows.volts(self.scans)
+
+    @property
+    def stamp_s(self) -> np.ndarray:
+        """(n,) acquisition times, s since the Unix epoch."""
+        return self.scans["stamp_ns"] * 1e-9
+
+    @property
+    def warnings(self) -> list[str]:
+        """One line per damaged or partly read file, naming it and what was lost."""
+        return [f.warning for f in self.files if f.warning]
+
+    def events_of(self, kind: str) -> list[Event]:
+        return [e for e in self.events if e.kind == kind]
+
+
+
+def _as_ns(t: int | float | datetime | None) -> int | None:
+    if t is None:
+        return None
+    if isinstance(t, datetime):
+        if t.tzinfo is None:
+            raise ValueError(f"time {t} has no time zone; give UTC explicitly")
+        return round(t.timestamp() * NS_PER_S)
+    return int(t)
+
+
+#: channel ids our writer gives the topics (in CHANNELS order, from 1), for a file of ours
+#: whose channel records were lost with its first chunk
+
+def _identity(rows: np.ndarray) -> list[bytes]:
+    """What makes a scan the same scan in two files: epoch, counter, device time, codes."""
+    packed = np.zeros(len(rows), dtype=[("e", "<u4"), ("c", "<u8"), ("t", "<u8"),
+                                        ("k", "<u2", (4,))])  # fmt: skip
+    packed["e"], packed["c"] = rows["epoch"], rows["counter64"]
+    packed["t"], packed["k"] = rows["time64_us"], rows["codes"]
+    raw = packed.tobytes()
+    k = packed.dtype.itemsize
+    return [raw[i : i + k] for i in range(0, len(raw), k)]
+
+
+def _key_range(rows: np.ndarray) -> tuple[tuple[int, int], tuple[int, int]]:
+    return ((int(rows["epoch"][0]), int(rows["counter64"][0])),
+            (int(rows["epoch"][-1]), int(rows["counter64"][-1])))  # fmt: skip
+
+
+def _read_tail_statistics(path: Path) -> Statistics | None:
+    """The statistics record of a closed file, reading only its first and last bytes."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+            size = os.fstat(f.fileno()).st_size
+            if size < 8 + FOOTER_BYTES + 8 or not head.startswith(MAGIC):
+                return None
+            f.seek(size - 8 - FOOTER_BYTES)
+            footer = f.read(FOOTER_BYTES + 8)
+            (start,) = struct.unpack_from("<Q", footer, RECORD_HEAD)
+            if not 8 <= start <= size - 8 - FOOTER_BYTES:
+                return None
+            f.seek(start)
+            tail = f.read()
+    except (OSError, struct.error):
+        return None
+    header = read_header(memoryview(head))
+    ours = header is None or header.library.startswith("loopcal")
+    return read_statistics(memoryview(tail), strict=ours, base=start)
+
+
+def message_time_range(path: Path) -> tuple[int, int] | None:
+    """(first, last) message log time of a closed file from its statistics record alone
+    (footer -> summary offsets -> statistics, the summary checked by its CRC), or None if
+    the file has no intact one."""
+    stats = _read_tail_statistics(path)
+    if stats is None or not stats.message_count:
+        return None
+    return stats.message_start_time, stats.message_end_time
+
+
+def read_recordings(
+    paths: str | os.PathLike | Iterable[str | os.PathLike],
+    *,
+    since: int | float | datetime | None = None,
+    until: int | float | datetime | None = None,
+) -> Recording:
+    """Load one or many recording files into numpy arrays.
+
+    paths: files or directories (all recordings in them). Files are put in time order by
+    their first scan. since, until: keep scans with ``since <= stamp < until`` (ns since the
+    Unix epoch, or aware datetimes); events likewise.
+
+    Whatever the bytes, it returns the scans that are intact, each once, and says in each
+    file's :class:`RecordingFile` what could not be read (:attr:`Recording.warnings` has one
+    line per damaged or partly read file). A file that was not closed (crash, power loss)
+    is read up to its last intact chunk. Nothing that fails a check (a CRC, a length, an
+    index offset) is returned. Raises :class:`RecordingError` for a file that is missing or
+    unreadable, not MCAP at all, not a loopcal recording, or of another format version,
+    and ValueError for an empty time window.
+    """
+    items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
+    files: list[Path] = []
+    for item in map(Path, items):
+        files += find_recordings(item) if item.is_dir() else [item]
+    files = list(dict.fromkeys(files))  # a file named twice is read once
+    lo, hi = _as_ns(since), _as_ns(until)
+    if lo is not None and hi is not None and hi <= lo:
+        raise ValueError(
+            f"empty time window: until ({utc_text(hi)}) is not after since ({utc_text(lo)})"
+        )
+    parts: list[tuple[np.ndarray, RecordingFile, list[Event]]] = []
+    for path in files:
+        if not path.exists():
+            raise RecordingError(f"{path}: no such file")
+        if lo is not None or hi is not None:
+            span = message_time_range(path)  # skip whole files outside the window cheaply
+            if span is not None and not (
+                (lo is None or span[1] + BLOCK_SPAN_NS >= lo) and (hi is None or span[0] < hi)
+            ):
+                continue
+        parts.append(FileReader(path, lo, hi).read())
+    parts.sort(key=lambda x: (x[1].first_stamp_ns is None, x[1].first_stamp_ns or 0, x[1].path))
+    kept: list[np.ndarray] = []
+    ranges: list[tuple[tuple[int, int], tuple[int, int]]] = []
+    events: list[Event] = []
+    for rows, info, evs in parts:
+        if len(rows):
+            lo_k, hi_k = _key_range(rows)
+            overlapping = [i for i, (a, b) in enumerate(ranges) if a <= hi_k and lo_k <= b]
+            if overlapping:  # the same scan in two files (copies, or a recorder restart)
+                seen = {k for i in overlapping for k in _identity(kept[i])}
+                dup = np.fromiter((k in seen for k in _identity(rows)), bool, len(rows))
+                if dup.any():
+                    rows = rows[~dup]
+                    info.scans = len(rows)
+            if len(rows):
+                ranges.append(_key_range(rows))
+                kept.append(rows)
+        events += evs
+    rows = np.concatenate(kept) if kept else scan_rows.empty()
+    if lo is not None or hi is not None:
+        events = [e for e in events if (lo is None or e.stamp_ns >= lo)
+                  and (hi is None or e.stamp_ns < hi)]  # fmt: skip
+    events.sort(key=lambda e: e.stamp_ns)
+    return Recording(rows, events, [info for _, info, _ in parts])

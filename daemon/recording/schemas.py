@@ -1,0 +1,237 @@
+"""What a recording holds: topics, channels, the schemas of their messages, and the format's
+version (the layout of each message is :mod:`~daemon.recording.cdr`'s)."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from ..scans import SCAN_FIELDS
+
+FORMAT_VERSION = "1"
+
+TOPIC_SCANS = "/daq/scans"
+TOPIC_EVENTS = "/loopcal/events"
+TOPIC_LOG = "/loopcal/log"
+TOPIC_STATE = "/joint/state"
+TOPIC_TRANSFORM = "/plate/transform"
+TOPIC_SCENE = "/plate/scene"
+
+SCAN_BLOCK_SCHEMA = "loopcal_msgs/msg/ScanBlock"
+JOINT_STATE_SCHEMA = "loopcal_msgs/msg/JointState"
+FRAME_TRANSFORM_SCHEMA = "foxglove_msgs/msg/FrameTransform"
+BASE_FRAME, PLATE_FRAME = "base", "plate"
+
+CDR_LE = b"\x00\x01\x00\x00"  # CDR encapsulation header: little endian, no options
+#: a raw block never spans more stamp time than this (readers widen time windows by it)
+BLOCK_SPAN_NS = 1_000_000_000
+#: chunks are closed by flushes only, never by size
+_CHUNK_SIZE = 1 << 30
+NS_PER_S = 1_000_000_000
+
+# ---------------------------------------------------------------------------- schemas
+
+_ROS_TYPES = {"uint64": "uint64", "int64": "int64", "uint32": "uint32", "uint16": "uint16",
+              "bool": "bool"}  # fmt: skip
+
+
+def scan_block_msgdef() -> str:
+    """The ROS 2 message definition of ``/daq/scans`` (``ros2msg`` schema text)."""
+    lines = [
+        "# LDQ-412 scans exactly as the driver delivered them, raw and lossless, oldest first.",
+        "# Every scan of the recording is in exactly one block.",
+        "loopcal_msgs/Scan[] scans",
+        "=" * 80,
+        "MSG: loopcal_msgs/Scan",
+    ]
+    for name, kind, count, meaning in SCAN_FIELDS:
+        typ = _ROS_TYPES[kind] + (f"[{count}]" if count > 1 else "")
+        lines.append(f"{typ} {name}  # {meaning}")
+    return "\n".join(lines) + "\n"
+
+
+def _time_schema(description: str) -> dict[str, Any]:
+    return {
+        "type": "object",
+        "title": "time",
+        "description": description,
+        "properties": {
+            "sec": {"type": "integer", "minimum": 0},
+            "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999},
+        },
+    }
+
+
+def _xyz(title: str, keys: str) -> dict[str, Any]:
+    return {"title": title, "type": "object", "properties": {k: {"type": "number"} for k in keys}}
+
+
+_STRING = {"type": "string"}
+
+
+def _object(title: str, **properties: dict[str, Any]) -> dict[str, Any]:
+    return {"title": title, "type": "object", "properties": properties}
+
+
+def _array(items: dict[str, Any], n: int | None = None) -> dict[str, Any]:
+    out: dict[str, Any] = {"type": "array", "items": items}
+    if n is not None:
+        out["minItems"] = out["maxItems"] = n
+    return out
+
+
+_NUMBER = {"type": "number"}
+
+JSON_SCHEMAS: dict[str, dict[str, Any]] = {
+    "loopcal.Event": {
+        "title": "loopcal.Event",
+        "description": "Something that happened to the acquisition (docs/recording.md lists kinds)",
+        "type": "object",
+        "properties": {
+            "timestamp": _time_schema("when it happened (UTC)"),
+            "kind": {"type": "string", "description": "event kind, e.g. gap, restart"},
+            "level": {"type": "integer", "description": "1 debug, 2 info, 3 warning, 4 error"},
+            "message": {"type": "string", "description": "one line for people"},
+            # Foxglove's schema parser needs "properties" on every object, even a free one
+            "details": {"type": "object", "properties": {}, "description": "facts for programs"},
+        },
+    },
+    "foxglove.Log": {
+        "title": "foxglove.Log",
+        "description": "A log message",
+        "type": "object",
+        "properties": {
+            "timestamp": _time_schema("Timestamp of log message"),
+            "level": {"type": "integer", "description": "1 debug ... 5 fatal"},
+            "message": {"type": "string"},
+            "name": {"type": "string"},
+            "file": {"type": "string"},
+            "line": {"type": "integer", "minimum": 0},
+        },
+    },
+}
+
+
+def _scene_schema() -> dict[str, Any]:
+    pose = {
+        "title": "foxglove.Pose",
+        "type": "object",
+        "properties": {
+            "position": _xyz("foxglove.Vector3", "xyz"),
+            "orientation": _xyz("foxglove.Quaternion", "xyzw"),
+        },
+    }
+    color = _xyz("foxglove.Color", "rgba")
+    point = _xyz("foxglove.Point3", "xyz")
+    size = _xyz("foxglove.Vector3", "xyz")
+    sphere = {"type": "object", "properties": {"pose": pose, "size": size, "color": color}}
+    line = {
+        "type": "object",
+        "properties": {
+            "type": {"type": "integer", "description": "0 strip, 1 loop, 2 list"},
+            "pose": pose,
+            "thickness": _NUMBER,
+            "scale_invariant": {"type": "boolean"},
+            "points": _array(point),
+            "color": color,
+            "colors": _array(color),
+            "indices": _array({"type": "integer"}),
+        },
+    }
+    text = {
+        "type": "object",
+        "properties": {"pose": pose, "billboard": {"type": "boolean"}, "font_size": _NUMBER,
+                       "scale_invariant": {"type": "boolean"}, "color": color,
+                       "text": {"type": "string"}},
+    }  # fmt: skip
+    duration = {"type": "object", "properties": {"sec": {"type": "integer"},
+                                                 "nsec": {"type": "integer"}}}  # fmt: skip
+    entity = {
+        "type": "object",
+        "properties": {
+            "timestamp": _time_schema("Timestamp of the entity"),
+            "frame_id": {"type": "string"},
+            "id": {"type": "string"},
+            "lifetime": duration,
+            "frame_locked": {"type": "boolean"},
+            "metadata": _array(_object("foxglove.KeyValuePair", key=_STRING, value=_STRING)),
+            **{k: _array({"type": "object", "properties": {}}) for k in
+               ("arrows", "cubes", "cylinders", "triangles", "models")},
+            "spheres": _array(sphere),
+            "lines": _array(line),
+            "texts": _array(text),
+        },
+    }  # fmt: skip
+    return {
+        "title": "foxglove.SceneUpdate",
+        "description": "An update to the entities displayed in a 3D scene",
+        "type": "object",
+        "properties": {
+            "deletions": _array(
+                _object(
+                    "foxglove.SceneEntityDeletion",
+                    timestamp=_time_schema("Timestamp of the deletion"),
+                    type={"type": "integer", "description": "0 matching id, 1 all"},
+                    id=_STRING,
+                )
+            ),
+            "entities": _array(entity),
+        },
+    }
+
+
+JSON_SCHEMAS["foxglove.SceneUpdate"] = _scene_schema()
+
+#: topic -> (schema name, schema encoding, message encoding)
+CHANNELS: dict[str, tuple[str, str, str]] = {
+    TOPIC_SCANS: (SCAN_BLOCK_SCHEMA, "ros2msg", "cdr"),
+    TOPIC_EVENTS: ("loopcal.Event", "jsonschema", "json"),
+    TOPIC_LOG: ("foxglove.Log", "jsonschema", "json"),
+    TOPIC_STATE: (JOINT_STATE_SCHEMA, "ros2msg", "cdr"),
+    TOPIC_TRANSFORM: (FRAME_TRANSFORM_SCHEMA, "ros2msg", "cdr"),
+    TOPIC_SCENE: ("foxglove.SceneUpdate", "jsonschema", "json"),
+}
+
+
+def schema_bytes(name: str) -> bytes:
+    if name == SCAN_BLOCK_SCHEMA:
+        return scan_block_msgdef().encode()
+    if name in _MSGDEFS:
+        return _MSGDEFS[name].encode()
+    return json.dumps(JSON_SCHEMAS[name], indent=1).encode()
+
+
+_SEP = "=" * 80
+_TIME_MSG = f"{_SEP}\nMSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n"
+_MSGDEFS = {
+    JOINT_STATE_SCHEMA: (
+        "# One scan seen through the controller config in force (NaN where there is no pose).\n"
+        "builtin_interfaces/Time timestamp  # estimated acquisition time of the scan (UTC)\n"
+        "uint32 epoch  # power-on epoch of the module as recorded\n"
+        "uint64 counter  # scans since the module's power-on\n"
+        "float32[4] volts  # channel 1..4, V\n"
+        "float32[4] lengths_mm  # actuator 1..4 length d = S V + d0, mm\n"
+        "bool[4] channel_ok  # channel neither at the rail nor faulted\n"
+        "bool pose_ok  # forward kinematics converged on four good channels\n"
+        "float32[3] euler_zyz_deg  # plate orientation, intrinsic Z-Y-Z Euler angles, deg\n"
+        "float32 tilt_deg  # output axis away from +z, deg\n"
+        "float32 swivel_deg  # rotation about the output axis, deg\n"
+        "float32 closure_rms_mm  # RMS misfit of the four lengths at the pose (loop closure)\n"
+        + _TIME_MSG
+    ),
+    FRAME_TRANSFORM_SCHEMA: (
+        "builtin_interfaces/Time timestamp\n"
+        "string parent_frame_id\n"
+        "string child_frame_id\n"
+        "geometry_msgs/Vector3 translation\n"
+        "geometry_msgs/Quaternion rotation\n"
+        + _TIME_MSG
+        + f"{_SEP}\nMSG: geometry_msgs/Vector3\nfloat64 x\nfloat64 y\nfloat64 z\n"
+        + f"{_SEP}\nMSG: geometry_msgs/Quaternion\n"
+        "float64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1\n"
+    ),
+}
+
+# CDR (little endian) of messages with fixed-size fields only, vectorised: a numpy dtype
+# with each field at its CDR offset (aligned to its size, counted from the end of the
+# 4-byte encapsulation header), so n messages encode with one tobytes().

@@ -1,0 +1,12 @@
+"""The version of loopcal that runs (recorded in every file and every calibration)."""
+
+from __future__ import annotations
+
+from importlib import metadata as importlib_metadata
+
+
+def loopcal_version() -> str:
+    try:
+        return importlib_metadata.version("loopcal")
+    except importlib_metadata.PackageNotFoundError:  # running from a bare checkout
+        return "0+unknown"
