@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from ..config.controller import ControllerConfigError
+from ..live.health import watch_health
 from ..recorder.engine import Recorder
 from ..recorder.process import run_recorder, setup_logging
 from ..recorder.settings import SettingsError, load_daemon_config
@@ -40,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
             command=f"loopcal daemon --config {args.config}",
             reload_settings=lambda: load_daemon_config(args.config),
         )
+        watch_health(recorder)
     except (SettingsError, ControllerConfigError) as exc:
         print(f"loopcal daemon: error: {exc}", file=sys.stderr)
         return 2

@@ -22,6 +22,7 @@ from calibration.errors import ParameterError
 from ..config.controller import ControllerConfigError
 from ..events import Level
 from ..live.guidance import OFFSETS, Guidance, GuidanceUpdate
+from ..live.health import watch_health
 from ..recorder.engine import Recorder
 from ..recorder.process import run_recorder, setup_logging
 from ..recorder.settings import RecorderSettings, SettingsError, parse_size
@@ -164,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
             raise SettingsError("--json and --target-mm go with --until-enough")
         settings = settings_from_args(args)
         recorder = Recorder(settings, command="loopcal record " + " ".join(sys.argv[2:]))
+        watch_health(recorder)
         if args.until_enough:
             controller = recorder.controller
             guide = Guidance(
@@ -199,7 +201,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _enough(recorder: Recorder, u: GuidanceUpdate) -> None:
     worst = max(u.std.get(n, 0.0) for n in OFFSETS)
-    recorder._event(
+    recorder.emit(
         "guidance", Level.INFO,
         f"enough: {u.poses} still poses, every offset within {worst:.3f} mm (target "
         f"{u.target_mm:g} mm), every acceptance gate passes",

@@ -154,6 +154,10 @@ class Guidance:
             self._next = now + self.period_s
             self.update()
 
+    def reload(self, controller: ControllerConfig) -> None:
+        """A reload put another controller config in force: predict at it from now on."""
+        self.controller = controller
+
     def status(self) -> str:
         u = self.last
         if u is None:

@@ -35,6 +35,7 @@ from calibration.parameters import INDEX, SL_OFFSET
 
 from ..config.controller import ControllerConfig
 from ..events import Level
+from ..recorder.engine import Recorder
 from ..worker.gates import pose_mean_noise
 from ..worker.poses import LONGEST_POSE_S, poses_of_scans
 
@@ -97,9 +98,9 @@ class HealthMonitor:
         self.threshold = threshold(false_alarm, tests=4 * CHANGE_POINTS)
         self._buf: np.ndarray | None = None
         self._last_key: tuple[int, int] = (-1, -1)  # (epoch, counter) of the last pose's end
-        self.reset(controller)
+        self.reload(controller)
 
-    def reset(self, controller: ControllerConfig) -> None:
+    def reload(self, controller: ControllerConfig) -> None:
         """Start over at a new controller config (a reload): earlier poses no longer count."""
         self.params = np.array(controller.params, dtype=float)
         self.covariance = config_covariance(controller)
@@ -205,3 +206,14 @@ class HealthMonitor:
             f"loops close ({st.last.poses} poses; largest offset change sensor {worst + 1} "
             f"{st.last.shift_mm[worst]:+.2f} +- {st.last.std_mm[worst]:.2f} mm)"
         )
+
+
+def watch_health(recorder: Recorder) -> HealthMonitor | None:
+    """Attach loop-closure health to a recorder as an observer, unless its settings switch
+    it off (``[health].enabled``, ``record --no-health``); returns the monitor."""
+    s = recorder.settings
+    if not s.health:
+        return None
+    monitor = HealthMonitor(recorder.controller, recorder.emit, false_alarm=s.health_false_alarm)
+    recorder.add_observer(monitor)
+    return monitor

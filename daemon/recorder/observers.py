@@ -1,6 +1,6 @@
-"""The analysis thread: every scan the recorder receives also goes to its observers (the
-loop-closure health monitor, the technician's live guidance), in a thread of their own, so
-that neither reading the DAQ nor writing the recording ever waits for them.
+"""The analysis thread: every scan the recorder receives also goes to its observers (live
+analysis: the loop-closure health monitor, the technician's guidance), in a thread of their
+own, so that neither reading the DAQ nor writing the recording ever waits for them.
 
 An observer that fails is logged and dropped; the recording goes on.
 """
@@ -14,6 +14,8 @@ from typing import Protocol
 
 import numpy as np
 
+from ..config.controller import ControllerConfig
+
 log = logging.getLogger("daemon.recorder.observers")
 
 MAX_PENDING_BATCHES = 10_000  # beyond this (observers far behind) the oldest are dropped
@@ -21,11 +23,17 @@ PERIOD_S = 0.25
 
 
 class Observer(Protocol):
+    """What the recorder feeds: ``feed`` gets every scan row (SCAN_DTYPE) in order, from the
+    analysis thread; ``status`` is a part of the status line; ``reload`` gets the controller
+    config a reload put in force (between two feeds)."""
+
     name: str
 
     def feed(self, rows: np.ndarray) -> None: ...
 
     def status(self) -> str: ...
+
+    def reload(self, controller: ControllerConfig) -> None: ...
 
 
 class AnalysisThread:
@@ -56,10 +64,11 @@ class AnalysisThread:
         if self._thread.is_alive():
             self._thread.join(timeout)
 
-    def call(self, fn, *args) -> None:
-        """Run ``fn(*args)`` between two feeds (to change an observer's state safely)."""
+    def reload(self, controller: ControllerConfig) -> None:
+        """Give every observer the new controller config, between two feeds."""
         with self._lock:
-            fn(*args)
+            for o in self.observers:
+                o.reload(controller)
 
     def status(self) -> list[str]:
         with self._lock:
