@@ -26,7 +26,7 @@ from session_helpers import PAUSE_S, truth_for, write_session  # noqa: E402
 
 from daemon.config.controller import load_controller_config, write_initial_config  # noqa: E402
 from daemon.recording import find_recordings, read_recordings  # noqa: E402
-from daemon.worker.poses import recorded_poses  # noqa: E402
+from daemon.worker.poses import poses_of_scans  # noqa: E402
 from daemon.worker.run import run_worker  # noqa: E402
 from simulator.scenarios import HandMoves  # noqa: E402
 
@@ -74,10 +74,10 @@ def stages(rec_dir: Path, work: Path) -> dict[str, float]:
     rec = read_recordings(rec_dir)
     out["read"] = time.perf_counter() - t
     t = time.perf_counter()
-    poses = recorded_poses(rec)
+    poses = poses_of_scans(rec.scans)
     out["poses"] = time.perf_counter() - t
     t = time.perf_counter()
-    res = run_worker(rec, config, config.model())
+    res = run_worker(rec.scans, config, config.model(), files=rec.files)
     out["poses+fit+gates"] = time.perf_counter() - t
     out["n_poses"] = len(poses)
     out["accepted"] = res.accepted

@@ -160,6 +160,14 @@ def tilt_swivel(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return b, swivel
 
 
+def output_axis_angles(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The plate's output axis (its +z) for each rotation: tilt from the base's +z and
+    azimuth of the direction it leans, radians, (m,) each (azimuth from +x towards +y)."""
+    axis = np.asarray(R)[:, :, 2]
+    tilt = np.arccos(np.clip(axis[:, 2], -1.0, 1.0))
+    return tilt, np.arctan2(axis[:, 1], axis[:, 0])
+
+
 @dataclass(frozen=True)
 class ForwardSolution:
     """Result of :func:`forward_kinematics`.

@@ -16,6 +16,22 @@ from numpy.lib.stride_tricks import sliding_window_view
 from .errors import InputError
 from .residuals import check_volts
 
+#: one step of the 12-bit converter over its 20 V span, V (DATASHEET: code = floor((V + 10)
+#: * 4096 / 20)); rounding to it adds a uniform error of variance LSB^2 / 12 to a reading
+READING_LSB_VOLTS = 20.0 / 4096
+
+
+def pose_noise_volts(scan_noise: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(k, 4) standard deviation of each pose's mean reading, V.
+
+    scan_noise: (k, 4) or (4,) the noise of one reading (V); counts: (k,) scans averaged
+    into each pose. The noise averages down as 1/sqrt(count); the 12-bit rounding of a
+    still reading does not (every scan rounds the same way), so it stays:
+    ``sqrt(scan_noise^2 / count + LSB^2 / 12)``.
+    """
+    counts = np.asarray(counts, dtype=float)
+    return np.sqrt(np.square(scan_noise) / counts[:, None] + READING_LSB_VOLTS**2 / 12)
+
 
 @dataclass(frozen=True)
 class StillPoses:

@@ -80,3 +80,14 @@ def trustworthy(scans: np.ndarray) -> np.ndarray:
 def _bits(status: np.ndarray, shift: int) -> np.ndarray:
     s = np.asarray(status, dtype=np.uint16)[:, None]
     return ((s >> (shift + np.arange(4, dtype=np.uint16))) & 1).astype(bool)
+
+
+def scan_rate_hz(scans: np.ndarray) -> float:
+    """The scan rate of scan rows, Hz, from the device times of consecutive scans (the
+    median period within a power-on epoch); 20 Hz, the datasheet's default, when fewer
+    than two consecutive scans say otherwise."""
+    if len(scans) < 2:
+        return float(ldq412.SCAN_RATE_DEFAULT_HZ)
+    same = (np.diff(scans["epoch"]) == 0) & (np.diff(scans["counter64"].astype(np.int64)) == 1)
+    dt = np.diff(scans["time64_us"].astype(np.int64))[same]
+    return 1e6 / float(np.median(dt)) if len(dt) else float(ldq412.SCAN_RATE_DEFAULT_HZ)

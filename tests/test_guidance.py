@@ -13,7 +13,7 @@ from session_helpers import PAUSE_S, calibrate_json, fresh_config, rows_from, tr
 from calibration.parameters import INDEX, NAMES, PAPER7
 from daemon.config.controller import nominal_config
 from daemon.live.guidance import Guidance
-from daemon.recording import Recording, read_recordings
+from daemon.recording import read_recordings
 from daemon.worker.run import run_worker
 from simulator.offline import mechanism_scans
 from simulator.scenarios import HandMoves
@@ -44,7 +44,7 @@ def test_guidance_predicts_what_the_worker_reports_and_stops_when_enough():
     assert not any(u.enough for u in updates[:-1])
     # the prediction is the worker's own result on the same scans
     seen = rows[: last.scans]
-    result = run_worker(Recording(seen, [], []), nominal_config(), PAPER7)
+    result = run_worker(seen, nominal_config(), PAPER7)
     assert {n: pytest.approx(s) for n, s in result.std.items()} == last.std
     text = "\n".join(last.render())
     assert "ENOUGH" in text and "sensor 4" in text and "d03" in text

@@ -216,7 +216,7 @@ def run(args: argparse.Namespace) -> int:
     except (_Fail, ControllerConfigError, RecordingError, CalibrationError, ValueError) as exc:
         print(f"loopcal calibrate: error: {exc}", file=sys.stderr)
         return 2
-    notes = describe_files(rec)
+    notes = describe_files(rec.files)
     if notes:
         progress(f"note: {notes}")
     for line in rec.warnings:
@@ -229,8 +229,9 @@ def run(args: argparse.Namespace) -> int:
         )
         return 2
     result = run_worker(
-        rec, config, model, n_select=args.select, method=args.method, progress=progress
-    )
+        rec.scans, config, model, files=rec.files, n_select=args.select, method=args.method,
+        progress=progress,
+    )  # fmt: skip
     if args.report is not None:  # every other output first: the config is written last
         from ..worker.report import write_report  # matplotlib only when a report is asked for
 

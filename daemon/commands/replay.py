@@ -23,7 +23,7 @@ from simulator.replay import Player, RecordedPowerOn
 from simulator.run import listen_host, tcp_port
 
 from ..recording import RecordingError, read_recordings
-from ..worker.poses import scan_rate
+from ..scans import scan_rate_hz
 
 HELP = "serve a recording through the emulated DAQ, scan for scan"
 
@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         for line in rec.warnings:
             print(f"warning: {line}", file=sys.stderr, flush=True)
         meta_rate = rec.files[0].metadata.get("device", {}).get("scan_rate_hz")
-        rate = int(meta_rate) if meta_rate else round(scan_rate(rec))
+        rate = int(meta_rate) if meta_rate else round(scan_rate_hz(rec.scans))
         player = Player(
             power_ons(rec.scans),
             transport=args.transport,

@@ -24,9 +24,9 @@ import numpy as np
 from calibration import implicit
 from calibration.observability import ObservabilityIndices, observability_indices
 from calibration.parameters import INDEX, SL_OFFSET, UNITS, ParameterModel
+from calibration.poses import pose_noise_volts
 
 from ..config.controller import ControllerConfig
-from ..recording import Recording
 from ..worker import gates as G
 from ..worker.poses import RecordedPoses, poses_of_scans
 from ..worker.run import run_worker
@@ -183,7 +183,7 @@ class Guidance:
         u = GuidanceUpdate(elapsed, len(scans), len(poses), [float(r) for r in reach], None,
                            None, {}, self.target_mm)  # fmt: skip
         if len(poses) >= G.MIN_POSES:
-            self._from_worker(u, Recording(scans, [], []))
+            self._from_worker(u, scans)
         else:
             u.std, indices = self._predicted_std(poses, start)
             if indices is not None:
@@ -196,8 +196,8 @@ class Guidance:
             self.on_enough(u)
         return u
 
-    def _from_worker(self, u: GuidanceUpdate, rec: Recording) -> None:
-        result = run_worker(rec, self.controller, self.model)
+    def _from_worker(self, u: GuidanceUpdate, scans: np.ndarray) -> None:
+        result = run_worker(scans, self.controller, self.model)
         u.gates = {g.name: bool(g.passed) for g in result.gates}
         u.std = {n: float(result.std.get(n, np.inf)) for n in self.model.free}
         cal = result.calibration
@@ -217,7 +217,7 @@ class Guidance:
             u.instruction = failed[0].advice
         else:
             params = result.params if cal is not None else np.array(self.controller.params)
-            u.instruction = self._instruction(result.poses, rec.scans, params, failed)
+            u.instruction = self._instruction(result.poses, scans, params, failed)
 
     def _predicted_std(
         self, poses: RecordedPoses, p: np.ndarray
@@ -229,7 +229,7 @@ class Guidance:
         if len(poses) < n:
             return out, None
         scan = np.sqrt(np.mean(poses.scan_noise**2, axis=0))  # pooled over the poses
-        w = 1.0 / G.pose_mean_noise(scan, poses.counts)
+        w = 1.0 / pose_noise_volts(scan, poses.counts)
         R, ok = implicit.start_rotations(poses.volts, p)
         if ok.sum() < n:
             return out, None

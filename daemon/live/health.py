@@ -32,11 +32,11 @@ from scipy.stats import chi2
 
 from calibration.closure import DriftTest, drift_test, loop_closure, threshold
 from calibration.parameters import INDEX, SL_OFFSET
+from calibration.poses import pose_noise_volts
 
 from ..config.controller import ControllerConfig
 from ..events import Level
 from ..recorder.engine import Recorder
-from ..worker.gates import pose_mean_noise
 from ..worker.poses import LONGEST_POSE_S, poses_of_scans
 
 WINDOW = 30  # poses per test
@@ -144,7 +144,7 @@ class HealthMonitor:
         # one scan's noise per channel, pooled over the window (a pose's own estimate from
         # a second of scans scatters by 15 %); the converter's rounding does not average out
         scan = np.sqrt(np.mean(np.square(noise), axis=0))
-        sigma = pose_mean_noise(scan, counts)
+        sigma = pose_noise_volts(scan, counts)
         closure = loop_closure(V, self.params, sigma)
         best = drift_test(closure, self.covariance, change_points=True)
         self.state.last = best

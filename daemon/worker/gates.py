@@ -27,12 +27,17 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from calibration.kinematics import base_points, forward_kinematics, volts_to_lengths
+from calibration.kinematics import (
+    base_points,
+    forward_kinematics,
+    output_axis_angles,
+    volts_to_lengths,
+)
 from calibration.observability import CONDITION_OK
 from calibration.parameters import GAIN_NOMINAL, INDEX, UNITS, ParameterModel
+from calibration.poses import pose_noise_volts
 from calibration.residuals import loop_residuals, noise_directions, reference_points
 from calibration.simulate import NEAR_SINGULAR_MM
-from drivers import ldq412
 
 MIN_POSES = 30
 MIN_CHANNEL_RANGE_V = 0.5  # a channel that moves less than this over all poses is stuck
@@ -47,7 +52,6 @@ HOLDOUT_MARGIN = 1.15
 CHANGE_LIMITS = {"offset": 15.0, "geometry": 3.0, "gain": 0.05}
 PRECISION = {"mm": 0.25, "mm/V": 0.01}
 GOOD_TILT_DEG = 25.0  # the workspace allows 45 deg; poses should reach this far every way
-LSB_VOLTS = ldq412.V_SPAN / (ldq412.CODE_MAX + 1)
 
 
 @dataclass(frozen=True)
@@ -91,9 +95,7 @@ def coverage(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
     if len(volts) == 0:
         return np.zeros(4)
     fk = forward_kinematics(volts_to_lengths(volts, params), params)
-    axis = fk.rotations[:, :, 2]
-    tilt = np.degrees(np.arccos(np.clip(axis[:, 2], -1, 1)))
-    az = np.degrees(np.arctan2(axis[:, 1], axis[:, 0]))
+    tilt, az = np.degrees(output_axis_angles(fk.rotations))
     A = base_points(params)
     reach = np.zeros(4)
     for i in range(4):
@@ -203,18 +205,12 @@ def min_singular_gate(s_min: float, advice: str) -> Gate:
     )
 
 
-def pose_mean_noise(scan_noise: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """(k, 4) standard deviation of each pose's mean reading, V: the noise of one reading
-    (scan_noise, (k, 4) or (4,)) over the square root of the scans averaged (counts, (k,)),
-    and the 12-bit rounding, which averaging a still reading does not remove."""
-    return np.sqrt(np.square(scan_noise) / counts[:, None] + LSB_VOLTS**2 / 12)
-
-
 def expected_noise(scan_noise: np.ndarray, counts: np.ndarray, *, per_scan: bool = False) -> float:
     """RMS noise of the poses' mean readings the poses themselves predict, V
-    (:func:`pose_mean_noise`). per_scan: the same as the noise of one scan (times the
-    square root of the scans averaged), as the maximum-likelihood fit reports."""
-    var = pose_mean_noise(scan_noise, counts) ** 2
+    (:func:`calibration.poses.pose_noise_volts`). per_scan: the same as the noise of one
+    scan (times the square root of the scans averaged), as the maximum-likelihood fit
+    reports."""
+    var = pose_noise_volts(scan_noise, counts) ** 2
     if per_scan:
         var = var * counts[:, None]
     return float(np.sqrt(var.mean()))
@@ -251,10 +247,10 @@ def holdout_residuals(
 
     In volts of equivalent sensor noise (the residuals projected on their noise direction);
     or, given ``noise`` (m, 4), the standard deviation of each pose's mean reading per
-    channel, in units of the error's own predicted standard deviation, N(0, 1) each when the
-    parameters are right. With the fit's ``model`` and ``covariance`` (of its free
-    parameters), the prediction includes the parameters' own uncertainty (poses that were
-    not in the fit: held out)."""
+    channel (:func:`calibration.poses.pose_noise_volts`), in units of the error's own
+    predicted standard deviation, N(0, 1) each when the parameters are right. With the
+    fit's ``model`` and ``covariance`` (of its free parameters), the prediction includes the
+    parameters' own uncertainty (poses that were not in the fit: held out)."""
     if len(volts) == 0:
         return np.zeros(0)
     ref = reference_points(volts, params)
@@ -269,7 +265,7 @@ def holdout_residuals(
     w = np.einsum("mi,mi->m", u, r.residuals[ok]) / s
     if noise is None:
         return w
-    var = np.einsum("mi,mi->m", v**2, noise[ok] ** 2 + LSB_VOLTS**2 / 12)
+    var = np.einsum("mi,mi->m", v**2, noise[ok] ** 2)
     if with_jac:
         g = np.einsum("mi,min->mn", u, r.jacobian[ok]) / s[:, None]  # d w / d x
         var = var + np.einsum("mn,nq,mq->m", g, covariance, g)

@@ -16,10 +16,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calibration.poses import still_poses
+from calibration.poses import pose_noise_volts, still_poses
 
 from .. import scans as scan_rows
-from ..recording import Recording
 
 STILL_WINDOW_S = 0.5  # a pose spans at least this long
 GAP_MARGIN_S = 0.25  # scans this close to a gap or restart are not used
@@ -52,8 +51,10 @@ class RecordedPoses:
 
     @property
     def noise_volts(self) -> np.ndarray:
-        """(k, 4) standard deviation of each pose's mean, V (scan noise / sqrt(count))."""
-        return self.scan_noise / np.sqrt(self.counts)[:, None]
+        """(k, 4) standard deviation of each pose's mean, V
+        (:func:`calibration.poses.pose_noise_volts`: the scan noise averaged down, the 12-bit
+        rounding not)."""
+        return pose_noise_volts(self.scan_noise, self.counts)
 
 
 def _difference_noise(volts: np.ndarray, ranges: np.ndarray) -> np.ndarray:
@@ -68,41 +69,6 @@ def _difference_noise(volts: np.ndarray, ranges: np.ndarray) -> np.ndarray:
     return np.sqrt((c[b] - c[a]) / np.maximum(b - a, 1)[:, None] / 2)
 
 
-def scan_rate(rec: Recording) -> float:
-    """The recording's scan rate, Hz, from the device times of consecutive scans."""
-    return scan_rate_of(rec.scans)
-
-
-def scan_rate_of(s: np.ndarray) -> float:
-    """The scan rate, Hz, of scan rows, from the device times of consecutive scans."""
-    if len(s) < 2:
-        return 20.0
-    same = (np.diff(s["epoch"]) == 0) & (np.diff(s["counter64"].astype(np.int64)) == 1)
-    dt = np.diff(s["time64_us"].astype(np.int64))[same]
-    return 1e6 / float(np.median(dt)) if len(dt) else 20.0
-
-
-def recorded_poses(
-    rec: Recording,
-    *,
-    window_s: float = STILL_WINDOW_S,
-    band_volts: float = 0.25,
-    gap_margin_s: float = GAP_MARGIN_S,
-    longest_s: float = LONGEST_POSE_S,
-) -> RecordedPoses:
-    """The still poses of a recording (see the module docstring).
-
-    window_s: a pose spans at least this long. band_volts: largest peak-to-peak change of a
-    channel within such a window that still counts as still (40 mV of noise gives about
-    0.2 V over 10 scans). gap_margin_s: scans this close to a gap or restart are left out.
-    longest_s: longer still stretches are split into poses of at most this long.
-    """
-    return poses_of_scans(
-        rec.scans, window_s=window_s, band_volts=band_volts, gap_margin_s=gap_margin_s,
-        longest_s=longest_s,
-    )  # fmt: skip
-
-
 def poses_of_scans(
     s: np.ndarray,
     *,
@@ -111,9 +77,15 @@ def poses_of_scans(
     gap_margin_s: float = GAP_MARGIN_S,
     longest_s: float = LONGEST_POSE_S,
 ) -> RecordedPoses:
-    """:func:`recorded_poses` of scan rows (SCAN_DTYPE) held in memory."""
+    """The still poses of scan rows (SCAN_DTYPE, oldest first; see the module docstring).
+
+    window_s: a pose spans at least this long. band_volts: largest peak-to-peak change of a
+    channel within such a window that still counts as still (40 mV of noise gives about
+    0.2 V over 10 scans). gap_margin_s: scans this close to a gap or restart are left out.
+    longest_s: longer still stretches are split into poses of at most this long.
+    """
     n = len(s)
-    rate = scan_rate_of(s)
+    rate = scan_rows.scan_rate_hz(s)
     bad_channel = ~scan_rows.trustworthy(s).all(axis=1)
     breaks = np.flatnonzero((s["missed"] > 0) | s["restarted"])
     if n:

@@ -19,7 +19,12 @@ matplotlib.use("Agg")  # files only, no screen
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from calibration.kinematics import base_points, forward_kinematics, volts_to_lengths  # noqa: E402
+from calibration.kinematics import (  # noqa: E402
+    base_points,
+    forward_kinematics,
+    output_axis_angles,
+    volts_to_lengths,
+)
 from calibration.parameters import INDEX, UNITS  # noqa: E402
 from calibration.selection import candidate_jacobian, select_poses  # noqa: E402
 
@@ -32,8 +37,8 @@ def _axis_angles(volts: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.
     if len(volts) == 0:
         return np.zeros(0), np.zeros(0)
     R = forward_kinematics(volts_to_lengths(volts, params), params).rotations
-    axis = R[:, :, 2]
-    return np.degrees(np.arccos(np.clip(axis[:, 2], -1, 1))), np.arctan2(axis[:, 1], axis[:, 0])
+    tilt, azimuth = output_axis_angles(R)
+    return np.degrees(tilt), azimuth
 
 
 def _plot_changes(res: WorkerResult, path: Path) -> None:
@@ -205,7 +210,7 @@ def _html(res: WorkerResult, plots: list[tuple[str, str]]) -> str:
         )
     files = "".join(
         f"<li>{e(str(f.path))}{' (' + e(f.note) + ')' if f.note else ''}</li>"
-        for f in res.recording.files
+        for f in res.files
     )
     figs = "".join(
         f'<figure><img src="{name}" alt="{e(title)}"><figcaption>{e(title)}</figcaption></figure>'
@@ -222,7 +227,7 @@ figure {{ display: inline-block; margin: 8px; }} img {{ max-width: 470px; }}
 </style></head><body>
 <h1>Calibration report</h1>
 <p class="verdict">{e(verdict)}</p>
-<p>{len(res.recording):,} scans, {len(res.poses)} still poses ({len(res.held_out)} held out);
+<p>{res.n_scans:,} scans, {len(res.poses)} still poses ({len(res.held_out)} held out);
 free parameters: {e(res.model.describe())}; estimator: {e(METHOD_NAMES[res.method])}.
 Made {datetime.now(UTC):%Y-%m-%d %H:%M} UTC.</p>
 <h2>Parameters</h2>

@@ -1,8 +1,8 @@
 """The calibration worker: from recordings to parameters it can vouch for.
 
-MCAP -> poses -> fit -> gates: the worker reads the recordings
-(:func:`daemon.recording.read_recordings`), takes their still poses
-(:func:`daemon.worker.poses.recorded_poses`), keeps every fifth out of the fit to check it
+MCAP -> poses -> fit -> gates: given the scans of the recordings (as
+:func:`daemon.recording.read_recordings` returns them), the worker takes their still poses
+(:func:`daemon.worker.poses.poses_of_scans`), keeps every fifth out of the fit to check it
 against, selects the best of the others and identifies the free parameters from them
 (:func:`calibration.pipeline.calibrate`, started from the controller config), and runs the
 acceptance gates (:mod:`daemon.worker.gates`). Writing the result into the controller config is
@@ -12,7 +12,7 @@ acceptance gates (:mod:`daemon.worker.gates`). Writing the result into the contr
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -26,10 +26,10 @@ from calibration.parameters import INDEX, NAMES, UNITS, ParameterModel
 from calibration.pipeline import Calibration, calibrate
 
 from ..config.controller import ControllerConfig
-from ..recording import Recording
+from ..recording import RecordingFile
 from ..version import loopcal_version
 from . import gates as G
-from .poses import RecordedPoses, recorded_poses
+from .poses import RecordedPoses, poses_of_scans
 
 N_SELECT = 50
 METHOD_NAMES = {"ml": "maximum likelihood", "paper": "the paper's closed-loop residuals"}
@@ -44,6 +44,8 @@ class WorkerResult:
     std: {name: standard deviation} of the free parameters. gates: the acceptance gates in
     order. poses, fit, held_out: the poses found, and indices of those fitted and held out.
     calibration: the selection and identification, or None if it could not run.
+    n_scans: the scans it started from. span_ns: their first and last stamps (ns since the
+    Unix epoch), or None. files: the recording files they came from, as read.
     """
 
     model: ParameterModel
@@ -55,7 +57,9 @@ class WorkerResult:
     fit: np.ndarray
     held_out: np.ndarray
     calibration: Calibration | None
-    recording: Recording
+    n_scans: int = 0
+    span_ns: tuple[int, int] | None = None
+    files: list[RecordingFile] = field(default_factory=list)
     seconds: float = 0.0
     expected_noise_volts: float = float("nan")
     extra: dict[str, Any] = field(default_factory=dict)
@@ -127,7 +131,7 @@ class WorkerResult:
                 "fit_candidates": int(len(self.fit)),
                 "selected": int(len(cal.selection.indices)) if cal is not None else 0,
                 "held_out": int(len(self.held_out)),
-                "scans": int(len(self.recording)),
+                "scans": self.n_scans,
                 "dropped_scans": self.poses.dropped,
             },
             "residual": {
@@ -136,7 +140,7 @@ class WorkerResult:
                 "noise_volts": ident.sigma_volts if ident is not None else None,
                 "expected_noise_volts": self.expected_noise_volts,
             },
-            "recordings": [str(f.path) for f in self.recording.files],
+            "recordings": [str(f.path) for f in self.files],
             "seconds": round(self.seconds, 3),
         }
         out.update(self.extra)
@@ -147,9 +151,7 @@ class WorkerResult:
         cal = self.calibration
         assert cal is not None
         ident = cal.identification
-        rec = self.recording
-        first = int(rec.scans["stamp_ns"][0]) if len(rec) else None
-        last = int(rec.scans["stamp_ns"][-1]) if len(rec) else None
+        first, last = self.span_ns if self.span_ns is not None else (None, None)
 
         def iso(ns: int | None) -> str:
             if ns is None:
@@ -159,7 +161,7 @@ class WorkerResult:
         return {
             "written_utc": datetime.now(UTC).isoformat(timespec="seconds"),
             "loopcal": loopcal_version(),
-            "recordings": [f.path.name for f in rec.files],
+            "recordings": [f.path.name for f in self.files],
             "recorded_from_utc": iso(since if since is not None else first),
             "recorded_until_utc": iso(until if until is not None else last),
             "poses_found": len(self.poses),
@@ -176,29 +178,34 @@ class WorkerResult:
 
 
 def run_worker(
-    recording: Recording,
+    scans: np.ndarray,
     controller: ControllerConfig,
     model: ParameterModel,
     *,
+    files: Sequence[RecordingFile] = (),
     n_select: int = N_SELECT,
     method: str = DEFAULT_METHOD,
     progress: Callable[[str], None] = lambda _: None,
 ) -> WorkerResult:
-    """Poses, fit and gates for one recording (one or many files, already loaded).
+    """Poses, fit and gates for scans of a recording (SCAN_DTYPE rows, oldest first: one
+    or many files, already loaded; ``files``, what they came from, for the provenance and
+    the report).
 
     method: the estimator (:func:`calibration.identify.identify`); "ml" weighs each pose by
     the scans averaged into it."""
     t0 = time.perf_counter()
     start = np.array(controller.params, dtype=float)
-    poses = recorded_poses(recording)
+    poses = poses_of_scans(scans)
     progress(
-        f"{len(recording):,} scans: {len(poses)} still poses "
+        f"{len(scans):,} scans: {len(poses)} still poses "
         f"(median {int(np.median(poses.counts)) if len(poses) else 0} scans each)"
     )
     k = np.arange(len(poses))
     held = k % G.HOLDOUT_EVERY == G.HOLDOUT_EVERY // 2
     fit, held_out = k[~held], k[held]
-    result = WorkerResult(model, start, start.copy(), {}, [], poses, fit, held_out, None, recording)
+    span = (int(scans["stamp_ns"][0]), int(scans["stamp_ns"][-1])) if len(scans) else None
+    result = WorkerResult(model, start, start.copy(), {}, [], poses, fit, held_out, None,
+                          len(scans), span, list(files))  # fmt: skip
     result.method = method
     gate = G.poses_gate(poses.volts)
     result.gates.append(gate)
@@ -253,6 +260,6 @@ def run_worker(
     return result
 
 
-def describe_files(rec: Recording) -> str:
-    notes = [f"{Path(f.path).name}: {f.note}" for f in rec.files if f.note]
+def describe_files(files: Sequence[RecordingFile]) -> str:
+    notes = [f"{Path(f.path).name}: {f.note}" for f in files if f.note]
     return "; ".join(notes)
