@@ -5,6 +5,8 @@ result = calibrate(still_poses(volts).volts, PAPER7, NOMINAL).identification
 print(result.table())
 """
 
+import importlib
+
 from .errors import (
     CalibrationError,
     ConvergenceError,
@@ -12,15 +14,36 @@ from .errors import (
     ParameterError,
     UnobservableError,
 )
-from .identify import METHODS, Identification, identify
-from .implicit import cramer_rao
-from .kinematics import euler_zyz, forward_kinematics, inverse_kinematics
-from .observability import analyse_identifiability, observability_indices
-from .parameters import NAMES, NOMINAL, PAPER7, PRESETS, ParameterModel, Tie
-from .pipeline import Calibration, calibrate
-from .poses import still_poses
-from .selection import candidate_jacobian, ml_candidates, select_poses
-from .simulate import simulate_poses
+
+# The rest of the API is imported on first use (PEP 562), so that ``from calibration.errors
+# import ...`` or a command that needs one module does not pay for scipy everywhere.
+_LAZY = {
+    "METHODS": "identify", "Identification": "identify", "identify": "identify",
+    "cramer_rao": "implicit",
+    "euler_zyz": "kinematics", "forward_kinematics": "kinematics",
+    "inverse_kinematics": "kinematics",
+    "analyse_identifiability": "observability", "observability_indices": "observability",
+    "NAMES": "parameters", "NOMINAL": "parameters", "PAPER7": "parameters",
+    "PRESETS": "parameters", "ParameterModel": "parameters", "Tie": "parameters",
+    "Calibration": "pipeline", "calibrate": "pipeline",
+    "still_poses": "poses",
+    "candidate_jacobian": "selection", "ml_candidates": "selection", "select_poses": "selection",
+    "simulate_poses": "simulate",
+}  # fmt: skip
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'calibration' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)
+
 
 __all__ = [
     "METHODS",

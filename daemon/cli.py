@@ -1,48 +1,34 @@
 """The ``loopcal`` command line: parses the arguments and dispatches to the command's module
-in :mod:`daemon.commands`."""
+in :mod:`daemon.commands`, importing only that one (``loopcal --help`` imports none)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
-from types import ModuleType
 
 from calibration.errors import CalibrationError
 
-from .commands import (
-    calibrate,
-    daemon,
-    demo,
-    init_config,
-    observability,
-    record,
-    replay,
-    simulate,
-)
-
-#: (name, module) in the order ``loopcal --help`` lists them
-COMMANDS: list[tuple[str, ModuleType]] = [
-    ("demo", demo),
-    ("record", record),
-    ("daemon", daemon),
-    ("init-config", init_config),
-    ("calibrate", calibrate),
-    ("replay", replay),
-    ("simulate", simulate),
-    ("observability", observability),
-]
+from .commands import COMMANDS, load
+from .version import loopcal_version
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser: every command listed with its one-line help; the arguments of
+    ``command`` only (its module is imported), if given."""
     parser = argparse.ArgumentParser(
         prog="loopcal",
         description="Closed-loop field calibration of the redundant shoulder joint.",
     )
-    sub = parser.add_subparsers(dest="command", required=True)
-    for name, module in COMMANDS:
+    parser.add_argument("--version", action="version", version=f"loopcal {loopcal_version()}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, _, help_text in COMMANDS:
+        if name != command:
+            sub.add_parser(name, help=help_text, add_help=False)
+            continue
+        module = load(name)
         p = sub.add_parser(
             name,
-            help=module.HELP,
+            help=help_text,
             description=getattr(module, "DESCRIPTION", None) or module.__doc__,
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
@@ -52,7 +38,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # the command is the first word that is not an option (loopcal has no global option
+    # that takes a value)
+    names = {name for name, _, _ in COMMANDS}
+    command = next((a for a in argv if not a.startswith("-")), None)
+    args = build_parser(command if command in names else None).parse_args(argv)
     try:
         return args.func(args)
     except (CalibrationError, ValueError) as exc:

@@ -1,5 +1,40 @@
-"""One module per ``loopcal`` command.
+"""The ``loopcal`` commands: one module per command, loaded only when it runs.
 
-Each module has ``HELP`` (one line), ``add_arguments(parser)`` and ``run(args) -> int``
-(the exit status). ``daemon.cli`` only builds the parser from them and dispatches.
+Each module has ``add_arguments(parser)``, ``run(args) -> int`` (the exit status) and a
+docstring (or ``DESCRIPTION``) for its ``--help``. :data:`COMMANDS` lists them with their
+one-line helps, so that
+``loopcal --help`` imports none of them; :func:`load` imports one. ``daemon.cli`` builds the
+parser from these and dispatches.
+
+Imports: everything below it in daemon/ (the recorder, the worker, live analysis, the
+recording format, the config), and the simulator for the commands that serve an emulated
+module. Never ``daemon.cli``.
 """
+
+from __future__ import annotations
+
+import importlib
+from types import ModuleType
+
+#: (name, module, one-line help) in the order ``loopcal --help`` lists them
+COMMANDS: tuple[tuple[str, str, str], ...] = (
+    ("demo", "demo",
+     "the field job on an emulated DAQ: record a session, calibrate, write, check the truth"),
+    ("record", "record", "record the DAQ to MCAP files in the foreground"),
+    ("daemon", "daemon",
+     "the acquisition daemon (systemd's entry point): record the DAQ for months"),
+    ("init-config", "init_config",
+     "write a controller config (TOML) with the 20 parameters at the reference geometry"),
+    ("calibrate", "calibrate",
+     "identify new parameters from recordings; --write puts them in the controller config"),
+    ("replay", "replay", "serve a recording through the emulated DAQ, scan for scan"),
+    ("simulate", "simulate", "serve an emulated LDQ-412 driven by a simulated shoulder joint"),
+    ("observability", "observability",
+     "which of the chosen free parameters the workspace can identify"),
+)  # fmt: skip
+
+
+def load(name: str) -> ModuleType:
+    """The module of command ``name`` (imported now). Raises KeyError for an unknown one."""
+    module = {n: m for n, m, _ in COMMANDS}[name]
+    return importlib.import_module(f".{module}", __name__)

@@ -25,12 +25,9 @@ from calibration.parameters import ParameterModel
 
 from ..config import durable
 from ..config.controller import ControllerConfigError, load_controller_config
-from ..recorder.settings import SettingsError, load_daemon_config
 from ..recording import RecordingError, find_recordings, read_recordings
 from ..worker.run import METHOD_NAMES, describe_files, run_worker
 from ..worker.writeback import Written, check_writable, write_back
-
-HELP = "identify new parameters from recordings; --write puts them in the controller config"
 
 _DURATION = re.compile(r"^(\d+(?:\.\d+)?)\s*(s|m|min|h|d)$")
 
@@ -128,6 +125,9 @@ def _inputs(args: argparse.Namespace) -> tuple[list[Path], Path]:
     files: list[Path] = list(args.recordings)
     controller = args.controller_config
     if args.config is not None:
+        # the daemon's settings check driver URLs (pymodbus): loaded only for --config
+        from ..recorder.settings import SettingsError, load_daemon_config
+
         try:
             settings = load_daemon_config(args.config)
         except SettingsError as exc:

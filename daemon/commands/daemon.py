@@ -18,8 +18,6 @@ from ..recorder.engine import Recorder
 from ..recorder.process import run_recorder, setup_logging
 from ..recorder.settings import SettingsError, load_daemon_config
 
-HELP = "the acquisition daemon (systemd's entry point): record the DAQ for months"
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(

@@ -28,10 +28,7 @@ from simulator.emulator import TRANSPORTS
 from simulator.mechanism import MechanismSource
 from simulator.scenarios import HandMoves
 
-from .. import cli
 from ..config.controller import load_controller_config
-
-HELP = "the field job on an emulated DAQ: record a session, calibrate, write, check the truth"
 
 PAUSE_S = (0.8, 1.5)  # a technician pausing about a second at each position
 
@@ -107,24 +104,11 @@ def run(args: argparse.Namespace) -> int:
         args.transport, source, clock=SimClock(speed), seed=args.seed, truth_limit=10_000
     ) as emu:
         print(f"\n$ loopcal record --daq {emu.url} --out {recordings}   (x{speed:g})", flush=True)
-        rec = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "daemon.cli",
-                "record",
-                "--daq",
-                emu.url,
-                "--out",
-                str(recordings),
-                "--duration",
-                f"{args.minutes * 60 / speed:g}",
-                "--read-period",
-                "0.05",
-            ],
-            capture_output=True,
-            text=True,
-        )
+        rec = _loopcal(
+            "record", "--daq", emu.url, "--out", str(recordings),
+            "--duration", f"{args.minutes * 60 / speed:g}", "--read-period", "0.05",
+            capture=True,
+        )  # fmt: skip
     lines = rec.stderr.strip().splitlines()
     print("\n".join(lines[-1:]))
     if rec.returncode != 0:
@@ -132,27 +116,20 @@ def run(args: argparse.Namespace) -> int:
         return rec.returncode
     config = work / "controller.toml"
     print(f"\n$ loopcal init-config {config} --force")
-    cli.main(["init-config", str(config), "--force"])
+    made = _loopcal("init-config", str(config), "--force")
+    if made.returncode != 0:
+        return made.returncode
     print(
         f"\n$ loopcal calibrate {recordings} --controller-config {config} --free {args.free} "
         f"--method {args.method} --write --report {work / 'report'}",
         flush=True,
     )
-    status = cli.main(
-        [
-            "calibrate",
-            str(recordings),
-            "--controller-config",
-            str(config),
-            "--free",
-            args.free,
-            "--method",
-            args.method,
-            "--write",
-            "--report",
-            str(work / "report"),
-        ]
-    )
+    status = _loopcal(
+        "calibrate", str(recordings), "--controller-config", str(config), "--free", args.free,
+        "--method", args.method, "--write", "--report", str(work / "report"),
+    ).returncode  # fmt: skip
+    if not config.exists():
+        return status
     written = load_controller_config(config)
     print("\nWhat was written, against the truth the simulation knows:")
     print(
@@ -171,3 +148,11 @@ def run(args: argparse.Namespace) -> int:
         )
     print(f"\nDone in {time.perf_counter() - t_start:.1f} s.")
     return status
+
+
+def _loopcal(*argv: str, capture: bool = False) -> subprocess.CompletedProcess:
+    """Run a ``loopcal`` command the way a technician's shell does: a process of its own,
+    through the same entry point (its output goes straight to ours unless ``capture``)."""
+    return subprocess.run(
+        [sys.executable, "-m", "daemon.cli", *argv], capture_output=capture, text=True
+    )

@@ -12,8 +12,6 @@ from pathlib import Path
 
 from ..config.controller import ControllerConfigError, write_initial_config
 
-HELP = "write a controller config (TOML) with the 20 parameters at the reference geometry"
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("path", help="where to write it, e.g. /etc/loopcal/controller/controller.toml")

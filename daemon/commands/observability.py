@@ -11,8 +11,6 @@ from calibration.simulate import simulate_poses
 
 from .model_options import add_model_options, model_from_args
 
-HELP = "which of the chosen free parameters the workspace can identify"
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_model_options(p)

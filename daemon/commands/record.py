@@ -27,8 +27,6 @@ from ..recorder.engine import Recorder
 from ..recorder.process import run_recorder, setup_logging
 from ..recorder.settings import RecorderSettings, SettingsError, parse_size
 
-HELP = "record the DAQ to MCAP files in the foreground"
-
 
 def _size(text: str) -> int:
     try:

@@ -25,8 +25,6 @@ from simulator.run import listen_host, tcp_port
 from ..recording import RecordingError, read_recordings
 from ..scans import scan_rate_hz
 
-HELP = "serve a recording through the emulated DAQ, scan for scan"
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(

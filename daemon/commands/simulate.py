@@ -4,6 +4,4 @@ command itself lives with the simulator, in :mod:`simulator.run`)."""
 from simulator.run import __doc__ as DESCRIPTION  # noqa: N812
 from simulator.run import add_arguments, run
 
-HELP = "serve an emulated LDQ-412 driven by a simulated shoulder joint"
-
-__all__ = ["DESCRIPTION", "HELP", "add_arguments", "run"]
+__all__ = ["DESCRIPTION", "add_arguments", "run"]

@@ -25,7 +25,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri
 
 from calibration.kinematics import (
     base_points,
@@ -285,7 +285,7 @@ def holdout_gate(z: np.ndarray) -> Gate:
             "record more still positions",
         )
     rms = float(np.sqrt(np.mean(z**2)))
-    limit = HOLDOUT_MARGIN * float(np.sqrt(chi2.ppf(0.999, n) / n))
+    limit = HOLDOUT_MARGIN * float(np.sqrt(chdtri(n, 0.001) / n))  # chi2(n) 99.9 %
     ok = rms <= limit
     return Gate(
         "holdout",
