@@ -31,7 +31,7 @@ import math
 import os
 import re
 import tomllib
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -251,8 +251,3 @@ def _convert(p: Path, table: str, key: str, field: str, v: Any) -> Any:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise SettingsError(f"{where}: must be a number of seconds, got {v!r}")
     return float(v)
-
-
-def with_overrides(settings: RecorderSettings, **changes: Any) -> RecorderSettings:
-    """A copy with some fields changed, validated."""
-    return replace(settings, **changes).checked()

@@ -162,8 +162,6 @@ class FileReader:
     def __init__(self, path: Path, since: int | None, until: int | None) -> None:
         self.path = path
         self.since, self.until = since, until
-        self.blocks: list[bytes] = []
-        self.event_data: list[bytes] = []
         self.metadata: dict[str, dict[str, str]] = {}
         self.channels: dict[int, Channel] = {}
         self.damage: dict[int, Damage] = {}
@@ -217,7 +215,7 @@ class FileReader:
 
     def _check_is_recording(self) -> None:
         topics = {c.topic for c in self.channels.values()}
-        if TOPIC_SCANS not in topics and "loopcal" not in self.metadata and not self.blocks:
+        if TOPIC_SCANS not in topics and "loopcal" not in self.metadata and not self._messages:
             if not self.ours or (not self.damage and self.channels):
                 listed = ", ".join(sorted(topics)) or "none"
                 raise RecordingError(
