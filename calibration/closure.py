@@ -33,6 +33,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import solve_triangular
 from scipy.special import chdtri
 
 from . import implicit
@@ -61,26 +62,67 @@ class Closure:
         return len(self.error)
 
 
-def loop_closure(volts: np.ndarray, p: np.ndarray, sigma_volts: np.ndarray) -> Closure:
+@dataclass(frozen=True)
+class PoseModels:
+    """What the parameters in force predict for each of m poses, independent of the noise:
+    rotations R (m, 3, 3) from forward kinematics, usable (m,), and the model's readings
+    vhat (m, 4) with their derivatives Jp (m, 4, 20) and Jr (m, 4, 3)
+    (:func:`calibration.implicit.model_jacobians`). A monitor testing a sliding window of
+    poses computes each pose's once (:func:`pose_models`) and stacks them
+    (:meth:`stack`)."""
+
+    R: np.ndarray
+    usable: np.ndarray
+    vhat: np.ndarray
+    Jp: np.ndarray
+    Jr: np.ndarray
+
+    @staticmethod
+    def stack(models: list[PoseModels]) -> PoseModels:
+        return PoseModels(*(np.concatenate(x) for x in zip(
+            *((m.R, m.usable, m.vhat, m.Jp, m.Jr) for m in models), strict=True)))  # fmt: skip
+
+    def __getitem__(self, k: int | slice | np.ndarray) -> PoseModels:
+        if isinstance(k, int):
+            k = slice(k, k + 1)
+        return PoseModels(self.R[k], self.usable[k], self.vhat[k], self.Jp[k], self.Jr[k])
+
+
+def pose_models(volts: np.ndarray, p: np.ndarray) -> PoseModels:
+    """:class:`PoseModels` of poses with mean readings ``volts`` (m, 4) at parameters p."""
+    V = check_volts(volts)
+    p = check_vector(p)
+    R, ok = implicit.start_rotations(V, p)
+    vhat, Jp, Jr = implicit.model_jacobians(R, p)
+    return PoseModels(R, np.asarray(ok, dtype=bool), vhat, Jp, Jr)
+
+
+def loop_closure(
+    volts: np.ndarray,
+    p: np.ndarray,
+    sigma_volts: np.ndarray,
+    *,
+    models: PoseModels | None = None,
+) -> Closure:
     """The loop-closure errors of still poses.
 
     volts: (m, 4) mean readings, V; p: (20,) parameters in force; sigma_volts: (m, 4) or (4,)
     standard deviation of each mean reading, V (one scan's noise over the square root of
-    the scans averaged, with the converter's rounding).
+    the scans averaged, with the converter's rounding). models: the poses'
+    :func:`pose_models` at ``p``, if already known (they do not depend on the noise).
     """
     V = check_volts(volts)
     p = check_vector(p)
     sigma = np.broadcast_to(np.asarray(sigma_volts, dtype=float), V.shape)
     if not (np.all(np.isfinite(sigma)) and np.all(sigma > 0)):
         raise InputError("sigma_volts must be positive and finite")
-    R, ok = implicit.start_rotations(V, p)
+    pm = pose_models(V, p) if models is None else models
     w = 1.0 / sigma
-    vhat, Jp, Jr = implicit.model_jacobians(R, p)
-    q = implicit.loop_direction(Jr * w[..., None])
-    e = np.einsum("mi,mi->m", q, (V - vhat) * w)
-    a = -np.einsum("mrn,mr->mn", Jp * w[..., None], q)
+    q = implicit.loop_direction(pm.Jr * w[..., None])
+    e = np.einsum("mi,mi->m", q, (V - pm.vhat) * w)
+    a = -np.einsum("mrn,mr->mn", pm.Jp * w[..., None], q)
     h = -q * w / p[SL_GAIN]
-    ok &= np.isfinite(e)
+    ok = pm.usable & np.isfinite(e)
     zero = ~ok
     e[zero], h[zero], a[zero] = 0.0, 0.0, 0.0
     return Closure(e, h, a, ok)
@@ -148,7 +190,7 @@ def drift_test(
         A = closure.information[use]
         Sigma = Sigma + A @ C @ A.T
     L = np.linalg.cholesky(Sigma)
-    ew = np.linalg.solve(L, e)
+    ew = solve_triangular(L, e, lower=True)
     onsets = np.arange(m) if change_points else np.zeros(1, dtype=int)
     # the pattern of a shift that began at pose o: zero before it; a step, or a ramp that
     # reaches the estimated shift at the latest pose
@@ -160,7 +202,9 @@ def drift_test(
     shapes = ["step"] * len(onsets) + (["creep"] * len(onsets) if change_points and creep else [])
     onsets = np.concatenate([onsets, onsets]) if change_points and creep else onsets
     Hm = masks[:, :, None] * H[None]  # (O, m, 4)
-    Hw = np.linalg.solve(L[None], Hm)  # (O, m, 4)
+    # one triangular solve for every hypothesis at once: (m, O * 4) right-hand sides
+    Hw = solve_triangular(L, Hm.transpose(1, 0, 2).reshape(m, -1), lower=True)
+    Hw = Hw.reshape(m, len(masks), 4).transpose(1, 0, 2)  # (O, m, 4)
     z = np.einsum("omi,m->oi", Hw, ew)
     F = np.einsum("omi,omi->oi", Hw, Hw)
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -160,12 +160,15 @@ def write_session(
     rate: int = 20,
     hours_per_file: float = 1.0,
     edit=None,
+    drifts=(),
 ) -> int:
     """Write an offline-simulated session as recording files in ``path``; returns scans.
 
-    edit: called with the codes (n, 4) to change them (a stuck sensor, say)."""
+    edit: called with the codes (n, 4) to change them (a stuck sensor, say). drifts:
+    :class:`simulator.drift.OffsetDrift` of the sensors' offsets."""
     n = round(seconds * rate)
-    time_us, codes = mechanism_scans(scenario, truth, n, rate_hz=rate, noise_volts=0.04, seed=seed)
+    time_us, codes = mechanism_scans(scenario, truth, n, rate_hz=rate, noise_volts=0.04,
+                                     seed=seed, drifts=drifts)  # fmt: skip
     if edit is not None:
         edit(codes)
     rows = rows_from(time_us, codes)

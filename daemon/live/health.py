@@ -30,7 +30,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import chdtri
 
-from calibration.closure import DriftTest, drift_test, loop_closure, threshold
+from calibration.closure import (
+    DriftTest,
+    PoseModels,
+    drift_test,
+    loop_closure,
+    pose_models,
+    threshold,
+)
 from calibration.parameters import INDEX, SL_OFFSET
 from calibration.poses import pose_noise_volts
 
@@ -85,15 +92,22 @@ class HealthMonitor:
     """Watches loop closure over the scans fed to it; calls ``emit`` for events.
 
     controller: the config in force. false_alarm: probability per pose of an alarm when
-    nothing moved.
+    nothing moved. on_test: called with the newest pose's stamp (ns) and the test's result
+    after every test (``loopcal check`` draws them; the metrics export them).
     """
 
     name = "loop-closure health"
 
     def __init__(
-        self, controller: ControllerConfig, emit: Emit, *, false_alarm: float = FALSE_ALARM
+        self,
+        controller: ControllerConfig,
+        emit: Emit,
+        *,
+        false_alarm: float = FALSE_ALARM,
+        on_test: Callable[[int, DriftTest], None] | None = None,
     ) -> None:
         self.emit = emit
+        self.on_test = on_test
         self.false_alarm = false_alarm
         self.threshold = threshold(false_alarm, tests=4 * CHANGE_POINTS)
         self._buf: np.ndarray | None = None
@@ -104,8 +118,9 @@ class HealthMonitor:
         """Start over at a new controller config (a reload): earlier poses no longer count."""
         self.params = np.array(controller.params, dtype=float)
         self.covariance = config_covariance(controller)
-        # the last WINDOW poses: (mean volts (4,), scan noise (4,), scans averaged, stamp ns)
-        self._poses: deque[tuple[np.ndarray, np.ndarray, int, int]] = deque(maxlen=WINDOW)
+        # the last WINDOW poses: (mean volts (4,), scan noise (4,), scans averaged, stamp ns,
+        # what the config predicts for it: PoseModels of one pose)
+        self._poses: deque[tuple] = deque(maxlen=WINDOW)
         self.state = HealthState()
 
     # ------------------------------------------------------------------ input
@@ -117,6 +132,7 @@ class HealthMonitor:
         buf = rows if self._buf is None else np.concatenate([self._buf, rows])
         P = poses_of_scans(buf)
         keep_from = 0
+        new = []  # the poses this feed completes (the plate has moved on from them)
         for k in range(len(P)):
             a, b = P.rows[k]
             if b >= len(buf):  # still growing: the plate has not moved on yet
@@ -126,8 +142,12 @@ class HealthMonitor:
                 continue
             self._last_key = (int(buf["epoch"][b - 1]), int(buf["counter64"][b - 1]))
             keep_from = b
+            new.append(k)
+        # what the config predicts for each pose, once (all of this feed's at once)
+        models = pose_models(P.volts[new], self.params) if new else None
+        for j, k in enumerate(new):
             self._poses.append((P.volts[k], P.scan_noise[k], int(P.counts[k]),
-                                int(P.stamp_ns[k])))  # fmt: skip
+                                int(P.stamp_ns[k]), models[j]))  # fmt: skip
             self.state.poses += 1
             if len(self._poses) >= MIN_AFFECTED:
                 self._test()
@@ -138,16 +158,18 @@ class HealthMonitor:
     # ------------------------------------------------------------------ the test
 
     def _test(self) -> None:
-        volts, noise, counts, stamps = zip(*self._poses, strict=True)
+        volts, noise, counts, stamps, models = zip(*self._poses, strict=True)
         V = np.array(volts)
         counts = np.array(counts, dtype=float)
         # one scan's noise per channel, pooled over the window (a pose's own estimate from
         # a second of scans scatters by 15 %); the converter's rounding does not average out
         scan = np.sqrt(np.mean(np.square(noise), axis=0))
         sigma = pose_noise_volts(scan, counts)
-        closure = loop_closure(V, self.params, sigma)
+        closure = loop_closure(V, self.params, sigma, models=PoseModels.stack(list(models)))
         best = drift_test(closure, self.covariance, change_points=True)
         self.state.last = best
+        if self.on_test is not None:
+            self.on_test(stamps[-1], best)
         st = self.state
         if st.alarm_sensor is not None:
             if best.statistic[st.alarm_sensor - 1] < CLEAR_STATISTIC:
@@ -187,6 +209,7 @@ class HealthMonitor:
             "the controller config; check that LVDT's mounting and recalibrate "
             "(loopcal calibrate)",
             sensor=sensor, shift_mm=round(shift, 4), std_mm=round(std, 4),
+            since_ns=int(stamps[-best.affected]),
             statistic=round(T, 2), threshold=round(self.threshold, 2),
             margin=round(best.margin, 2), poses=best.affected, shape=best.shape,
             false_alarm=self.false_alarm,

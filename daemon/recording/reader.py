@@ -77,7 +77,7 @@ def _as_ns(t: int | float | datetime | None) -> int | None:
 #: channel ids our writer gives the topics (in CHANNELS order, from 1), for a file of ours
 #: whose channel records were lost with its first chunk
 
-def _identity(rows: np.ndarray) -> list[bytes]:
+def identities(rows: np.ndarray) -> list[bytes]:
     """What makes a scan the same scan in two files: epoch, counter, device time, codes."""
     packed = np.zeros(len(rows), dtype=[("e", "<u4"), ("c", "<u8"), ("t", "<u8"),
                                         ("k", "<u2", (4,))])  # fmt: skip
@@ -175,8 +175,8 @@ def read_recordings(
             lo_k, hi_k = _key_range(rows)
             overlapping = [i for i, (a, b) in enumerate(ranges) if a <= hi_k and lo_k <= b]
             if overlapping:  # the same scan in two files (copies, or a recorder restart)
-                seen = {k for i in overlapping for k in _identity(kept[i])}
-                dup = np.fromiter((k in seen for k in _identity(rows)), bool, len(rows))
+                seen = {k for i in overlapping for k in identities(kept[i])}
+                dup = np.fromiter((k in seen for k in identities(rows)), bool, len(rows))
                 if dup.any():
                     rows = rows[~dup]
                     info.scans = len(rows)

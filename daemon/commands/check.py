@@ -1,0 +1,211 @@
+"""``loopcal check REC|DIR ... --controller-config PATH [--json] [--plot FILE]``: did the loops
+close at this config, and if not, which sensor moved, when, and by how much.
+
+The daemon's loop-closure health (:mod:`daemon.live.health`: the same code, the same
+false-alarm rate) run offline over archived recordings, file by file in time order (memory
+stays that of one file). For every change it finds: the sensor, when the change began (the
+first still pose it shifted; UTC and seconds into the recordings), when it was detected,
+the shift in mm with its standard deviation, whether it was a step or is still creeping,
+and when the loops closed again, if they did. ``--plot`` draws each sensor's estimated
+offset shift over time and the test statistic against the alarm threshold.
+
+Exit status: 0 the loops close (no change found), 1 a change was found, 2 bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.closure import DriftTest
+
+from ..config.controller import ControllerConfigError, load_controller_config
+from ..live.health import FALSE_ALARM, HealthMonitor
+from ..recording import RecordingError, find_recordings, read_recordings
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("recordings", nargs="+", type=Path, metavar="REC.mcap|DIR",
+                   help="recording files or directories of them")  # fmt: skip
+    p.add_argument("--controller-config", type=Path, required=True, metavar="PATH",
+                   help="the controller config to check the loops against")  # fmt: skip
+    p.add_argument("--false-alarm", type=float, default=FALSE_ALARM, metavar="P",
+                   help=f"probability per still pose of an alarm when nothing moved "
+                        f"(default {FALSE_ALARM:g}, the daemon's)")  # fmt: skip
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.add_argument("--plot", type=Path, metavar="FILE.png",
+                   help="draw each sensor's estimated shift and statistic over time")  # fmt: skip
+
+
+@dataclass
+class Trace:
+    """Every test the monitor ran: the newest pose's stamp (ns), and per sensor the shift
+    (mm), its standard deviation (mm) and the statistic."""
+
+    stamp_ns: list[int] = field(default_factory=list)
+    shift_mm: list[np.ndarray] = field(default_factory=list)
+    std_mm: list[np.ndarray] = field(default_factory=list)
+    statistic: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, stamp_ns: int, test: DriftTest) -> None:
+        self.stamp_ns.append(int(stamp_ns))
+        self.shift_mm.append(test.shift_mm)
+        self.std_mm.append(test.std_mm)
+        self.statistic.append(test.statistic)
+
+
+def _iso(ns: int | None) -> str | None:
+    if ns is None:
+        return None
+    return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds")
+
+
+def check(files: list[Path], config_path: Path, false_alarm: float) -> dict[str, Any]:
+    """Run the monitor over the files; the ``--json`` document (and, under ``"_trace"``,
+    the :class:`Trace`)."""
+    config = load_controller_config(config_path)
+    trace = Trace()
+    changes: list[dict[str, Any]] = []
+    first_ns: list[int] = []
+
+    def emit(kind: str, level: object, message: str, **d: Any) -> None:
+        now = trace.stamp_ns[-1]
+        if kind == "offset_drift":
+            if changes and changes[-1]["sensor"] == d["sensor"] and changes[-1]["end_utc"] is None:
+                changes[-1].update(shift_mm=d["shift_mm"], std_mm=d["std_mm"],
+                                   shape=d["shape"], last_report_utc=_iso(now))  # fmt: skip
+                return
+            changes.append({
+                "sensor": d["sensor"], "start_utc": _iso(d["since_ns"]),
+                "start_offset_s": round((d["since_ns"] - first_ns[0]) / 1e9, 3),
+                "detected_utc": _iso(now), "last_report_utc": _iso(now),
+                "shift_mm": d["shift_mm"], "std_mm": d["std_mm"], "shape": d["shape"],
+                "statistic": d["statistic"], "end_utc": None, "message": message,
+            })  # fmt: skip
+        elif kind == "offset_drift_cleared" and changes:
+            changes[-1]["end_utc"] = _iso(now)
+
+    monitor = HealthMonitor(config, emit, false_alarm=false_alarm, on_test=trace.add)
+    warnings: list[str] = []
+    last_ns = None
+    for path in files:
+        rec = read_recordings(path)
+        warnings += rec.warnings
+        if len(rec):
+            if not first_ns:
+                first_ns.append(int(rec.scans["stamp_ns"][0]))
+            last_ns = int(rec.scans["stamp_ns"][-1])
+            monitor.feed(rec.scans)
+    return {
+        "changes": changes,
+        "loops_close": not changes,
+        "poses": monitor.state.poses,
+        "threshold": round(monitor.threshold, 3),
+        "false_alarm": false_alarm,
+        "config": {"path": str(config.path), "sha256": config.sha256},
+        "start_utc": _iso(first_ns[0] if first_ns else None),
+        "end_utc": _iso(last_ns),
+        "recordings": [str(f) for f in files],
+        "warnings": warnings,
+        "_trace": trace,
+    }
+
+
+def plot(doc: dict[str, Any], path: Path) -> None:
+    """Each sensor's estimated offset shift (with one standard deviation) and statistic
+    over time, the alarm threshold, and the changes found."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.dates as mdates
+    import matplotlib.pyplot as plt
+
+    tr: Trace = doc["_trace"]
+    t = [datetime.fromtimestamp(s / 1e9, UTC) for s in tr.stamp_ns]
+    shift = np.array(tr.shift_mm).reshape(-1, 4)
+    std = np.array(tr.std_mm).reshape(-1, 4)
+    stat = np.array(tr.statistic).reshape(-1, 4)
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
+    for i in range(4):
+        line = a1.plot(t, shift[:, i], lw=1, label=f"sensor {i + 1}")[0]
+        a1.fill_between(t, shift[:, i] - std[:, i], shift[:, i] + std[:, i],
+                        color=line.get_color(), alpha=0.15, lw=0)  # fmt: skip
+        a2.plot(t, np.maximum(stat[:, i], 0.1), lw=1, color=line.get_color(),
+                label=f"sensor {i + 1}")  # fmt: skip
+    a2.axhline(doc["threshold"], color="black", ls="--", lw=1,
+               label=f"alarm threshold ({doc['false_alarm']:g} per pose)")  # fmt: skip
+    starts = [datetime.fromisoformat(c["start_utc"]) for c in doc["changes"]]
+    if len(starts) <= 20:
+        for t0 in starts:
+            for ax in (a1, a2):
+                ax.axvline(t0, color="tab:red", lw=0.8)
+    elif starts:  # many changes: a mark each, not a wall of lines
+        a2.plot(starts, np.full(len(starts), doc["threshold"]), "v", color="tab:red", ms=3,
+                label="a change began")  # fmt: skip
+    a1.set_ylabel("estimated offset shift, mm")
+    a1.set_title(f"Loop closure at {Path(doc['config']['path']).name}: "
+                 + ("the loops close" if doc["loops_close"] else
+                    f"{len(doc['changes'])} change(s) found (red: where they began)"),
+                 fontsize=10)  # fmt: skip
+    a2.set_ylabel("statistic (chi-square, 1 dof)")
+    a2.set_yscale("log")
+    a2.set_ylim(bottom=0.1)
+    a2.set_xlabel("UTC")
+    a2.xaxis.set_major_formatter(mdates.DateFormatter("%m-%d %H:%M"))
+    for ax in (a1, a2):
+        ax.legend(fontsize=8, loc="upper left")
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        if not 0 < args.false_alarm < 1e-2:
+            raise ValueError(f"--false-alarm {args.false_alarm:g}: give a probability in "
+                             "(0, 0.01)")  # fmt: skip
+        if args.plot is not None and args.plot.parent.exists() is False:
+            raise ValueError(f"--plot {args.plot}: directory {args.plot.parent} does not exist")
+        files: list[Path] = []
+        for p in args.recordings:
+            files += find_recordings(p) if p.is_dir() else [p]
+        if not files:
+            raise ValueError("no recordings (loopcal-*.mcap) in " +
+                             ", ".join(map(str, args.recordings)))  # fmt: skip
+        for f in files:
+            if not f.exists():
+                raise RecordingError(f"{f}: no such file")
+        doc = check(list(dict.fromkeys(files)), args.controller_config, args.false_alarm)
+    except (RecordingError, ControllerConfigError, ValueError, OSError) as exc:
+        print(f"loopcal check: error: {exc}", file=sys.stderr)
+        return 2
+    if args.plot is not None:
+        plot(doc, args.plot)
+    doc.pop("_trace")
+    if args.json:
+        print(json.dumps(doc, indent=1))
+    else:
+        for line in doc["warnings"]:
+            print(f"warning: {line}")
+        print(f"{doc['poses']:,} still poses from {doc['start_utc']} to {doc['end_utc']}, "
+              f"against {doc['config']['path']}")  # fmt: skip
+        if doc["loops_close"]:
+            print("The loops close: no sensor's offset moved.")
+        for c in doc["changes"]:
+            still = " and is still moving" if c["shape"] == "creep" else ""
+            end = f"; the loops closed again at {c['end_utc']}" if c["end_utc"] else ""
+            print(f"sensor {c['sensor']}: offset moved by {c['shift_mm']:+.3f} mm "
+                  f"(+- {c['std_mm']:.3f}){still}, from {c['start_utc']} "
+                  f"({c['start_offset_s']:,.0f} s into the recordings), detected "
+                  f"{c['detected_utc']}{end}")  # fmt: skip
+        if args.plot is not None:
+            print(f"plot: {args.plot}")
+    return 0 if doc["loops_close"] else 1

@@ -1,0 +1,125 @@
+"""``loopcal info`` and ``loopcal check`` on real recording files, as subprocesses."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from datetime import UTC, datetime
+
+import numpy as np
+import pytest
+from fuzz_helpers import chunk_spans, make_rows
+from session_helpers import PAUSE_S, T0, loopcal, truth_for, write_session
+
+from daemon import recording as rec
+from daemon.config.controller import write_initial_config
+from daemon.events import Event, Level
+from simulator.drift import OffsetDrift
+from simulator.scenarios import HandMoves
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def _write(path, rows, events=()):
+    w = rec.RecordingWriter(
+        path,
+        metadata=rec.metadata_records(
+            device={"model": "LDQ412", "serial": "12648430"},
+            controller={"path": "/etc/loopcal/controller/controller.toml", "sha256": "ab" * 32,
+                        "provenance": json.dumps({"written_utc": "2026-11-20T10:00:00+00:00",
+                                                  "method": "ml"})},  # fmt: skip
+            command="pytest",
+        ),
+        params=np.array(truth_for(1)),
+        fsync=False,
+    )
+    for k in range(0, len(rows), 20):
+        evs = [e for e in events if rows["stamp_ns"][k] <= e.stamp_ns < rows["stamp_ns"][k] + 10**9]
+        w.write(rows[k : k + 20], evs)
+    w.close()
+
+
+def test_info_counts_scans_gaps_restarts_events_and_damage(tmp_path):
+    a = make_rows(1000, epoch=0)
+    a["counter64"][500:] += 3  # three scans never received
+    a["missed"][500] = 3
+    b = make_rows(600, epoch=1, t0=T0 + 60 * 10**9)  # the module restarted
+    b["restarted"][0] = True
+    evs = [
+        Event(int(a["stamp_ns"][500]), "gap", Level.WARNING, "3 missed", {"missed": 3}),
+        Event(int(b["stamp_ns"][0]), "restart", Level.WARNING, "restart", {"epoch": 1}),
+    ]
+    d = tmp_path / "rec"
+    d.mkdir()
+    fa, fb = d / rec.recording_name(T0), d / rec.recording_name(T0 + 60 * 10**9)
+    _write(fa, a, evs)
+    _write(fb, b, evs)
+    shutil.copy(fa, d / rec.recording_name(T0 + 10**6))  # a copy: counted once
+    proc = loopcal("info", d, "--json")
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout)
+    assert doc["scans"] == 1600 and len(doc["files"]) == 3
+    assert doc["missed"] == 3 and doc["gaps"] == 1
+    assert doc["restarts"] == 1 and doc["power_ons"] == 2
+    assert doc["events"] == {"gap": 1, "restart": 1}
+    assert doc["start_utc"] == datetime.fromtimestamp(T0 / 1e9, UTC).isoformat(
+        timespec="milliseconds")
+    assert doc["scan_rate_hz"] == pytest.approx(20.0)
+    assert doc["poses"] == 0 and doc["warnings"] == []  # every scan a new pose: none still
+    [cfg] = doc["controller_configs"]
+    assert cfg["calibrated_utc"].startswith("2026-11-20") and cfg["method"] == "ml"
+    # damage a file: info says what was lost, by name
+    data = bytearray(fb.read_bytes())
+    off, n = chunk_spans(bytes(data))[8]
+    data[off + 40 : off + n - 5] = bytes(n - 45)
+    fb.write_bytes(bytes(data))
+    proc = loopcal("info", d)
+    assert proc.returncode == 0
+    assert "scan(s) missing" in proc.stdout and fb.name in proc.stdout
+    assert "restarts:   1" in proc.stdout and "gap" in proc.stdout
+    bad = loopcal("info", tmp_path / "nothing-here")
+    assert bad.returncode == 2 and "no such file" in bad.stderr
+
+
+@pytest.fixture(scope="module")
+def drifting(tmp_path_factory):
+    """Eight minutes of a hand-moved session whose sensor 3 offset steps by +0.5 mm at
+    240 s, and a controller config with the mechanism's true values."""
+    d = tmp_path_factory.mktemp("drift")
+    truth = truth_for(5)
+    write_session(d / "rec", HandMoves(5, params=truth, pause_s=PAUSE_S), truth, 480, seed=5,
+                  hours_per_file=2 / 60, drifts=(OffsetDrift("step", 3, 240.0, 0.5),))  # fmt: skip
+    config = write_initial_config(d / "controller.toml", params=truth)
+    return d / "rec", config
+
+
+def test_check_names_the_sensor_when_and_how_much(drifting, tmp_path):
+    rec_dir, config = drifting
+    png = tmp_path / "check.png"
+    proc = loopcal("check", rec_dir, "--controller-config", config, "--json", "--plot", png)
+    assert proc.returncode == 1, proc.stderr
+    doc = json.loads(proc.stdout)
+    assert not doc["loops_close"] and len(doc["recordings"]) == 4
+    [change] = doc["changes"]
+    assert change["sensor"] == 3 and change["shape"] in ("step", "creep")
+    assert abs(change["shift_mm"] - 0.5) < 4 * change["std_mm"] + 0.05
+    start = datetime.fromisoformat(change["start_utc"]).timestamp()
+    assert abs(start - (T0 / 1e9 + 240)) < 30  # the first still pose it shifted
+    assert abs(change["start_offset_s"] - 240) < 30
+    assert datetime.fromisoformat(change["detected_utc"]).timestamp() > start
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
+    human = loopcal("check", rec_dir, "--controller-config", config)
+    assert human.returncode == 1 and "sensor 3: offset moved by +0." in human.stdout
+    info = json.loads(loopcal("info", rec_dir, "--json").stdout)
+    assert info["scans"] == 480 * 20 and info["poses"] >= doc["poses"] > 100
+
+
+def test_check_is_quiet_where_the_loops_close(drifting, tmp_path):
+    rec_dir, config = drifting
+    first = sorted(rec_dir.glob("*.mcap"))[:2]  # the four minutes before the step
+    proc = loopcal("check", *first, "--controller-config", config, "--json")
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout)
+    assert doc["loops_close"] and doc["changes"] == [] and doc["poses"] > 60
+    bad = loopcal("check", *first, "--controller-config", tmp_path / "none.toml")
+    assert bad.returncode == 2 and "no such file" in bad.stderr
