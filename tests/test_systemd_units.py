@@ -185,3 +185,12 @@ def test_sysusers_and_tmpfiles_make_the_user_and_directories(tmp_path):
     assert (st.st_mode & 0o777, st.st_uid, st.st_gid) == (0o755, 0, 0)
     st = (root / "etc" / "loopcal" / "controller").stat()
     assert (st.st_mode & 0o777, st.st_uid, st.st_gid) == (0o775, 0, gid)
+
+
+def test_the_daemon_unit_lets_it_serve_metrics_on_loopback():
+    """[metrics] listen = "127.0.0.1:9464": the hardening must allow a loopback listener."""
+    s = unit("loopcal.service")["Service"]
+    assert {"AF_INET", "AF_INET6"} <= set(s["RestrictAddressFamilies"].split())
+    assert "localhost" in s["IPAddressAllow"].split()
+    assert not any(k.startswith("SocketBind") for k in s)  # binding a port is not restricted
+    assert "@network-io" not in values("loopcal.service", "Service", "SystemCallFilter")[-1]

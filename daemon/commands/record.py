@@ -131,6 +131,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="with --until-enough: one JSON object per update on stdout instead of a display",
     )
     p.add_argument(
+        "--metrics",
+        default=None,
+        metavar="HOST:PORT",
+        help="serve Prometheus metrics on http://HOST:PORT/metrics, e.g. 127.0.0.1:9464",
+    )
+    p.add_argument(
         "--no-health",
         action="store_true",
         help="do not watch loop closure (no offset_drift events)",
@@ -152,6 +158,7 @@ def settings_from_args(args: argparse.Namespace) -> RecorderSettings:
         controller_config=args.controller_config,
         duration_s=args.duration,
         health=not args.no_health,
+        metrics_listen=args.metrics,
     ).checked()
 
 
@@ -242,6 +249,7 @@ def _flag_names(message: str) -> str:
                       ("[recording].rotate_size", "--rotate-size"),
                       ("[recording].disk_budget", "--disk-budget"),
                       ("[recording].max_backlog_scans", "--max-backlog-scans"),
-                      ("[controller].config", "--controller-config")):  # fmt: skip
+                      ("[controller].config", "--controller-config"),
+                      ("[metrics].listen", "--metrics")):  # fmt: skip
         message = message.replace(key, flag)
     return message

@@ -217,6 +217,40 @@ class HealthMonitor:
 
     # ------------------------------------------------------------------ output
 
+    def metrics(self) -> list:
+        """Prometheus metric families (:mod:`daemon.recorder.metrics`): per sensor the
+        latest test's statistic, estimated offset shift and its standard deviation, and
+        whether an alarm stands; the threshold; the poses checked."""
+        from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+
+        st = self.state
+        out = [
+            CounterMetricFamily("loopcal_loop_closure_poses", "still poses checked for loop "
+                                "closure", value=st.poses),  # fmt: skip
+            GaugeMetricFamily("loopcal_loop_closure_threshold", "the statistic an alarm needs",
+                              value=self.threshold),  # fmt: skip
+        ]
+        per_sensor = [
+            ("loopcal_loop_closure_statistic", "the latest test's statistic (chi-square, 1 "
+             "dof when nothing moved)", "statistic"),
+            ("loopcal_offset_shift_mm", "the latest test's estimated shift of the sensor's "
+             "offset, mm", "shift_mm"),
+            ("loopcal_offset_shift_std_mm", "the standard deviation of that estimate, mm",
+             "std_mm"),
+        ]  # fmt: skip
+        for name, doc, attr in per_sensor:
+            fam = GaugeMetricFamily(name, doc, labels=["sensor"])
+            if st.last is not None:
+                for i, v in enumerate(getattr(st.last, attr)):
+                    fam.add_metric([str(i + 1)], float(v))
+            out.append(fam)
+        alarm = GaugeMetricFamily("loopcal_offset_drift_alarm", "1 while an offset_drift alarm "
+                                  "stands for the sensor", labels=["sensor"])  # fmt: skip
+        for i in range(4):
+            alarm.add_metric([str(i + 1)], 1.0 if st.alarm_sensor == i + 1 else 0.0)
+        out.append(alarm)
+        return out
+
     def status(self) -> str:
         """A few words for the STATUS line."""
         st = self.state

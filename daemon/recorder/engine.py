@@ -17,10 +17,12 @@ through :meth:`Recorder.emit`.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
@@ -29,6 +31,7 @@ from ..events import Event, Level
 from ..version import loopcal_version
 from .acquisition import Acquisition, AcquisitionStats, Batch, ResumePoint
 from .filewriter import FileWriter, RecorderStatus, ScanQueue, Shared, prepare_directory
+from .metrics import MetricsServer
 from .observers import AnalysisThread, Observer
 from .resume import last_scan
 from .sdnotify import Notifier
@@ -37,7 +40,34 @@ from .settings import RecorderSettings
 log = logging.getLogger("daemon.recorder.engine")
 
 STATUS_PERIOD_S = 5.0
+FOLLOW_CONFIG_S = 2.0  # how often the controller config file is looked at for a new version
 ACQUISITION_STALE_S = 10.0  # no loop turn for this long: stop feeding the watchdog
+
+
+class ConfigWatch:
+    """Notices that the controller config file was replaced (a calibration wrote a new
+    version: another inode) or edited, through a symlink too, from a cheap ``stat``."""
+
+    def __init__(self, path: Path | None) -> None:
+        self.path = path
+        self.seen = self.signature()
+
+    def signature(self) -> tuple | None:
+        if self.path is None:
+            return None
+        try:
+            st, link = os.stat(self.path), os.lstat(self.path)
+        except OSError as exc:
+            return ("unreadable", exc.errno)
+        return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, link.st_ino, link.st_mtime_ns)
+
+    def changed(self) -> bool:
+        """Whether the file is not as last seen (and remember it as it is now)."""
+        now = self.signature()
+        if now == self.seen:
+            return False
+        self.seen = now
+        return True
 
 
 class Recorder:
@@ -75,6 +105,14 @@ class Recorder:
         self._writer_thread: threading.Thread | None = None
         self._fatal: BaseException | None = None
         self.analysis = AnalysisThread([])
+        self._watch = ConfigWatch(settings.controller_config)
+        self.followed = ""  # what the status line says after following a replaced config
+        self._events: Counter[tuple[str, str]] = Counter()  # (kind, level) -> count
+        #: when the newest scan arrived, ns since the Unix epoch (None before the first)
+        self.last_scan_ns: int | None = None
+        self.metrics: MetricsServer | None = None
+        if settings.metrics_listen:
+            self.metrics = MetricsServer(self, settings.metrics_listen)
 
     @property
     def settings(self) -> RecorderSettings:
@@ -116,7 +154,13 @@ class Recorder:
         ev.log(log)
         with self.shared.lock:
             self.shared.events.append(ev)
+            self._events[ev.kind, ev.level.name.lower()] += 1
         self._queue.wake()
+
+    def event_counts(self) -> Counter[tuple[str, str]]:
+        """How many events of each (kind, level) the recorder has recorded so far."""
+        with self.shared.lock:
+            return Counter(self._events)
 
     # ------------------------------------------------------------------ main thread
 
@@ -146,6 +190,7 @@ class Recorder:
         wd = self.notifier.watchdog_interval
         next_wd = time.monotonic()
         next_status = time.monotonic() + 1.0
+        next_look = time.monotonic() + FOLLOW_CONFIG_S
         while not self._stop.is_set():
             now = time.monotonic()
             if t_end is not None and now >= t_end:
@@ -157,6 +202,10 @@ class Recorder:
             if self._reload.is_set():
                 self._reload.clear()
                 self._do_reload()
+            elif now >= next_look:
+                next_look = now + FOLLOW_CONFIG_S
+                if self._watch.changed():
+                    self._follow_config()
             if wd is not None and now >= next_wd:
                 if self._healthy(now):
                     self.notifier.watchdog()
@@ -176,6 +225,8 @@ class Recorder:
         self._writer_done.set()
         self._queue.wake()
         self._writer_thread.join(30.0)
+        if self.metrics is not None:
+            self.metrics.close()
         if self._fatal is not None:
             log.critical("internal error: %r", self._fatal)
             return 1
@@ -214,6 +265,8 @@ class Recorder:
                 else f"DAQ unreachable: {a.last_error or 'connecting'}"
             )
         parts += self.analysis.status()
+        if self.followed:
+            parts.append(self.followed)
         return "; ".join(parts)
 
     def _resume_point(self, directory: Path) -> ResumePoint | None:
@@ -255,6 +308,12 @@ class Recorder:
         """The acquisition's output: to the writer, and to the observers (never blocks)."""
         self._queue.put(batch)
         self.analysis.put(batch.rows)
+        if len(batch.rows):
+            self.last_scan_ns = int(batch.rows["host_ns"][-1])
+        if batch.events:
+            with self.shared.lock:
+                for ev in batch.events:
+                    self._events[ev.kind, ev.level.name.lower()] += 1
 
     def _acq_main(self, acq: Acquisition, stop: threading.Event) -> None:
         try:
@@ -289,6 +348,7 @@ class Recorder:
             self._queue.cap = new.max_backlog_scans
             self.shared.rotate = True
         self.analysis.reload(controller)
+        self._watch = ConfigWatch(new.controller_config)
         restart_daq = (new.daq_url, new.timeout_s, new.read_period_s) != (
             old.daq_url, old.timeout_s, old.read_period_s)  # fmt: skip
         if restart_daq:
@@ -300,6 +360,38 @@ class Recorder:
                     f"{', DAQ reopened' if restart_daq else ''}); starting a new file",
                     ok=True, controller_sha256=controller.sha256)  # fmt: skip
         self.notifier.ready(self.status_line())
+
+    def _follow_config(self) -> None:
+        """The controller config file changed on disk (``loopcal calibrate --write``, the
+        worker unit, an edit): load it and go on with it, as a reload would, without being
+        told. A config that does not load is refused and the running one kept."""
+        path = self.settings.controller_config
+        try:
+            controller = self._load_controller(self.settings)
+        except (ValueError, OSError) as exc:
+            self.emit("config_reload", Level.ERROR,
+                      f"the controller config {path} changed but does not load, keeping the "
+                      f"running one: {exc}", ok=False, trigger="file changed",
+                      error=str(exc))  # fmt: skip
+            return
+        if controller.sha256 == self.controller.sha256:
+            return  # touched, not changed
+        with self.shared.lock:
+            self.shared.controller = controller
+            self.shared.rotate = True
+        self.analysis.reload(controller)
+        prov = controller.provenance or {}
+        how = (f" (calibrated {prov.get('written_utc', '?')} by {prov.get('method', '?')})"
+               if prov else "")  # fmt: skip
+        stamp = time.strftime("%H:%M:%S", time.gmtime())
+        self.followed = (f"controller config replaced {stamp} UTC: following sha256 "
+                         f"{controller.sha256[:12]}{how}")  # fmt: skip
+        self.emit("config_reload", Level.INFO,
+                  f"the controller config {path} was replaced{how}: following it from now "
+                  "on, in a new file", ok=True, trigger="file changed",
+                  controller_sha256=controller.sha256,
+                  provenance=json.loads(json.dumps(prov, default=str)))  # fmt: skip
+        self.notifier.status(self.status_line())
 
     # ------------------------------------------------------------------ writer thread
 

@@ -129,6 +129,7 @@ class RecorderStatus:
     file: Path | None = None
     files_written: int = 0
     scans_written: int = 0
+    bytes_written: int = 0
     disk_error: str = ""
     backlog: int = 0
 
@@ -280,6 +281,7 @@ class FileWriter:
             },
         )
         f = RecordingWriter(path, metadata=meta, params=controller.params)
+        self.status.bytes_written += f.size  # its header, schemas and metadata
         self.file, self.file_opened, self.file_device = f, now, self.device
         self.status.file = path
         self.status.files_written += 1
@@ -310,7 +312,9 @@ class FileWriter:
             cuts += list(np.flatnonzero(np.diff((stamps - stamps[0]) // BACKLOG_PIECE_NS)) + 1)
         cuts.append(len(rows))
         for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+            before = f.size
             f.write(rows[a:b], self.events)
+            self.status.bytes_written += f.size - before
             self.events = []
             self.status.scans_written += b - a
             self.rows, self.n_rows = [rows[b:]], len(rows) - b

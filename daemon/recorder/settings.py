@@ -22,6 +22,10 @@ The daemon's config file (every key; docs/daemon.md says the same)::
     enabled = true           # watch loop closure and raise offset_drift events
     false_alarm = 1e-8       # probability per still pose of an alarm when nothing moved
 
+    [metrics]
+    listen = "127.0.0.1:9464"  # serve Prometheus metrics on http://HOST:PORT/metrics (off
+                               # unless given)
+
 Unknown tables or keys and bad values are refused with a message naming the key.
 """
 
@@ -62,6 +66,7 @@ class RecorderSettings:
     (0: keep all). max_backlog_scans: scans kept in memory while the disk refuses them.
     controller_config: the controller config file, or None for the reference geometry.
     duration_s: stop after this long (``loopcal record --duration``), or None.
+    metrics_listen: "HOST:PORT" to serve Prometheus metrics on (None: off).
     health: watch loop closure (:mod:`daemon.live.health`); health_false_alarm: its false-alarm
     probability per still pose.
     """
@@ -79,6 +84,7 @@ class RecorderSettings:
     duration_s: float | None = None
     health: bool = True
     health_false_alarm: float = 1e-8
+    metrics_listen: str | None = None
 
     def checked(self, where: str = "") -> RecorderSettings:
         """Validate every value; raises SettingsError naming the key."""
@@ -118,6 +124,11 @@ class RecorderSettings:
         fa = self.health_false_alarm
         if isinstance(fa, bool) or not isinstance(fa, (int, float)) or not 0 < fa < 1e-2:
             raise bad("health_false_alarm", f"must be a probability in (0, 0.01), got {fa!r}")
+        if self.metrics_listen is not None:
+            try:
+                parse_listen(self.metrics_listen)
+            except ValueError as exc:
+                raise bad("metrics_listen", str(exc)) from None
         return self
 
 
@@ -135,6 +146,7 @@ _KEY_NAMES = {
     "duration_s": "--duration",
     "health": "[health].enabled",
     "health_false_alarm": "[health].false_alarm",
+    "metrics_listen": "[metrics].listen",
 }
 
 
@@ -179,6 +191,7 @@ _SCHEMA: dict[str, dict[str, str]] = {
     },
     "controller": {"config": "controller_config"},
     "health": {"enabled": "health", "false_alarm": "health_false_alarm"},
+    "metrics": {"listen": "metrics_listen"},
 }
 _REQUIRED = {("daq", "url"), ("recording", "directory")}
 
@@ -220,7 +233,7 @@ def load_daemon_config(path: str | os.PathLike) -> RecorderSettings:
 
 def _convert(p: Path, table: str, key: str, field: str, v: Any) -> Any:
     where = f"{p}: [{table}].{key}"
-    if field in ("daq_url",):
+    if field in ("daq_url", "metrics_listen"):
         if not isinstance(v, str):
             raise SettingsError(f"{where}: must be a string, got {v!r}")
         return v
@@ -251,3 +264,19 @@ def _convert(p: Path, table: str, key: str, field: str, v: Any) -> Any:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise SettingsError(f"{where}: must be a number of seconds, got {v!r}")
     return float(v)
+
+
+_LISTEN_RE = re.compile(
+    r"^(?:\[(?P<v6>[0-9A-Fa-f:.]+)\]|(?P<host>[A-Za-z0-9.-]+)):(?P<port>\d{1,5})\Z"
+)
+
+
+def parse_listen(text: str) -> tuple[str, int]:
+    """("host", port) from ``HOST:PORT`` (``[::1]:9464`` for IPv6). Raises ValueError."""
+    m = _LISTEN_RE.match(text.strip()) if isinstance(text, str) else None
+    if not m:
+        raise ValueError(f"{text!r} is not HOST:PORT (e.g. 127.0.0.1:9464 or [::1]:9464)")
+    port = int(m["port"])
+    if not 1 <= port <= 65535:
+        raise ValueError(f"{text!r}: port {port} is outside 1..65535")
+    return (m["v6"] or m["host"]), port

@@ -1,0 +1,156 @@
+"""Prometheus metrics of a running recorder, on ``http://HOST:PORT/metrics``.
+
+With ``[metrics] listen = "127.0.0.1:9464"`` in the daemon's config (or ``loopcal record
+--metrics HOST:PORT``) the recorder serves its state the way the operator's monitoring
+expects every service to: a Prometheus endpoint (prometheus-client's own HTTP server, in a
+thread of its own). Nothing is counted per scan for it: each scrape reads the recorder's
+counters and status as they are (docs/daemon.md lists every metric, and example alert
+rules). Observers add their own (the loop-closure health: per sensor).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
+from prometheus_client import CollectorRegistry, start_http_server
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+
+from ..recording import find_recordings
+from ..version import loopcal_version
+from .settings import SettingsError, parse_listen
+
+if TYPE_CHECKING:
+    from .engine import Recorder
+
+#: the recording directory is listed at most this often (a scrape every few seconds must
+#: not list a directory of thousands of files each time)
+DIRECTORY_EVERY_S = 30.0
+
+
+class RecorderCollector(Collector):
+    """The recorder's metrics, read at each scrape."""
+
+    def __init__(self, recorder: Recorder) -> None:
+        self.rec = recorder
+        self._dir_bytes = (0.0, 0)  # (monotonic time measured, bytes)
+
+    def collect(self) -> Iterator[Metric]:
+        rec = self.rec
+        st = rec.status
+        s = rec.settings
+        yield _gauge("loopcal_build_info", "loopcal's version", 1, version=loopcal_version())
+        yield _counter("loopcal_scans_recorded", "scans written to the recordings",
+                       st.scans_written)  # fmt: skip
+        yield _counter("loopcal_bytes_written", "bytes written to recording files",
+                       st.bytes_written)  # fmt: skip
+        yield _counter("loopcal_recording_files", "recording files started",
+                       st.files_written)  # fmt: skip
+        acq = rec.acquisition_stats
+        yield _counter("loopcal_scans_missed", "scans the module made that were never received",
+                       acq.missed if acq else 0)  # fmt: skip
+        yield _counter("loopcal_gaps", "gaps in the scan counter (one or more scans missed)",
+                       acq.gaps if acq else 0)  # fmt: skip
+        yield _counter("loopcal_module_restarts", "restarts (power cycles) of the module",
+                       acq.restarts if acq else 0)  # fmt: skip
+        events = rec.event_counts()
+        reconnects = sum(n for (kind, _), n in events.items() if kind == "connect")
+        yield _counter("loopcal_daq_connects", "times the DAQ answered after being unreachable "
+                       "(the first connect included)", reconnects)  # fmt: skip
+        fam = CounterMetricFamily("loopcal_events", "events recorded, by kind and level",
+                                  labels=["kind", "level"])  # fmt: skip
+        for (kind, level), n in sorted(events.items()):
+            fam.add_metric([kind, level], n)
+        yield fam
+        yield _gauge("loopcal_daq_connected", "1 while the DAQ answers",
+                     1 if acq is not None and acq.connected else 0)  # fmt: skip
+        last = rec.last_scan_ns
+        yield _gauge("loopcal_last_scan_age_seconds",
+                     "seconds since the newest scan arrived (NaN before the first)",
+                     (time.time_ns() - last) / 1e9 if last else math.nan)  # fmt: skip
+        yield _gauge("loopcal_disk_error", "1 while the disk refuses writes",
+                     1 if st.disk_error else 0)  # fmt: skip
+        yield _gauge("loopcal_backlog_scans", "scans waiting in memory for the disk", st.backlog)
+        used = self._directory_bytes(s.directory)
+        yield _gauge("loopcal_recording_directory_bytes",
+                     "bytes of recordings in the recording directory", used)  # fmt: skip
+        yield _gauge("loopcal_recording_budget_bytes",
+                     "the disk budget of the recording directory (0: none)",
+                     s.disk_budget_bytes)  # fmt: skip
+        if s.disk_budget_bytes:
+            yield _gauge("loopcal_recording_budget_used_ratio",
+                         "the recording directory's use of its disk budget",
+                         used / s.disk_budget_bytes)  # fmt: skip
+        cfg = rec.controller
+        prov = cfg.provenance or {}
+        yield _gauge("loopcal_controller_config_info", "the controller config in force", 1,
+                     path=str(cfg.path or ""), sha256=cfg.sha256,
+                     method=str(prov.get("method", "")))  # fmt: skip
+        yield _gauge("loopcal_controller_config_calibration_age_seconds",
+                     "seconds since loopcal last calibrated the controller config in force "
+                     "(its provenance; NaN if never)", _age_s(prov.get("written_utc")))  # fmt: skip
+        for o in list(rec.analysis.observers):
+            metrics = getattr(o, "metrics", None)
+            if metrics is not None:
+                yield from metrics()
+
+    def _directory_bytes(self, directory) -> float:
+        measured, value = self._dir_bytes
+        now = time.monotonic()
+        if now - measured >= DIRECTORY_EVERY_S or measured == 0.0:
+            try:
+                value = sum(p.stat().st_size for p in find_recordings(directory))
+            except (OSError, ValueError):
+                value = self._dir_bytes[1]
+            self._dir_bytes = (now, value)
+        return float(value)
+
+
+def _counter(name: str, doc: str, value: float) -> CounterMetricFamily:
+    return CounterMetricFamily(name, doc, value=value)
+
+
+def _gauge(name: str, doc: str, value: float, **labels: str) -> GaugeMetricFamily:
+    if not labels:
+        return GaugeMetricFamily(name, doc, value=value)
+    fam = GaugeMetricFamily(name, doc, labels=list(labels))
+    fam.add_metric(list(labels.values()), value)
+    return fam
+
+
+def _age_s(written_utc: object) -> float:
+    from datetime import datetime
+
+    if not isinstance(written_utc, str | datetime):
+        return math.nan
+    try:
+        t = written_utc if isinstance(written_utc, datetime) else datetime.fromisoformat(
+            written_utc)  # fmt: skip
+        return max(0.0, time.time() - t.timestamp())
+    except (ValueError, OverflowError):
+        return math.nan
+
+
+class MetricsServer:
+    """prometheus-client's HTTP server for a recorder's metrics, on ``listen``
+    ("HOST:PORT"). Binds at once: a port that is taken is a SettingsError naming
+    ``[metrics].listen``."""
+
+    def __init__(self, recorder: Recorder, listen: str) -> None:
+        host, port = parse_listen(listen)
+        self.registry = CollectorRegistry(auto_describe=False)
+        self.registry.register(RecorderCollector(recorder))
+        try:
+            self._server, self._thread = start_http_server(port, host, registry=self.registry)
+        except OSError as exc:
+            raise SettingsError(
+                f"[metrics].listen: cannot serve metrics on {listen}: {exc.strerror or exc}"
+            ) from None
+        self.url = f"http://{listen}/metrics"
+
+    def close(self) -> None:
+        self._server.shutdown()
+        self._server.server_close()
