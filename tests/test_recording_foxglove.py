@@ -5,13 +5,13 @@ cut short by a crash (tests/js/read_mcap.mjs is the TypeScript side)."""
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
+from js_helpers import JS, npm_installed
 from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_ros2.decoder import DecoderFactory
@@ -23,7 +23,6 @@ from daemon import scans as S
 from daemon.events import Event, Level
 from drivers.ldq412 import volts_to_code
 
-JS = Path(__file__).parent / "js"
 T0 = 1_795_000_000_000_000_000  # ns, late 2026
 N, PER = 300, 25  # scans, scans per write() (1.25 s: two blocks per flush)
 CUT_AFTER = 5  # the durable copy is taken after this many writes
@@ -54,22 +53,8 @@ METADATA = rec.metadata_records(
 
 @pytest.fixture(scope="session")
 def node_reader() -> list[str]:
-    """The command that runs read_mcap.mjs (npm ci first if tests/js has no node_modules)."""
-    node, npm = shutil.which("node"), shutil.which("npm")
-    if node is None or npm is None:
-        pytest.fail(
-            "node and npm are required: recordings are checked with Foxglove's TypeScript MCAP "
-            "reader (install Node.js 20 or newer with npm; .ci/run does)"
-        )
-    if not (JS / "node_modules").is_dir():
-        try:
-            subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=JS, check=True,
-                           timeout=300, capture_output=True, text=True)  # fmt: skip
-        except subprocess.CalledProcessError as exc:
-            pytest.fail(f"npm ci in {JS} failed:\n{exc.stdout}\n{exc.stderr}")
-        except subprocess.TimeoutExpired:
-            pytest.fail(f"npm ci in {JS} took more than 300 s")
-    return [node, str(JS / "read_mcap.mjs")]
+    """The command that runs read_mcap.mjs."""
+    return [npm_installed(), str(JS / "read_mcap.mjs")]
 
 
 def run_node(node_reader: list[str], path: Path) -> subprocess.CompletedProcess:
