@@ -35,7 +35,8 @@ KINDS: dict[str, str] = {
     "overflow": "the module's FIFO overflowed: its oldest scans were lost",
     "rail": "a channel reached or left the rail (details: channel, on)",
     "sensor_fault": "a channel's sensor fault bit rose or fell (details: channel, on)",
-    "config_reload": "the configuration was reloaded on SIGHUP (details: ok, error)",
+    "config_reload": "the configuration was reloaded: SIGHUP, or the controller config file "
+    "replaced on disk (details: ok, error, trigger, controller_sha256, provenance)",
     "disk_error": "the recording could not be written (details: path, error)",
     "disk_recovered": "writing works again (details: path, backlog scans, outage_s)",
     "backlog_dropped": "the in-memory backlog overflowed while the disk failed (details: scans)",
