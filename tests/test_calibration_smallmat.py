@@ -8,6 +8,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calibration import implicit, smallmat
+from calibration.kinematics import forward_kinematics, inverse_kinematics
+from calibration.parameters import NOMINAL
+from calibration.simulate import sample_workspace
 
 
 def sym_entries(A: np.ndarray):
@@ -124,3 +127,19 @@ def test_loop_direction_matches_the_singular_vector(m):
     q2 = implicit.loop_direction(J2)
     assert np.isfinite(q2).all() and np.allclose(np.linalg.norm(q2, axis=1), 1.0)
     assert np.abs(np.einsum("mi,mia->ma", q2, J2)).max() < 1e-12 * np.abs(J2).max()
+
+
+def test_warm_started_forward_kinematics_finds_the_cold_solution():
+    rng = np.random.default_rng(8)
+    R = sample_workspace(200, rng, NOMINAL)
+    d = inverse_kinematics(R, NOMINAL) + rng.normal(0.0, 0.15, (200, 4))
+    cold = forward_kinematics(d, NOMINAL)
+    exact = forward_kinematics(d, NOMINAL, tol=1e-26)  # steps down to 1e-13 rad
+    nudge = Rotation.from_rotvec(rng.normal(0.0, 2e-3, (200, 3))).as_matrix()
+    warm = forward_kinematics(d, NOMINAL, start=nudge @ cold.rotations)
+    assert cold.converged.all() and warm.converged.all()
+    # both stop once a step is below 1e-6 rad: within 1e-8 of the solution
+    for fk in (cold, warm):
+        assert np.abs(fk.rotations - exact.rotations).max() < 1e-8
+        assert np.allclose(fk.sigma_min, exact.sigma_min, rtol=1e-8, atol=0)
+        assert np.allclose(fk.rms_mm, exact.rms_mm, rtol=1e-6, atol=1e-12)
