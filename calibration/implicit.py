@@ -457,15 +457,17 @@ def _damped_step(U, gp, W, V, gk, lam: float):
         return None
     i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
     # Z = W L^-T, row by row (forward substitution), and h = L^-1 gk
-    z0 = W[:, 0] * i00
-    z1 = (W[:, 1] - l10 * z0) * i11
-    z2 = (W[:, 2] - l20 * z0 - l21 * z1) * i22
-    h0 = gk[0] * i00
-    h1 = (gk[1] - l10 * h0) * i11
-    h2 = (gk[2] - l20 * h0 - l21 * h1) * i22
     n, m = W.shape[0], W.shape[2]
-    Z = np.stack([z0, z1, z2], axis=1).reshape(n, 3 * m)
-    h = np.concatenate([h0, h1, h2])
+    Z = np.empty((n, 3, m))
+    z0, z1, z2 = Z[:, 0], Z[:, 1], Z[:, 2]
+    np.multiply(W[:, 0], i00, out=z0)
+    np.multiply(W[:, 1] - l10 * z0, i11, out=z1)
+    np.multiply(W[:, 2] - l20 * z0 - l21 * z1, i22, out=z2)
+    h = np.empty((3, m))
+    np.multiply(gk[0], i00, out=h[0])
+    np.multiply(gk[1] - l10 * h[0], i11, out=h[1])
+    np.multiply(gk[2] - l20 * h[0] - l21 * h[1], i22, out=h[2])
+    Z, h = Z.reshape(n, 3 * m), h.reshape(3 * m)
     Sc = U + np.diag(lam * np.diag(U)) - Z @ Z.T
     try:
         dx = np.linalg.solve(Sc, -(gp - Z @ h))
