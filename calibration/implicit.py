@@ -34,9 +34,10 @@ rotation Jacobians (3, 4, m), rotations (3, 3, m)) and every 3x3 operation is in
 (:mod:`calibration.smallmat`), so each one is a handful of elementwise operations over
 contiguous pose arrays. The parameter Jacobian is kept as its nonzero entries only: a
 parameter moves one leg (a base coordinate, a gain, an offset), two (k2, k3) or four (k1),
-so ``Jp_k = sum_l T_l^T g_lk`` over the K (parameter, leg) pairs l of the free directions T;
+so row i of ``Jp_k`` is ``sum_l g_lk T[param_l]`` over the pairs l = (param_l, leg_l = i)
+of a free direction's parameter and a leg it moves (K pairs, :class:`_Pairs`);
 ``sum_k Jp_k^T Jp_k``, ``W_k`` and the information rows then cost O(m K) plus one small
-matrix product each. The pose blocks are eliminated through their Cholesky factors,
+matrix product each. The damped pose blocks are eliminated through their Cholesky factors,
 ``V_k = L_k L_k^T``, ``Z_k = W_k L_k^-T``: the Schur complement is ``U - sum_k Z_k Z_k^T``
 (one product of (n, 3m) matrices) and ``dw_k = -L_k^-T (L_k^-1 g_k + Z_k^T dx)``.
 """
@@ -82,11 +83,14 @@ def predicted_volts(R: np.ndarray, p: np.ndarray) -> np.ndarray:
     return (dist - p[SL_OFFSET]) / p[SL_GAIN]
 
 
+#: parameter index -> (base point, axis) of the base coordinates
+_BASE_COORD_OF = {ip: pt_ax for pt_ax, ip in BASE_COORDS.items()}
+
+
 def _legs_moved(i: int) -> tuple[int, ...]:
     """The legs (0..3) whose predicted reading parameter i (0..19) changes."""
-    for (pt, _), ip in BASE_COORDS.items():
-        if ip == i:
-            return (pt,)
+    if i in _BASE_COORD_OF:  # A_pt moves leg pt only
+        return (_BASE_COORD_OF[i][0],)
     if i == I_K1:  # B1 = k1 u1, and B2's position in the plane depends on k1 too
         return (0, 1, 2, 3)
     if i in (I_K2, I_K3):  # B2 only
@@ -149,10 +153,9 @@ def _derivatives(Rc: np.ndarray, p: np.ndarray, pairs: _Pairs, f: np.ndarray):
         RdB = [[Rc[:, 0] * v[0] + Rc[:, 1] * v[1] + Rc[:, 2] * v[2] for v in dk] for dk in dB]
     m = Rc.shape[-1]
     G = np.empty((len(pairs.param), m))
-    base_axis = {ip: ax for (_, ax), ip in BASE_COORDS.items()}
     for row, (i, leg) in enumerate(zip(pairs.param, pairs.leg, strict=True)):
-        if i in base_axis:  # d|B - A| / dA = -u
-            G[row] = -u[base_axis[i], leg] * f[leg]
+        if i in _BASE_COORD_OF:  # d|B - A| / dA = -u
+            G[row] = -u[_BASE_COORD_OF[i][1], leg] * f[leg]
         elif i in (I_K1, I_K2, I_K3):
             v = RdB[i - I_K1][LEG_POINT[leg]]
             G[row] = (u[0, leg] * v[0] + u[1, leg] * v[1] + u[2, leg] * v[2]) * f[leg]
@@ -185,7 +188,8 @@ def model_jacobians(
     """
     pairs = _Pairs(directions)
     vhat, Jr, G = _derivatives(_cm(R), p, pairs, 1.0 / p[SL_GAIN][:, None])
-    return vhat.T, pairs.expand(G).transpose(2, 1, 0), Jr.transpose(2, 1, 0)
+    Jp = np.ascontiguousarray(pairs.expand(G).transpose(2, 1, 0))
+    return np.ascontiguousarray(vhat.T), Jp, np.ascontiguousarray(Jr.transpose(2, 1, 0))
 
 
 def _loop_direction(Jr: np.ndarray) -> np.ndarray:
