@@ -212,7 +212,7 @@ def forward_kinematics(
         R = check_rotations(start)
         if len(R) != m:
             raise InputError(f"start must hold {m} rotations, got {len(R)}")
-        R = np.ascontiguousarray(np.moveaxis(R, 0, -1))  # (3, 3, m)
+        R = np.moveaxis(R, 0, -1).copy()  # (3, 3, m), a copy: it is updated in place
     converged = np.zeros(m, dtype=bool)
     active = np.arange(m)
     Ra, da = R, dc

@@ -136,7 +136,11 @@ def test_warm_started_forward_kinematics_finds_the_cold_solution():
     cold = forward_kinematics(d, NOMINAL)
     exact = forward_kinematics(d, NOMINAL, tol=1e-26)  # steps down to 1e-13 rad
     nudge = Rotation.from_rotvec(rng.normal(0.0, 2e-3, (200, 3))).as_matrix()
-    warm = forward_kinematics(d, NOMINAL, start=nudge @ cold.rotations)
+    start = nudge @ cold.rotations
+    warm = forward_kinematics(d, NOMINAL, start=start)
+    assert np.array_equal(start, nudge @ cold.rotations)  # the caller's start is left alone
+    one = forward_kinematics(d[:1], NOMINAL, start=start[:1])
+    assert np.array_equal(start[:1], (nudge @ cold.rotations)[:1]) and one.converged.all()
     assert cold.converged.all() and warm.converged.all()
     # both stop once a step is below 1e-6 rad: within 1e-8 of the solution
     for fk in (cold, warm):
