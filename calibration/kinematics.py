@@ -188,7 +188,8 @@ def forward_kinematics(
 
     lengths: (m, 4) in mm; p: full parameter vector (20,). start: (m, 3, 3) rotations to
     start Gauss-Newton from instead of the intersections, for example the solution at nearby
-    parameters (it then needs two or three steps instead of five to seven).
+    parameters (it then needs two or three steps instead of five to seven). Raises
+    numpy.linalg.LinAlgError where the result is not finite (parameters such as A1x = 1e300).
     """
     d = np.atleast_2d(np.asarray(lengths, dtype=float))
     if d.ndim != 2 or d.shape[1] != 4:
@@ -230,7 +231,15 @@ def forward_kinematics(
             break
     R[:, :, active] = Ra  # the last iterate of those that did not converge
     J, dist = _length_jacobian(R, home, A)
-    sig = np.sqrt(np.maximum(eigmin_sym3(*gram3(J)), 0.0))
+    N = gram3(J)
+    if not all(np.isfinite(x).all() for x in N):
+        # as numpy's eigvalsh did here: parameters (or readings) that describe no mechanism
+        bad = int(np.count_nonzero(~np.isfinite(np.array(N)).all(axis=0)))
+        raise np.linalg.LinAlgError(
+            f"forward kinematics failed: the length Jacobian is not finite at {bad} of {m} "
+            "poses (the parameters or readings describe no mechanism)"
+        )
+    sig = np.sqrt(np.maximum(eigmin_sym3(*N), 0.0))
     rms = np.sqrt(np.mean((dist - dc) ** 2, axis=0))
     return ForwardSolution(np.ascontiguousarray(np.moveaxis(R, -1, 0)), rms, sig, converged)
 

@@ -147,3 +147,12 @@ def test_warm_started_forward_kinematics_finds_the_cold_solution():
         assert np.abs(fk.rotations - exact.rotations).max() < 1e-8
         assert np.allclose(fk.sigma_min, exact.sigma_min, rtol=1e-8, atol=0)
         assert np.allclose(fk.rms_mm, exact.rms_mm, rtol=1e-6, atol=1e-12)
+
+
+def test_forward_kinematics_of_no_mechanism_raises_as_before():
+    """A1x = 1e300 passes the vector check but leaves nothing finite: LinAlgError, as numpy's
+    eigvalsh raised there (the recorder reports it and keeps writing raw scans)."""
+    p = NOMINAL.copy()
+    p[0] = 1e300
+    with np.errstate(all="ignore"), pytest.raises(np.linalg.LinAlgError, match="not finite"):
+        forward_kinematics(np.full((5, 4), 97.4), p)
