@@ -1,7 +1,7 @@
 """Maximum likelihood ("ml") against the paper's closed-loop residuals ("paper"): accuracy
 against the Cramér-Rao bound, time against pose count, and real recorded sessions.
 
-Three parts, all run by default (``--part`` runs one):
+Four parts, all run by default (``--part`` runs one):
 
 ``mc``: Monte Carlo over ``--sessions`` simulated sessions (450 random single-scan poses of
 a random mechanism, 40 mV, quantised). ``calibrate(method="ml")`` selects 50 poses and its
@@ -22,6 +22,19 @@ flat (linear cost), and the same per model evaluation (rejected LM trial steps c
 counted in a separate, untimed run). Baseline in the same run: the paper's method, end to
 end, up to 10,000 poses. Target: 10,000 poses in under 1 s.
 
+``anchor``: the expert's alternative on exactly the same problem: scipy's
+``least_squares(method="trf", tr_solver="lsmr")`` on the free parameters plus one rotation
+increment per pose (``R_k = exp([w_k]x) R0_k``), the same readings, weights, start rotations
+(forward kinematics at the start) and start parameters, given the analytic block-sparse
+Jacobian (``implicit.model_jacobians`` times the left Jacobian of SO(3)) as a CSR matrix;
+lsmr's tolerances at 1e-10 (at its default 1e-6, trf stops 4e-3 to 9e-3 standard deviations
+short of the minimum). Timed against ``identify(method="ml")`` end to end (start rotations,
+passes, covariance and indices included; the anchor's time is the solver's alone), median of
+``--repeats`` (at least 3), alternating, in one worker process with one BLAS thread (OpenBLAS
+threads on a shared two-core machine slow lsmr's vector operations by 3 to 10 times).
+Same minimum: the whitened costs within 1e-9 relative and every free parameter within 1e-3
+of its standard deviation. Target: ours at least 3 times faster at 10,000 and 30,000 poses.
+
 ``sessions``: technician sessions at the paper's noise recorded through the real
 ``loopcal simulate`` + ``loopcal record`` subprocesses (``--seeds``, three at a time), cut to
 exactly two minutes and calibrated by ``loopcal calibrate --json`` with ``--method ml`` and
@@ -30,7 +43,7 @@ RMS and mean of error / reported std, and how many were accepted (``--dir`` keep
 recordings and reuses them on the next run). Targets (ml): RMS error < 0.1 mm for
 d01..d04 and < 0.15 mm for A1x, A2x, A2y.
 
-Run: ``python bench/bench_ml.py [--part mc|scale|sessions] [--sessions 200] [--jobs 2]
+Run: ``python bench/bench_ml.py [--part mc|scale|anchor|sessions] [--sessions 200] [--jobs 2]
 [--repeats 3] [--seeds 101 102 ...] [--dir DIR]``.
 """
 
@@ -49,10 +62,14 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sparse
 from _timing import median_time
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
 
+from calibration import implicit  # noqa: E402
 from calibration.identify import identify  # noqa: E402
 from calibration.implicit import cramer_rao, start_rotations  # noqa: E402
 from calibration.parameters import INDEX, NOMINAL, PAPER7  # noqa: E402
@@ -71,6 +88,14 @@ PAPER_MAX_POSES = 10000
 SESSION_TARGETS = {"d01": 0.1, "d02": 0.1, "d03": 0.1, "d04": 0.1}
 SESSION_TARGETS |= {"A1x": 0.15, "A2x": 0.15, "A2y": 0.15}
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+ANCHOR_SIZES = (10000, 30000)
+ANCHOR_TARGET = 3.0
+#: lsmr's atol and btol in the anchor (scipy's default 1e-6 leaves trf short of the minimum)
+ANCHOR_LSMR_TOL = 1e-10
+#: "the same minimum": whitened costs within this relative difference ...
+SAME_COST_RTOL = 1e-9
+#: ... and every free parameter within this fraction of its standard deviation
+SAME_PARAM_STD = 1e-3
 
 
 # ---------------------------------------------------------------------------- Monte Carlo
@@ -247,12 +272,13 @@ def _counting(module, name: str):
 
 def evaluations(volts: np.ndarray, method: str) -> int:
     """Model evaluations (residuals and Jacobians of every pose) one identify() makes:
-    accepted and rejected LM steps, and the covariance at the end."""
+    accepted and rejected LM steps (ml: ``implicit._evaluate``, whose last one also gives
+    the covariance; the paper's method: ``loop_residuals``, the covariance included)."""
     # the package exports the function identify(), which hides its module's name
     ident_mod = importlib.import_module("calibration.identify")
     implicit_mod = importlib.import_module("calibration.implicit")
     if method == "ml":
-        module, name = implicit_mod, "model_jacobians"
+        module, name = implicit_mod, "_evaluate"
     else:
         module, name = ident_mod, "loop_residuals"
     with _counting(module, name) as calls:
@@ -298,8 +324,9 @@ def run_scale(repeats: int) -> None:
                 flush=True,
             )
     print("   (iter: LM iterations over all passes; evals: model evaluations, rejected LM trial")
-    print("    steps and the covariance included; FK start: the forward kinematics that ml")
-    print("    starts its rotations from, once per pass, inside the total)")
+    print("    steps and the covariance included (ml's covariance reuses its last); FK start: the")
+    print("    forward kinematics that ml starts its rotations from, inside the total; each pass")
+    print("    then judges the poses again by forward kinematics from the fitted rotations)")
     for line in stalled:
         print(f"   not converged: {line}")
     print()
@@ -317,6 +344,170 @@ def run_scale(repeats: int) -> None:
     if ("ml", 10000) in times:
         t = times["ml", 10000]
         print(f"target: ml on 10,000 poses < 1 s: {'met' if t < 1 else 'NOT met'} ({t:.3f} s)")
+
+
+# ---------------------------------------------------------------------------- anchor
+
+
+def _exp_and_left_jacobian(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """exp([w]x) (m, 3, 3) and the left Jacobian of SO(3) at w (m, 3, 3), for w (m, 3):
+    ``exp(w + d) = exp(Jl(w) d) exp(w)`` to first order in d."""
+    t2 = np.einsum("mi,mi->m", w, w)
+    t = np.sqrt(t2)
+    small = t < 1e-4
+    ts = np.where(small, 1.0, t)
+    b = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
+    c = np.where(small, 1.0 / 6.0 - t2 / 120.0, (ts - np.sin(ts)) / ts**3)
+    K = np.zeros((len(w), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    Jl = np.eye(3) + b[:, None, None] * K + c[:, None, None] * (K @ K)
+    return Rotation.from_rotvec(w).as_matrix(), Jl
+
+
+def anchor_fit(volts, weights, R0, directions, p_start):
+    """scipy's least_squares (trf, lsmr) on the maximum-likelihood problem of
+    :func:`calibration.implicit.fit`: unknowns z = (dx (n,), w (m, 3)), ``p = p_start + T dx``,
+    ``R_k = exp([w_k]x) R0_k``, residuals ``(Vhat - V) * weights`` (4m,), from z = 0, with
+    the analytic Jacobian as a CSR matrix (each row: n parameter entries and its pose's 3).
+    Returns (params, rotations (m, 3, 3), the OptimizeResult)."""
+    m, n = len(volts), directions.shape[1]
+    rows = 4 * m
+    cols = np.concatenate(
+        [
+            np.broadcast_to(np.arange(n), (rows, n)),
+            n + 3 * np.repeat(np.arange(m), 4)[:, None] + np.arange(3),
+        ],
+        axis=1,
+    ).ravel()
+    indptr = np.arange(rows + 1) * (n + 3)
+
+    def unpack(z):
+        return p_start + directions @ z[:n], z[n:].reshape(m, 3)
+
+    def fun(z):
+        p, w = unpack(z)
+        R = Rotation.from_rotvec(w).as_matrix() @ R0
+        return ((implicit.predicted_volts(R, p) - volts) * weights).ravel()
+
+    def jac(z):
+        p, w = unpack(z)
+        E, Jl = _exp_and_left_jacobian(w)
+        _, Jp, Jr = implicit.model_jacobians(E @ R0, p, directions)
+        wt = weights[..., None]
+        data = np.concatenate([(Jp * wt).reshape(rows, n), ((Jr @ Jl) * wt).reshape(rows, 3)], 1)
+        return sparse.csr_matrix((data.ravel(), cols, indptr), shape=(rows, n + 3 * m))
+
+    tol = {"atol": ANCHOR_LSMR_TOL, "btol": ANCHOR_LSMR_TOL}
+    res = least_squares(
+        fun, np.zeros(n + 3 * m), jac=jac, method="trf", tr_solver="lsmr", tr_options=tol
+    )
+    p, w = unpack(res.x)
+    return p, Rotation.from_rotvec(w).as_matrix() @ R0, res
+
+
+def _whitened_cost(volts, weights, R, p) -> float:
+    """sum ((V - Vhat) weights)^2 at (R, p): the objective both fits minimise."""
+    r = (volts - implicit.predicted_volts(R, p)) * weights
+    return float(np.sum(r * r))
+
+
+def anchor_rows(sizes: tuple[int, ...], repeats: int) -> list[dict]:
+    """Time the anchor and identify(ml) on simulate_poses(m, seed=1) for each size, and
+    compare their minima (run in a worker process with one BLAS thread)."""
+    out = []
+    model, T = PAPER7, PAPER7.tie_matrix
+    for m in sizes:
+        ps = simulate_poses(m, seed=1, noise_volts=NOISE_VOLTS)
+        V = ps.volts
+        w = implicit.pose_weights(m, None, None)  # identify's weights without noise_volts
+        R0, usable = start_rotations(V, NOMINAL)  # the rotations identify() starts from
+        t_ours, t_anchor = [], []
+        for _ in range(max(repeats, 3)):  # alternating, so both see the same load
+            t0 = time.perf_counter()
+            ours = identify(V, model, NOMINAL, method="ml")
+            t_ours.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            p_a, R_a, res = anchor_fit(V[usable], w[usable], R0[usable], T, NOMINAL)
+            t_anchor.append(time.perf_counter() - t0)
+        same_poses = bool(np.array_equal(ours.used, usable))
+        cost_ours = _whitened_cost(V[ours.used], w[ours.used], ours.rotations, ours.params)
+        cost_anchor = _whitened_cost(V[usable], w[usable], R_a, p_a)
+        dz = (model.free_values(p_a) - model.free_values(ours.params)) / ours.std
+        out.append(
+            {
+                "m": m,
+                "usable": int(usable.sum()),
+                "repeats": len(t_ours),
+                "anchor": statistics.median(t_anchor),
+                "ours": statistics.median(t_ours),
+                "cost_anchor": cost_anchor,
+                "cost_ours": cost_ours,
+                "dz": float(np.abs(dz).max()),
+                "worst": model.free[int(np.argmax(np.abs(dz)))],
+                "same_poses": same_poses,
+                "nfev": int(res.nfev),
+                "njev": int(res.njev),
+                "status": int(res.status),
+                "iterations": int(ours.iterations),
+                "converged": bool(ours.converged),
+            }
+        )
+    return out
+
+
+def run_anchor(repeats: int) -> None:
+    print(
+        '== anchor: scipy least_squares(method="trf", tr_solver="lsmr", lsmr atol = btol = '
+        f"{ANCHOR_LSMR_TOL:g}) with the analytic sparse Jacobian, on the same problem as "
+        f'identify(method="ml"): simulate_poses(m, seed=1), {1000 * NOISE_VOLTS:.0f} mV, paper7'
+    )
+    print(
+        "   anchor: the solver alone (start rotations given); ours: identify() end to end; "
+        f"median of {max(repeats, 3)}, alternating, one process with one BLAS thread"
+    )
+    with _environment({v: "1" for v in THREAD_VARS}):
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(1, initializer=_one_thread_workers) as pool:
+            rows = pool.apply(anchor_rows, (ANCHOR_SIZES, repeats))
+    print(
+        f"   {'poses':>6} {'anchor s':>9} {'ours s':>8} {'anchor/ours':>11} "
+        f"{'cost anchor':>13} {'cost ours':>13} {'rel diff':>9} {'max|dx|/std':>11} "
+        f"{'nfev':>5} {'iter':>5}"
+    )
+    verdicts = []
+    for r in rows:
+        ratio = r["anchor"] / r["ours"]
+        rel = (r["cost_anchor"] - r["cost_ours"]) / r["cost_ours"]
+        same = (
+            r["same_poses"]
+            and abs(rel) <= SAME_COST_RTOL
+            and r["dz"] <= SAME_PARAM_STD
+            and r["converged"]
+        )
+        verdicts.append((r["m"], ratio, same))
+        print(
+            f"   {r['m']:6d} {r['anchor']:9.3f} {r['ours']:8.3f} {ratio:11.2f} "
+            f"{r['cost_anchor']:13.9g} {r['cost_ours']:13.9g} {rel:+9.1e} "
+            f"{r['dz']:11.1e} {r['nfev']:5d} {r['iterations']:5d}"
+        )
+        if not r["same_poses"]:
+            print(f"   {r['m']} poses: ours ended on another pose set than the anchor's")
+    print(
+        "   (cost: sum of squared whitened residuals, unit weights; rel diff: anchor over ours "
+        "minus 1;\n    max|dx|/std: the largest difference of a free parameter over ours' std; "
+        "nfev: the anchor's\n    function evaluations; iter: ours' LM iterations)"
+    )
+    print(
+        f"same minimum (cost within {SAME_COST_RTOL:g} relative, parameters within "
+        f"{SAME_PARAM_STD:g} std): " + ("yes" if all(v[2] for v in verdicts) else "NO")
+    )
+    met = all(v[1] >= ANCHOR_TARGET for v in verdicts)
+    print(
+        "anchor/ours: "
+        + ", ".join(f"{m:,} poses {ratio:.1f}x" for m, ratio, _ in verdicts)
+        + f"; target >= {ANCHOR_TARGET:g}x: {'met' if met else 'NOT met'}"
+    )
 
 
 # ---------------------------------------------------------------------------- sessions
@@ -444,7 +635,7 @@ def run_sessions(seeds: list[int], directory: Path | None) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--part", choices=("mc", "scale", "sessions"), default=None)
+    ap.add_argument("--part", choices=("mc", "scale", "anchor", "sessions"), default=None)
     ap.add_argument("--sessions", type=int, default=200, help="Monte Carlo sessions (200)")
     ap.add_argument("--first-seed", type=int, default=1, help="first Monte Carlo seed (1)")
     ap.add_argument("--jobs", type=int, default=2, help="Monte Carlo processes (2)")
@@ -454,7 +645,7 @@ def main() -> int:
     )
     ap.add_argument("--dir", type=Path, default=None, help="keep the recordings here")
     args = ap.parse_args()
-    parts = [args.part] if args.part else ["mc", "scale", "sessions"]
+    parts = [args.part] if args.part else ["mc", "scale", "anchor", "sessions"]
     for i, part in enumerate(parts):
         if i:
             print()
@@ -462,6 +653,8 @@ def main() -> int:
             run_mc(args.sessions, args.jobs, args.first_seed)
         elif part == "scale":
             run_scale(args.repeats)
+        elif part == "anchor":
+            run_anchor(args.repeats)
         else:
             run_sessions(args.seeds, args.dir)
         sys.stdout.flush()

@@ -334,28 +334,33 @@ def _identify_ml(V, model, p0, noise_volts, scans_per_pose, max_iter, max_change
                 f"only {int(used.sum())} of {m} poses are usable ({int((~used).sum())} "
                 f"near-singular or unsolvable); {n} free parameters need at least {n}"
             )
-        rows = implicit.weighted_information(R[used], p, T, w[used])
-        require_observable(rows[:, None, :], model)
-        p, Rfit, it, converged, message = implicit.fit(
+        at_start = implicit.linearise(V[used], w[used], R[used], p, T)
+        require_observable(at_start.information()[:, None, :], model)
+        p, Rfit, it, converged, message, at_fit = implicit.fit_linearised(
             V[used], w[used], R[used], T, p, max_iter=max_iter, max_change=max_change,
-            history=history,
+            history=history, at_start=at_start,
         )  # fmt: skip
         total_iter += it
         fitted = used
         _check_bound(model, p, p0, max_change)
-        R_now, ok = implicit.start_rotations(V, p)
+        # forward kinematics at the estimate, started from the fitted rotations where the
+        # fit has them (a few steps instead of a solution from scratch)
+        R_now = np.empty_like(R)
+        ok = np.zeros(m, dtype=bool)
+        R_now[used], ok[used] = implicit.start_rotations(V[used], p, start=Rfit)
+        if not used.all():
+            R_now[~used], ok[~used] = implicit.start_rotations(V[~used], p)
         R_now[used] = Rfit  # the fitted rotations where the fit has them
         R = R_now
         if np.array_equal(ok, used) or attempt == 2:
             break
         used = ok
     used = fitted
-    vhat, Jp, Jr = implicit.model_jacobians(Rfit, p, T)
-    wu = w[used]
-    r = (V[used] - vhat) * wu
-    rows = implicit.information_rows(Jp * wu[..., None], Jr * wu[..., None])
+    # the covariance at the solution, from the fit's last linearisation
+    r = at_fit.r.T
+    rows = at_fit.information()
     info = rows.T @ rows
-    cost = float(np.sum(r * r))
+    cost = at_fit.cost
     mu = int(used.sum())
     if noise_volts is None:
         # each pose leaves one degree of freedom (four readings, three angles)

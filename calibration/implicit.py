@@ -28,12 +28,25 @@ pose tells one number about the parameters: its information is ``a_k a_k^T`` wit
 ``a_k = Jp_k^T q_k`` and q_k the unit vector orthogonal to the columns of ``Jr_k``. The
 Cramér-Rao bound of a pose set is ``(sum_k a_k a_k^T)^-1`` (whitened units), and pose
 selection on the rows a_k is a rank-one design problem.
+
+Implementation. Inside, arrays are component-major (the pose index last: residuals (4, m),
+rotation Jacobians (3, 4, m), rotations (3, 3, m)) and every 3x3 operation is in closed form
+(:mod:`calibration.smallmat`), so each one is a handful of elementwise operations over
+contiguous pose arrays. The parameter Jacobian is kept as its nonzero entries only: a
+parameter moves one leg (a base coordinate, a gain, an offset), two (k2, k3) or four (k1),
+so row i of ``Jp_k`` is ``sum_l g_lk T[param_l]`` over the pairs l = (param_l, leg_l = i)
+of a free direction's parameter and a leg it moves (K pairs, :class:`_Pairs`);
+``sum_k Jp_k^T Jp_k``, ``W_k`` and the information rows then cost O(m K) plus one small
+matrix product each. The damped pose blocks are eliminated through their Cholesky factors,
+``V_k = L_k L_k^T``, ``Z_k = W_k L_k^-T``: the Schur complement is ``U - sum_k Z_k Z_k^T``
+(one product of (n, 3m) matrices) and ``dw_k = -L_k^-T (L_k^-1 g_k + Z_k^T dx)``.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .errors import InputError
 from .kinematics import (
@@ -42,10 +55,12 @@ from .kinematics import (
     check_rotations,
     forward_kinematics,
     home_derivative,
+    leg_vectors,
     plate_home,
     volts_to_lengths,
 )
 from .parameters import BASE_COORDS, I_K1, I_K2, I_K3, N_PARAMS, SL_GAIN, SL_OFFSET, check_vector
+from .smallmat import cholesky3, cross3, gram3, matmul3, null_vector_4x3, rotvec_to_matrix
 
 #: a pose whose forward-kinematics Jacobian has a smallest singular value below this (mm per
 #: rad of rotation) is near a singularity: its rotation is not determined by its lengths
@@ -68,6 +83,99 @@ def predicted_volts(R: np.ndarray, p: np.ndarray) -> np.ndarray:
     return (dist - p[SL_OFFSET]) / p[SL_GAIN]
 
 
+#: parameter index -> (base point, axis) of the base coordinates
+_BASE_COORD_OF = {ip: pt_ax for pt_ax, ip in BASE_COORDS.items()}
+
+
+def _legs_moved(i: int) -> tuple[int, ...]:
+    """The legs (0..3) whose predicted reading parameter i (0..19) changes."""
+    if i in _BASE_COORD_OF:  # A_pt moves leg pt only
+        return (_BASE_COORD_OF[i][0],)
+    if i == I_K1:  # B1 = k1 u1, and B2's position in the plane depends on k1 too
+        return (0, 1, 2, 3)
+    if i in (I_K2, I_K3):  # B2 only
+        return (2, 3)
+    if SL_GAIN.start <= i < SL_GAIN.stop:
+        return (i - SL_GAIN.start,)
+    return (i - SL_OFFSET.start,)  # an offset
+
+
+class _Pairs:
+    """The nonzero entries of the parameter Jacobian along directions T (20, n).
+
+    The K pairs l = (parameter ``param[l]``, leg ``leg[l]``) for which the parameter has a
+    nonzero direction and moves that leg. With ``g_lk`` the derivative of leg ``leg[l]``'s
+    reading of pose k with respect to parameter ``param[l]``, the Jacobian along T is
+    ``Jp_k[i] = sum_{l: leg[l] = i} g_lk T[param[l]]``; ``Tl`` (K, n) holds those rows of T.
+    """
+
+    def __init__(self, directions: np.ndarray | None):
+        T = np.eye(N_PARAMS) if directions is None else np.asarray(directions, dtype=float)
+        pairs = [(i, leg) for i in np.flatnonzero(np.any(T != 0, axis=1)) for leg in _legs_moved(i)]
+        self.n = T.shape[1]
+        self.param = np.array([i for i, _ in pairs], dtype=int)
+        self.leg = np.array([leg for _, leg in pairs], dtype=int)
+        self.Tl = T[self.param]  # (K, n)
+        self.same_leg = self.leg[:, None] == self.leg[None, :]
+        self.k_derivative = bool(np.isin(self.param, (I_K1, I_K2, I_K3)).any())
+
+    def expand(self, G: np.ndarray) -> np.ndarray:
+        """The Jacobian (n, 4, m) along T from the pair entries G (K, m)."""
+        out = np.zeros((self.n, 4, G.shape[1]))
+        for i in range(4):
+            sel = self.leg == i
+            if sel.any():
+                out[:, i] = self.Tl[sel].T @ G[sel]
+        return out
+
+    def contract(self, G: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """``sum_i Jp_k[i] x_ik`` (n, m) for x (4, m): Jp_k^T x_k for every pose at once."""
+        return self.Tl.T @ (G * x[self.leg])
+
+
+def _derivatives(Rc: np.ndarray, p: np.ndarray, pairs: _Pairs, f: np.ndarray):
+    """Predicted readings and their derivatives, component-major, with each leg's
+    derivatives multiplied by ``f * S_i`` (f (4, m) or (4, 1)).
+
+    Rc: (3, 3, m) rotations; p: (20,). Returns vhat (4, m) in V, ``f S dvhat/dw`` (3, 4, m)
+    (w in rad, left increments) and the pair entries ``f S dvhat/dp`` (K, m) of
+    :class:`_Pairs`. ``f = 1 / S`` gives the plain derivatives; ``f = -weights / S`` those of
+    the whitened residuals ``(V - vhat) weights``.
+    """
+    home = plate_home(p)
+    B, u, dist = leg_vectors(Rc, home, base_points(p))
+    S = p[SL_GAIN][:, None]
+    vhat = (dist - p[SL_OFFSET][:, None]) / S
+    Jr = cross3(B, u) * f
+    RdB = None
+    if pairs.k_derivative:  # dB/dk rotated into the base frame, (3 k, 2 points, 3, m)
+        dB = home_derivative(p)
+        RdB = [[Rc[:, 0] * v[0] + Rc[:, 1] * v[1] + Rc[:, 2] * v[2] for v in dk] for dk in dB]
+    m = Rc.shape[-1]
+    G = np.empty((len(pairs.param), m))
+    for row, (i, leg) in enumerate(zip(pairs.param, pairs.leg, strict=True)):
+        if i in _BASE_COORD_OF:  # d|B - A| / dA = -u
+            G[row] = -u[_BASE_COORD_OF[i][1], leg] * f[leg]
+        elif i in (I_K1, I_K2, I_K3):
+            v = RdB[i - I_K1][LEG_POINT[leg]]
+            G[row] = (u[0, leg] * v[0] + u[1, leg] * v[1] + u[2, leg] * v[2]) * f[leg]
+        elif SL_GAIN.start <= i < SL_GAIN.stop:
+            G[row] = -vhat[leg] * f[leg]
+        else:  # an offset
+            G[row] = -f[leg]
+    return vhat, Jr, G
+
+
+def _cm(R: np.ndarray) -> np.ndarray:
+    """Rotations (m, 3, 3) as a component-major (3, 3, m) array."""
+    return np.ascontiguousarray(np.moveaxis(R, 0, -1))
+
+
+def _pm(Rc: np.ndarray) -> np.ndarray:
+    """Component-major rotations (3, 3, m) as a pose-major (m, 3, 3) array."""
+    return np.ascontiguousarray(np.moveaxis(Rc, -1, 0))
+
+
 def model_jacobians(
     R: np.ndarray, p: np.ndarray, directions: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -78,36 +186,31 @@ def model_jacobians(
     Returns Vhat (m, 4) in V, dVhat/dp along ``directions`` (m, 4, q) and dVhat/dw (m, 4, 3)
     for left rotation increments w in rad.
     """
-    Wd = np.eye(N_PARAMS) if directions is None else np.asarray(directions, dtype=float)
-    home = plate_home(p)
-    legs = list(LEG_POINT)
-    B = np.einsum("mij,bj->mbi", R, home)[:, legs]  # (m, 4, 3)
-    diff = B - base_points(p)
-    dist = np.linalg.norm(diff, axis=-1)
-    u = diff / dist[..., None]
-    S = p[SL_GAIN]
-    vhat = (dist - p[SL_OFFSET]) / S
-    m = len(R)
-    G = np.zeros((m, 4, N_PARAMS))
-    for (pt, ax), ip in BASE_COORDS.items():
-        G[:, pt, ip] = -u[:, pt, ax]
-    dB = np.einsum("mij,kbj->mkbi", R, home_derivative(p))[:, :, legs]  # (m, 3, 4, 3)
-    G[:, :, [I_K1, I_K2, I_K3]] = np.einsum("mli,mkli->mlk", u, dB)
-    G /= S[:, None]
-    idx = np.arange(4)
-    G[:, idx, SL_GAIN.start + idx] = -vhat / S
-    G[:, idx, SL_OFFSET.start + idx] = -1.0 / S
-    Jr = np.cross(B, u) / S[:, None]
-    return vhat, G @ Wd, Jr
+    pairs = _Pairs(directions)
+    vhat, Jr, G = _derivatives(_cm(R), p, pairs, 1.0 / p[SL_GAIN][:, None])
+    Jp = np.ascontiguousarray(pairs.expand(G).transpose(2, 1, 0))
+    return np.ascontiguousarray(vhat.T), Jp, np.ascontiguousarray(Jr.transpose(2, 1, 0))
+
+
+def _loop_direction(Jr: np.ndarray) -> np.ndarray:
+    """:func:`loop_direction` component-major: Jr (3, 4, m) -> q (4, m)."""
+    q = null_vector_4x3(Jr)
+    bad = ~np.isfinite(q).all(axis=0)
+    if bad.any():  # dependent columns (an exact singularity): the SVD picks a direction
+        J = np.moveaxis(Jr[:, :, bad], -1, 0).transpose(0, 2, 1)  # (b, 4, 3)
+        q[:, bad] = np.linalg.svd(J, full_matrices=True)[0][:, :, 3].T
+    return q
 
 
 def loop_direction(Jr: np.ndarray) -> np.ndarray:
     """q (m, 4): for each pose the unit vector orthogonal to the columns of its (whitened)
     rotation Jacobian Jr (m, 4, 3): the part of its readings no rotation explains. Its sign
-    is arbitrary."""
-    # the left singular vector of Jr_k for its zero singular value
-    U, _, _ = np.linalg.svd(Jr, full_matrices=True)
-    return U[:, :, 3]
+    is arbitrary.
+
+    In closed form, the generalised cross product of the three columns (the left singular
+    vector of Jr_k for its zero singular value, without an SVD per pose); where the columns
+    are linearly dependent (no unique direction) it falls back to the SVD's choice."""
+    return _loop_direction(np.moveaxis(np.asarray(Jr, dtype=float), 0, -1).transpose(1, 0, 2)).T
 
 
 def information_rows(Jp: np.ndarray, Jr: np.ndarray) -> np.ndarray:
@@ -124,8 +227,10 @@ def weighted_information(
 ) -> np.ndarray:
     """:func:`information_rows` (m, n) of poses at rotations R (m, 3, 3) and parameters p,
     along ``directions`` (20, n), with the readings whitened by ``weights`` (m, 4), 1/sigma."""
-    _, Jp, Jr = model_jacobians(R, p, directions)
-    return information_rows(Jp * weights[..., None], Jr * weights[..., None])
+    pairs = _Pairs(directions)
+    f = np.asarray(weights, dtype=float).T / p[SL_GAIN][:, None]
+    _, Jr, G = _derivatives(_cm(R), p, pairs, f)
+    return pairs.contract(G, _loop_direction(Jr)).T
 
 
 def pose_weights(
@@ -166,12 +271,57 @@ def cramer_rao(
     return np.linalg.inv(a.T @ a)
 
 
-def start_rotations(volts: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotations (m, 3, 3) from forward kinematics of the readings at p, and (m,) whether
-    each pose is usable (converged, away from singularities)."""
-    fk = forward_kinematics(volts_to_lengths(volts, p), p)
+def start_rotations(
+    volts: np.ndarray, p: np.ndarray, *, start: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations (m, 3, 3) from forward kinematics of the readings (m, 4) at p, and (m,)
+    whether each pose is usable (converged, away from singularities). start: (m, 3, 3)
+    rotations near the answer to start forward kinematics from (for example the fitted
+    ones, when judging the poses again at the estimate); by default it starts from the
+    sphere intersections."""
+    fk = forward_kinematics(volts_to_lengths(volts, p), p, start=start)
     ok = fk.converged & (fk.sigma_min >= MIN_POSE_SIGMA_MM) & np.isfinite(fk.rms_mm)
     return fk.rotations, ok
+
+
+@dataclass(frozen=True)
+class Linearised:
+    """The whitened residuals of m poses and their derivatives at one point (p, R),
+    component-major (pose index last).
+
+    r: (4, m) whitened residuals ``(V - Vhat) * weights``; Jr: (3, 4, m) dr/dw (w in rad,
+    left increments); G: (K, m) the nonzero entries of dr/dp (``pairs``); cost: ``sum r^2``.
+    """
+
+    r: np.ndarray
+    Jr: np.ndarray
+    G: np.ndarray
+    pairs: _Pairs
+    cost: float
+
+    def information(self) -> np.ndarray:
+        """:func:`information_rows` (m, n) at this point."""
+        return self.pairs.contract(self.G, _loop_direction(self.Jr)).T
+
+
+def _evaluate(
+    Rc: np.ndarray, p: np.ndarray, Vc: np.ndarray, wc: np.ndarray, pairs: _Pairs
+) -> Linearised:
+    """One model evaluation: readings Vc (4, m) and weights wc (4, m) at rotations Rc
+    (3, 3, m) and parameters p."""
+    vhat, Jr, G = _derivatives(Rc, p, pairs, -wc / p[SL_GAIN][:, None])
+    r = (Vc - vhat) * wc
+    return Linearised(r, Jr, G, pairs, float(np.einsum("im,im->", r, r)))
+
+
+def linearise(
+    volts: np.ndarray, weights: np.ndarray, R: np.ndarray, p: np.ndarray, directions: np.ndarray
+) -> Linearised:
+    """:class:`Linearised` of readings (m, 4) whitened by weights (m, 4) at rotations
+    R (m, 3, 3) and parameters p (20,), along directions (20, n)."""
+    Vc = np.ascontiguousarray(np.asarray(volts, dtype=float).T)
+    wc = np.ascontiguousarray(np.asarray(weights, dtype=float).T)
+    return _evaluate(_cm(R), p, Vc, wc, _Pairs(directions))
 
 
 def fit(
@@ -191,56 +341,60 @@ def fit(
     (20, n) free directions; p_start: (20,) start (fixed parameters keep its values).
     Returns (params, rotations, iterations, converged, message).
     """
+    p, R, it, converged, message, _ = fit_linearised(
+        volts, weights, R0, directions, p_start, max_iter=max_iter, max_change=max_change,
+        history=history,
+    )  # fmt: skip
+    return p, R, it, converged, message
+
+
+def fit_linearised(
+    volts: np.ndarray,
+    weights: np.ndarray,
+    R0: np.ndarray,
+    directions: np.ndarray,
+    p_start: np.ndarray,
+    *,
+    max_iter: int = 100,
+    max_change: float = 50.0,
+    history: list[float] | None = None,
+    at_start: Linearised | None = None,
+) -> tuple[np.ndarray, np.ndarray, int, bool, str, Linearised]:
+    """:func:`fit`, also returning the :class:`Linearised` problem at the solution (for the
+    covariance), and starting from ``at_start`` if given (the problem linearised at
+    (p_start, R0), for example for an observability check before the fit)."""
     history = [] if history is None else history
-    n = directions.shape[1]
-    p, R = p_start.copy(), R0.copy()
-
-    def state(p, R):
-        vhat, Jp, Jr = model_jacobians(R, p, directions)
-        r = (volts - vhat) * weights
-        return r, -Jp * weights[..., None], -Jr * weights[..., None]
-
-    r, Jp, Jr = state(p, R)
-    cost = float(np.sum(r * r))
+    Vc = np.ascontiguousarray(np.asarray(volts, dtype=float).T)  # (4, m)
+    wc = np.ascontiguousarray(np.asarray(weights, dtype=float).T)
+    pairs = at_start.pairs if at_start is not None else _Pairs(directions)
+    n = pairs.n
+    p, Rc = p_start.copy(), _cm(R0)
+    lin = at_start if at_start is not None else _evaluate(Rc, p, Vc, wc, pairs)
+    cost = lin.cost
     history.append(cost)
     lam, nu = 1e-3, 2.0
     converged, message, it = False, "maximum iterations reached", 0
-    dof = max(len(volts) - n, 1)
+    dof = max(Vc.shape[1] - n, 1)
     while it < max_iter:
         it += 1
-        U = np.einsum("mri,mrj->ij", Jp, Jp)
-        Wk = np.einsum("mri,mrj->mij", Jp, Jr)  # (m, n, 3)
-        Vk = np.einsum("mri,mrj->mij", Jr, Jr)  # (m, 3, 3)
-        gp = np.einsum("mri,mr->i", Jp, r)
-        gk = np.einsum("mri,mr->mi", Jr, r)
+        U, gp, W, V, gk = _normal_equations(lin)
         dU = np.diag(U).copy()
-        dV = np.einsum("mii->mi", Vk).copy()
+        dV = np.array(V[:3])  # (3, m) the pose blocks' diagonals
         step_taken = False
         first_predicted = None  # the decrease the least damped step of this turn predicts
         while lam < 1e12:
-            Vd = Vk + lam * dV[:, :, None] * np.eye(3)
-            try:
-                Vinv = np.linalg.inv(Vd)
-            except np.linalg.LinAlgError:
+            step = _damped_step(U, gp, W, V, gk, lam)
+            if step is None:  # a damped block not positive definite, or a singular system
                 lam *= nu
                 nu *= 2.0
                 continue
-            WV = Wk @ Vinv  # (m, n, 3)
-            Sc = U + np.diag(lam * dU) - np.einsum("mij,mkj->ik", WV, Wk)
-            rhs = -(gp - np.einsum("mij,mj->i", WV, gk))
-            try:
-                dx = np.linalg.solve(Sc, rhs)
-            except np.linalg.LinAlgError:
-                lam *= nu
-                nu *= 2.0
-                continue
-            dw = -np.einsum("mij,mj->mi", Vinv, gk + np.einsum("mij,i->mj", Wk, dx))
+            dx, dw = step
             p_new = p + directions @ dx
             ok = np.all(np.abs(p_new - p_start) <= max_change) and np.all(np.isfinite(dw))
             if ok:
-                R_new = Rotation.from_rotvec(dw).as_matrix() @ R
-                r_new, Jp_new, Jr_new = state(p_new, R_new)
-                new_cost = float(np.sum(r_new * r_new))
+                Rc_new = matmul3(rotvec_to_matrix(dw), Rc)
+                lin_new = _evaluate(Rc_new, p_new, Vc, wc, pairs)
+                new_cost = lin_new.cost
                 predicted = float(dx @ (lam * dU * dx - gp) + np.sum(dw * (lam * dV * dw - gk)))
                 if first_predicted is None:
                     first_predicted = predicted
@@ -256,7 +410,7 @@ def fit(
             nu *= 2.0
         if not step_taken:
             floor = DECREMENT_TOL * max(cost / dof, EXACT_FIT)
-            if cost <= EXACT_FIT * r.size:
+            if cost <= EXACT_FIT * lin.r.size:
                 converged, message = True, "converged (exact fit)"
             elif first_predicted is not None and first_predicted <= 10 * floor:
                 # at the minimum to rounding: even the Gauss-Newton step promises less than
@@ -266,11 +420,67 @@ def fit(
                 message = "no step reduces the misfit (stalled)"
             break
         decrement = cost - new_cost
-        p, R, r, Jp, Jr, cost = p_new, R_new, r_new, Jp_new, Jr_new, new_cost
+        p, Rc, lin, cost = p_new, Rc_new, lin_new, new_cost
         history.append(cost)
         # the decrement is in whitened units; compared with the misfit per degree of
         # freedom it is independent of the noise level assumed
         if decrement <= DECREMENT_TOL * max(cost / dof, EXACT_FIT) and lam <= 1.0:
             converged, message = True, "converged"
             break
-    return p, R, it, converged, message
+    return p, _pm(Rc), it, converged, message, lin
+
+
+def _normal_equations(lin: Linearised):
+    """The blocks of the Gauss-Newton normal equations at ``lin``.
+
+    Returns U (n, n) = sum_k Jp_k^T Jp_k; gp (n,) = sum_k Jp_k^T r_k; W (n, 3, m) the
+    ``Jp_k^T Jr_k``; V, the six distinct entries (v00, v11, v22, v01, v02, v12) of the
+    ``Jr_k^T Jr_k``, each (m,); gk (3, m) the ``Jr_k^T r_k``.
+    """
+    pairs, G, Jr, r = lin.pairs, lin.G, lin.Jr, lin.r
+    Tl = pairs.Tl
+    U = Tl.T @ ((G @ G.T) * pairs.same_leg) @ Tl
+    gp = Tl.T @ np.einsum("km,km->k", G, r[pairs.leg])
+    K, m = G.shape
+    H = G[:, None, :] * Jr[:, pairs.leg].transpose(1, 0, 2)  # (K, 3, m)
+    W = (Tl.T @ H.reshape(K, 3 * m)).reshape(-1, 3, m)
+    V = gram3(Jr)
+    gk = np.einsum("aim,im->am", Jr, r)
+    return U, gp, W, V, gk
+
+
+def _damped_step(U, gp, W, V, gk, lam: float):
+    """The Levenberg-Marquardt step (dx (n,), dw (3, m)) with damping lam on the diagonals
+    of U and every pose block, the pose blocks eliminated through their Cholesky factors
+    (module docstring); None if a damped block is not positive definite or the reduced
+    system is singular."""
+    v00, v11, v22, v01, v02, v12 = V
+    d = 1.0 + lam
+    l00, l10, l11, l20, l21, l22 = cholesky3(v00 * d, v11 * d, v22 * d, v01, v02, v12)
+    if not (np.all(np.isfinite(l22)) and np.all(l00 > 0) and np.all(l11 > 0) and np.all(l22 > 0)):
+        return None
+    i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
+    # Z = W L^-T, row by row (forward substitution), and h = L^-1 gk
+    n, m = W.shape[0], W.shape[2]
+    Z = np.empty((n, 3, m))
+    z0, z1, z2 = Z[:, 0], Z[:, 1], Z[:, 2]
+    np.multiply(W[:, 0], i00, out=z0)
+    np.multiply(W[:, 1] - l10 * z0, i11, out=z1)
+    np.multiply(W[:, 2] - l20 * z0 - l21 * z1, i22, out=z2)
+    h = np.empty((3, m))
+    np.multiply(gk[0], i00, out=h[0])
+    np.multiply(gk[1] - l10 * h[0], i11, out=h[1])
+    np.multiply(gk[2] - l20 * h[0] - l21 * h[1], i22, out=h[2])
+    Z, h = Z.reshape(n, 3 * m), h.reshape(3 * m)
+    Sc = U + np.diag(lam * np.diag(U)) - Z @ Z.T
+    try:
+        dx = np.linalg.solve(Sc, -(gp - Z @ h))
+    except np.linalg.LinAlgError:
+        return None
+    # dw = -L^-T (h + Z^T dx), by back substitution
+    t = h + dx @ Z
+    t0, t1, t2 = t[:m], t[m : 2 * m], t[2 * m :]
+    y2 = t2 * i22
+    y1 = (t1 - l21 * y2) * i11
+    y0 = (t0 - l10 * y1 - l20 * y2) * i00
+    return dx, -np.stack([y0, y1, y2])

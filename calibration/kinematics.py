@@ -31,7 +31,8 @@ from .parameters import (
     UNITS,
     check_vector,
 )
-from .spheres import intersect_three_spheres
+from .smallmat import cross3, eigmin_sym3, gram3, matmul3, rotvec_to_matrix, solve_sym3
+from .spheres import solve as solve_spheres
 
 LEG_POINT = (0, 0, 1, 1)  # actuator i ends at B1 (0) or B2 (1)
 
@@ -45,14 +46,6 @@ _U1 = _unit(B1_AZIMUTH_DEG, B_ELEVATION_DEG)
 _W = _unit(B2_AZIMUTH_DEG, B_ELEVATION_DEG)
 _W = _W - (_W @ _U1) * _U1
 _W /= np.linalg.norm(_W)
-
-
-def _frame(b1: np.ndarray, b2: np.ndarray) -> np.ndarray:
-    """Orthonormal frames (m, 3, 3), columns: along b1, in the b1-b2 plane, along b1 x b2."""
-    e1 = b1 / np.linalg.norm(b1, axis=-1, keepdims=True)
-    e3 = np.cross(b1, b2)
-    e3 /= np.linalg.norm(e3, axis=-1, keepdims=True)
-    return np.stack([e1, np.cross(e3, e1), e3], axis=-1)
 
 
 def base_points(p: np.ndarray) -> np.ndarray:
@@ -186,7 +179,12 @@ class ForwardSolution:
 
 
 def forward_kinematics(
-    lengths: np.ndarray, p: np.ndarray, *, max_iter: int = 30, tol: float = 1e-12
+    lengths: np.ndarray,
+    p: np.ndarray,
+    *,
+    max_iter: int = 30,
+    tol: float = 1e-12,
+    start: np.ndarray | None = None,
 ) -> ForwardSolution:
     """Plate rotations from four actuator lengths (numerical forward kinematics).
 
@@ -194,9 +192,12 @@ def forward_kinematics(
     B2 from (O, k2), (A3, d3), (A4, d4), each on the assembly branch above the base (z > 0),
     by the rotation that carries the home frame of (B1, B2) onto theirs. Gauss-Newton on the
     rotation (left increments ``R <- exp([w]x) R``) then fits all four lengths in the
-    least-squares sense.
+    least-squares sense; a pose stops once its step is below ``sqrt(tol)`` rad.
 
-    lengths: (m, 4) in mm; p: full parameter vector (20,).
+    lengths: (m, 4) in mm; p: full parameter vector (20,). start: (m, 3, 3) rotations to
+    start Gauss-Newton from instead of the intersections, for example the solution at nearby
+    parameters (it then needs two or three steps instead of five to seven). Raises
+    numpy.linalg.LinAlgError where the result is not finite (parameters such as A1x = 1e300).
     """
     d = np.atleast_2d(np.asarray(lengths, dtype=float))
     if d.ndim != 2 or d.shape[1] != 4:
@@ -207,36 +208,79 @@ def forward_kinematics(
     A = base_points(p)
     home = plate_home(p)
     m = d.shape[0]
-    up = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (m, 3))
-    b1 = intersect_three_spheres(p[I_K1], A[0], d[:, 0], A[1], d[:, 1], up).point
-    b2 = intersect_three_spheres(p[I_K2], A[2], d[:, 2], A[3], d[:, 3], up).point
-    R = _frame(b1, b2) @ np.swapaxes(_frame(home[None, 0], home[None, 1]), 1, 2)
-    home_legs = home[list(LEG_POINT)]  # (4, 3)
+    # component-major inside (pose index last): every operation runs over contiguous pose
+    # arrays, and the 3x3 algebra is in closed form (calibration.smallmat)
+    dc = np.ascontiguousarray(d.T)  # (4, m)
+    if start is None:
+        up = np.array([[0.0], [0.0], [1.0]])
+        b1 = solve_spheres(p[I_K1], A[0][:, None], dc[0], A[1][:, None], dc[1], up).x
+        b2 = solve_spheres(p[I_K2], A[2][:, None], dc[2], A[3][:, None], dc[3], up).x
+        Fh = _frame(home[0][:, None], home[1][:, None])  # (3, 3, 1)
+        R = matmul3(_frame(b1, b2), Fh.transpose(1, 0, 2))
+    else:
+        R = check_rotations(start)
+        if len(R) != m:
+            raise InputError(f"start must hold {m} rotations, got {len(R)}")
+        R = np.moveaxis(R, 0, -1).copy()  # (3, 3, m), a copy: it is updated in place
     converged = np.zeros(m, dtype=bool)
     active = np.arange(m)
+    Ra, da = R, dc
     for _ in range(max_iter):
-        Ra = R[active]
-        B = Ra @ home_legs.T  # (a, 3, 4)
-        B = np.swapaxes(B, 1, 2)
-        diff = B - A
-        dist = np.linalg.norm(diff, axis=-1)
-        u = diff / dist[..., None]
-        Jw = np.cross(B, u)  # d dist / d w, (a, 4, 3)
-        Jt = np.swapaxes(Jw, 1, 2)
-        step = -np.linalg.solve(Jt @ Jw, Jt @ (dist - d[active])[..., None])[..., 0]
-        R[active] = Rotation.from_rotvec(step).as_matrix() @ Ra
-        done = np.linalg.norm(step, axis=1) < tol**0.5
-        converged[active[done]] = True
-        active = active[~done]
+        J, dist = _length_jacobian(Ra, home, A)
+        e = dist - da
+        step = -solve_sym3(*gram3(J), np.einsum("aim,im->am", J, e))
+        Ra = matmul3(rotvec_to_matrix(step), Ra)
+        done = np.sqrt(np.einsum("am,am->m", step, step)) < tol**0.5
+        if done.any():
+            R[:, :, active[done]] = Ra[:, :, done]
+            converged[active[done]] = True
+            active, Ra, da = active[~done], Ra[:, :, ~done], da[:, ~done]
         if active.size == 0:
             break
-    B = plate_points(R, p)[:, LEG_POINT, :]
-    diff = B - A
-    dist = np.linalg.norm(diff, axis=-1)
-    Jw = np.cross(B, diff / dist[..., None])
-    sig = np.sqrt(np.maximum(np.linalg.eigvalsh(np.swapaxes(Jw, 1, 2) @ Jw)[:, 0], 0.0))
-    rms = np.sqrt(np.mean((dist - d) ** 2, axis=1))
-    return ForwardSolution(R, rms, sig, converged)
+    R[:, :, active] = Ra  # the last iterate of those that did not converge
+    J, dist = _length_jacobian(R, home, A)
+    N = gram3(J)
+    if not all(np.isfinite(x).all() for x in N):
+        # as numpy's eigvalsh did here: parameters (or readings) that describe no mechanism
+        bad = int(np.count_nonzero(~np.isfinite(np.array(N)).all(axis=0)))
+        raise np.linalg.LinAlgError(
+            f"forward kinematics failed: the length Jacobian is not finite at {bad} of {m} "
+            "poses (the parameters or readings describe no mechanism)"
+        )
+    sig = np.sqrt(np.maximum(eigmin_sym3(*N), 0.0))
+    rms = np.sqrt(np.mean((dist - dc) ** 2, axis=0))
+    return ForwardSolution(np.ascontiguousarray(np.moveaxis(R, -1, 0)), rms, sig, converged)
+
+
+def _frame(b1: np.ndarray, b2: np.ndarray) -> np.ndarray:
+    """Orthonormal frames (3, 3, m) of point pairs b1, b2 (3, m): ``F[i, c]`` the i-th
+    component of column c; the columns lie along b1, in the b1-b2 plane, along b1 x b2."""
+    e1 = b1 / np.sqrt(np.einsum("im,im->m", b1, b1))
+    e3 = cross3(b1, b2)
+    e3 /= np.sqrt(np.einsum("im,im->m", e3, e3))
+    return np.stack([e1, cross3(e3, e1), e3], axis=1)
+
+
+def leg_vectors(Rc: np.ndarray, home: np.ndarray, A: np.ndarray):
+    """The legs of m poses, component-major.
+
+    Rc: (3, 3, m) rotations (``Rc[i, j]`` the (m,) entries of row i, column j); home: (2, 3)
+    the plate points at home (:func:`plate_home`); A: (4, 3) the base points. Returns the
+    plate end of each leg B (3, 4, m), mm, the unit vectors u (3, 4, m) from A_i to it and
+    the leg lengths (4, m), mm.
+    """
+    Bp = [Rc[:, 0] * h[0] + Rc[:, 1] * h[1] + Rc[:, 2] * h[2] for h in home]  # (3, m) each
+    B = np.stack([Bp[b] for b in LEG_POINT], axis=1)
+    diff = B - A.T[:, :, None]
+    dist = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
+    return B, diff / dist, dist
+
+
+def _length_jacobian(Rc: np.ndarray, home: np.ndarray, A: np.ndarray):
+    """d(length)/dw (3, 4, m) for left rotation increments w (rad), ``B x u``, and the
+    lengths (4, m) in mm, at rotations Rc (3, 3, m)."""
+    B, u, dist = leg_vectors(Rc, home, A)
+    return cross3(B, u), dist
 
 
 def in_stroke(lengths: np.ndarray, p: np.ndarray, stroke_mm: float = STROKE_MM) -> np.ndarray:

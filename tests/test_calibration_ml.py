@@ -193,3 +193,37 @@ def test_bad_input_is_named():
         identify(ps.volts[:5], PAPER7, method="ml")
     with pytest.raises(InputError, match="not orthonormal"):
         implicit.cramer_rao(2 * ps.rotations, ps.truth, PAPER7.tie_matrix, noise_volts=0.04)
+
+
+def test_the_eliminated_step_is_the_dense_levenberg_marquardt_step():
+    """The pose blocks eliminated through closed-form Cholesky factors give the step a dense
+    solve of the damped normal equations of all unknowns gives."""
+    rng = np.random.default_rng(9)
+    truth = perturbed_truth(rng)
+    m, T = 15, PAPER7.tie_matrix
+    R = poses(m, rng, truth)
+    V = implicit.predicted_volts(R, truth) + rng.normal(0.0, 0.04, (m, 4))
+    w = rng.uniform(5.0, 30.0, (m, 4))
+    lin = implicit.linearise(V, w, R, NOMINAL, T)
+    vhat, Jp, Jr = implicit.model_jacobians(R, NOMINAL, T)
+    r = (V - vhat) * w
+    assert np.allclose(lin.r.T, r, rtol=1e-12, atol=1e-12)
+    n = T.shape[1]
+    J = np.zeros((4 * m, n + 3 * m))
+    J[:, :n] = (-Jp * w[..., None]).reshape(4 * m, n)
+    for k in range(m):
+        J[4 * k : 4 * k + 4, n + 3 * k : n + 3 * k + 3] = -Jr[k] * w[k][:, None]
+    A, g = J.T @ J, J.T @ r.ravel()
+    for lam in (1e-3, 1.0, 1e3):
+        dense = np.linalg.solve(A + lam * np.diag(np.diag(A)), -g)
+        dx, dw = implicit._damped_step(*implicit._normal_equations(lin), lam)
+        step = np.concatenate([dx, dw.T.ravel()])
+        assert np.allclose(step, dense, rtol=1e-9, atol=1e-12 * np.abs(dense).max()), lam
+    # the information rows: the SVD's loop direction, up to each row's sign
+    U = np.linalg.svd(Jr * w[..., None], full_matrices=True)[0][:, :, 3]
+    old = np.einsum("mrn,mr->mn", Jp * w[..., None], U)
+    new = lin.information()
+    sign = np.sign(np.einsum("mn,mn->m", old, new))
+    assert np.allclose(new * sign[:, None], old, rtol=1e-10, atol=1e-12 * np.abs(old).max())
+    rows = implicit.weighted_information(R, NOMINAL, T, w)
+    assert np.allclose(rows.T @ rows, old.T @ old, rtol=1e-10)
