@@ -12,7 +12,6 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .errors import InputError, ParameterError
 from .parameters import (
@@ -133,6 +132,8 @@ def euler_zyz(R: np.ndarray) -> np.ndarray:
     """Intrinsic Z-Y-Z Euler angles (alpha, beta, gamma) of rotations (m, 3, 3), radians (m, 3).
 
     At zero tilt only alpha + gamma is defined; gamma is then reported as zero."""
+    from scipy.spatial.transform import Rotation  # scipy.spatial costs 0.1 s to import
+
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Gimbal lock")
         return Rotation.from_matrix(check_rotations(R)).as_euler("ZYZ")
@@ -140,6 +141,8 @@ def euler_zyz(R: np.ndarray) -> np.ndarray:
 
 def from_euler_zyz(angles: np.ndarray) -> np.ndarray:
     """Rotations (m, 3, 3) from intrinsic Z-Y-Z Euler angles (m, 3) in radians."""
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_euler("ZYZ", np.atleast_2d(angles)).as_matrix()
 
 

@@ -5,10 +5,15 @@ Open a module by URL; the scheme picks the driver::
     from drivers import open_daq
     with open_daq("modbus-tcp://192.168.1.50:502?unit=1") as daq:
         scans = daq.read_scans()
+
+The driver classes (and pymodbus, pyserial behind them) are imported on first use: a program
+that needs only the datasheet's constants (``drivers.ldq412``) or the URL parser does not
+pay for them.
 """
 
+import importlib
+
 from . import errors
-from .ascii import AsciiDAQ
 from .base import (
     DAQ,
     DaqUrl,
@@ -28,9 +33,19 @@ from .errors import (
     DAQProtocolError,
     DAQTimeout,
 )
-from .modbus import ModbusDAQ
-from .modbus_rtu import ModbusRtuDAQ
-from .modbus_tcp import ModbusTcpDAQ
+
+_LAZY = {"ModbusDAQ": "modbus", "ModbusTcpDAQ": "modbus_tcp", "ModbusRtuDAQ": "modbus_rtu",
+         "AsciiDAQ": "ascii"}  # fmt: skip
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'drivers' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
 
 __all__ = [
     "open_daq",

@@ -13,6 +13,7 @@ URL, rejects unknown query parameters, and hands the parsed URL to the driver cl
 
 from __future__ import annotations
 
+import importlib
 import re
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
@@ -270,8 +271,19 @@ def register_scheme(scheme: str) -> Callable[[type[D]], type[D]]:
     return deco
 
 
+#: the modules of the drivers that come with loopcal; each registers its scheme on import
+_BUILTIN = ("drivers.modbus_tcp", "drivers.modbus_rtu", "drivers.ascii")
+
+
+def _load_builtin() -> None:
+    """Import the built-in drivers (on first need: they bring pymodbus and pyserial)."""
+    for module in _BUILTIN:
+        importlib.import_module(module)
+
+
 def registered_schemes() -> dict[str, type[DAQ]]:
     """A copy of the scheme -> driver class registry."""
+    _load_builtin()
     return dict(_REGISTRY)
 
 
@@ -281,6 +293,8 @@ def driver_for_url(url: str) -> tuple[type[DAQ], DaqUrl]:
     Raises ValueError for a malformed URL, an unknown scheme or an unknown query parameter.
     """
     parsed = parse_url(url)
+    if parsed.scheme not in _REGISTRY:
+        _load_builtin()
     try:
         cls = _REGISTRY[parsed.scheme]
     except KeyError:

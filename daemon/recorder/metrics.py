@@ -12,19 +12,41 @@ from __future__ import annotations
 
 import math
 import time
+from collections import Counter
 from collections.abc import Iterator
-from typing import TYPE_CHECKING
+from pathlib import Path
+from typing import Protocol
 
 from prometheus_client import CollectorRegistry, start_http_server
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
+from ..config.controller import ControllerConfig
 from ..recording import find_recordings
 from ..version import loopcal_version
-from .settings import SettingsError, parse_listen
+from .acquisition import AcquisitionStats
+from .filewriter import RecorderStatus
+from .observers import AnalysisThread
+from .settings import RecorderSettings, SettingsError, parse_listen
 
-if TYPE_CHECKING:
-    from .engine import Recorder
+
+class Recorder(Protocol):
+    """What the metrics read of a recorder (:class:`daemon.recorder.engine.Recorder`)."""
+
+    status: RecorderStatus
+    analysis: AnalysisThread
+    last_scan_ns: int | None
+
+    @property
+    def settings(self) -> RecorderSettings: ...
+
+    @property
+    def controller(self) -> ControllerConfig: ...
+
+    @property
+    def acquisition_stats(self) -> AcquisitionStats | None: ...
+
+    def event_counts(self) -> Counter[tuple[str, str]]: ...
 
 #: the recording directory is listed at most this often (a scrape every few seconds must
 #: not list a directory of thousands of files each time)
@@ -97,7 +119,7 @@ class RecorderCollector(Collector):
             if metrics is not None:
                 yield from metrics()
 
-    def _directory_bytes(self, directory) -> float:
+    def _directory_bytes(self, directory: Path) -> float:
         measured, value = self._dir_bytes
         now = time.monotonic()
         if now - measured >= DIRECTORY_EVERY_S or measured == 0.0:

@@ -8,7 +8,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from calibration.kinematics import (
     base_points,
@@ -81,7 +80,7 @@ def joint_states(rows: np.ndarray, params: np.ndarray) -> JointStates:
         sel = idx[good]
         if sel.size:
             R = fk.rotations[good]
-            quat[sel] = Rotation.from_matrix(R).as_quat()
+            quat[sel] = _quaternions(R)
             euler[sel] = np.degrees(euler_zyz(R))
             rms[sel] = fk.rms_mm[good]
             pose_ok[sel] = True
@@ -171,3 +170,11 @@ def scene_message(stamp_ns: int, params: np.ndarray) -> bytes:
         ],
     }  # fmt: skip
     return json.dumps(msg, separators=(",", ":")).encode()
+
+
+def _quaternions(R: np.ndarray) -> np.ndarray:
+    """(n, 4) unit quaternions x, y, z, w of rotations (n, 3, 3), by scipy's Rotation
+    (imported here: scipy.spatial takes 0.3 s to import, and only the recorder needs it)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_quat()
