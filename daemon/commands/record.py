@@ -137,6 +137,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="serve Prometheus metrics on http://HOST:PORT/metrics, e.g. 127.0.0.1:9464",
     )
     p.add_argument(
+        "--no-compact",
+        action="store_true",
+        help="keep closed files as written (one-second chunks), not compacted for reading",
+    )
+    p.add_argument(
         "--no-health",
         action="store_true",
         help="do not watch loop closure (no offset_drift events)",
@@ -159,6 +164,7 @@ def settings_from_args(args: argparse.Namespace) -> RecorderSettings:
         duration_s=args.duration,
         health=not args.no_health,
         metrics_listen=args.metrics,
+        compact=not args.no_compact,
     ).checked()
 
 

@@ -30,6 +30,7 @@ from ..config.controller import ControllerConfig, load_controller_config, nomina
 from ..events import Event, Level
 from ..version import loopcal_version
 from .acquisition import Acquisition, AcquisitionStats, Batch, ResumePoint
+from .compactor import Compactor
 from .filewriter import FileWriter, RecorderStatus, ScanQueue, Shared, prepare_directory
 from .metrics import MetricsServer
 from .observers import AnalysisThread, Observer
@@ -110,6 +111,7 @@ class Recorder:
         self._events: Counter[tuple[str, str]] = Counter()  # (kind, level) -> count
         #: when the newest scan arrived, ns since the Unix epoch (None before the first)
         self.last_scan_ns: int | None = None
+        self.compactor = Compactor() if settings.compact else None
         self.metrics: MetricsServer | None = None
         if settings.metrics_listen:
             self.metrics = MetricsServer(self, settings.metrics_listen)
@@ -180,6 +182,8 @@ class Recorder:
             resume=None if resume is None else resume.__dict__,
         )
         self.analysis.start()
+        if self.compactor is not None:
+            self.compactor.start(s.directory)
         self._start_acquisition(resume)
         self._writer_thread = threading.Thread(
             target=self._writer_main, name="loopcal-writer", daemon=True
@@ -225,6 +229,8 @@ class Recorder:
         self._writer_done.set()
         self._queue.wake()
         self._writer_thread.join(30.0)
+        if self.compactor is not None:
+            self.compactor.stop(timeout=0.0)  # a compaction cut short is redone next time
         if self.metrics is not None:
             self.metrics.close()
         if self._fatal is not None:
@@ -398,7 +404,7 @@ class Recorder:
     def _writer_main(self) -> None:
         try:
             FileWriter(self._queue, self.shared, self.status, command=self.command,
-                       done=self._writer_done).run()  # fmt: skip
+                       done=self._writer_done, compactor=self.compactor).run()  # fmt: skip
         except BaseException as exc:  # noqa: BLE001 - reported, and the recorder stops
             log.exception("writer thread failed")
             self._fatal = exc

@@ -14,6 +14,7 @@ recorder's own events, whether a new file was asked for) behind one lock.
 from __future__ import annotations
 
 import collections
+import contextlib
 import errno
 import logging
 import os
@@ -29,6 +30,7 @@ from ..events import Event, Level
 from ..recording import RecordingWriter, find_recordings, metadata_records, recording_name
 from ..scans import SCAN_DTYPE
 from .acquisition import Batch, DeviceInfo
+from .compactor import Compactor
 from .settings import RecorderSettings, SettingsError
 
 log = logging.getLogger("daemon.recorder.filewriter")
@@ -169,9 +171,11 @@ class FileWriter:
     """
 
     def __init__(self, queue: ScanQueue, shared: Shared, status: RecorderStatus, *,
-                 command: str, done: threading.Event) -> None:  # fmt: skip
+                 command: str, done: threading.Event,
+                 compactor: Compactor | None = None) -> None:  # fmt: skip
         self.queue, self.shared, self.status = queue, shared, status
         self.command, self.done = command, done
+        self.compactor = compactor
         self.rows: list[np.ndarray] = []
         self.n_rows = 0
         self.events: list[Event] = []
@@ -208,7 +212,7 @@ class FileWriter:
                     self._retention()
             if finishing and not batches:
                 break
-        self._close_file()
+        self._close_file(final=True)
         if self.n_rows:
             log.error("%d scans could not be written before stopping (%s)", self.n_rows,
                       self.status.disk_error or "no file")  # fmt: skip
@@ -289,14 +293,18 @@ class FileWriter:
         self.next_retention = 0.0
         return f
 
-    def _close_file(self) -> None:
-        """Close the current file (summary and index); pending scans wait for the next."""
+    def _close_file(self, *, final: bool = False) -> None:
+        """Close the current file (summary and index); pending scans wait for the next. A
+        file closed by a rotation goes to the compactor (the last one, at a stop, is taken
+        by the next start: a stop must not wait for it)."""
         f, self.file = self.file, None
         if f is None:
             return
         try:
             f.close()
             log.info("closed %s: %d scans", f.path, f.scans_written)
+            if self.compactor is not None and not final:
+                self.compactor.submit(f.path)
         except OSError as exc:
             f.abandon()
             log.error("could not close %s properly: %s (it reads back without its index)",
@@ -402,13 +410,15 @@ class FileWriter:
             except OSError:
                 continue
         total = sum(sz for _, sz in sizes)
+        lock = self.compactor.lock if self.compactor is not None else contextlib.nullcontext()
         for p, sz in sizes:
             if total <= budget:
                 break
             if p == current:
                 continue
             try:
-                p.unlink()
+                with lock:  # not while the compactor replaces it
+                    p.unlink()
             except OSError as exc:
                 log.warning("retention: cannot delete %s: %s", p, exc)
                 continue

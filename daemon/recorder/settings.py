@@ -14,6 +14,7 @@ The daemon's config file (every key; docs/daemon.md says the same)::
     rotate_size = "256 MiB"  # ... or once a file is this big (bytes, or "N KiB|MiB|GiB")
     disk_budget = "20 GiB"   # delete the oldest recordings to stay under this; 0: keep all
     max_backlog_scans = 500000  # scans kept in memory while the disk refuses them
+    compact = true           # rewrite closed files with large chunks for fast reading
 
     [controller]
     config = "/etc/loopcal/controller/controller.toml"        # the controller config the poses use
@@ -66,7 +67,9 @@ class RecorderSettings:
     (0: keep all). max_backlog_scans: scans kept in memory while the disk refuses them.
     controller_config: the controller config file, or None for the reference geometry.
     duration_s: stop after this long (``loopcal record --duration``), or None.
-    metrics_listen: "HOST:PORT" to serve Prometheus metrics on (None: off).
+    metrics_listen: "HOST:PORT" to serve Prometheus metrics on (None: off). compact: rewrite
+    every closed (rotated) file with large chunks in the background
+    (:mod:`daemon.recording.compact`).
     health: watch loop closure (:mod:`daemon.live.health`); health_false_alarm: its false-alarm
     probability per still pose.
     """
@@ -84,6 +87,7 @@ class RecorderSettings:
     duration_s: float | None = None
     health: bool = True
     health_false_alarm: float = 1e-8
+    compact: bool = True
     metrics_listen: str | None = None
 
     def checked(self, where: str = "") -> RecorderSettings:
@@ -121,6 +125,8 @@ class RecorderSettings:
             raise bad("directory", "is empty")
         if not isinstance(self.health, bool):
             raise bad("health", f"must be true or false, got {self.health!r}")
+        if not isinstance(self.compact, bool):
+            raise bad("compact", f"must be true or false, got {self.compact!r}")
         fa = self.health_false_alarm
         if isinstance(fa, bool) or not isinstance(fa, (int, float)) or not 0 < fa < 1e-2:
             raise bad("health_false_alarm", f"must be a probability in (0, 0.01), got {fa!r}")
@@ -142,6 +148,7 @@ _KEY_NAMES = {
     "rotate_bytes": "[recording].rotate_size",
     "disk_budget_bytes": "[recording].disk_budget",
     "max_backlog_scans": "[recording].max_backlog_scans",
+    "compact": "[recording].compact",
     "controller_config": "[controller].config",
     "duration_s": "--duration",
     "health": "[health].enabled",
@@ -188,6 +195,7 @@ _SCHEMA: dict[str, dict[str, str]] = {
         "rotate_size": "rotate_bytes",
         "disk_budget": "disk_budget_bytes",
         "max_backlog_scans": "max_backlog_scans",
+        "compact": "compact",
     },
     "controller": {"config": "controller_config"},
     "health": {"enabled": "health", "false_alarm": "health_false_alarm"},
@@ -249,7 +257,7 @@ def _convert(p: Path, table: str, key: str, field: str, v: Any) -> Any:
             return parse_size(v)
         except ValueError as exc:
             raise SettingsError(f"{where}: {exc}") from None
-    if field == "health":
+    if field in ("health", "compact"):
         if not isinstance(v, bool):
             raise SettingsError(f"{where}: must be true or false, got {v!r}")
         return v

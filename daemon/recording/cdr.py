@@ -103,27 +103,37 @@ def encode_scan_block(rows: np.ndarray) -> bytes:
     return CDR_LE + struct.pack("<I4x", len(rows)) + body
 
 
-def _block_rows(data: bytes) -> bytes | None:
-    """The rows of one ``/daq/scans`` message as SCAN_DTYPE bytes, or None if it is not a
-    well-formed block."""
+def _block_count(data: bytes) -> int | None:
+    """The number of scans a ``/daq/scans`` message holds, or None if it is not a
+    well-formed block (CDR little endian, a length that fits the count exactly)."""
     if len(data) < 8 or data[:4] != CDR_LE:
         return None
     (n,) = struct.unpack_from("<I", data, 4)
     if len(data) != (_ROWS_AT + n * SCAN_DTYPE.itemsize - _TAIL if n else 8):
         return None
-    return data[_ROWS_AT:] + _PAD if n else b""
-
-
-_PAD = b"\x00" * _TAIL
+    return n
 
 
 def decode_scan_blocks_checked(messages: Iterable[bytes]) -> tuple[np.ndarray, int]:
     """Rows (SCAN_DTYPE) of ``/daq/scans`` messages, in order, and how many messages were
-    not well-formed blocks (skipped)."""
-    parts = [_block_rows(data) for data in messages]
-    good = [p for p in parts if p is not None]
-    rows = np.frombuffer(b"".join(good), dtype=SCAN_DTYPE).copy()
-    return rows, len(parts) - len(good)
+    not well-formed blocks (skipped). Each block's body is copied once, straight into the
+    rows (the last row of a block lacks CDR's trailing padding, which stays zero)."""
+    blocks, bad, total = [], 0, 0
+    for data in messages:
+        n = _block_count(data)
+        if n is None:
+            bad += 1
+        elif n:
+            blocks.append((data, n))
+            total += n
+    rows = np.zeros(total, dtype=SCAN_DTYPE)
+    raw = memoryview(rows).cast("B")
+    pos, size = 0, SCAN_DTYPE.itemsize
+    for data, n in blocks:
+        k = n * size - _TAIL
+        raw[pos : pos + k] = memoryview(data)[_ROWS_AT : _ROWS_AT + k]
+        pos += n * size
+    return rows, bad
 
 
 def decode_scan_blocks(messages: Iterable[bytes]) -> np.ndarray:
@@ -132,7 +142,7 @@ def decode_scan_blocks(messages: Iterable[bytes]) -> np.ndarray:
     messages = list(messages)
     rows, bad = decode_scan_blocks_checked(messages)
     if bad:
-        first = next(m for m in messages if _block_rows(m) is None)
+        first = next(m for m in messages if _block_count(m) is None)
         if first[:4] != CDR_LE or len(first) < 8:
             raise ValueError("scan block is not little-endian CDR")
         (n,) = struct.unpack_from("<I", first, 4)

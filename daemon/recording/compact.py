@@ -1,0 +1,193 @@
+"""Compacting a closed recording: the same records in a few large chunks instead of two per
+second.
+
+While a file is written, every flush (about once a second) closes two small chunks, so that
+a crash loses at most that second; a day is 86,400 of them, and reading spends its time per
+chunk. Once a file is closed (rotated), nothing will be appended to it, and it can be
+rewritten for reading: the raw scans and events in chunks of a few MiB, the per-scan views
+in chunks of their own (so a reader of the scans still skips them), the same channels with
+the same ids, the same metadata (the ``loopcal`` record gains ``compacted_utc``). Every
+reader reads it as before (ours, Python ``mcap``, Foxglove's).
+
+Nothing can be lost doing it: the new version goes to a temporary file beside the original
+(``.NAME.compact.tmp``), is read back with :func:`~daemon.recording.read_recordings` and
+compared scan for scan, event for event, message count for message count with the original,
+fsynced, and only then renamed over it (atomic), and the directory fsynced. A file that is
+not closed, not intact, or already compact is left as it is. Killed at any step, the
+original is there, whole, or the compacted copy is; a temporary file left behind is removed
+by the next compaction of the directory.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import threading
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+from numpy.lib.recfunctions import repack_fields
+
+from ..config import durable
+from .errors import RecordingError
+from .names import find_recordings
+from .reader import read_recordings
+from .schemas import TOPIC_EVENTS, TOPIC_LOG, TOPIC_SCANS
+
+log = logging.getLogger("daemon.recording.compact")
+
+#: uncompressed bytes per chunk of a compacted file (a reader decompresses a chunk whole)
+CHUNK_BYTES = 4 << 20
+#: the topics whose messages a reader of the scans needs (the rest are views)
+_RAW_TOPICS = (TOPIC_SCANS, TOPIC_EVENTS, TOPIC_LOG)
+
+
+@dataclass(frozen=True)
+class Compacted:
+    """What :func:`compact` did: ``done`` (the file was rewritten) or why not; the chunk
+    counts and sizes before and after."""
+
+    path: Path
+    done: bool
+    reason: str = ""
+    chunks_before: int = 0
+    chunks_after: int = 0
+    bytes_before: int = 0
+    bytes_after: int = 0
+
+
+def _tmp_of(path: Path) -> Path:
+    return path.with_name(f".{path.name}.compact.tmp")
+
+
+def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compacted:
+    """Rewrite the closed recording ``path`` with large chunks, verified, atomically (see the
+    module docstring). Raises OSError if the disk refuses (the original is then as it was).
+
+    replace_lock: held while the original is checked to be the file that was read (not
+    deleted or replaced meanwhile: the recorder's retention holds the same lock) and
+    replaced."""
+    path = Path(path)
+    try:
+        original = read_recordings(path)
+    except RecordingError as exc:
+        return Compacted(path, False, f"not readable: {exc}")
+    info = original.files[0]
+    if not info.complete or not info.intact:
+        return Compacted(path, False, "not closed, or damaged: left as it is")
+    if "compacted_utc" in info.metadata.get("loopcal", {}):
+        return Compacted(path, False, "already compact")
+    before = path.stat()
+    size = before.st_size
+    tmp = _tmp_of(path)
+    tmp.unlink(missing_ok=True)
+    try:
+        chunks_before, counts = _rewrite(path, tmp)
+        durable.step("compact-written")
+        chunks_after, problem = _verify(tmp, original, counts)
+        if problem:
+            tmp.unlink(missing_ok=True)
+            log.error("compacting %s: %s; the original is kept", path, problem)
+            return Compacted(path, False, f"verification failed: {problem}")
+        durable.step("compact-verified")
+        with replace_lock if replace_lock is not None else contextlib.nullcontext():
+            try:
+                now = path.stat()
+            except FileNotFoundError:
+                now = None
+            if now is None or (now.st_ino, now.st_size) != (before.st_ino, before.st_size):
+                tmp.unlink(missing_ok=True)
+                return Compacted(path, False, "deleted or replaced while it was compacted")
+            os.replace(tmp, path)
+        durable.step("compact-renamed")
+        durable.fsync_dir(path.parent)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return Compacted(path, True, "", chunks_before, chunks_after, size, path.stat().st_size)
+
+
+def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
+    """Write the compacted copy; returns the original's chunk count and its message count
+    per channel id."""
+    with open(path, "rb") as src:
+        reader = make_reader(src)
+        header = reader.get_header()
+        summary = reader.get_summary()
+        assert summary is not None  # a closed, intact file (checked by the caller)
+        metadata = [(m.name, dict(m.metadata)) for m in reader.iter_metadata()]
+        raw_ids = {i for i, c in summary.channels.items() if c.topic in _RAW_TOPICS}
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC,
+                     os.stat(path).st_mode & 0o7777)  # fmt: skip
+        with os.fdopen(fd, "wb") as out:
+            w = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD,
+                       enable_crcs=True)  # fmt: skip
+            w.start(profile=header.profile, library=header.library)
+            schema_ids = {}
+            for sid in sorted(summary.schemas):
+                s = summary.schemas[sid]
+                schema_ids[sid] = w.register_schema(s.name, s.encoding, s.data)
+            for cid in sorted(summary.channels):
+                c = summary.channels[cid]
+                sid = schema_ids.get(c.schema_id, 0)
+                new = w.register_channel(c.topic, c.message_encoding, sid, dict(c.metadata))
+                if new != cid:  # our writer numbers channels from 1 in order: so does this one
+                    raise RecordingError(f"{path}: channel ids are not consecutive")
+            stamp = datetime.now(UTC).isoformat(timespec="seconds")
+            for name, record in metadata:
+                if name == "loopcal":
+                    record = {**record, "compacted_utc": stamp}
+                w.add_metadata(name, record)
+            counts: dict[int, int] = {}
+            for raw in (True, False):  # the scans' chunks first, then the views' own
+                for _, channel, message in reader.iter_messages(log_time_order=False):
+                    if (channel.id in raw_ids) != raw:
+                        continue
+                    counts[channel.id] = counts.get(channel.id, 0) + 1
+                    w.add_message(channel.id, message.log_time, message.data,
+                                  message.publish_time, message.sequence)  # fmt: skip
+                w.flush()
+            w.finish()
+            out.flush()
+            os.fsync(out.fileno())
+    return len(summary.chunk_indexes), counts
+
+
+def _verify(tmp: Path, original, counts: dict[int, int]) -> tuple[int, str]:
+    """(chunks of the copy, "" or what differs from the original)."""
+    copy = read_recordings(tmp)
+    f = copy.files[0]
+    if not f.complete or not f.intact:
+        return 0, "the copy does not read back intact"
+    a, b = repack_fields(original.scans), repack_fields(copy.scans)
+    if len(a) != len(b) or a.tobytes() != b.tobytes():
+        return 0, f"the copy holds {len(b)} scans, not the original's {len(a)} exactly"
+    if [e.to_json() for e in copy.events] != [e.to_json() for e in original.events]:
+        return 0, "the copy's events differ"
+    with open(tmp, "rb") as fh:
+        summary = make_reader(fh).get_summary()
+    got = dict(summary.statistics.channel_message_counts) if summary.statistics else {}
+    want = {k: v for k, v in counts.items() if v}
+    if {k: v for k, v in got.items() if v} != want:
+        return 0, f"message counts differ: {got} against {want}"
+    return len(summary.chunk_indexes), ""
+
+
+def compact_directory(directory: Path, *, skip: Path | None = None) -> list[Compacted]:
+    """Compact every closed recording of a directory but ``skip`` (the file being
+    written), oldest first; remove temporary files that a killed compaction left."""
+    for stale in directory.glob(".loopcal-*.mcap.compact.tmp"):
+        stale.unlink(missing_ok=True)
+    out = []
+    for path in find_recordings(directory):
+        if skip is not None and path == skip:
+            continue
+        out.append(compact(path))
+    return out
+
+
+__all__ = ["CHUNK_BYTES", "Compacted", "compact", "compact_directory"]

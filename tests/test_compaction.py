@@ -1,0 +1,129 @@
+"""Compacting closed recordings: the same scans, events and messages in a few large chunks,
+readable by every reader, verified before it replaces the original, never losing anything
+when killed, never touching the file being written."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from fuzz_helpers import chunk_spans, identities, make_rows, write_recording
+from js_helpers import JS, npm_installed
+from mcap.reader import make_reader
+from recorder_helpers import Proc, assert_matches_truth, hand_emulator, record
+from session_helpers import T0, loopcal
+
+from daemon import recording as rec
+from daemon.recording.compact import compact
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _recording(tmp_path, n=3000, close=True):
+    path = tmp_path / rec.recording_name(T0)
+    write_recording(path, make_rows(n), close=close)
+    return path
+
+
+def test_a_compacted_file_holds_the_same_and_reads_everywhere(tmp_path):
+    path = _recording(tmp_path)
+    before = rec.read_recordings(path)
+    with open(path, "rb") as f:
+        counts = make_reader(f).get_summary().statistics.channel_message_counts
+    r = compact(path)
+    assert r.done and r.chunks_before == 300 and r.chunks_after <= 6
+    after = rec.read_recordings(path)
+    assert identities(after.scans) == identities(before.scans)
+    assert [e.to_json() for e in after.events] == [e.to_json() for e in before.events]
+    assert after.files[0].complete and after.files[0].intact
+    assert "compacted_utc" in after.files[0].metadata["loopcal"]
+    assert {k: v for k, v in after.files[0].metadata["device"].items()} == \
+        before.files[0].metadata["device"]  # fmt: skip
+    with open(path, "rb") as f:  # the mcap library: every message, every channel
+        reader = make_reader(f)
+        assert reader.get_summary().statistics.channel_message_counts == counts
+        n = sum(1 for _ in reader.iter_messages(log_time_order=True))
+    assert n == sum(counts.values())
+    proc = subprocess.run([npm_installed(), str(JS / "read_mcap.mjs"), str(path)],
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr  # Foxglove's TypeScript reader
+    assert not compact(path).done  # already compact
+
+
+def test_files_not_closed_or_damaged_are_left_alone(tmp_path):
+    (tmp_path / "open").mkdir()
+    open_file = _recording(tmp_path / "open", close=False)
+    data = open_file.read_bytes()
+    assert not compact(open_file).done and open_file.read_bytes() == data
+    damaged = _recording(tmp_path)
+    raw = bytearray(damaged.read_bytes())
+    off, length = chunk_spans(bytes(raw))[10]
+    raw[off + 50 : off + length - 5] = bytes(length - 55)
+    damaged.write_bytes(bytes(raw))
+    r = compact(damaged)
+    assert not r.done and "damaged" in r.reason and damaged.read_bytes() == bytes(raw)
+
+
+@pytest.mark.parametrize("step", ["compact-written", "compact-verified", "compact-renamed"])
+def test_killed_while_compacting_loses_nothing(tmp_path, step):
+    path = _recording(tmp_path)
+    rows = rec.read_recordings(path).scans
+    proc = loopcal("compact", path, env={"LOOPCAL_KILL_AT": step})
+    assert proc.returncode == -signal.SIGKILL, proc.stdout + proc.stderr
+    out = rec.read_recordings(path)
+    assert identities(out.scans) == identities(rows) and out.files[0].intact
+    compacted = "compacted_utc" in out.files[0].metadata["loopcal"]
+    assert compacted == (step == "compact-renamed")
+    again = loopcal("compact", tmp_path)  # cleans up what the kill left, and finishes
+    assert again.returncode == 0, again.stderr
+    assert not list(tmp_path.glob(".*.tmp"))
+    assert identities(rec.read_recordings(path).scans) == identities(rows)
+
+
+def test_a_file_deleted_while_compacted_stays_deleted(tmp_path):
+    """The retention deleting a file during its compaction: the compacted copy must not
+    bring it back."""
+    path = _recording(tmp_path)
+    code = ("import sys; from pathlib import Path; from daemon.recording.compact import compact; "
+            "print(compact(Path(sys.argv[1])))")  # fmt: skip
+    proc = subprocess.Popen([sys.executable, "-c", code, str(path)], stdout=subprocess.PIPE,
+                            text=True, env={**os.environ,
+                                            "LOOPCAL_PAUSE_AT": "compact-verified:3"})  # fmt: skip
+    deadline = time.monotonic() + 30
+    while not list(tmp_path.glob(".*.compact.tmp")):
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    time.sleep(1.0)  # written and being verified or paused after it
+    path.unlink()
+    out, _ = proc.communicate(timeout=60)
+    assert "deleted or replaced" in out and not path.exists()
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_the_recorder_compacts_the_files_it_closes(tmp_path):
+    with hand_emulator(rate=50, speed=1.0) as emu:
+        proc = record(emu.url, tmp_path, "--rotate-seconds", "2", "--read-period", "0.05")
+        proc.wait_for("recording to")
+        deadline = time.monotonic() + 30
+        while proc.text.count("compacted loopcal-") < 2:
+            assert time.monotonic() < deadline, proc.text
+            time.sleep(0.2)
+        rc, _ = proc.stop()
+    assert rc == 0, proc.text
+    out = rec.read_recordings(tmp_path)
+    assert_matches_truth(out.scans, emu)
+    c = out.scans["counter64"].astype(np.int64)
+    assert np.all(np.diff(c) == 1) and out.scans["missed"].sum() == 0
+    compacted = [f for f in out.files if "compacted_utc" in f.metadata.get("loopcal", {})]
+    assert len(compacted) >= 2 and all(f.intact for f in out.files)
+    assert not out.files[-1].metadata["loopcal"].get("compacted_utc")  # the last: at a stop
+    # a later start (here with no module answering) takes the file left uncompacted
+    again = Proc(["record", "--daq", "modbus-tcp://127.0.0.1:1", "--out", str(tmp_path),
+                  "--duration", "3"])  # fmt: skip
+    again.wait(30)
+    assert "compacted " + out.files[-1].path.name in again.text
