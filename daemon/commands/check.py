@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -44,21 +43,35 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="draw each sensor's estimated shift and statistic over time")  # fmt: skip
 
 
-@dataclass
 class Trace:
-    """Every test the monitor ran: the newest pose's stamp (ns), and per sensor the shift
-    (mm), its standard deviation (mm) and the statistic."""
+    """Every test the monitor ran, for the plot: the newest pose's stamp (ns), and per sensor
+    the shift (mm), its standard deviation (mm) and the statistic. Kept as numpy blocks (56
+    bytes a test: a month of poses is tens of MB), and only when a plot is asked for."""
 
-    stamp_ns: list[int] = field(default_factory=list)
-    shift_mm: list[np.ndarray] = field(default_factory=list)
-    std_mm: list[np.ndarray] = field(default_factory=list)
-    statistic: list[np.ndarray] = field(default_factory=list)
+    _BLOCK = 65536
+
+    def __init__(self) -> None:
+        self._stamps: list[np.ndarray] = []
+        self._values: list[np.ndarray] = []  # (block, 12) float32: shift, std, statistic
+        self._n = self._BLOCK  # the fill of the last block
 
     def add(self, stamp_ns: int, test: DriftTest) -> None:
-        self.stamp_ns.append(int(stamp_ns))
-        self.shift_mm.append(test.shift_mm)
-        self.std_mm.append(test.std_mm)
-        self.statistic.append(test.statistic)
+        if self._n == self._BLOCK:
+            self._stamps.append(np.zeros(self._BLOCK, dtype=np.int64))
+            self._values.append(np.zeros((self._BLOCK, 12), dtype=np.float32))
+            self._n = 0
+        self._stamps[-1][self._n] = stamp_ns
+        self._values[-1][self._n] = np.concatenate([test.shift_mm, test.std_mm, test.statistic])
+        self._n += 1
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """stamps (n,) ns; shift, std, statistic (n, 4)."""
+        if not self._stamps:
+            return np.zeros(0, dtype=np.int64), *(np.zeros((0, 4)),) * 3
+        cut = len(self._stamps) * self._BLOCK - (self._BLOCK - self._n)
+        stamps = np.concatenate(self._stamps)[:cut]
+        v = np.concatenate(self._values)[:cut].astype(float)
+        return stamps, v[:, 0:4], v[:, 4:8], v[:, 8:12]
 
 
 def _iso(ns: int | None) -> str | None:
@@ -67,16 +80,23 @@ def _iso(ns: int | None) -> str | None:
     return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds")
 
 
-def check(files: list[Path], config_path: Path, false_alarm: float) -> dict[str, Any]:
-    """Run the monitor over the files; the ``--json`` document (and, under ``"_trace"``,
-    the :class:`Trace`)."""
+def check(files: list[Path], config_path: Path, false_alarm: float, *,
+          trace: bool = False) -> dict[str, Any]:  # fmt: skip
+    """Run the monitor over the files, one at a time; the ``--json`` document (and, under
+    ``"_trace"``, a :class:`Trace` of every test if ``trace``)."""
     config = load_controller_config(config_path)
-    trace = Trace()
+    kept = Trace() if trace else None
+    latest = [0]  # the newest pose's stamp when the monitor last tested
     changes: list[dict[str, Any]] = []
     first_ns: list[int] = []
 
+    def on_test(stamp_ns: int, test: DriftTest) -> None:
+        latest[0] = stamp_ns
+        if kept is not None:
+            kept.add(stamp_ns, test)
+
     def emit(kind: str, level: object, message: str, **d: Any) -> None:
-        now = trace.stamp_ns[-1]
+        now = latest[0]
         if kind == "offset_drift":
             if changes and changes[-1]["sensor"] == d["sensor"] and changes[-1]["end_utc"] is None:
                 changes[-1].update(shift_mm=d["shift_mm"], std_mm=d["std_mm"],
@@ -92,7 +112,7 @@ def check(files: list[Path], config_path: Path, false_alarm: float) -> dict[str,
         elif kind == "offset_drift_cleared" and changes:
             changes[-1]["end_utc"] = _iso(now)
 
-    monitor = HealthMonitor(config, emit, false_alarm=false_alarm, on_test=trace.add)
+    monitor = HealthMonitor(config, emit, false_alarm=false_alarm, on_test=on_test)
     warnings: list[str] = []
     last_ns = None
     for path in files:
@@ -114,7 +134,7 @@ def check(files: list[Path], config_path: Path, false_alarm: float) -> dict[str,
         "end_utc": _iso(last_ns),
         "recordings": [str(f) for f in files],
         "warnings": warnings,
-        "_trace": trace,
+        "_trace": kept,
     }
 
 
@@ -127,11 +147,8 @@ def plot(doc: dict[str, Any], path: Path) -> None:
     import matplotlib.dates as mdates
     import matplotlib.pyplot as plt
 
-    tr: Trace = doc["_trace"]
-    t = [datetime.fromtimestamp(s / 1e9, UTC) for s in tr.stamp_ns]
-    shift = np.array(tr.shift_mm).reshape(-1, 4)
-    std = np.array(tr.std_mm).reshape(-1, 4)
-    stat = np.array(tr.statistic).reshape(-1, 4)
+    stamps, shift, std, stat = doc["_trace"].arrays()
+    t = stamps.astype("datetime64[ns]")  # matplotlib plots these as UTC times
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
     for i in range(4):
         line = a1.plot(t, shift[:, i], lw=1, label=f"sensor {i + 1}")[0]
@@ -183,7 +200,8 @@ def run(args: argparse.Namespace) -> int:
         for f in files:
             if not f.exists():
                 raise RecordingError(f"{f}: no such file")
-        doc = check(list(dict.fromkeys(files)), args.controller_config, args.false_alarm)
+        doc = check(list(dict.fromkeys(files)), args.controller_config, args.false_alarm,
+                    trace=args.plot is not None)  # fmt: skip
     except (RecordingError, ControllerConfigError, ValueError, OSError) as exc:
         print(f"loopcal check: error: {exc}", file=sys.stderr)
         return 2
