@@ -17,17 +17,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
 
-import numpy as np
-
-from calibration.closure import DriftTest
-
-from ..config.controller import ControllerConfigError, load_controller_config
-from ..live.health import FALSE_ALARM, HealthMonitor
-from ..recording import RecordingError, find_recordings, read_recordings
+from ..config.controller import ControllerConfigError
+from ..inspect.loops import check, plot
+from ..live.health import FALSE_ALARM
+from ..recording import RecordingError, find_recordings
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -41,147 +36,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--plot", type=Path, metavar="FILE.png",
                    help="draw each sensor's estimated shift and statistic over time")  # fmt: skip
-
-
-class Trace:
-    """Every test the monitor ran, for the plot: the newest pose's stamp (ns), and per sensor
-    the shift (mm), its standard deviation (mm) and the statistic. Kept as numpy blocks (56
-    bytes a test: a month of poses is tens of MB), and only when a plot is asked for."""
-
-    _BLOCK = 65536
-
-    def __init__(self) -> None:
-        self._stamps: list[np.ndarray] = []
-        self._values: list[np.ndarray] = []  # (block, 12) float32: shift, std, statistic
-        self._n = self._BLOCK  # the fill of the last block
-
-    def add(self, stamp_ns: int, test: DriftTest) -> None:
-        if self._n == self._BLOCK:
-            self._stamps.append(np.zeros(self._BLOCK, dtype=np.int64))
-            self._values.append(np.zeros((self._BLOCK, 12), dtype=np.float32))
-            self._n = 0
-        self._stamps[-1][self._n] = stamp_ns
-        self._values[-1][self._n] = np.concatenate([test.shift_mm, test.std_mm, test.statistic])
-        self._n += 1
-
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """stamps (n,) ns; shift, std, statistic (n, 4)."""
-        if not self._stamps:
-            return np.zeros(0, dtype=np.int64), *(np.zeros((0, 4)),) * 3
-        cut = len(self._stamps) * self._BLOCK - (self._BLOCK - self._n)
-        stamps = np.concatenate(self._stamps)[:cut]
-        v = np.concatenate(self._values)[:cut].astype(float)
-        return stamps, v[:, 0:4], v[:, 4:8], v[:, 8:12]
-
-
-def _iso(ns: int | None) -> str | None:
-    if ns is None:
-        return None
-    return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds")
-
-
-def check(files: list[Path], config_path: Path, false_alarm: float, *,
-          trace: bool = False) -> dict[str, Any]:  # fmt: skip
-    """Run the monitor over the files, one at a time; the ``--json`` document (and, under
-    ``"_trace"``, a :class:`Trace` of every test if ``trace``)."""
-    config = load_controller_config(config_path)
-    kept = Trace() if trace else None
-    latest = [0]  # the newest pose's stamp when the monitor last tested
-    changes: list[dict[str, Any]] = []
-    first_ns: list[int] = []
-
-    def on_test(stamp_ns: int, test: DriftTest) -> None:
-        latest[0] = stamp_ns
-        if kept is not None:
-            kept.add(stamp_ns, test)
-
-    def emit(kind: str, level: object, message: str, **d: Any) -> None:
-        now = latest[0]
-        if kind == "offset_drift":
-            if changes and changes[-1]["sensor"] == d["sensor"] and changes[-1]["end_utc"] is None:
-                changes[-1].update(shift_mm=d["shift_mm"], std_mm=d["std_mm"],
-                                   shape=d["shape"], last_report_utc=_iso(now))  # fmt: skip
-                return
-            changes.append({
-                "sensor": d["sensor"], "start_utc": _iso(d["since_ns"]),
-                "start_offset_s": round((d["since_ns"] - first_ns[0]) / 1e9, 3),
-                "detected_utc": _iso(now), "last_report_utc": _iso(now),
-                "shift_mm": d["shift_mm"], "std_mm": d["std_mm"], "shape": d["shape"],
-                "statistic": d["statistic"], "end_utc": None, "message": message,
-            })  # fmt: skip
-        elif kind == "offset_drift_cleared" and changes:
-            changes[-1]["end_utc"] = _iso(now)
-
-    monitor = HealthMonitor(config, emit, false_alarm=false_alarm, on_test=on_test)
-    warnings: list[str] = []
-    last_ns = None
-    for path in files:
-        rec = read_recordings(path)
-        warnings += rec.warnings
-        if len(rec):
-            if not first_ns:
-                first_ns.append(int(rec.scans["stamp_ns"][0]))
-            last_ns = int(rec.scans["stamp_ns"][-1])
-            monitor.feed(rec.scans)
-    return {
-        "changes": changes,
-        "loops_close": not changes,
-        "poses": monitor.state.poses,
-        "threshold": round(monitor.threshold, 3),
-        "false_alarm": false_alarm,
-        "config": {"path": str(config.path), "sha256": config.sha256},
-        "start_utc": _iso(first_ns[0] if first_ns else None),
-        "end_utc": _iso(last_ns),
-        "recordings": [str(f) for f in files],
-        "warnings": warnings,
-        "_trace": kept,
-    }
-
-
-def plot(doc: dict[str, Any], path: Path) -> None:
-    """Each sensor's estimated offset shift (with one standard deviation) and statistic
-    over time, the alarm threshold, and the changes found."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.dates as mdates
-    import matplotlib.pyplot as plt
-
-    stamps, shift, std, stat = doc["_trace"].arrays()
-    t = stamps.astype("datetime64[ns]")  # matplotlib plots these as UTC times
-    fig, (a1, a2) = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
-    for i in range(4):
-        line = a1.plot(t, shift[:, i], lw=1, label=f"sensor {i + 1}")[0]
-        a1.fill_between(t, shift[:, i] - std[:, i], shift[:, i] + std[:, i],
-                        color=line.get_color(), alpha=0.15, lw=0)  # fmt: skip
-        a2.plot(t, np.maximum(stat[:, i], 0.1), lw=1, color=line.get_color(),
-                label=f"sensor {i + 1}")  # fmt: skip
-    a2.axhline(doc["threshold"], color="black", ls="--", lw=1,
-               label=f"alarm threshold ({doc['false_alarm']:g} per pose)")  # fmt: skip
-    starts = [datetime.fromisoformat(c["start_utc"]) for c in doc["changes"]]
-    if len(starts) <= 20:
-        for t0 in starts:
-            for ax in (a1, a2):
-                ax.axvline(t0, color="tab:red", lw=0.8)
-    elif starts:  # many changes: a mark each, not a wall of lines
-        a2.plot(starts, np.full(len(starts), doc["threshold"]), "v", color="tab:red", ms=3,
-                label="a change began")  # fmt: skip
-    a1.set_ylabel("estimated offset shift, mm")
-    a1.set_title(f"Loop closure at {Path(doc['config']['path']).name}: "
-                 + ("the loops close" if doc["loops_close"] else
-                    f"{len(doc['changes'])} change(s) found (red: where they began)"),
-                 fontsize=10)  # fmt: skip
-    a2.set_ylabel("statistic (chi-square, 1 dof)")
-    a2.set_yscale("log")
-    a2.set_ylim(bottom=0.1)
-    a2.set_xlabel("UTC")
-    a2.xaxis.set_major_formatter(mdates.DateFormatter("%m-%d %H:%M"))
-    for ax in (a1, a2):
-        ax.legend(fontsize=8, loc="upper left")
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def run(args: argparse.Namespace) -> int:

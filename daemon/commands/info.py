@@ -13,22 +13,12 @@ two files (a copy, or a recorder that restarted) is counted once.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import sys
-from collections import Counter
-from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
 
-import numpy as np
-from numpy.lib.recfunctions import repack_fields
-
-from ..recording import RecordingError, find_recordings, read_recordings
-from ..recording.reader import identities
-from ..scans import scan_rate_hz
-from ..worker.poses import poses_of_scans
+from ..inspect.summary import collect, render
+from ..recording import RecordingError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -37,156 +27,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--no-poses", action="store_true",
                    help="do not look for still poses (faster)")  # fmt: skip
-
-
-_TAIL = 512  # scans of a file's end compared with the next file's start
-
-
-@dataclass
-class Summary:
-    """What the recordings hold (see the module docstring); built file by file."""
-
-    files: list[dict[str, Any]] = field(default_factory=list)
-    scans: int = 0
-    start_ns: int | None = None
-    end_ns: int | None = None
-    missed: int = 0
-    gaps: int = 0
-    restarts: int = 0
-    power_ons: set[tuple[str, int]] = field(default_factory=set)
-    rates: list[tuple[int, float]] = field(default_factory=list)  # (scans, Hz) per file
-    events: Counter = field(default_factory=Counter)
-    poses: int | None = 0
-    configs: dict[str, dict[str, Any]] = field(default_factory=dict)
-    warnings: list[str] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)
-    _seen_events: set[tuple[int, str, str]] = field(default_factory=set)
-    _last_key: tuple[int, int] | None = None  # (epoch, counter64) of the last scan counted
-    _tail: set[bytes] = field(default_factory=set)  # the identities of the last file's tail
-    _digests: set[str] = field(default_factory=set)  # of every file's scans: copies count once
-
-    def add(self, path: Path, *, poses: bool) -> None:
-        rec = read_recordings(path)
-        info = rec.files[0]
-        rows = rec.scans
-        digest = hashlib.sha256(repack_fields(rows).tobytes()).hexdigest()
-        if digest in self._digests:
-            rows = rows[:0]  # a copy of a file already counted
-        self._digests.add(digest)
-        if len(rows) and self._last_key is not None:
-            # a scan at or before the last one counted may repeat it (a copy of a file, a
-            # recorder that read a scan again after a restart): once
-            e, c = rows["epoch"].astype(np.int64), rows["counter64"]
-            le, lc = self._last_key
-            early = np.flatnonzero((e < le) | ((e == le) & (c <= lc)))
-            if len(early):
-                seen = identities(rows[early])
-                drop = early[[k in self._tail for k in seen]]
-                rows = np.delete(rows, drop)
-        if len(rows):
-            self._last_key = (int(rows["epoch"][-1]), int(rows["counter64"][-1]))
-            self._tail = set(identities(rows[-_TAIL:]))
-        size = path.stat().st_size
-        self.files.append({
-            "path": str(path), "bytes": size, "complete": info.complete,
-            "scans": len(rows),
-            "start_utc": _iso(info.first_stamp_ns), "end_utc": _iso(info.last_stamp_ns),
-            "note": info.note or None, "warning": info.warning or None,
-        })  # fmt: skip
-        if info.warning:
-            self.warnings.append(info.warning)
-        if info.note:
-            self.notes.append(f"{path.name}: {info.note}")
-        for e in rec.events:
-            key = (e.stamp_ns, e.kind, e.message)
-            if key not in self._seen_events:
-                self._seen_events.add(key)
-                self.events[e.kind] += 1
-        cfg = info.metadata.get("controller_config", {})
-        if cfg:
-            key = cfg.get("sha256", "") or "reference geometry"
-            entry = self.configs.setdefault(key, _config_entry(cfg))
-            entry["files"] += 1
-        if not len(rows):
-            return
-        self.scans += len(rows)
-        first, last = int(rows["stamp_ns"][0]), int(rows["stamp_ns"][-1])
-        self.start_ns = first if self.start_ns is None else min(self.start_ns, first)
-        self.end_ns = last if self.end_ns is None else max(self.end_ns, last)
-        self.missed += int(rows["missed"].sum())
-        self.gaps += int(np.count_nonzero((rows["missed"] > 0) & ~rows["restarted"]))
-        self.restarts += int(np.count_nonzero(rows["restarted"]))
-        serial = info.metadata.get("device", {}).get("serial", "")
-        self.power_ons |= {(serial, int(e)) for e in np.unique(rows["epoch"])}
-        self.rates.append((len(rows), scan_rate_hz(rows)))
-        if poses and self.poses is not None:
-            self.poses += len(poses_of_scans(rows))
-
-    @property
-    def scan_rate_hz(self) -> float | None:
-        if not self.rates:
-            return None
-        n = np.array([r[0] for r in self.rates], dtype=float)
-        hz = np.array([r[1] for r in self.rates])
-        return float(np.sum(n * hz) / n.sum())
-
-    def as_json(self) -> dict[str, Any]:
-        span = (self.end_ns - self.start_ns) / 1e9 if self.start_ns is not None else 0.0
-        return {
-            "files": self.files,
-            "bytes": sum(f["bytes"] for f in self.files),
-            "scans": self.scans,
-            "start_utc": _iso(self.start_ns),
-            "end_utc": _iso(self.end_ns),
-            "duration_s": round(span, 3),
-            "scan_rate_hz": None if self.scan_rate_hz is None else round(self.scan_rate_hz, 4),
-            "missed": self.missed,
-            "gaps": self.gaps,
-            "restarts": self.restarts,
-            "power_ons": len(self.power_ons),
-            "events": dict(sorted(self.events.items())),
-            "poses": self.poses,
-            "controller_configs": list(self.configs.values()),
-            "warnings": self.warnings,
-            "notes": self.notes,
-        }
-
-
-def _iso(ns: int | None) -> str | None:
-    if ns is None:
-        return None
-    return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds")
-
-
-def _config_entry(cfg: dict[str, str]) -> dict[str, Any]:
-    prov: dict[str, Any] = {}
-    if cfg.get("provenance"):
-        try:
-            prov = json.loads(cfg["provenance"])
-        except ValueError:
-            prov = {}
-    return {
-        "path": cfg.get("path") or None,
-        "sha256": cfg.get("sha256") or None,
-        "calibrated_utc": prov.get("written_utc"),
-        "method": prov.get("method"),
-        "files": 0,
-    }
-
-
-def collect(paths: list[Path], *, poses: bool = True) -> Summary:
-    """The summary of recording files and directories (files in time order by name)."""
-    files: list[Path] = []
-    for p in paths:
-        files += find_recordings(p) if p.is_dir() else [p]
-    if not files:
-        raise RecordingError(f"{', '.join(map(str, paths))}: no recordings (loopcal-*.mcap)")
-    out = Summary(poses=0 if poses else None)
-    for f in dict.fromkeys(files):
-        if not f.exists():
-            raise RecordingError(f"{f}: no such file")
-        out.add(f, poses=poses)
-    return out
 
 
 def run(args: argparse.Namespace) -> int:
@@ -203,36 +43,3 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def render(doc: dict[str, Any]) -> list[str]:
-    """The summary for people."""
-    hours, rem = divmod(int(doc["duration_s"]), 3600)
-    lines = [
-        f"files:      {len(doc['files'])} ({doc['bytes'] / 1e6:,.1f} MB)",
-        f"time span:  {_short(doc['start_utc'])} to {_short(doc['end_utc'])} "
-        f"({hours} h {rem // 60} min {rem % 60} s)",
-        f"scans:      {doc['scans']:,}"
-        + (f" at {doc['scan_rate_hz']:.3f} Hz" if doc["scan_rate_hz"] else ""),
-        f"missed:     {doc['missed']:,} scans in {doc['gaps']} gap(s)",
-        f"restarts:   {doc['restarts']} (power-ons seen: {doc['power_ons']})",
-        "events:     " + (", ".join(f"{k} {n}" for k, n in doc["events"].items()) or "none"),
-    ]
-    if doc["poses"] is not None:
-        lines.append(f"still poses: {doc['poses']:,}")
-    for c in doc["controller_configs"]:
-        how = (f", calibrated {c['calibrated_utc']} ({c['method']})" if c["calibrated_utc"]
-               else ", never calibrated by loopcal")  # fmt: skip
-        lines.append(f"controller config: {c['path'] or 'reference geometry'} "
-                     f"sha256 {(c['sha256'] or '-')[:12]}{how}; {c['files']} file(s)")  # fmt: skip
-    lines.append("damaged:    " + ("none" if not doc["warnings"] else ""))
-    lines += [f"  {w}" for w in doc["warnings"]]
-    lines.append("files:")
-    for f in doc["files"]:
-        state = "closed" if f["complete"] else "not closed"
-        lines.append(f"  {Path(f['path']).name}  {_short(f['start_utc'])} to "
-                     f"{_short(f['end_utc'])}  {f['scans']:,} scans  {f['bytes'] / 1e6:.1f} MB  "
-                     f"{state}")  # fmt: skip
-    return lines
-
-
-def _short(iso: str | None) -> str:
-    return "-" if iso is None else iso.replace("T", " ").replace("+00:00", " UTC")
