@@ -161,17 +161,19 @@ def write_session(
     hours_per_file: float = 1.0,
     edit=None,
     drifts=(),
+    t0: int = T0,
 ) -> int:
     """Write an offline-simulated session as recording files in ``path``; returns scans.
 
     edit: called with the codes (n, 4) to change them (a stuck sensor, say). drifts:
-    :class:`simulator.drift.OffsetDrift` of the sensors' offsets."""
+    :class:`simulator.drift.OffsetDrift` of the sensors' offsets. t0: the first scan's stamp,
+    ns since the Unix epoch."""
     n = round(seconds * rate)
     time_us, codes = mechanism_scans(scenario, truth, n, rate_hz=rate, noise_volts=0.04,
                                      seed=seed, drifts=drifts)  # fmt: skip
     if edit is not None:
         edit(codes)
-    rows = rows_from(time_us, codes)
+    rows = rows_from(time_us, codes, t0=t0)
     path.mkdir(parents=True, exist_ok=True)
     per_file = round(hours_per_file * 3600 * rate)
     meta = rec.metadata_records(

@@ -31,6 +31,8 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
      "what recordings hold: time span, scans, gaps, restarts, events, poses, config, damage"),
     ("check", "check",
      "did the loops close at a controller config: which sensor moved, when, by how much"),
+    ("fleet", "fleet",
+     "info or check over a fleet's archives, per robot and day, on Dask (loopcal[fleet])"),
     ("compact", "compact",
      "rewrite closed recordings with large chunks, for fast reading (verified, atomic)"),
     ("replay", "replay", "serve a recording through the emulated DAQ, scan for scan"),

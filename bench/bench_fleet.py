@@ -1,0 +1,115 @@
+"""``loopcal fleet`` on Dask: the speed-up from one worker to two on this machine, and what
+a task costs Dask beyond its own work.
+
+    python bench/bench_fleet.py [--robots 4] [--days 3] [--minutes 20] [--repeats 3]
+
+A synthetic fleet (``--robots`` robots, ``--days`` days each of ``--minutes`` of a
+technician moving the joint, written once under bench/results/fleet) is checked
+(``fleet check``'s task: loop closure per robot-day) and summarised (``fleet info``'s):
+
+* baseline: the same tasks one after the other in this process, no Dask;
+* a local cluster of 1 and of 2 worker processes (one thread each), the cluster's start
+  included and excluded; the speed-up from 1 to 2 (this machine has 2 cores, and other work
+  on it shares them);
+* per-task overhead: the same number of tasks that do nothing (Dask's own cost per
+  task: scheduling, pickling, the round trip), and a cluster's start.
+
+Medians of ``--repeats``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+
+from session_helpers import PAUSE_S, T0, truth_for, write_session  # noqa: E402
+
+from daemon.config.controller import write_initial_config  # noqa: E402
+from daemon.inspect.fleet import (  # noqa: E402
+    RobotDay,
+    check_task,
+    info_task,
+    robot_days,
+    run_here,
+    run_on_dask,
+)
+from daemon.live.health import FALSE_ALARM  # noqa: E402
+from simulator.scenarios import HandMoves  # noqa: E402
+
+DAY_NS = 86_400 * 10**9
+
+
+def make_fleet(root: Path, robots: int, days: int, minutes: float) -> Path:
+    marker = root / f".made-{robots}x{days}x{minutes:g}"
+    if marker.exists():
+        return root
+    t = time.perf_counter()
+    for k in range(robots):
+        truth = truth_for(100 + k)
+        d = root / f"robot-{k:03d}"
+        for day in range(days):
+            write_session(d / "recordings", HandMoves(100 + k + 1000 * day, params=truth,
+                                                      pause_s=PAUSE_S),
+                          truth, 60 * minutes, seed=100 + k + 1000 * day,
+                          hours_per_file=min(1.0, minutes / 60), t0=T0 + day * DAY_NS)  # fmt: skip
+        write_initial_config(d / "controller.toml", params=truth)
+    marker.touch()
+    print(f"wrote the fleet in {time.perf_counter() - t:.0f} s", flush=True)
+    return root
+
+
+def nothing(task: RobotDay) -> dict:
+    """A task that does no work: what is left is Dask's cost per task."""
+    return {"robot": task.robot, "day": task.day}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--robots", type=int, default=4)
+    ap.add_argument("--days", type=int, default=3)
+    ap.add_argument("--minutes", type=float, default=20.0)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--dir", type=Path, default=Path(__file__).parent / "results" / "fleet")
+    args = ap.parse_args()
+    root = make_fleet(args.dir, args.robots, args.days, args.minutes)
+    tasks = robot_days(root)
+    print(f"{len(tasks)} robot-days ({args.robots} robots x {args.days} days of "
+          f"{args.minutes:g} min); medians of {args.repeats}")  # fmt: skip
+    start = statistics.median(_timed(lambda: run_on_dask([], nothing, workers=2))
+                              for _ in range(args.repeats))  # fmt: skip
+    for name, fn, extra in (("check", check_task, (FALSE_ALARM,)), ("info", info_task, ())):
+        base = statistics.median(_timed(lambda fn=fn, extra=extra: list(run_here(tasks, fn,
+                                        *extra))) for _ in range(args.repeats))  # fmt: skip
+        walls = {}
+        for workers in (1, 2):
+            walls[workers] = statistics.median(_timed(
+                lambda fn=fn, extra=extra, workers=workers: run_on_dask(
+                    tasks, fn, *extra, workers=workers)) for _ in range(args.repeats))  # fmt: skip
+        net = {w: max(t - start, 1e-9) for w, t in walls.items()}
+        print(f"{name}: in this process {base:.2f} s ({1000 * base / len(tasks):.0f} ms a "
+              f"robot-day); Dask 1 worker {walls[1]:.2f} s, 2 workers {walls[2]:.2f} s "
+              f"(cluster start included); speed-up 1 -> 2 workers: "
+              f"{walls[1] / walls[2]:.2f}x, {net[1] / net[2]:.2f}x without the cluster's "
+              f"start")  # fmt: skip
+    many = tasks * 25
+    empty = statistics.median(_timed(lambda: run_on_dask(many, nothing, workers=2))
+                              for _ in range(args.repeats))  # fmt: skip
+    per_task = (empty - start) / len(many)
+    print(f"a local cluster of 2 workers starts and stops in {start:.2f} s; Dask's own cost "
+          f"per task (no work, {len(many)} tasks): {1000 * per_task:.2f} ms")  # fmt: skip
+    return 0
+
+
+def _timed(fn) -> float:
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,105 @@
+"""``loopcal fleet info|check ROOT ... [--out TABLE.csv] [--scheduler ADDRESS] [--workers N]``:
+``loopcal info`` and ``loopcal check`` over a fleet's archives, one task per robot and UTC
+day, on Dask (:mod:`daemon.inspect.fleet`; ``pip install loopcal[fleet]``).
+
+ROOT holds a directory per robot, each with its controller config (``controller.toml``) and
+its recordings (directly, or in ``recordings/``). The tasks run on a local cluster of
+``--workers`` processes, or on a running Dask scheduler (``--scheduler tcp://host:8786``:
+the workers must see the same paths). Progress goes to stderr; the table (one row per
+robot-day) to ``--out`` (CSV, or Parquet for a ``.parquet`` name) or stdout as CSV.
+Exit status: 0, 1 if ``fleet check`` found a change, 2 for bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ..inspect.fleet import (
+    CHECK_COLUMNS,
+    CONFIG_NAME,
+    INFO_COLUMNS,
+    FleetError,
+    check_task,
+    info_task,
+    robot_days,
+    run_on_dask,
+    write_table,
+)
+from ..live.health import FALSE_ALARM
+from ..recording import RecordingError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("what", choices=("info", "check"), help="info: what the archives hold; "
+                   "check: did each robot's loops close at its controller config")  # fmt: skip
+    p.add_argument("roots", nargs="+", type=Path, metavar="ROOT",
+                   help="fleet roots: a directory per robot")  # fmt: skip
+    p.add_argument("--out", type=Path, metavar="TABLE",
+                   help="write the table here (.csv or .parquet; default: CSV on "
+                        "stdout)")  # fmt: skip
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (default: a local "
+                        "cluster)")  # fmt: skip
+    p.add_argument("--workers", type=int, default=2, metavar="N",
+                   help="processes of the local cluster (default 2)")  # fmt: skip
+    p.add_argument("--config-name", default=CONFIG_NAME, metavar="NAME",
+                   help=f"each robot's controller config file (default {CONFIG_NAME})")  # fmt: skip
+    p.add_argument("--false-alarm", type=float, default=FALSE_ALARM, metavar="P",
+                   help=f"check: false-alarm probability per still pose (default "
+                        f"{FALSE_ALARM:g})")  # fmt: skip
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        import dask.distributed  # noqa: F401 - the optional extra
+    except ImportError:
+        print("loopcal fleet: error: Dask is not installed: pip install 'loopcal[fleet]'",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    try:
+        if args.workers < 1:
+            raise FleetError(f"--workers {args.workers}: at least 1")
+        if not 0 < args.false_alarm < 1e-2:
+            raise FleetError(f"--false-alarm {args.false_alarm:g}: a probability in (0, 0.01)")
+        if args.out is not None and not args.out.parent.is_dir():
+            raise FleetError(f"--out {args.out}: directory {args.out.parent} does not exist")
+        tasks = [t for root in args.roots for t in robot_days(root, args.config_name)]
+    except (FleetError, RecordingError, OSError) as exc:
+        print(f"loopcal fleet: error: {exc}", file=sys.stderr)
+        return 2
+    n_robots = len({t.robot for t in tasks})
+    where = args.scheduler or f"a local cluster of {args.workers} worker(s)"
+    print(f"{len(tasks)} robot-days of {n_robots} robot(s) on {where}", file=sys.stderr)
+
+    tty = sys.stderr.isatty()
+    step = max(1, len(tasks) // 10)
+
+    def progress(done: int, total: int, elapsed: float) -> None:
+        if tty:  # one line, redrawn
+            print(f"\r{done}/{total} robot-days done, {elapsed:.1f} s", end="",
+                  file=sys.stderr, flush=True)  # fmt: skip
+        elif done % step == 0 or done == total:
+            print(f"{done}/{total} robot-days done, {elapsed:.1f} s", file=sys.stderr,
+                  flush=True)  # fmt: skip
+
+    if args.what == "info":
+        rows = run_on_dask(tasks, info_task, scheduler=args.scheduler, workers=args.workers,
+                           progress=progress)  # fmt: skip
+        columns = INFO_COLUMNS
+    else:
+        rows = run_on_dask(tasks, check_task, args.false_alarm, scheduler=args.scheduler,
+                           workers=args.workers, progress=progress)  # fmt: skip
+        columns = CHECK_COLUMNS
+    if tty:
+        print(file=sys.stderr)
+    out = args.out if args.out is not None else Path("/dev/stdout")
+    try:
+        write_table(rows, columns, out)
+    except (FleetError, OSError) as exc:
+        print(f"loopcal fleet: error: {exc}", file=sys.stderr)
+        return 2
+    if args.out is not None:
+        print(f"{len(rows)} rows: {args.out}", file=sys.stderr)
+    return 1 if args.what == "check" and any(r.get("changes") for r in rows) else 0
