@@ -173,3 +173,36 @@ def test_record_without_health_raises_nothing(tmp_path):
         rec = record(emu.url, tmp_path, "--no-health", "--duration", "6")
         assert rec.wait(60) == 0, rec.text
     assert read_recordings(tmp_path).events_of("offset_drift") == []
+
+
+def test_windows_tested_together_equal_each_window_alone():
+    """step_tests (what the monitor runs, a file's windows at once) gives drift_test's
+    answer for every window: shifted and clean windows, with and without the config's
+    covariance, with unusable poses, and a window too short to split."""
+    from calibration.closure import Closure, step_tests
+    from calibration.implicit import predicted_volts
+    from calibration.simulate import sample_workspace
+
+    rng = np.random.default_rng(4)
+    m, B = 30, 40
+    R = sample_workspace(m * B, rng, TRUTH)
+    V = predicted_volts(R, TRUTH) + rng.normal(0, 0.01, (m * B, 4))
+    V[m * 3 + 20 :, 2] += 0.1  # a shift of sensor 3 in the later windows
+    cl = loop_closure(V, TRUTH, np.full(4, 0.01))
+    shaped = [cl.error.reshape(B, m), cl.offset_pattern.reshape(B, m, 4),
+              cl.information.reshape(B, m, 20), cl.usable.reshape(B, m).copy()]  # fmt: skip
+    shaped[3][5, 7] = False  # an unusable pose: drift_test leaves it out
+    cov = np.diag(rng.uniform(0, 0.05, 20) ** 2)
+    for C in (None, cov):
+        for b, got in enumerate(step_tests(*shaped, C)):
+            want = drift_test(Closure(*(x[b] for x in shaped)), C, change_points=True)
+            for name in ("shift_mm", "std_mm", "statistic", "margin", "chi2_rms"):
+                np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-9,
+                                           atol=1e-12, err_msg=f"{name} of window {b}")  # fmt: skip
+            assert (got.affected, got.shape, got.poses) == (want.affected, want.shape, want.poses)
+    late = step_tests(*shaped, cov)[3]  # its last 10 poses shifted
+    assert (late.sensor, late.affected) == (3, 10), late
+    one = [x[:1, :1] for x in shaped]
+    assert step_tests(*one)[0].poses == 1
+    with pytest.raises(ValueError, match="offset_pattern"):
+        step_tests(shaped[0], shaped[1][:, :, :3], shaped[2], shaped[3])

@@ -23,7 +23,6 @@ sensor's statistic falls below :data:`CLEAR_STATISTIC`.
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -31,11 +30,13 @@ import numpy as np
 from scipy.special import chdtri
 
 from calibration.closure import (
+    Closure,
     DriftTest,
     PoseModels,
     drift_test,
     loop_closure,
     pose_models,
+    step_tests,
     threshold,
 )
 from calibration.parameters import INDEX, SL_OFFSET
@@ -58,7 +59,33 @@ DEFAULT_CONFIG_STD_MM = 0.05
 FALSE_ALARM = 1e-8
 BUFFER_S = 3 * LONGEST_POSE_S  # scans kept while no pose is found (the plate moving)
 
+_BATCH = 512  # windows tested at once (memory: about 30 kB each)
+
 Emit = Callable[..., None]  # (kind, level, message, **details)
+
+
+@dataclass(frozen=True)
+class _Poses:
+    """Still poses in order: mean volts (n, 4), one scan's noise (n, 4), scans averaged
+    (n,), stamps (n,) ns, and the config's :class:`PoseModels` of them."""
+
+    volts: np.ndarray
+    noise: np.ndarray
+    counts: np.ndarray
+    stamps: np.ndarray
+    models: PoseModels
+
+    def __len__(self) -> int:
+        return len(self.volts)
+
+    def __getitem__(self, k: slice) -> _Poses:
+        return _Poses(self.volts[k], self.noise[k], self.counts[k], self.stamps[k], self.models[k])
+
+    def join(self, other: _Poses) -> _Poses:
+        return _Poses(*(np.concatenate([a, b]) for a, b in zip(
+            (self.volts, self.noise, self.counts, self.stamps),
+            (other.volts, other.noise, other.counts, other.stamps), strict=True)),
+            PoseModels.stack([self.models, other.models]))  # fmt: skip
 
 
 @dataclass
@@ -118,9 +145,9 @@ class HealthMonitor:
         """Start over at a new controller config (a reload): earlier poses no longer count."""
         self.params = np.array(controller.params, dtype=float)
         self.covariance = config_covariance(controller)
-        # the last WINDOW poses: (mean volts (4,), scan noise (4,), scans averaged, stamp ns,
-        # what the config predicts for it: PoseModels of one pose)
-        self._poses: deque[tuple] = deque(maxlen=WINDOW)
+        # the last WINDOW poses' mean volts (4,), scan noise (4,), scans averaged, stamp ns,
+        # and what the config predicts for them (PoseModels)
+        self._window: _Poses | None = None
         self.state = HealthState()
 
     # ------------------------------------------------------------------ input
@@ -143,33 +170,53 @@ class HealthMonitor:
             self._last_key = (int(buf["epoch"][b - 1]), int(buf["counter64"][b - 1]))
             keep_from = b
             new.append(k)
-        # what the config predicts for each pose, once (all of this feed's at once)
-        models = pose_models(P.volts[new], self.params) if new else None
-        for j, k in enumerate(new):
-            self._poses.append((P.volts[k], P.scan_noise[k], int(P.counts[k]),
-                                int(P.stamp_ns[k]), models[j]))  # fmt: skip
-            self.state.poses += 1
-            if len(self._poses) >= MIN_AFFECTED:
-                self._test()
+        if new:
+            self._add(_Poses(P.volts[new], P.scan_noise[new], P.counts[new].astype(float),
+                             P.stamp_ns[new].astype(np.int64),
+                             pose_models(P.volts[new], self.params)))  # fmt: skip
         rate = P.scan_rate_hz
         keep_from = max(keep_from, len(buf) - int(BUFFER_S * rate))
         self._buf = buf[keep_from:].copy()
 
     # ------------------------------------------------------------------ the test
 
-    def _test(self) -> None:
-        volts, noise, counts, stamps, models = zip(*self._poses, strict=True)
-        V = np.array(volts)
-        counts = np.array(counts, dtype=float)
-        # one scan's noise per channel, pooled over the window (a pose's own estimate from
+    def _add(self, fresh: _Poses) -> None:
+        """Append a feed's new poses and test the window each of them completes: the last
+        :data:`WINDOW` poses, from :data:`MIN_AFFECTED` on. The windows' tests run together
+        (:func:`calibration.closure.step_tests`); what they mean is judged in order."""
+        old = 0 if self._window is None else len(self._window)
+        poses = fresh if self._window is None else self._window.join(fresh)
+        ends = np.arange(old, len(poses)) + 1  # each new pose closes the window ending at it
+        self.state.poses += len(fresh)
+        ends = ends[ends >= MIN_AFFECTED]
+        starts = np.maximum(ends - WINDOW, 0)
+        for m in np.unique(ends - starts):  # WINDOW, but fewer poses after a (re)start
+            sel = ends[ends - starts == m]
+            for lo in range(0, len(sel), _BATCH):
+                self._test(poses, sel[lo:lo + _BATCH] - m, int(m))
+        self._window = poses[max(0, len(poses) - WINDOW):]
+
+    def _test(self, poses: _Poses, starts: np.ndarray, m: int) -> None:
+        """Test the windows of m poses beginning at ``starts``, then judge them in order."""
+        win = starts[:, None] + np.arange(m)  # (B, m) pose indices
+        # one scan's noise per channel, pooled over each window (a pose's own estimate from
         # a second of scans scatters by 15 %); the converter's rounding does not average out
-        scan = np.sqrt(np.mean(np.square(noise), axis=0))
-        sigma = pose_noise_volts(scan, counts)
-        closure = loop_closure(V, self.params, sigma, models=PoseModels.stack(list(models)))
-        best = drift_test(closure, self.covariance, change_points=True)
+        scan = np.sqrt(np.mean(np.square(poses.noise[win]), axis=1))  # (B, 4)
+        sigma = pose_noise_volts(np.repeat(scan, m, axis=0), poses.counts[win].ravel())
+        flat = win.ravel()
+        c = loop_closure(poses.volts[flat], self.params, sigma, models=poses.models[flat])
+        shape = win.shape
+        closures = (c.error.reshape(shape), c.offset_pattern.reshape(shape + (4,)),
+                    c.information.reshape(shape + (-1,)), c.usable.reshape(shape))  # fmt: skip
+        tests = step_tests(*closures, self.covariance)
+        for b, best in enumerate(tests):
+            self._judge(best, poses.stamps[win[b]], lambda b=b: Closure(*(x[b] for x in closures)))
+
+    def _judge(self, best: DriftTest, stamps: np.ndarray, closure: Callable[[], Closure]) -> None:
+        """What a window's test means: an alarm, a growing shift, a clear, or nothing."""
         self.state.last = best
         if self.on_test is not None:
-            self.on_test(stamps[-1], best)
+            self.on_test(int(stamps[-1]), best)
         st = self.state
         if st.alarm_sensor is not None:
             if best.statistic[st.alarm_sensor - 1] < CLEAR_STATISTIC:
@@ -186,14 +233,14 @@ class HealthMonitor:
             return
         # a creep fits a step of the wrong sensor now and then, and a step a creep: both
         # shapes must name the same sensor
-        shaped = drift_test(closure, self.covariance, change_points=True, creep=True)
+        shaped = drift_test(closure(), self.covariance, change_points=True, creep=True)
         if shaped.sensor != best.sensor:
             return
         if shaped.shape == "creep":  # still moving: the creep's estimate is its shift now
             best = shaped
         sensor = best.sensor
         shift = float(best.shift_mm[sensor - 1])
-        now = stamps[-1]
+        now = int(stamps[-1])
         if st.alarm_sensor == sensor and (
             abs(shift - st.alarm_shift_mm) < REPORT_STEP_MM
             or np.sign(shift) != np.sign(st.alarm_shift_mm)  # on its way back: see the clear
