@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from .errors import InputError
 from .residuals import check_volts
@@ -31,6 +30,55 @@ def pose_noise_volts(scan_noise: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """
     counts = np.asarray(counts, dtype=float)
     return np.sqrt(np.square(scan_noise) / counts[:, None] + READING_LSB_VOLTS**2 / 12)
+
+
+#: scans per block of the sliding-window search (its temporaries stay in the cache)
+_BLOCK = 1 << 14
+
+
+def _sliding(X: np.ndarray, window: int, op) -> np.ndarray:
+    """``op`` (np.maximum or np.minimum) over every window of ``window`` rows of X (n, c):
+    (n - window + 1, c). By doubling: after j steps ``m[i]`` covers rows i .. i + 2^j - 1,
+    and two overlapping such spans cover any window (max and min are exact, so the result
+    is that of a reduction over each window)."""
+    m, span = X, 1
+    while 2 * span <= window:
+        m = op(m[:-span], m[span:])
+        span *= 2
+    return op(m[: len(X) - window + 1], m[window - span :]) if span < window else m
+
+
+def _window_spread(V: np.ndarray, window: int) -> np.ndarray:
+    """(n - window + 1,) the largest peak-to-peak change of any channel within each window
+    of ``window`` scans of V (n, c): ``max_c ptp(V[i : i + window, c])``, in blocks of
+    :data:`_BLOCK` windows (O(n log window), no (n, c, window) array)."""
+    n = len(V)
+    out = np.empty(n - window + 1)
+    for a in range(0, n - window + 1, _BLOCK):
+        X = V[a : min(a + _BLOCK + window - 1, n)]
+        spread = _sliding(X, window, np.maximum)
+        spread -= _sliding(X, window, np.minimum)
+        spread.max(axis=1, out=out[a : a + len(spread)])
+    return out
+
+
+def _window_all(ok: np.ndarray, window: int) -> np.ndarray:
+    """(n - window + 1,) whether every scan of each window of ``window`` scans is ok (n,)."""
+    bad = np.concatenate([[0], np.cumsum(~ok, dtype=np.int64)])
+    return bad[window:] == bad[: len(ok) - window + 1]
+
+
+def _split(ranges: np.ndarray, max_scans: int, window: int) -> np.ndarray:
+    """Ranges (k, 2) [a, b) cut into pieces of max_scans from each start (the last piece
+    of a range keeps the rest), pieces shorter than ``window`` dropped; in order."""
+    a, b = ranges[:, 0], ranges[:, 1]
+    pieces = -(-(b - a) // max_scans)  # ceil
+    first = np.repeat(a, pieces)
+    step = np.arange(len(first)) - np.repeat(np.cumsum(pieces) - pieces, pieces)
+    start = first + step * max_scans
+    stop = np.minimum(start + max_scans, np.repeat(b, pieces))
+    keep = stop - start >= window
+    return np.stack([start[keep], stop[keep]], axis=1).astype(int).reshape(-1, 2)
 
 
 @dataclass(frozen=True)
@@ -78,27 +126,19 @@ def still_poses(
     empty = StillPoses(np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, 2), dtype=int))
     if n < window:
         return empty
-    win = sliding_window_view(V, window, axis=0)  # (n - window + 1, 4, window)
-    still_win = (np.ptp(win, axis=2).max(axis=1) <= band_volts) & sliding_window_view(
-        ok, window
-    ).all(axis=1)
+    still_win = (_window_spread(V, window) <= band_volts) & _window_all(ok, window)
     # a scan is still if it lies in at least one still window
-    cover = np.zeros(n + 1, dtype=int)
+    cover = np.zeros(n + 1, dtype=np.int64)
     starts = np.flatnonzero(still_win)
-    np.add.at(cover, starts, 1)
-    np.add.at(cover, starts + window, -1)
+    cover[starts] += 1  # starts are distinct, and so are starts + window
+    cover[starts + window] -= 1
     still = np.cumsum(cover[:-1]) > 0
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(int), [0]])))
+    edges = np.flatnonzero(np.diff(still, prepend=False, append=False))
     ranges = edges.reshape(-1, 2)
     if max_scans is not None:
         if max_scans < window:
             raise InputError(f"max_scans ({max_scans}) must be at least the window ({window})")
-        pieces = []
-        for a, b in ranges:
-            cuts = list(range(a, b, max_scans)) + [b]
-            pieces += [(c0, c1) for c0, c1 in zip(cuts[:-1], cuts[1:], strict=True)
-                       if c1 - c0 >= window]  # fmt: skip
-        ranges = np.array(pieces, dtype=int).reshape(-1, 2)
+        ranges = _split(ranges, max_scans, window)
     if len(ranges) == 0:
         return empty
     csum = np.concatenate([np.zeros((1, 4)), np.cumsum(V, axis=0)])

@@ -69,6 +69,15 @@ def _difference_noise(volts: np.ndarray, ranges: np.ndarray) -> np.ndarray:
     return np.sqrt((c[b] - c[a]) / np.maximum(b - a, 1)[:, None] / 2)
 
 
+def _near(breaks: np.ndarray, margin: int, n: int) -> np.ndarray:
+    """(n,) bool: rows within ``margin`` of a break, [b - margin, b + margin) for each
+    break row b (the ranges may overlap)."""
+    cover = np.zeros(n + 1, dtype=np.int64)
+    np.add.at(cover, np.clip(breaks - margin, 0, n), 1)
+    np.add.at(cover, np.clip(breaks + margin, 0, n), -1)
+    return np.cumsum(cover[:-1]) > 0
+
+
 def poses_of_scans(
     s: np.ndarray,
     *,
@@ -92,17 +101,16 @@ def poses_of_scans(
         epoch_change = np.flatnonzero(np.diff(s["epoch"]) != 0) + 1
         breaks = np.union1d(breaks, epoch_change)
     margin = max(1, round(gap_margin_s * rate))
-    near_gap = np.zeros(n, dtype=bool)
-    for b in breaks:
-        near_gap[max(0, b - margin) : b + margin] = True
+    near_gap = _near(breaks, margin, n)
     valid = ~bad_channel & ~near_gap
     dropped = {
         "channel at the rail or faulted": int(bad_channel.sum()),
         "next to a gap or restart": int((near_gap & ~bad_channel).sum()),
     }
     window = max(2, round(window_s * rate))
+    volts = scan_rows.volts(s)
     found = still_poses(
-        scan_rows.volts(s),
+        volts,
         window=window,
         band_volts=band_volts,
         max_scans=max(window, round(longest_s * rate)),
@@ -112,7 +120,7 @@ def poses_of_scans(
     return RecordedPoses(
         volts=found.volts,
         spread=found.spread,
-        scan_noise=_difference_noise(scan_rows.volts(s), found.ranges),
+        scan_noise=_difference_noise(volts, found.ranges),
         counts=found.counts,
         rows=found.ranges,
         stamp_ns=s["stamp_ns"][mid] if len(mid) else np.zeros(0, dtype=np.int64),
