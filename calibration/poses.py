@@ -37,28 +37,31 @@ _BLOCK = 1 << 14
 
 
 def _sliding(X: np.ndarray, window: int, op) -> np.ndarray:
-    """``op`` (np.maximum or np.minimum) over every window of ``window`` rows of X (n, c):
-    (n - window + 1, c). By doubling: after j steps ``m[i]`` covers rows i .. i + 2^j - 1,
-    and two overlapping such spans cover any window (max and min are exact, so the result
-    is that of a reduction over each window)."""
+    """``op`` (np.maximum or np.minimum) over every window of ``window`` columns of X
+    (c, n): (c, n - window + 1). By doubling: after j steps ``m[:, i]`` covers columns
+    i .. i + 2^j - 1, and two overlapping such spans cover any window (max and min are
+    exact, so the result is that of a reduction over each window)."""
     m, span = X, 1
     while 2 * span <= window:
-        m = op(m[:-span], m[span:])
+        m = op(m[:, :-span], m[:, span:])
         span *= 2
-    return op(m[: len(X) - window + 1], m[window - span :]) if span < window else m
+    return op(m[:, : X.shape[1] - window + 1], m[:, window - span :]) if span < window else m
 
 
 def _window_spread(V: np.ndarray, window: int) -> np.ndarray:
     """(n - window + 1,) the largest peak-to-peak change of any channel within each window
-    of ``window`` scans of V (n, c): ``max_c ptp(V[i : i + window, c])``, in blocks of
-    :data:`_BLOCK` windows (O(n log window), no (n, c, window) array)."""
+    of ``window`` scans of V (n, c): ``max_c ptp(V[i : i + window, c])``. In blocks of
+    :data:`_BLOCK` windows, each channel-major (O(n log window), no (n, c, window) array)."""
     n = len(V)
     out = np.empty(n - window + 1)
     for a in range(0, n - window + 1, _BLOCK):
-        X = V[a : min(a + _BLOCK + window - 1, n)]
+        X = np.ascontiguousarray(V[a : min(a + _BLOCK + window - 1, n)].T)
         spread = _sliding(X, window, np.maximum)
         spread -= _sliding(X, window, np.minimum)
-        spread.max(axis=1, out=out[a : a + len(spread)])
+        o = out[a : a + spread.shape[1]]
+        o[:] = spread[0]
+        for row in spread[1:]:
+            np.maximum(o, row, out=o)
     return out
 
 
@@ -141,8 +144,14 @@ def still_poses(
         ranges = _split(ranges, max_scans, window)
     if len(ranges) == 0:
         return empty
-    csum = np.concatenate([np.zeros((1, 4)), np.cumsum(V, axis=0)])
-    csq = np.concatenate([np.zeros((1, 4)), np.cumsum(V * V, axis=0)])
+    # sums over the stretches from running sums over the scans (each written in place)
+    csum = np.empty((n + 1, 4))
+    csum[0] = 0.0
+    np.cumsum(V, axis=0, out=csum[1:])
+    csq = np.empty((n + 1, 4))
+    csq[0] = 0.0
+    np.multiply(V, V, out=csq[1:])
+    np.cumsum(csq[1:], axis=0, out=csq[1:])
     cnt = (ranges[:, 1] - ranges[:, 0])[:, None]
     mean = (csum[ranges[:, 1]] - csum[ranges[:, 0]]) / cnt
     var = np.maximum((csq[ranges[:, 1]] - csq[ranges[:, 0]]) / cnt - mean**2, 0.0)

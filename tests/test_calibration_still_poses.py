@@ -37,6 +37,16 @@ def reference_still_poses(V, *, window=10, band_volts=0.25, max_scans=None, vali
     return ranges
 
 
+def reference_means(V, ranges):
+    """The stretches' means and standard deviations as they were computed before."""
+    csum = np.concatenate([np.zeros((1, 4)), np.cumsum(V, axis=0)])
+    csq = np.concatenate([np.zeros((1, 4)), np.cumsum(V * V, axis=0)])
+    cnt = (ranges[:, 1] - ranges[:, 0])[:, None]
+    mean = (csum[ranges[:, 1]] - csum[ranges[:, 0]]) / cnt
+    var = np.maximum((csq[ranges[:, 1]] - csq[ranges[:, 0]]) / cnt - mean**2, 0.0)
+    return mean, np.sqrt(var)
+
+
 def hand_moves(rng, n, noise=0.04):
     """Readings of a plate moved and held still in turn, quantised like the DAQ's."""
     V = np.empty((n, 4))
@@ -99,6 +109,9 @@ def test_same_poses_as_the_reference(seed):
         assert np.array_equal(sp.ranges, ref)
         assert sp.ranges.dtype == ref.dtype
         assert len(sp) > 50
+        mean, spread = reference_means(V, ref)
+        assert np.array_equal(sp.volts, mean)
+        assert np.array_equal(sp.spread, spread)
 
 
 def test_edge_cases():

@@ -1,16 +1,25 @@
 """The worker's still poses (daemon/worker/poses.py) against the version before issue #16
 (the scans next to a gap marked by a Python loop over the gaps, the readings converted
-twice): the same poses, bit for bit, on a recording with gaps, restarts, a power cycle,
-rail and fault scans."""
+twice, running sums in fresh arrays): the same poses, bit for bit, on a recording with
+gaps, restarts, a power cycle, rail and fault scans."""
 
 import numpy as np
 from session_helpers import PAUSE_S, rows_from, truth_for
 
 from calibration.poses import still_poses
 from daemon import scans as scan_rows
-from daemon.worker.poses import GAP_MARGIN_S, _difference_noise, _near, poses_of_scans
+from daemon.worker.poses import GAP_MARGIN_S, _near, poses_of_scans
 from simulator.offline import mechanism_scans
 from simulator.scenarios import HandMoves
+
+
+def reference_noise(volts, ranges):
+    if len(ranges) == 0:
+        return np.zeros((0, 4))
+    d2 = np.concatenate([np.zeros((1, 4)), np.diff(volts, axis=0) ** 2])
+    c = np.concatenate([np.zeros((1, 4)), np.cumsum(d2, axis=0)])
+    a, b = ranges[:, 0] + 1, ranges[:, 1]
+    return np.sqrt((c[b] - c[a]) / np.maximum(b - a, 1)[:, None] / 2)
 
 
 def reference_poses(s, window_s=0.5, band_volts=0.25, gap_margin_s=GAP_MARGIN_S, longest_s=5.0):
@@ -33,7 +42,7 @@ def reference_poses(s, window_s=0.5, band_volts=0.25, gap_margin_s=GAP_MARGIN_S,
         "channel at the rail or faulted": int(bad_channel.sum()),
         "next to a gap or restart": int((near_gap & ~bad_channel).sum()),
     }
-    return found, _difference_noise(scan_rows.volts(s), found.ranges), dropped
+    return found, reference_noise(scan_rows.volts(s), found.ranges), dropped
 
 
 def damaged_scans(seed: int, minutes: float = 20.0) -> np.ndarray:

@@ -62,8 +62,12 @@ def _difference_noise(volts: np.ndarray, ranges: np.ndarray) -> np.ndarray:
     sqrt(mean(diff^2) / 2)."""
     if len(ranges) == 0:
         return np.zeros((0, 4))
-    d2 = np.concatenate([np.zeros((1, 4)), np.diff(volts, axis=0) ** 2])
-    c = np.concatenate([np.zeros((1, 4)), np.cumsum(d2, axis=0)])
+    # c[j]: the sum of the squared differences up to row j - 1 (c[0] = c[1] = 0), in place
+    c = np.empty((len(volts) + 1, 4))
+    c[:2] = 0.0
+    np.subtract(volts[1:], volts[:-1], out=c[2:])
+    np.square(c[2:], out=c[2:])
+    np.cumsum(c[1:], axis=0, out=c[1:])
     # differences inside a range: rows a+1 .. b-1
     a, b = ranges[:, 0] + 1, ranges[:, 1]
     return np.sqrt((c[b] - c[a]) / np.maximum(b - a, 1)[:, None] / 2)
