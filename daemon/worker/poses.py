@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calibration.poses import pose_noise_volts, still_poses
+from calibration.poses import pose_noise_volts, running_sums_at, still_poses
 
 from .. import scans as scan_rows
 
@@ -62,24 +62,46 @@ def _difference_noise(volts: np.ndarray, ranges: np.ndarray) -> np.ndarray:
     sqrt(mean(diff^2) / 2)."""
     if len(ranges) == 0:
         return np.zeros((0, 4))
-    # c[j]: the sum of the squared differences up to row j - 1 (c[0] = c[1] = 0), in place
-    c = np.empty((len(volts) + 1, 4))
-    c[:2] = 0.0
-    np.subtract(volts[1:], volts[:-1], out=c[2:])
-    np.square(c[2:], out=c[2:])
-    np.cumsum(c[1:], axis=0, out=c[1:])
+
+    def squared_differences(a: int, b: int) -> np.ndarray:  # row j: (V[j] - V[j-1])^2, row 0: 0
+        out = np.empty((b - a, 4))
+        first = max(a, 1)
+        if a == 0:
+            out[0] = 0.0
+        np.subtract(volts[first:b], volts[first - 1 : b - 1], out=out[first - a :])
+        return np.square(out, out=out)
+
     # differences inside a range: rows a+1 .. b-1
     a, b = ranges[:, 0] + 1, ranges[:, 1]
-    return np.sqrt((c[b] - c[a]) / np.maximum(b - a, 1)[:, None] / 2)
+    c = running_sums_at(squared_differences, len(volts), np.concatenate([b, a]))
+    k = len(ranges)
+    return np.sqrt((c[:k] - c[k:]) / np.maximum(b - a, 1)[:, None] / 2)
 
 
 def _near(breaks: np.ndarray, margin: int, n: int) -> np.ndarray:
     """(n,) bool: rows within ``margin`` of a break, [b - margin, b + margin) for each
     break row b (the ranges may overlap)."""
-    cover = np.zeros(n + 1, dtype=np.int64)
-    np.add.at(cover, np.clip(breaks - margin, 0, n), 1)
-    np.add.at(cover, np.clip(breaks + margin, 0, n), -1)
-    return np.cumsum(cover[:-1]) > 0
+    near = np.zeros(n, dtype=bool)
+    rows = (np.asarray(breaks, dtype=np.int64)[:, None] + np.arange(-margin, margin)).ravel()
+    near[rows[(rows >= 0) & (rows < n)]] = True
+    return near
+
+
+#: scans converted and checked at a time (no temporaries the size of a day's scans)
+_BLOCK = 1 << 16
+
+
+def _readings(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The readings (n, 4), V, and (n,) whether a channel of the scan is at the rail or
+    faulted, a block of scans at a time."""
+    n = len(s)
+    volts = np.empty((n, 4))
+    bad = np.empty(n, dtype=bool)
+    for a in range(0, n, _BLOCK):
+        part = s[a : a + _BLOCK]
+        volts[a : a + _BLOCK] = scan_rows.volts(part)
+        bad[a : a + _BLOCK] = ~scan_rows.trustworthy(part).all(axis=1)
+    return volts, bad
 
 
 def poses_of_scans(
@@ -99,7 +121,7 @@ def poses_of_scans(
     """
     n = len(s)
     rate = scan_rows.scan_rate_hz(s)
-    bad_channel = ~scan_rows.trustworthy(s).all(axis=1)
+    volts, bad_channel = _readings(s)
     breaks = np.flatnonzero((s["missed"] > 0) | s["restarted"])
     if n:
         epoch_change = np.flatnonzero(np.diff(s["epoch"]) != 0) + 1
@@ -112,7 +134,6 @@ def poses_of_scans(
         "next to a gap or restart": int((near_gap & ~bad_channel).sum()),
     }
     window = max(2, round(window_s * rate))
-    volts = scan_rows.volts(s)
     found = still_poses(
         volts,
         window=window,
