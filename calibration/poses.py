@@ -110,7 +110,9 @@ def running_sums_at(rows, n: int, at: np.ndarray) -> np.ndarray:
         hi = int(np.searchsorted(where, b, side="right"))
         out[order[lo:hi]] = X[where[lo:hi] - 1 - a]
         carry, lo = X[-1].copy(), hi
-    return np.zeros((len(at), 0)) if out is None else out
+    if out is None:  # only S[0] asked for: zeros, as wide as the rows
+        out = np.zeros((len(at), rows(0, 0).shape[1]))
+    return out
 
 
 def _split(ranges: np.ndarray, max_scans: int, window: int) -> np.ndarray:

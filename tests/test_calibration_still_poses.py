@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 from numpy.lib.stride_tricks import sliding_window_view
 
-from calibration.poses import _split, _window_all, _window_spread, still_poses
+from calibration.poses import (
+    _BLOCK,
+    _covered,
+    _split,
+    _window_all,
+    _window_spread,
+    running_sums_at,
+    still_poses,
+)
 
 
 def reference_still_poses(V, *, window=10, band_volts=0.25, max_scans=None, valid=None):
@@ -72,11 +80,34 @@ def test_window_spread_is_the_peak_to_peak_of_every_window(window):
         assert np.array_equal(_window_spread(V, window), expected)
 
 
+def test_running_sums_are_cumsums_bit_for_bit():
+    rng = np.random.default_rng(5)
+    for n in (1, 5, _BLOCK - 1, _BLOCK, _BLOCK + 1, 3 * _BLOCK + 17):
+        X = rng.normal(3.0, 2.0, (n, 3)) * 10.0 ** rng.integers(-3, 4, (n, 1))
+        S = np.concatenate([np.zeros((1, 3)), np.cumsum(X, axis=0)])
+        at = np.concatenate([[0, n, n, 0], rng.integers(0, n + 1, 500)])  # any order, repeats
+        got = running_sums_at(lambda a, b: X[a:b].copy(), n, at)  # noqa: B023
+        assert np.array_equal(got, S[at])
+        early = at[at <= n // 3]  # the blocks past the last index are not read
+        read = []
+        got = running_sums_at(lambda a, b: read.append(b) or X[a:b].copy(), n, early)  # noqa: B023
+        assert np.array_equal(got, S[early])
+        assert max(read, default=0) <= max(n // 3 + _BLOCK, _BLOCK)
+    X = np.ones((10, 2))
+    assert np.array_equal(running_sums_at(lambda a, b: X[a:b].copy(), 10, [0, 0]), np.zeros((2, 2)))
+    assert running_sums_at(lambda a, b: X[a:b].copy(), 0, [0]).shape == (1, 2)
+
+
 def test_window_all_and_split():
     rng = np.random.default_rng(3)
     ok = rng.random(5000) > 0.01
     for window in (2, 10, 33):
         assert np.array_equal(_window_all(ok, window), sliding_window_view(ok, window).all(axis=1))
+        starts = rng.random(len(ok) - window + 1) < 0.01
+        cover = np.zeros(len(ok) + 1, dtype=int)
+        np.add.at(cover, np.flatnonzero(starts), 1)
+        np.add.at(cover, np.flatnonzero(starts) + window, -1)
+        assert np.array_equal(_covered(starts, window), np.cumsum(cover[:-1]) > 0)
     lengths = rng.integers(10, 400, 300)
     gaps = rng.integers(1, 50, 300)
     a = np.cumsum(gaps + np.concatenate([[0], lengths[:-1]]))
