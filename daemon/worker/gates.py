@@ -295,7 +295,7 @@ def _log_upper_gamma(a: float, t: float) -> tuple[float, float]:
     t > a + 1, where the upper tail's quantiles lie for every a but the smallest)."""
     tiny = 1e-300
     b = t + 1.0 - a
-    c, d = 1.0 / tiny, 1.0 / b
+    c, d = 1.0 / tiny, 1.0 / (b if abs(b) >= tiny else tiny)
     h = d
     for i in range(1, 100_000):
         an = -i * (i - a)
@@ -325,14 +325,17 @@ def chi2_quantile(dof: int, tail: float) -> float:
     z = NormalDist().inv_cdf(1.0 - tail)
     q = 2.0 / (9.0 * dof)
     t = max(a, 0.5 * dof * (1.0 - q + z * math.sqrt(q)) ** 3)
+    last = math.inf
     for _ in range(100):
         log_q, slope = _log_upper_gamma(a, t)
-        step = (log_q - target) / slope
-        t_new = max(t - step, 0.5 * t)
-        if abs(t_new - t) <= 1e-15 * t:
-            t = t_new
-            break
+        t_new = max(t - (log_q - target) / slope, 0.5 * t)
+        moved = abs(t_new - t)
         t = t_new
+        # quadratic convergence until rounding: stop at a step of a few ulps, or one no
+        # smaller than the step before
+        if moved <= 1e-14 * t or moved >= last:
+            break
+        last = moved
     return 2.0 * t
 
 
