@@ -99,7 +99,11 @@ class Selection:
 
 def _compress(G: np.ndarray) -> np.ndarray:
     """Per-pose blocks (N, 4, n) -> the information factors (N, r, n) with A_k = F_k^T F_k,
-    keeping only the rows that carry information (the blocks are nearly rank one)."""
+    keeping only the rows that carry information (the blocks are nearly rank one). Blocks
+    of one row (the noise-whitened information rows) are their own factors: an SVD per
+    pose would only return each row again, to rounding and its sign."""
+    if G.shape[1] == 1:
+        return G if np.any(G) else G[:, :0, :]
     _, s, Vt = np.linalg.svd(G, full_matrices=False)
     F = s[:, :, None] * Vt
     keep = np.flatnonzero(s.max(axis=0) > 1e-12 * s.max())

@@ -4,9 +4,10 @@ Before, every Frank-Wolfe iteration rebuilt the information matrix from all N ca
 evaluated ``<Z, A_k>`` through an (N, n) product and partitioned all N values, and the
 exchange did the same for every position. Now the matrix follows the weights' update,
 ``<Z, A_k>`` is one product over the candidates' pair products, the k largest are found
-among a few hundred, and the exchange stops once every position has been tried against
-the current set. The arithmetic differs in rounding only: the same poses must be chosen,
-with the same criterion value, swaps and passes, and the same certified bound to rounding.
+among a few hundred, the exchange stops once every position has been tried against the
+current set, and single-row blocks skip the SVD that only returned them. The arithmetic
+differs in rounding only: the same poses must be chosen, with the same swaps and passes,
+and the same criterion value and certified bound to rounding.
 """
 
 import numpy as np
