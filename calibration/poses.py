@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from .errors import InputError
 from .residuals import check_volts
@@ -31,6 +30,102 @@ def pose_noise_volts(scan_noise: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """
     counts = np.asarray(counts, dtype=float)
     return np.sqrt(np.square(scan_noise) / counts[:, None] + READING_LSB_VOLTS**2 / 12)
+
+
+#: scans per block of the sliding-window search and the running sums (their temporaries
+#: stay small and are reused: a day's 1.7 M scans are never copied whole)
+_BLOCK = 1 << 14
+
+
+def _sliding(X: np.ndarray, window: int, op) -> np.ndarray:
+    """``op`` (np.maximum, np.minimum, np.logical_and or np.logical_or) over every window of
+    ``window`` columns of X (c, n): (c, n - window + 1). By doubling: after j steps
+    ``m[:, i]`` covers columns i .. i + 2^j - 1, and two overlapping such spans cover any
+    window (these operations are exact and idempotent, so the result is that of a reduction
+    over each window)."""
+    m, span = X, 1
+    while 2 * span <= window:
+        m = op(m[:, :-span], m[:, span:])
+        span *= 2
+    return op(m[:, : X.shape[1] - window + 1], m[:, window - span :]) if span < window else m
+
+
+def _window_spread(V: np.ndarray, window: int, band: float | None = None) -> np.ndarray:
+    """(n - window + 1,) the largest peak-to-peak change of any channel within each window
+    of ``window`` scans of V (n, c): ``max_c ptp(V[i : i + window, c])``; given ``band``,
+    whether that is at most ``band`` instead. In blocks of :data:`_BLOCK` windows, each
+    channel-major (O(n log window), no (n, c, window) array)."""
+    n = len(V)
+    out = np.empty(n - window + 1, dtype=float if band is None else bool)
+    o = np.empty(min(_BLOCK, n - window + 1))
+    for a in range(0, n - window + 1, _BLOCK):
+        X = np.ascontiguousarray(V[a : min(a + _BLOCK + window - 1, n)].T)
+        spread = _sliding(X, window, np.maximum)
+        spread -= _sliding(X, window, np.minimum)
+        m = o[: spread.shape[1]]
+        m[:] = spread[0]
+        for row in spread[1:]:
+            np.maximum(m, row, out=m)
+        out[a : a + len(m)] = m if band is None else m <= band
+    return out
+
+
+def _window_all(ok: np.ndarray, window: int) -> np.ndarray:
+    """(n - window + 1,) whether every scan of each window of ``window`` scans is ok (n,)."""
+    return _sliding(ok[None], window, np.logical_and)[0]
+
+
+def _covered(starts: np.ndarray, window: int) -> np.ndarray:
+    """(n,) for windows of ``window`` scans, whether scan j lies in one of those marked in
+    ``starts`` (n - window + 1,): any of starts[j - window + 1 .. j]."""
+    pad = np.zeros(window - 1, dtype=bool)
+    return _sliding(np.concatenate([pad, starts, pad])[None], window, np.logical_or)[0]
+
+
+def running_sums_at(rows, n: int, at: np.ndarray) -> np.ndarray:
+    """The running sums ``S[j] = X[0] + ... + X[j - 1]`` (S[0] = 0) of n rows X, at the
+    indices ``at`` (m,): (m, c).
+
+    rows(a, b): the rows X[a:b] (b - a, c) as a new array (it is summed in place). The sums
+    are accumulated in order, a block of :data:`_BLOCK` rows at a time, each block's first
+    row added to the sum before it: bit for bit ``np.cumsum(X, axis=0)`` (which adds in
+    order too), without an (n, c) array; blocks past the last index asked are not read.
+    """
+    at = np.asarray(at, dtype=np.int64)
+    order = np.argsort(at, kind="stable")
+    where = at[order]
+    out = None
+    carry = None
+    lo = int(np.searchsorted(where, 0, side="right"))  # S[0] = 0
+    for a in range(0, n, _BLOCK):
+        if lo == len(where):
+            break
+        b = min(a + _BLOCK, n)
+        X = rows(a, b)
+        if out is None:
+            out = np.zeros((len(at), X.shape[1]))
+        if carry is not None:
+            X[0] += carry
+        np.cumsum(X, axis=0, out=X)
+        hi = int(np.searchsorted(where, b, side="right"))
+        out[order[lo:hi]] = X[where[lo:hi] - 1 - a]
+        carry, lo = X[-1].copy(), hi
+    if out is None:  # only S[0] asked for: zeros, as wide as the rows
+        out = np.zeros((len(at), rows(0, 0).shape[1]))
+    return out
+
+
+def _split(ranges: np.ndarray, max_scans: int, window: int) -> np.ndarray:
+    """Ranges (k, 2) [a, b) cut into pieces of max_scans from each start (the last piece
+    of a range keeps the rest), pieces shorter than ``window`` dropped; in order."""
+    a, b = ranges[:, 0], ranges[:, 1]
+    pieces = -(-(b - a) // max_scans)  # ceil
+    first = np.repeat(a, pieces)
+    step = np.arange(len(first)) - np.repeat(np.cumsum(pieces) - pieces, pieces)
+    start = first + step * max_scans
+    stop = np.minimum(start + max_scans, np.repeat(b, pieces))
+    keep = stop - start >= window
+    return np.stack([start[keep], stop[keep]], axis=1).astype(int).reshape(-1, 2)
 
 
 @dataclass(frozen=True)
@@ -78,32 +173,29 @@ def still_poses(
     empty = StillPoses(np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, 2), dtype=int))
     if n < window:
         return empty
-    win = sliding_window_view(V, window, axis=0)  # (n - window + 1, 4, window)
-    still_win = (np.ptp(win, axis=2).max(axis=1) <= band_volts) & sliding_window_view(
-        ok, window
-    ).all(axis=1)
+    still_win = _window_spread(V, window, band_volts) & _window_all(ok, window)
     # a scan is still if it lies in at least one still window
-    cover = np.zeros(n + 1, dtype=int)
-    starts = np.flatnonzero(still_win)
-    np.add.at(cover, starts, 1)
-    np.add.at(cover, starts + window, -1)
-    still = np.cumsum(cover[:-1]) > 0
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(int), [0]])))
+    still = _covered(still_win, window)
+    edges = np.flatnonzero(np.diff(still, prepend=False, append=False))
     ranges = edges.reshape(-1, 2)
     if max_scans is not None:
         if max_scans < window:
             raise InputError(f"max_scans ({max_scans}) must be at least the window ({window})")
-        pieces = []
-        for a, b in ranges:
-            cuts = list(range(a, b, max_scans)) + [b]
-            pieces += [(c0, c1) for c0, c1 in zip(cuts[:-1], cuts[1:], strict=True)
-                       if c1 - c0 >= window]  # fmt: skip
-        ranges = np.array(pieces, dtype=int).reshape(-1, 2)
+        ranges = _split(ranges, max_scans, window)
     if len(ranges) == 0:
         return empty
-    csum = np.concatenate([np.zeros((1, 4)), np.cumsum(V, axis=0)])
-    csq = np.concatenate([np.zeros((1, 4)), np.cumsum(V * V, axis=0)])
+
+    def values_and_squares(a: int, b: int) -> np.ndarray:
+        out = np.empty((b - a, 8))
+        out[:, :4] = V[a:b]
+        np.multiply(V[a:b], V[a:b], out=out[:, 4:])
+        return out
+
+    # sums over the stretches from running sums over the scans
+    k = len(ranges)
+    sums = running_sums_at(values_and_squares, n, ranges.T.ravel())
+    total = sums[k:] - sums[:k]
     cnt = (ranges[:, 1] - ranges[:, 0])[:, None]
-    mean = (csum[ranges[:, 1]] - csum[ranges[:, 0]]) / cnt
-    var = np.maximum((csq[ranges[:, 1]] - csq[ranges[:, 0]]) / cnt - mean**2, 0.0)
+    mean = total[:, :4] / cnt
+    var = np.maximum(total[:, 4:] / cnt - mean**2, 0.0)
     return StillPoses(mean, np.sqrt(var), ranges)

@@ -99,11 +99,62 @@ class Selection:
 
 def _compress(G: np.ndarray) -> np.ndarray:
     """Per-pose blocks (N, 4, n) -> the information factors (N, r, n) with A_k = F_k^T F_k,
-    keeping only the rows that carry information (the blocks are nearly rank one)."""
+    keeping only the rows that carry information (the blocks are nearly rank one). Blocks
+    of one row (the noise-whitened information rows) are their own factors: an SVD per
+    pose would only return each row again, to rounding and its sign."""
+    if G.shape[1] == 1:
+        return G if np.any(G) else G[:, :0, :]
     _, s, Vt = np.linalg.svd(G, full_matrices=False)
     F = s[:, :, None] * Vt
     keep = np.flatnonzero(s.max(axis=0) > 1e-12 * s.max())
     return F[:, keep, :]
+
+
+#: above this many pair products (n (n + 1) / 2 per row of F), quadratic forms are
+#: evaluated as ``a^T (Z a)`` instead (memory)
+_PAIRS_MAX = 8_000_000
+
+
+class _Quadratic:
+    """``<Z, A_k> = sum_r F_kr^T Z F_kr`` for every candidate k at once, for many symmetric Z.
+
+    F: (N, r, n) information factors. With n (n + 1) / 2 pair products ``F_ri F_rj``
+    (i <= j) kept row by row, each evaluation is one matrix-vector product over them (the
+    Frank-Wolfe iterations and the exchange evaluate thousands of Z on the same rows)."""
+
+    def __init__(self, F: np.ndarray):
+        N, r, n = F.shape
+        self.N, self.r = N, r
+        self.FT = np.ascontiguousarray(F.reshape(N * r, n).T)  # (n, N r)
+        iu = np.triu_indices(n)
+        if len(iu[0]) * N * r <= _PAIRS_MAX:
+            self.iu = iu
+            self.twice = np.where(iu[0] == iu[1], 1.0, 2.0)
+            self.P = self.FT[iu[0]] * self.FT[iu[1]]  # (n (n + 1) / 2, N r)
+        else:
+            self.P = None
+
+    def __call__(self, Z: np.ndarray) -> np.ndarray:
+        if self.P is not None:
+            q = (Z[self.iu] * self.twice) @ self.P
+        else:
+            q = np.einsum("ir,ir->r", Z @ self.FT, self.FT)
+        return q if self.r == 1 else q.reshape(self.N, self.r).sum(axis=1)
+
+
+def _top(x: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the k largest entries of x (in no particular order): those of
+    ``np.argpartition(-x, k - 1)[:k]``. Of a long x, only the entries at or above a
+    threshold taken from every 16th entry are partitioned (about 2 k of them); if fewer
+    than k reach it, all of x is."""
+    n = len(x)
+    if n >= 2048 and 64 * k <= n:
+        sample = x[::16]
+        j = len(sample) - max(2, -(-2 * k // 16))
+        idx = np.flatnonzero(x >= np.partition(sample, j)[j])
+        if len(idx) >= k:
+            return idx[np.argpartition(-x[idx], k - 1)[:k]]
+    return np.argpartition(-x, k - 1)[:k]
 
 
 def relaxation_bound(
@@ -112,26 +163,39 @@ def relaxation_bound(
     """Frank-Wolfe on the relaxed E-optimal design; returns (bound on lambda_min, weights).
 
     F: (N, r, n) information factors; the bound holds for the exact matrices they build.
+    The information matrix follows the weights' update (a step moves it toward the k
+    chosen factors' sum), so an iteration touches every candidate once: for ``<Z, A_k>``.
     """
+    return _relax(F, _Quadratic(F), k, iterations, w0)
+
+
+def _relax(F: np.ndarray, quad: _Quadratic, k: int, iterations: int, w0: np.ndarray | None):
+    """:func:`relaxation_bound` with the quadratic forms of F prepared."""
     N, r, n = F.shape
     F2 = F.reshape(N * r, n)
     w = np.full(N, k / N) if w0 is None else w0.astype(float).copy()
+    M = (F2 * np.repeat(w, r)[:, None]).T @ F2
     best = np.inf
+    gw = np.empty(N)
     for t in range(iterations):
-        M = (F2 * np.repeat(w, r)[:, None]).T @ F2
         lam, Q = np.linalg.eigh(M)
         spread = max(lam[-1] - lam[0], 1e-300)
         mu = max(lam[0], 1e-12 * lam[-1]) * 0.02 + 1e-6 * spread / (1 + t)
         pi = np.exp(-(lam - lam[0]) / mu)
         pi /= pi.sum()
-        c = ((F2 @ Q) ** 2 @ pi).reshape(N, r).sum(axis=1)  # <Z, A_k>
-        top = np.argpartition(-c, k - 1)[:k]
+        c = quad((Q * pi) @ Q.T)  # <Z, A_k>
+        top = _top(c, k)
         best = min(best, float(c[top].sum()))
-        s = np.zeros(N)
-        s[top] = 1.0
         if best - lam[0] <= 1e-9 * best:
             break
-        w += 2.0 / (t + 3.0) * (s - w)
+        # w += g (s - w), s the indicator of top; M the same step toward the top's sum
+        g = 2.0 / (t + 3.0)
+        wt = w[top]
+        np.multiply(w, g, out=gw)
+        w -= gw
+        w[top] = wt + g * (1.0 - wt)
+        Ft = F[top].reshape(-1, n)
+        M += g * (Ft.T @ Ft - M)
     return best, w
 
 
@@ -238,9 +302,9 @@ def select_poses(
             raise InputError(f"information must have shape ({N}, r, {n}), got {blocks.shape}")
     h = column_scales(blocks) if scales is None else np.asarray(scales, dtype=float)
     F = _compress(blocks * h)
-    F2 = F.reshape(-1, n)
+    quad = _Quadratic(F)
 
-    lam_bound, w = relaxation_bound(F, k, iterations=300 if certify else 60)
+    lam_bound, w = _relax(F, quad, k, 300 if certify else 60, None)
     bound = float(np.sqrt(max(lam_bound, 0.0))) if certify else None
     chosen = np.sort(np.argpartition(-w, k - 1)[:k])
     in_set = np.zeros(N, dtype=bool)
@@ -256,19 +320,25 @@ def select_poses(
     swaps = 0
     passes = 0
     short = min(shortlist, N - k)  # candidates outside the set
-    while short > 0 and passes < max_passes:
+    # positions tried in a row without a swap: once every position has been tried against
+    # the current set, the rest of the pass would repeat those very trials and stop
+    unchanged = 0
+    while short > 0 and passes < max_passes and unchanged < k:
         passes += 1
         improved = False
         for pos in range(k):
+            if unchanged >= k:
+                break
+            unchanged += 1
             i = chosen[pos]
             B = M - F[i].T @ F[i]
             lb, Qb = np.linalg.eigh(B)
             # first-order gain of adding candidate j, weighted towards the weak directions
             scale = max(lb[0], 1e-12 * max(lb[-1], 1e-300))
             wts = np.exp(-(lb - lb[0]) / (0.5 * scale + 1e-300))
-            score = ((F2 @ Qb) ** 2 @ wts).reshape(N, -1).sum(axis=1)
+            score = quad((Qb * wts) @ Qb.T)
             score[in_set] = -np.inf
-            cand = np.argpartition(-score, short - 1)[:short]
+            cand = _top(score, short)
             trial = B[None] + np.einsum("kri,krj->kij", F[cand], F[cand])
             lt = np.linalg.eigvalsh(trial)
             vals = _criterion_value(lt, criterion, k)
@@ -290,6 +360,7 @@ def select_poses(
                 cond_ok = bool(_condition(lam) <= max_condition)
                 swaps += 1
                 improved = True
+                unchanged = 0
         if not improved:
             break
     chosen = np.sort(chosen)

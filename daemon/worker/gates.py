@@ -22,10 +22,13 @@ gate               passes when
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from functools import cache
+from statistics import NormalDist
 
 import numpy as np
-from scipy.special import chdtri
 
 from calibration.kinematics import (
     base_points,
@@ -124,6 +127,20 @@ def coverage_advice(volts: np.ndarray, params: np.ndarray) -> str:
     )
 
 
+#: advice for a failing gate: the text, or a function that makes it (called only on failure)
+Advice = str | Callable[[], str]
+
+
+def lazy_coverage_advice(volts: np.ndarray, params: np.ndarray) -> Callable[[], str]:
+    """:func:`coverage_advice` made on the first call, and only then: forward kinematics of
+    every pose (a day's 30,000 of them) is paid for only when a gate fails and needs it."""
+    return cache(lambda: coverage_advice(volts, params))
+
+
+def _text(advice: Advice) -> str:
+    return advice if isinstance(advice, str) else advice()
+
+
 # ---------------------------------------------------------------------------- gates
 
 
@@ -181,7 +198,7 @@ def converged_gate(converged: bool, message: str) -> Gate:
     )
 
 
-def condition_gate(condition: float, advice: str) -> Gate:
+def condition_gate(condition: float, advice: Advice) -> Gate:
     ok = condition <= CONDITION_OK
     return Gate(
         "condition",
@@ -189,11 +206,11 @@ def condition_gate(condition: float, advice: str) -> Gate:
         condition,
         f"<= {CONDITION_OK:g}",
         "" if ok else "some combination of parameters is barely seen by these poses",
-        "" if ok else advice,
+        "" if ok else _text(advice),
     )
 
 
-def min_singular_gate(s_min: float, advice: str) -> Gate:
+def min_singular_gate(s_min: float, advice: Advice) -> Gate:
     ok = s_min >= MIN_SINGULAR
     return Gate(
         "min_singular",
@@ -201,7 +218,7 @@ def min_singular_gate(s_min: float, advice: str) -> Gate:
         s_min,
         f">= {MIN_SINGULAR:g}",
         "" if ok else "the poses hardly tell some parameters apart",
-        "" if ok else advice,
+        "" if ok else _text(advice),
     )
 
 
@@ -272,6 +289,56 @@ def holdout_residuals(
     return w / np.sqrt(var)
 
 
+def _log_upper_gamma(a: float, t: float) -> tuple[float, float]:
+    """log Q(a, t), the regularized upper incomplete gamma function, and its derivative
+    with respect to t, by the continued fraction (modified Lentz; it converges quickly for
+    t > a + 1, where the upper tail's quantiles lie for every a but the smallest)."""
+    tiny = 1e-300
+    b = t + 1.0 - a
+    c, d = 1.0 / tiny, 1.0 / (b if abs(b) >= tiny else tiny)
+    h = d
+    for i in range(1, 100_000):
+        an = -i * (i - a)
+        b += 2.0
+        d = an * d + b
+        d = tiny if abs(d) < tiny else d
+        c = b + an / c
+        c = tiny if abs(c) < tiny else c
+        d = 1.0 / d
+        delta = d * c
+        h *= delta
+        if abs(delta - 1.0) < 1e-16:
+            break
+    log_density = -t + (a - 1.0) * math.log(t) - math.lgamma(a)  # d(-Q)/dt
+    log_q = log_density + math.log(t) + math.log(h)
+    return log_q, -math.exp(log_density - log_q)
+
+
+def chi2_quantile(dof: int, tail: float) -> float:
+    """The value a chi-square variable of ``dof`` degrees of freedom exceeds with
+    probability ``tail`` (at most 0.1; ``scipy.special.chdtri(dof, tail)``, which costs a
+    fifth of a second to import): Newton's method on log Q(dof / 2, x / 2) from the
+    Wilson-Hilferty approximation (tests/test_worker_gates.py compares the two)."""
+    if not (dof >= 1 and 0.0 < tail <= 0.1):
+        raise ValueError(f"chi2_quantile needs dof >= 1 and 0 < tail <= 0.1, got {dof}, {tail}")
+    a, target = dof / 2.0, math.log(tail)
+    z = NormalDist().inv_cdf(1.0 - tail)
+    q = 2.0 / (9.0 * dof)
+    t = max(a, 0.5 * dof * (1.0 - q + z * math.sqrt(q)) ** 3)
+    last = math.inf
+    for _ in range(100):
+        log_q, slope = _log_upper_gamma(a, t)
+        t_new = max(t - (log_q - target) / slope, 0.5 * t)
+        moved = abs(t_new - t)
+        t = t_new
+        # quadratic convergence until rounding: stop at a step of a few ulps, or one no
+        # smaller than the step before
+        if moved <= 1e-14 * t or moved >= last:
+            break
+        last = moved
+    return 2.0 * t
+
+
 def holdout_gate(z: np.ndarray) -> Gate:
     """z: the held-out poses' loop-closure errors over their predicted standard deviations."""
     n = len(z)
@@ -285,7 +352,7 @@ def holdout_gate(z: np.ndarray) -> Gate:
             "record more still positions",
         )
     rms = float(np.sqrt(np.mean(z**2)))
-    limit = HOLDOUT_MARGIN * float(np.sqrt(chdtri(n, 0.001) / n))  # chi2(n) 99.9 %
+    limit = HOLDOUT_MARGIN * float(np.sqrt(chi2_quantile(n, 0.001) / n))  # chi2(n) 99.9 %
     ok = rms <= limit
     return Gate(
         "holdout",
@@ -344,7 +411,7 @@ def _limits_text() -> str:
     )
 
 
-def precision_gate(free: list[str], std: np.ndarray, advice: str) -> Gate:
+def precision_gate(free: list[str], std: np.ndarray, advice: Advice) -> Gate:
     ratios = [std[j] / PRECISION[UNITS[n]] for j, n in enumerate(free)]
     j = int(np.argmax(ratios))
     ok = ratios[j] <= 1.0
@@ -356,5 +423,5 @@ def precision_gate(free: list[str], std: np.ndarray, advice: str) -> Gate:
         f"{name} {std[j]:.3f} {UNITS[name]}",
         limit,
         "" if ok else f"{name} is known only to +-{std[j]:.3f} {UNITS[name]} (1 sigma)",
-        "" if ok else advice,
+        "" if ok else _text(advice),
     )

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calibration.poses import pose_noise_volts, still_poses
+from calibration.poses import pose_noise_volts, running_sums_at, still_poses
 
 from .. import scans as scan_rows
 
@@ -62,11 +62,46 @@ def _difference_noise(volts: np.ndarray, ranges: np.ndarray) -> np.ndarray:
     sqrt(mean(diff^2) / 2)."""
     if len(ranges) == 0:
         return np.zeros((0, 4))
-    d2 = np.concatenate([np.zeros((1, 4)), np.diff(volts, axis=0) ** 2])
-    c = np.concatenate([np.zeros((1, 4)), np.cumsum(d2, axis=0)])
+
+    def squared_differences(a: int, b: int) -> np.ndarray:  # row j: (V[j] - V[j-1])^2, row 0: 0
+        out = np.empty((b - a, 4))
+        first = max(a, 1)
+        if a == 0:
+            out[0] = 0.0
+        np.subtract(volts[first:b], volts[first - 1 : b - 1], out=out[first - a :])
+        return np.square(out, out=out)
+
     # differences inside a range: rows a+1 .. b-1
     a, b = ranges[:, 0] + 1, ranges[:, 1]
-    return np.sqrt((c[b] - c[a]) / np.maximum(b - a, 1)[:, None] / 2)
+    c = running_sums_at(squared_differences, len(volts), np.concatenate([b, a]))
+    k = len(ranges)
+    return np.sqrt((c[:k] - c[k:]) / np.maximum(b - a, 1)[:, None] / 2)
+
+
+def _near(breaks: np.ndarray, margin: int, n: int) -> np.ndarray:
+    """(n,) bool: rows within ``margin`` of a break, [b - margin, b + margin) for each
+    break row b (the ranges may overlap)."""
+    near = np.zeros(n, dtype=bool)
+    rows = (np.asarray(breaks, dtype=np.int64)[:, None] + np.arange(-margin, margin)).ravel()
+    near[rows[(rows >= 0) & (rows < n)]] = True
+    return near
+
+
+#: scans converted and checked at a time (no temporaries the size of a day's scans)
+_BLOCK = 1 << 16
+
+
+def _readings(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The readings (n, 4), V, and (n,) whether a channel of the scan is at the rail or
+    faulted, a block of scans at a time."""
+    n = len(s)
+    volts = np.empty((n, 4))
+    bad = np.empty(n, dtype=bool)
+    for a in range(0, n, _BLOCK):
+        part = s[a : a + _BLOCK]
+        volts[a : a + _BLOCK] = scan_rows.volts(part)
+        bad[a : a + _BLOCK] = ~scan_rows.trustworthy(part).all(axis=1)
+    return volts, bad
 
 
 def poses_of_scans(
@@ -86,15 +121,13 @@ def poses_of_scans(
     """
     n = len(s)
     rate = scan_rows.scan_rate_hz(s)
-    bad_channel = ~scan_rows.trustworthy(s).all(axis=1)
+    volts, bad_channel = _readings(s)
     breaks = np.flatnonzero((s["missed"] > 0) | s["restarted"])
     if n:
         epoch_change = np.flatnonzero(np.diff(s["epoch"]) != 0) + 1
         breaks = np.union1d(breaks, epoch_change)
     margin = max(1, round(gap_margin_s * rate))
-    near_gap = np.zeros(n, dtype=bool)
-    for b in breaks:
-        near_gap[max(0, b - margin) : b + margin] = True
+    near_gap = _near(breaks, margin, n)
     valid = ~bad_channel & ~near_gap
     dropped = {
         "channel at the rail or faulted": int(bad_channel.sum()),
@@ -102,7 +135,7 @@ def poses_of_scans(
     }
     window = max(2, round(window_s * rate))
     found = still_poses(
-        scan_rows.volts(s),
+        volts,
         window=window,
         band_volts=band_volts,
         max_scans=max(window, round(longest_s * rate)),
@@ -112,7 +145,7 @@ def poses_of_scans(
     return RecordedPoses(
         volts=found.volts,
         spread=found.spread,
-        scan_noise=_difference_noise(scan_rows.volts(s), found.ranges),
+        scan_noise=_difference_noise(volts, found.ranges),
         counts=found.counts,
         rows=found.ranges,
         stamp_ns=s["stamp_ns"][mid] if len(mid) else np.zeros(0, dtype=np.int64),

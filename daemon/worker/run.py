@@ -209,7 +209,7 @@ def run_worker(
     result.method = method
     gate = G.poses_gate(poses.volts)
     result.gates.append(gate)
-    advice = G.coverage_advice(poses.volts, start)
+    advice = G.lazy_coverage_advice(poses.volts, start)  # made only if a gate fails
     if not gate.passed:
         result.seconds = time.perf_counter() - t0
         return result
@@ -225,7 +225,7 @@ def run_worker(
         )  # fmt: skip
     except CalibrationError as exc:
         result.gates.append(
-            G.Gate("converged", False, type(exc).__name__, "converged", str(exc), advice)
+            G.Gate("converged", False, type(exc).__name__, "converged", str(exc), advice())
         )
         result.seconds = time.perf_counter() - t0
         return result
@@ -233,7 +233,7 @@ def run_worker(
     result.calibration = cal
     result.params = ident.params.copy()
     result.std = {n: float(s) for n, s in zip(model.free, ident.std, strict=True)}
-    advice = G.coverage_advice(poses.volts, ident.params)
+    advice = G.lazy_coverage_advice(poses.volts, ident.params)
     chosen = fit[cal.selection.indices]
     # the paper's fit reports the noise of a pose's mean reading, ml that of one scan
     result.expected_noise_volts = G.expected_noise(
