@@ -180,8 +180,9 @@ class LDQ412:
         self.firmware = (major, minor)
         self.power_on_scan_rate_hz = scan_rate_hz
         self.power_on_ascii_checksum = bool(ascii_checksum)
-        #: how often a host read the latest scan (a snapshot or ``#AA``)
+        #: how often a host read the latest scan (a snapshot or ``#AA``), or the FIFO
         self.latest_reads = 0
+        self.fifo_reads = 0
         self.truth: list[TruthScan] = []
         self.truth_limit = truth_limit
         self.open = open_points if open_points is not None else OpenPoints()
@@ -477,6 +478,7 @@ class LDQ412:
         """
         if not 1 <= n <= FIFO_MAX_SCANS_PER_READ:
             raise DeviceError(ILLEGAL_VALUE, f"{n} scans per FIFO read")
+        self.fifo_reads += 1
         regs: list[int] = []
         for _ in range(n):
             if self._fifo:

@@ -49,17 +49,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def power_ons(scans: np.ndarray) -> list[RecordedPowerOn]:
-    """The recording's scans split by power-on epoch, as arrays for the player."""
+    """The recording's scans split by power-on epoch, as arrays for the player: the
+    recorded counters, device times, codes and status themselves (the restart flag at the
+    first scan as the recording saw it)."""
     out = []
     epochs = scans["epoch"]
     cuts = np.flatnonzero(np.diff(epochs)) + 1
-    for part in np.split(scans, cuts):
+    for k, part in enumerate(np.split(scans, cuts)):
         if len(part):
             out.append(
                 RecordedPowerOn(
                     part["counter64"].astype(np.int64),
                     part["time64_us"].astype(np.int64),
                     part["codes"].astype(np.int64),
+                    part["status"].astype(np.int64),
+                    restart_latched=bool(part["restarted"][0]) or k > 0,
                 )
             )
     return out
