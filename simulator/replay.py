@@ -12,11 +12,11 @@ the recording back):
   counters and device times are served modulo 2**32, as the module's registers hold them;
 - scans the recording never received are not made again: the counter jumps over them, so
   a driver counts them as missed, as the recorder did;
-- between power-ons the module is power-cycled (off for the datasheet's 2 s); a power-on
-  whose first recorded scan came long after it (the recorder missed its beginning) starts
-  that long ago, so nobody waits for it.
+- between power-ons the module is power-cycled (off as long as the recording shows, at
+  most the datasheet's 2 s); a power-on whose first recorded scan came long after it (the
+  recorder missed its beginning) starts that long ago, so nobody waits for it.
 
-:class:`Player` drives the module's clock (a :class:`~simulator.clock.ManualClock`),
+:class:`Player` drives the module's clock (a :class:`~simulator.clock.PlayClock`),
 ``speed`` times as fast as wall time, and holds it still at the first and the last scan
 of each power-on until a client has read them (the latest scan, and the FIFO empty if the
 client reads it): a client that polls (ASCII) gets every power-on's first scan however
@@ -48,12 +48,13 @@ from drivers.ldq412 import (
     U32_MOD,
 )
 
-from .clock import ManualClock
+from .clock import PlayClock
 from .device import LDQ412
 from .emulator import Emulator
+from .open_points import OpenPoints
 from .source import ConstantSource
 
-STEP_S = 0.01  # wall time between clock advances
+STEP_S = 0.01  # how often the player looks at the clock and the module
 TAIL_S = 1.0  # device time served after the last scan, for the reader to catch up
 HOLD_MAX_S = 30.0  # longest wall time a power-on's first scan waits for a reader
 #: a power-on whose first recorded scan comes later than this after it starts earlier
@@ -70,7 +71,8 @@ class RecordedPowerOn:
     since the power-on, µs, unwrapped. codes: (n, 4). status: (n,) status words (their
     rail and fault bits are served; None: rail bits from the codes, no faults).
     restart_latched: the module's restart flag at the first scan (a recording that starts
-    after a client cleared it: False). Counters and times increase strictly.
+    after a client cleared it: False). off_s: how long the module was off before this
+    power-on, s (the first power-on's is not used). Counters and times increase strictly.
     """
 
     counter: np.ndarray
@@ -78,6 +80,7 @@ class RecordedPowerOn:
     codes: np.ndarray
     status: np.ndarray | None = None
     restart_latched: bool = True
+    off_s: float = POWER_CYCLE_S
 
     def __post_init__(self) -> None:
         n = len(self.counter)
@@ -91,25 +94,39 @@ class RecordedPowerOn:
             raise ValueError("counters and times start at 0 at power-on")
         if np.any(self.codes < 0) or np.any(self.codes > CODE_MAX):
             raise ValueError(f"codes must be 0..{CODE_MAX}")
+        if not 0 < self.off_s <= POWER_CYCLE_S:
+            raise ValueError(f"off_s must be in (0, {POWER_CYCLE_S}] s")
 
 
 class RecordedModule(LDQ412):
     """An LDQ-412 whose power-on k makes exactly the scans of ``power_ons[k]`` and then
     none (until the next power cycle). Registers, FIFO, flags and faults are the model's.
 
-    now_ns: the owner's clock; the first recorded scan is taken then.
+    now_ns: the owner's clock; the first recorded scan is taken then. open_points: how the
+    module answers (FIFO underrun, read limits; its scans' phase and clock are the
+    recording's, so those two must be left at their defaults).
     """
 
     def __init__(
-        self, power_ons: list[RecordedPowerOn], *, rate_hz: int, now_ns: int = 0
+        self,
+        power_ons: list[RecordedPowerOn],
+        *,
+        rate_hz: int,
+        now_ns: int = 0,
+        open_points: OpenPoints | None = None,
     ) -> None:
         if not power_ons:
             raise ValueError("nothing to replay")
         if not SCAN_RATE_MIN_HZ <= rate_hz <= SCAN_RATE_MAX_HZ:
             raise ValueError(f"scan rate {rate_hz} Hz outside the datasheet's range")
+        op = open_points or OpenPoints()
+        if op.scan_phase_us or op.clock_ppm:
+            raise ValueError("a replay's scan phase and clock are the recording's")
         self.power_ons = power_ons
         self._i = 0  # next scan of the current power-on
-        super().__init__(ConstantSource([0.0] * 4), now_ns=now_ns, scan_rate_hz=rate_hz)
+        super().__init__(
+            ConstantSource([0.0] * 4), now_ns=now_ns, scan_rate_hz=rate_hz, open_points=op
+        )
         self._overflow = False  # the base counts scans "before" the first as dropped
 
     def _power_on(self, boot_ns: int) -> None:
@@ -158,8 +175,9 @@ class Player:
     """Serve recorded power-ons on an emulated module.
 
     transport: "modbus-tcp", "modbus-rtu" or "ascii". rate_hz: the recording's scan rate.
-    speed: device seconds per wall second. The emulator starts with :meth:`start`; its
-    :attr:`url` is what a driver opens; :meth:`run` plays until the end or ``stop``.
+    speed: device seconds per wall second. open_points: how the module answers (latency,
+    FIFO underrun, read limits). The emulator starts with :meth:`start`; its :attr:`url`
+    is what a driver opens; :meth:`run` plays until the end or ``stop``.
     """
 
     def __init__(
@@ -172,6 +190,7 @@ class Player:
         host: str = "127.0.0.1",
         port: int = 0,
         seed: int = 0,
+        open_points: OpenPoints | None = None,
     ) -> None:
         if not power_ons:
             raise ValueError("nothing to replay")
@@ -180,11 +199,14 @@ class Player:
         self.power_ons = power_ons
         self.speed = float(speed)
         self.period_ns = 1_000_000_000 // rate_hz
-        self.clock = ManualClock()
-        self.module = RecordedModule(power_ons, rate_hz=rate_hz, now_ns=self.clock.now_ns())
-        self.emulator = Emulator(
-            transport, clock=self.clock, seed=seed, host=host, port=port, device=self.module
+        self.clock = PlayClock(speed)
+        self.module = RecordedModule(
+            power_ons, rate_hz=rate_hz, now_ns=self.clock.now_ns(), open_points=open_points
         )
+        self.emulator = Emulator(
+            transport, clock=self.clock, seed=seed, host=host, port=port, device=self.module,
+            open_points=open_points,
+        )  # fmt: skip
 
     @property
     def url(self) -> str:
@@ -213,10 +235,10 @@ class Player:
         stop = stop or threading.Event()
         for k, po in enumerate(self.power_ons):
             if k:
-                # switched off half a period after its last scan, on again 2 s later
+                # switched off half a period after its last scan, on again off_s later
                 self._play_until(self.clock.now_ns() + self.period_ns // 2, stop)
-                self.emulator.faults.restart(POWER_CYCLE_S)
-                self._play_until(self.clock.now_ns() + round(POWER_CYCLE_S * 1e9), stop)
+                self.emulator.faults.restart(po.off_s)
+                self._play_until(self.clock.now_ns() + round(po.off_s * 1e9), stop)
                 with self.emulator.lock:
                     self.module.sync(self.clock.now_ns())
                     first = self.module.scan_ns(k, 0)
@@ -235,14 +257,11 @@ class Player:
         return self._play_until(self.clock.now_ns() + round(TAIL_S * 1e9), stop)
 
     def _play_until(self, target_ns: int, stop: threading.Event) -> bool:
-        """Advance the clock to ``target_ns`` at ``speed`` times wall time (False: stopped)."""
-        start_ns, wall0 = self.clock.now_ns(), time.monotonic()
+        """Let the clock run to ``target_ns`` at ``speed`` times wall time, and wait until it
+        is there (False: stopped)."""
+        self.clock.run_until(target_ns)
         while not stop.is_set():
-            now = self.clock.now_ns()
-            goal = min(target_ns, start_ns + round((time.monotonic() - wall0) * self.speed * 1e9))
-            if goal > now:
-                self.clock.advance((goal - now) / 1e9)
-            if goal >= target_ns:
+            if self.clock.now_ns() >= target_ns:
                 return True
             stop.wait(STEP_S)
         return False

@@ -4,6 +4,7 @@ the project's own recording writer; and the comparison a round trip must pass.""
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -63,11 +64,11 @@ def synthetic_rows(rate: int = 50) -> np.ndarray:
         if epoch:
             rows["missed"][0] = counter[0]
         elapsed = (time_us - time_us[0]) * 1000 / (1 + ppm)  # the host's ns
-        rows["stamp_ns"] = host0 + elapsed.astype(np.int64)
+        rows["stamp_ns"] = host0 + elapsed.astype(np.int64) + time_us[0] * 1000
         rows["host_ns"] = rows["stamp_ns"] + 3_000_000
         rows["from_fifo"] = True
         out.append(rows)
-        host0 = int(rows["stamp_ns"][-1]) + 3_000_000_000
+        host0 = int(rows["stamp_ns"][-1]) + 500_000_000  # off for half a second
     rows = np.concatenate(out)
     rows["codes"][20:30, 1] = 4095  # channel 2 at the rail
     rows["codes"][100:106, 2] = 4095  # channel 3 sensor fault
@@ -103,7 +104,45 @@ def replay_and_record(src: Path, out: Path, transport: str, speed: float) -> tup
     return player, record(url, out, "--read-period", "0.05")
 
 
-def finish(player: Proc, recorder: Proc) -> None:
+class PlayerThread:
+    """A :class:`simulator.replay.Player` in this process (for settings the command has no
+    options for), run in a thread like ``loopcal replay``: ``lines`` and ``wait`` as a
+    :class:`Proc` has them, for :func:`finish`."""
+
+    def __init__(self, rows: np.ndarray, transport: str, rate: int, speed: float, **kw) -> None:
+        from daemon.commands.replay import power_ons
+        from simulator.replay import Player
+
+        self.player = Player(power_ons(rows), transport=transport, rate_hz=rate, speed=speed,
+                             **kw).start()  # fmt: skip
+        self.stop = threading.Event()
+        self.done = threading.Event()
+        self.text = ""
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        self.player.run(self.stop, wait_for_client=True)
+        self.done.set()
+
+    def wait_for(self, pattern: str, timeout: float) -> int:
+        assert pattern == "replay finished" and self.done.wait(timeout), "replay did not end"
+        return 0
+
+    def wait(self) -> int:
+        self._thread.join(10)
+        self.player.close()
+        return 0
+
+
+def replay_in_process(
+    rows: np.ndarray, out: Path, transport: str, rate: int, speed: float, **kw
+) -> tuple[PlayerThread, Proc]:
+    player = PlayerThread(rows, transport, rate, speed, **kw)
+    return player, record(player.player.url, out, "--read-period", "0.05")
+
+
+def finish(player: Proc | PlayerThread, recorder: Proc) -> None:
     player.wait_for("replay finished", timeout=120)
     rc_rec, _ = recorder.stop()
     assert rc_rec == 0 and player.wait() == 0, recorder.text + "\n" + player.text

@@ -82,7 +82,7 @@ def test_the_recorder_polls_once_per_scan_whatever_the_modules_clock(tmp_path):
     try:
         for _, rec in runs.values():
             rec.wait_for("recording to", timeout=30)
-        time.sleep(15.0)
+        time.sleep(10.0)
         for emu, rec in runs.values():
             rc, _ = rec.stop()
             assert rc == 0, rec.text
@@ -93,7 +93,7 @@ def test_the_recorder_polls_once_per_scan_whatever_the_modules_clock(tmp_path):
             emu.close()
     for ppm, (emu, rec) in runs.items():
         rows = read_recordings(tmp_path / str(ppm)).scans
-        assert len(rows) > 250, (ppm, len(rows))
+        assert len(rows) > 150, (ppm, len(rows))
         assert rows["missed"][1:].sum() == 0, (ppm, rec.text)
         answers = emu.wire.answers_sent - 3  # less the identity and rate at connect
         made = int(rows["counter64"][-1] - rows["counter64"][0]) + 1

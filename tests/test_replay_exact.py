@@ -14,11 +14,13 @@ from replay_helpers import (
     finish,
     read_scans,
     replay_and_record,
+    replay_in_process,
     synthetic_rows,
     write_recording,
 )
 
-from simulator.clock import ManualClock  # noqa: F401 - the model below runs on it
+from daemon.commands.replay import power_ons
+from simulator.open_points import Latency, OpenPoints
 from simulator.replay import FIRST_SCAN_LEAD_NS, RecordedModule, RecordedPowerOn
 
 RATE = 50
@@ -28,8 +30,6 @@ pytestmark = pytest.mark.timeout(180)
 
 def test_the_recorded_module_makes_exactly_the_recorded_scans():
     rows = synthetic_rows(RATE)
-    from daemon.commands.replay import power_ons
-
     pos = power_ons(rows)
     assert [len(p.counter) for p in pos] == [80, 60, 80]
     module = RecordedModule(pos, rate_hz=RATE, now_ns=5)
@@ -59,17 +59,28 @@ def FIFO_OR_ALL(n: int) -> int:  # noqa: N802 - reads as the quantity it is
 
 
 def test_round_trip_on_every_transport(tmp_path):
-    """All three transports at once (the serial ones phase-locked polling for ASCII at
-    the recording's own pace; Modbus at twice it)."""
+    """All three transports at once: ASCII through ``loopcal replay`` at the recording's own
+    pace (polled once per scan, phase-locked); Modbus at twice it, served by modules that
+    answer as other makers' might (the emulator's open points): late and without filler
+    scans, truncating long reads (TCP); refusing them, answering across holes, only whole
+    snapshots, with slow answers (RTU)."""
     rows = synthetic_rows(RATE)
     src = write_recording(tmp_path / "src", rows, RATE)
+    original = read_scans(src)
+    tcp = OpenPoints(latency=Latency(), fifo_underrun="short", max_read_registers=64,
+                     over_limit="truncate")  # fmt: skip
+    rtu = OpenPoints(latency=Latency(slow_fraction=0.02, slow_ms=(50.0, 70.0)),
+                     max_read_registers=60, holes="zero", snapshot_reads="whole")  # fmt: skip
     runs = {
-        t: replay_and_record(src, tmp_path / t, t, 1.0 if t == "ascii" else 2.0)
-        for t in ("modbus-tcp", "modbus-rtu", "ascii")
+        "ascii": replay_and_record(src, tmp_path / "ascii", "ascii", 1.0),
+        "modbus-tcp": replay_in_process(original, tmp_path / "tcp", "modbus-tcp", RATE, 2.0,
+                                        open_points=tcp),  # fmt: skip
+        "modbus-rtu": replay_in_process(original, tmp_path / "rtu", "modbus-rtu", RATE, 2.0,
+                                        open_points=rtu),  # fmt: skip
     }
     for player, recorder in runs.values():
         finish(player, recorder)
-    original = read_scans(src)
-    for t in runs:
-        again = read_scans(tmp_path / t)
-        assert_same_scans(original, again)
+    for out in ("ascii", "tcp", "rtu"):
+        assert_same_scans(original, read_scans(tmp_path / out))
+    with pytest.raises(ValueError, match="the recording's"):
+        RecordedModule(power_ons(original), rate_hz=RATE, open_points=OpenPoints(clock_ppm=1))
