@@ -7,7 +7,8 @@ negative and the smallest over many reads is close to zero, so the offset is the
 lower envelope. The module's clock is not the host's (the datasheet does not say how good
 it is: ±200 ppm moves the offset by 0.7 s an hour), so the envelope is a sloping line:
 
-- the samples' minimum in each 10 s of device time (a bin) is close to the envelope;
+- the lowest sample in each 10 s of device time (a bin), once the slope is taken out, is
+  close to the envelope;
 - the slope (the module's clock error) is the least-squares slope of the last ten minutes
   of bin minima, once they span half a minute (0 before), held within ±1000 ppm;
 - the line goes through the lowest of the last minute's samples once the slope is taken
@@ -63,7 +64,9 @@ class ClockMap:
         k = time64_us // BIN_US
         bins = self._bins
         if bins and bins[-1][0] == k:
-            if sample < bins[-1][2]:
+            # the bin keeps its lowest sample once the slope is taken out
+            old_t, old = bins[-1][1], bins[-1][2]
+            if sample - old < self.slope * (time64_us - old_t) * 1000:
                 bins[-1] = (k, time64_us, sample)
         elif not bins or k > bins[-1][0]:
             bins.append((k, time64_us, sample))
