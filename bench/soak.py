@@ -12,7 +12,8 @@ At the end, against the module's own list of the scans it made:
 
 - every recorded scan is one the module made, bit for bit, and none is recorded twice;
 - every scan not recorded is explained: beyond the FIFO's reach when the daemon could read
-  again (an overflow or a gap event says so), read by a daemon that was SIGKILLed before
+  again, the daemon having read again soon after the fault that kept it away ended (a gap
+  event says so: a SIGSTOP, the module gone, a SIGKILL), read by a daemon SIGKILLed before
   it could write it (the restarted daemon's gap event), lost with the module's power (a
   restart event), or lost with a FIFO answer that never arrived (a disconnect event);
   anything else fails the soak;
@@ -58,6 +59,9 @@ READ_PERIOD_S = 0.2
 FLUSH_S = 1.0
 KINDS = ("power", "gone", "sigstop", "sigkill", "sighup", "diskfull", "latency")
 SLOW = Latency(min_ms=5.0, max_ms=10.0, slow_fraction=0.2, slow_ms=(50.0, 90.0))
+#: how soon after a fault ends the daemon must read again (its backoff, at most a quarter of
+#: the FIFO's reach at 200 Hz, a reconnect, a read period; a restarted daemon's start-up)
+OUTAGE_SLACK_S = {"gone": 1.0, "sigstop": 0.6, "power": 1.0, "sigkill": 6.0}
 
 
 @dataclass
@@ -311,6 +315,18 @@ class Soak:
         base = np.array([self.boot_ns.get(int(b), 0) for b in boot], dtype=np.float64)
         return (self.mono0 + base + t64 * 1000.0 / (1 + PPM * 1e-6)) / 1e9
 
+    def outage(self, t: float, read_again: float) -> str | None:
+        """The fault that kept the daemon from reading a scan made at ``t`` until
+        ``read_again``: one that began before ``t`` and ended at most its slack before the
+        daemon read again (a SIGKILLed daemon's slack is its successor's start-up; None:
+        none did, the daemon was late by itself)."""
+        for f in self.faults:
+            slack = OUTAGE_SLACK_S.get(f.kind)
+            if slack is not None and f.start - 0.5 <= t <= read_again <= f.end + slack:
+                return {"gone": "the module gone", "sigstop": "a SIGSTOP",
+                        "sigkill": "a SIGKILL", "power": "a power cycle"}[f.kind]  # fmt: skip
+        return None
+
     def check(self) -> bool:
         ok = True
         boot, counter, t64, codes = self.truth.arrays()
@@ -392,11 +408,16 @@ class Soak:
             if any(k - FLUSH_S - READ_PERIOD_S - 1.0 <= t <= k + 0.01 for k in kills):
                 why["read by a SIGKILLed daemon, not yet written (gap event)"] += 1
             elif read_again - t > FIFO_REACH_S - 0.05:
-                why["beyond the FIFO's reach when read again (gap event)"] += 1
+                # beyond reach, and the daemon read again soon enough after the fault ended
+                cause = self.outage(t, read_again)
+                if cause is None:
+                    unexplained.append((b, c, "read again too late", round(read_again - t, 3)))
+                else:
+                    why[f"beyond the FIFO's reach after {cause} (gap event)"] += 1
             elif any(t - 1.0 <= d <= read_again for d in downs):
                 why["with a FIFO answer lost (disconnect event)"] += 1
             else:
-                unexplained.append((b, c, round(read_again - t, 3)))
+                unexplained.append((b, c, "within reach", round(read_again - t, 3)))
         if self.args.verbose:
             for r, b, h in zip(rows, rb, host_rec, strict=True):
                 if r["missed"]:

@@ -20,7 +20,7 @@ What it adds to the driver's scans:
 
 When the module stops answering, the loop retries every 0.05 s through the datasheet's
 restart window (a power-cycled module answers again within 2 s), then with exponential
-backoff (0.1 s doubling to 2 s, far inside the 12.8 s the module's FIFO holds at 20 Hz), so
+backoff (0.1 s doubling to 2 s, or to a quarter of what the FIFO holds: far inside it), so
 a short outage loses nothing over Modbus and little over ASCII. The FIFO is read every
 ``read_period`` (and again at once if it was more than half full); without a FIFO (ASCII,
 or Modbus with ``fifo=0``) the loop polls once per scan, phase-locked to the module's own
@@ -272,11 +272,14 @@ class Acquisition:
         """Seconds to the next try: every BACKOFF_FAST_S through the restart window of an
         outage (a power-cycled module answers again within the datasheet's 2 s, and over
         ASCII every scan it makes before the first poll is lost), then doubling from
-        BACKOFF_MIN_S to BACKOFF_MAX_S."""
+        BACKOFF_MIN_S to BACKOFF_MAX_S, or to a quarter of what the FIFO holds if that is
+        less (1.28 s at 200 Hz: a link back after a long outage still finds its scans)."""
         if self._down_since is not None and now - self._down_since < RESTART_WINDOW_S:
             return BACKOFF_FAST_S
-        wait = self._backoff
-        self._backoff = min(BACKOFF_MAX_S, self._backoff * 2)
+        rate = self.device.scan_rate_hz if self.device else ldq412.SCAN_RATE_DEFAULT_HZ
+        cap = max(BACKOFF_MIN_S, min(BACKOFF_MAX_S, ldq412.FIFO_DEPTH / rate / 4))
+        wait = min(self._backoff, cap)
+        self._backoff = min(cap, self._backoff * 2)
         return wait
 
     def _next_poll(self, start: float, scans: list[Scan]) -> float:
