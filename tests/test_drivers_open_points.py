@@ -37,8 +37,9 @@ OPEN_POINTS = {
     "refuses-long-reads": OpenPoints(max_read_registers=64),
     "truncates-long-reads": OpenPoints(max_read_registers=64, over_limit="truncate"),
     "strict-map": OpenPoints(holes="zero", snapshot_reads="whole"),
-    # slow answers within the datasheet's 100 ms; 70 ms rather than 90 leaves the
-    # emulator thread, which shares this process, 30 ms of scheduling slack
+    # answers of 50-70 ms among the datasheet's 0.5-10 ms (the 1 s timeout below, as in
+    # test_drivers_emulator.py: the emulator shares this process and its CPUs, and on a
+    # loaded machine a 70 ms answer can reach the driver after 100 ms)
     "slow-answers": OpenPoints(latency=Latency(slow_fraction=0.05, slow_ms=(50.0, 70.0))),
 }
 
@@ -55,7 +56,7 @@ def test_every_scan_exactly_once_whatever_the_module_chose(transport: str, name:
     clock = ManualClock()
     with Emulator(transport, clock=clock, scan_rate_hz=RATE, open_points=op) as emu:
         _settle(clock, op)
-        daq = open_daq(emu.url, timeout=0.1 if name == "slow-answers" else OK_TIMEOUT)
+        daq = open_daq(emu.url, timeout=OK_TIMEOUT)
         try:
             got = []
             # ASCII polls: one scan per read, or gaps the missed counts must explain

@@ -26,7 +26,7 @@ from simulator.source import TestSource
 
 
 @pytest.mark.parametrize("ppm", [0.0, 200.0, -200.0, 1000.0, -1000.0])
-@pytest.mark.parametrize("phase_us", [0, 1809, 36_000])
+@pytest.mark.parametrize("phase_us", [1809, 36_000])
 def test_once_per_scan_and_none_missed_over_an_hour(ppm, phase_us):
     rng = np.random.default_rng([int(ppm) % 7919, phase_us])
     module = Module(rate_hz=20, ppm=ppm, phase_us=phase_us, boot_s=12.345)
@@ -82,7 +82,7 @@ def test_the_recorder_polls_once_per_scan_whatever_the_modules_clock(tmp_path):
     try:
         for _, rec in runs.values():
             rec.wait_for("recording to", timeout=30)
-        time.sleep(10.0)
+        time.sleep(8.0)
         for emu, rec in runs.values():
             rc, _ = rec.stop()
             assert rc == 0, rec.text
@@ -93,7 +93,7 @@ def test_the_recorder_polls_once_per_scan_whatever_the_modules_clock(tmp_path):
             emu.close()
     for ppm, (emu, rec) in runs.items():
         rows = read_recordings(tmp_path / str(ppm)).scans
-        assert len(rows) > 150, (ppm, len(rows))
+        assert len(rows) > 120, (ppm, len(rows))
         assert rows["missed"][1:].sum() == 0, (ppm, rec.text)
         answers = emu.wire.answers_sent - 3  # less the identity and rate at connect
         made = int(rows["counter64"][-1] - rows["counter64"][0]) + 1
