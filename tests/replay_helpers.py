@@ -139,7 +139,10 @@ def replay_in_process(
     rows: np.ndarray, out: Path, transport: str, rate: int, speed: float, **kw
 ) -> tuple[PlayerThread, Proc]:
     player = PlayerThread(rows, transport, rate, speed, **kw)
-    return player, record(player.player.url, out, "--read-period", "0.05")
+    # a 0.5 s timeout: the module here shares this process, and its slow answers (50-70 ms
+    # on purpose) can reach the recorder after 100 ms on a loaded machine, and a FIFO
+    # answer that times out takes its scans with it
+    return player, record(player.player.url, out, "--read-period", "0.05", "--timeout", "0.5")
 
 
 def finish(player: Proc | PlayerThread, recorder: Proc) -> None:

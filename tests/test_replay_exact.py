@@ -80,7 +80,10 @@ def test_round_trip_on_every_transport(tmp_path):
     }
     for player, recorder in runs.values():
         finish(player, recorder)
-    for out in ("ascii", "tcp", "rtu"):
-        assert_same_scans(original, read_scans(tmp_path / out))
+    for t, out in (("ascii", "ascii"), ("modbus-tcp", "tcp"), ("modbus-rtu", "rtu")):
+        try:
+            assert_same_scans(original, read_scans(tmp_path / out))
+        except AssertionError as exc:
+            raise AssertionError(f"{t}: {exc}\n{runs[t][1].text}") from None
     with pytest.raises(ValueError, match="the recording's"):
         RecordedModule(power_ons(original), rate_hz=RATE, open_points=OpenPoints(clock_ppm=1))
