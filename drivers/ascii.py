@@ -25,6 +25,13 @@ from typing import ClassVar
 
 import serial
 
+try:  # pyserial's POSIX port lets termios.error (not an OSError) through: a port gone away
+    import termios
+
+    _PORT_ERRORS: tuple[type[BaseException], ...] = (serial.SerialException, OSError, termios.error)
+except ImportError:  # pragma: no cover - not POSIX
+    _PORT_ERRORS = (serial.SerialException, OSError)
+
 from . import ldq412
 from .base import DAQ, DaqUrl, Identity, Scan, register_scheme
 from .errors import (
@@ -237,7 +244,7 @@ class AsciiDAQ(DAQ):
         except serial.SerialTimeoutException as exc:
             self._drop()
             raise DAQTimeout(f"{self.url}: write timed out") from exc
-        except (serial.SerialException, OSError) as exc:
+        except _PORT_ERRORS as exc:
             self._drop()
             raise DAQDisconnected(f"{self.url}: {exc}") from exc
         if not line:

@@ -80,8 +80,9 @@ class Scan:
         restarted: the device restarted (power cycle) before this scan, detected by the
             restart status bit or the counter going backwards. Also true on the first
             scan after connect if the restart bit was set then.
-        overflow: the device's FIFO overflowed before this scan (latched bit 8 seen;
-            the driver clears it). Only FIFO reads report it.
+        overflow: the device's FIFO overflowed before this scan (bit 8 rising, or a
+            counter gap in the FIFO while bit 8 is latched; the driver never clears the
+            bit, since that would empty the FIFO too). Only FIFO reads report it.
 
     Provenance:
         time_measured: time_us came from the device (snapshot / ``#AA``); False for FIFO

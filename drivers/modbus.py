@@ -12,6 +12,17 @@ call, never more (plus the answer's transfer time).
 After a timeout or a protocol error the connection is dropped and reopened on the next
 call (TCP: a fresh socket, so a late answer can never be taken for the next one; RTU: the
 port is reopened and the line is drained until quiet).
+
+FIFO overflow: the driver never writes holding register 2, since by the datasheet that
+clears the FIFO along with the overflow flag, and would throw away the scans that arrived
+while the driver was reading. The flag stays latched; an overflow shows as a counter gap
+in the FIFO (the oldest scans were dropped), told apart from a FIFO answer lost on the way
+(the driver knows which reads failed). See :class:`drivers.sequence.Sequencer`.
+
+Modules differ where the datasheet is loose (docs/daq.md, "open points"): a FIFO answer
+with fewer scans than asked (a module that leaves the filler out, or truncates long
+reads) is accepted; a module that refuses 20-scan reads (exception 02 or 03) is read in smaller
+chunks, which is safe because a refused read takes nothing off the FIFO.
 """
 
 from __future__ import annotations
@@ -29,6 +40,7 @@ from . import ldq412
 from .base import DAQ, DaqUrl, Identity, Scan
 from .errors import (
     DAQDisconnected,
+    DAQError,
     DAQIdentityError,
     DAQModbusException,
     DAQProtocolError,
@@ -60,25 +72,30 @@ def parse_snapshot(regs: list[int]) -> RawSnapshot:
     )
 
 
-def parse_fifo(regs: list[int]) -> list[tuple[int, tuple[int, int, int, int]]]:
-    """FIFO window registers -> [(counter, codes)], oldest first, filler scans dropped.
+def parse_fifo(regs: list[int]) -> tuple[list[tuple[int, tuple[int, int, int, int]]], int]:
+    """FIFO window registers -> ([(counter, codes)] oldest first, filler scans dropped).
 
-    A filler scan is six 0xFFFF registers. Anything else with a code above 4095 (a partly
-    filled scan, corrupted data) raises DAQProtocolError.
+    Returns the scans and the number of filler scans (six 0xFFFF registers). Anything
+    else with a code above 4095 (a partly filled scan, corrupted data), or a scan after a
+    filler scan, raises DAQProtocolError.
     """
     n = ldq412.FIFO_SCAN_REGS
     if len(regs) % n:
         raise DAQProtocolError(f"FIFO: {len(regs)} registers is not a whole number of scans")
     out: list[tuple[int, tuple[int, int, int, int]]] = []
+    filler = 0
     for i in range(0, len(regs), n):
         hi, lo, c1, c2, c3, c4 = regs[i : i + n]
         if c1 == c2 == c3 == c4 == hi == lo == ldq412.FIFO_FILLER:
+            filler += 1
             continue
+        if filler:
+            raise DAQProtocolError(f"FIFO: a scan after a filler scan in {regs}")
         codes = (c1, c2, c3, c4)
         if max(codes) > ldq412.CODE_MAX:
             raise DAQProtocolError(f"FIFO: malformed scan {regs[i : i + n]}")
         out.append((ldq412.join_u32(hi, lo), codes))
-    return out
+    return out, filler
 
 
 def format_firmware(reg: int) -> str:
@@ -117,6 +134,8 @@ class ModbusDAQ(DAQ):
         self._closed = False
         self._resync_needed = False
         self._pending: list[Scan] = []
+        #: scans per FIFO read: the datasheet's 20, fewer for a module that refuses that
+        self.fifo_chunk = ldq412.FIFO_MAX_SCANS_PER_READ
         self._client = self._make_client(self._trace_packet)
         try:
             self._connect()
@@ -197,14 +216,16 @@ class ModbusDAQ(DAQ):
 
     # -- low-level register access (public: also for diagnostics) ------------------------
 
-    def read_input_registers(self, address: int, count: int) -> list[int]:
-        """Function 04. Raises DAQProtocolError if the answer has the wrong length."""
+    def read_input_registers(self, address: int, count: int, *, step: int = 0) -> list[int]:
+        """Function 04. Raises DAQProtocolError if the answer has the wrong length: not
+        ``count`` registers, or with ``step``, not a multiple of ``step`` up to ``count``
+        (a FIFO answer of fewer whole scans)."""
         rsp = self._execute(
             f"read input registers {address}+{count}",
             FC_READ_INPUT,
             lambda: self._client.read_input_registers(address, count=count, device_id=self.unit),
         )
-        return self._checked_registers(rsp, count, f"input registers {address}+{count}")
+        return self._checked_registers(rsp, count, f"input registers {address}+{count}", step)
 
     def read_holding_registers(self, address: int, count: int) -> list[int]:
         """Function 03. Raises DAQProtocolError if the answer has the wrong length."""
@@ -226,9 +247,12 @@ class ModbusDAQ(DAQ):
             self._drop()
             raise DAQProtocolError(f"{self.url}: write {address}={value}: wrong echo {rsp}")
 
-    def _checked_registers(self, rsp: ModbusPDU, count: int, what: str) -> list[int]:
+    def _checked_registers(
+        self, rsp: ModbusPDU, count: int, what: str, step: int = 0
+    ) -> list[int]:
         regs = list(rsp.registers)
-        if len(regs) != count:
+        short_ok = step and len(regs) < count and len(regs) % step == 0
+        if len(regs) != count and not short_ok:
             self._drop()
             raise DAQProtocolError(f"{self.url}: {what}: {len(regs)} registers answered")
         return regs
@@ -261,25 +285,45 @@ class ModbusDAQ(DAQ):
             self._drop()
             raise DAQProtocolError(f"{self.url}: {exc}") from None
 
-    def _read_fifo(self, n: int) -> list[tuple[int, tuple[int, int, int, int]]]:
-        regs = self.read_input_registers(ldq412.IR_FIFO, n * ldq412.FIFO_SCAN_REGS)
+    def _read_fifo(self, n: int) -> tuple[list[tuple[int, tuple[int, int, int, int]]], int, int]:
+        """Up to ``n`` scans off the FIFO: (scans, filler scans, scans not answered at all).
+
+        A module that refuses a read of ``n`` scans (02 or 03, nothing taken) is asked
+        for half as many, and :attr:`fifo_chunk` remembers it. A read that fails on the
+        way may have taken scans: the sequencer is told, so that the counter gap it
+        leaves is not taken for an overflow.
+        """
+        per = ldq412.FIFO_SCAN_REGS
+        while True:
+            try:
+                regs = self.read_input_registers(ldq412.IR_FIFO, n * per, step=per)
+                break
+            except DAQModbusException as exc:
+                if n == 1 or exc.code not in (exc.ILLEGAL_DATA_ADDRESS, exc.ILLEGAL_DATA_VALUE):
+                    raise
+                n = self.fifo_chunk = max(1, n // 2)
+            except DAQError:
+                self._seq.fifo_read_lost()
+                raise
         try:
-            return parse_fifo(regs)
+            scans, filler = parse_fifo(regs)
         except DAQProtocolError as exc:
+            self._seq.fifo_read_lost()
             self._drop()
             raise DAQProtocolError(f"{self.url}: {exc}") from None
+        return scans, filler, n - len(scans) - filler
 
-    def _clear_latched(self, status: int) -> None:
-        if status & ldq412.STATUS_OVERFLOW:
-            # Also empties the FIFO: any scan arriving since the drain is lost and shows
-            # up as Scan.missed on the next scan.
-            self.write_register(ldq412.HR_CLEAR_FIFO, 1)
+    def _clear_restart_latch(self, status: int) -> None:
         if status & ldq412.STATUS_RESTART:
             self.write_register(ldq412.HR_CLEAR_RESTART, 1)
             self._seq.restart_bit_cleared()
 
     def _drain(self) -> list[Scan]:
-        """One FIFO transaction: anchor snapshot, the waiting scans, flag clearing."""
+        """One FIFO transaction: anchor snapshot, the waiting scans, restart-flag clearing.
+
+        Reads the scans the snapshot's level says wait, in chunks, the last asking for
+        one scan more (one that arrived meanwhile, else a filler scan or a short answer).
+        """
         snap, snap_time = self._read_snapshot()
         self._seq.begin_batch(snap, snap_time)
         if self._seq.period_mismatch():
@@ -290,18 +334,21 @@ class ModbusDAQ(DAQ):
         remaining = snap.fifo_level or 0
         try:
             while remaining > 0:
-                n = min(ldq412.FIFO_MAX_SCANS_PER_READ, remaining)
-                chunk = self._read_fifo(n)
+                n = min(self.fifo_chunk, remaining + 1)
+                chunk, filler, unanswered = self._read_fifo(n)
                 raw.extend(chunk)
-                if len(chunk) < n:  # fewer waiting than the level said (another reader?)
-                    break
-                remaining -= n
+                if filler or not chunk:
+                    break  # the FIFO is empty
+                remaining -= len(chunk)
+                if unanswered and remaining > 0:
+                    # fewer answered than asked although more wait: this module's limit
+                    self.fifo_chunk = len(chunk)
         finally:
             # Scans taken off the device are never dropped, even if a later chunk failed.
             if raw:
                 out = self._seq.fifo_scans(raw, time.monotonic())
                 self._pending.extend(out)
-        self._clear_latched(snap.status)
+        self._clear_restart_latch(snap.status)
         return out
 
     def _poll(self) -> Scan:
@@ -356,7 +403,7 @@ class ModbusDAQ(DAQ):
 
     def clear_fifo(self) -> None:
         """Empty the module's FIFO and clear its overflow flag (scans in it are lost and
-        reported as missed)."""
+        reported as missed). read_scans never does this."""
         self.write_register(ldq412.HR_CLEAR_FIFO, 1)
 
     def clear_restart(self) -> bool:

@@ -19,6 +19,13 @@ Two kinds of input:
   restricted to channels reading 4095 (a faulted channel reads 4095, and a channel at 4095
   is untrustworthy anyway); latched bits 8-9 from the anchor.
 
+Overflow detection: the drivers never clear the overflow flag (clearing it also empties
+the FIFO, losing what arrived since the last read), so after the first overflow of a
+power-on the bit stays set. A scan is marked ``overflow`` when the bit rises (or is set at
+the first observation), or when a FIFO scan follows a counter gap while the bit is set,
+unless a FIFO read was lost on the way since the last scan (``fifo_read_lost``): that gap
+is the lost answer's, not the module's.
+
 Restart detection: the restart bit rising (or set at the first observation), or the
 counter going backwards (a backwards step of less than 2**31 is a restart; a larger one
 is a 32-bit wrap). Each restart starts a new epoch with counter64 = the raw counter (the
@@ -106,12 +113,19 @@ class Sequencer:
         self._restart_bit_prev: bool | None = None
         self._first_restart = False  # restart bit was set when first observed
         self._pending_overflow = False
+        self._overflow_bit_prev = False
+        self._lost_read = False  # a FIFO answer was lost since the last delivered scan
         self._boundary_pending = False
         self._anchor_host_time: float | None = None
         #: measured scan period (µs) between the last two anchors of one epoch, or None
         self.measured_period_us: float | None = None
 
     # -- bookkeeping ---------------------------------------------------------------
+
+    def fifo_read_lost(self) -> None:
+        """A FIFO read failed after it was sent: scans it took are lost, and the gap they
+        leave is not an overflow."""
+        self._lost_read = True
 
     def restart_bit_cleared(self) -> None:
         """The driver cleared the restart bit: the next time it is seen set is a restart."""
@@ -245,8 +259,10 @@ class Sequencer:
             self._boundary_pending = True
         self._set_anchor(snap)
         self._batch_prev_anchor = old if old is not None and old.epoch == self.epoch else None
-        if snap.status & ldq412.STATUS_OVERFLOW:
+        bit = bool(snap.status & ldq412.STATUS_OVERFLOW)
+        if bit and not self._overflow_bit_prev:
             self._pending_overflow = True
+        self._overflow_bit_prev = bit
 
     def fifo_scans(
         self, raw: Sequence[tuple[int, tuple[int, int, int, int]]], host_time: float
@@ -295,6 +311,9 @@ class Sequencer:
                 extra = other_fault if a is anchor else 0
                 status, measured = derived_status(codes, a.status, extra), False
             missed, restarted, overflow = self._deliver(a.epoch, c, c64)
+            if missed and not restarted:
+                overflow = overflow or (self._overflow_bit_prev and not self._lost_read)
+            self._lost_read = False
             out.append(
                 Scan(
                     counter=c,

@@ -1,8 +1,10 @@
 """The ASCII protocol server: reads CR-terminated frames from a serial fd and answers.
 
 Runs on the emulator's asyncio loop. Each complete frame is answered at once (well within
-the datasheet's 10 ms) unless the module is off, stalled or the link is down, in which
-case the frame is silently lost, as on the real module.
+the datasheet's 10 ms), or after the drawn latency (an open point: the answer is decided
+when the frame arrives, sent later, answers in the order of their frames), unless the
+module is off, stalled or the link is down, in which case the frame is silently lost, as
+on the real module.
 
 Decision where the datasheet is silent: the module's line buffer holds 64 bytes; a longer
 run without CR is discarded (line noise cannot grow it without bound).
@@ -32,6 +34,7 @@ class AsciiServer:
         self.address = address
         self._buffer = bytearray()
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._send_at = 0.0  # loop time the latest delayed answer goes out
 
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         os.set_blocking(self.fd, False)
@@ -62,6 +65,14 @@ class AsciiServer:
             if answer is None:
                 return
             out = self.handle.wire.outgoing(answer, corrupt_ascii(device.ascii_checksum))
+            delay = self.handle.wire.delay_s("ascii")
+        if delay > 0 and self._loop is not None:
+            self._send_at = max(self._loop.time() + delay, self._send_at)
+            self._loop.call_at(self._send_at, self._write, out)
+            return
+        self._write(out)
+
+    def _write(self, out: bytes) -> None:
         view = memoryview(out)
         while view:
             try:

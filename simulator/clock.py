@@ -11,6 +11,8 @@ Time is kept in integer nanoseconds so that scan schedules are exact and reprodu
   the basis of every bit-exact test.
 - :class:`HeldClock`: wall time that stands at 0 until :meth:`HeldClock.release` (a
   module switched on when its first client talks, whatever that client's start-up time).
+- :class:`PlayClock`: wall time sped up, that runs only up to a limit its owner moves
+  (a replay: it stops exactly at a scan, a power cycle, and waits there for a client).
 
 All clocks start at 0 when created.
 """
@@ -114,6 +116,39 @@ class ManualClock:
     def now_ns(self) -> int:
         with self._lock:
             return self._ns
+
+    def now(self) -> float:
+        return self.now_ns() / NS_PER_S
+
+
+class PlayClock:
+    """Wall time ``speed`` times as fast, up to a limit: :meth:`run_until` lets it run from
+    where it stands to ``limit_ns`` and stop there until the next call. Read at any instant
+    it is exact (no steps), however late its owner's thread runs."""
+
+    def __init__(self, speed: float = 1.0) -> None:
+        if not speed > 0:
+            raise ValueError(f"speed must be > 0, got {speed!r}")
+        self.speed = float(speed)
+        self._lock = threading.Lock()
+        self._base_ns = 0  # where it stood when last told to run
+        self._base_mono = time.monotonic_ns()
+        self._limit_ns = 0
+
+    def run_until(self, limit_ns: int) -> None:
+        """Run on from now to ``limit_ns`` (never back: an earlier limit holds it still)."""
+        with self._lock:
+            now = self._now_locked()
+            self._base_ns, self._base_mono = now, time.monotonic_ns()
+            self._limit_ns = max(limit_ns, now)
+
+    def _now_locked(self) -> int:
+        run = int((time.monotonic_ns() - self._base_mono) * self.speed)
+        return min(self._limit_ns, self._base_ns + run)
+
+    def now_ns(self) -> int:
+        with self._lock:
+            return self._now_locked()
 
     def now(self) -> float:
         return self.now_ns() / NS_PER_S

@@ -7,19 +7,22 @@ deterministic (the scans depend only on the schedule, never on when somebody loo
 makes FIFO overflow exact. The owner serializes access (the model is not thread-safe).
 
 Timing model
-    Device time is microseconds since the current power-on. Scans happen at
-    ``anchor_us + floor(j * 1e6 / rate)`` for j = 0, 1, 2, ...: at power-on the anchor is
-    0 and the first scan (counter 0) happens at once; a write that changes the scan rate
-    re-anchors the schedule at the write's instant, the next scan following one new period
-    later. Channel i (1-based) is converted ``(i - 1) * 250 us`` after the scan's time
-    stamp; with oversampling N, the N conversions of a channel are modeled as a burst at
-    that instant (the source is called N times with the same instants; only its noise
-    differs).
+    Device time is microseconds since the current power-on, counted by the module's own
+    clock: ``clock_ppm`` (:mod:`simulator.open_points`) makes it run that much fast
+    against the owner's clock. Scans happen at ``anchor_us + floor(j * 1e6 / rate)`` µs of
+    device time for j = 0, 1, 2, ...: at power-on the anchor is ``scan_phase_us`` (0 by
+    default: the first scan, counter 0, happens at once), and the module answers nothing
+    before that first scan; a write that changes the scan rate re-anchors the schedule at
+    the write's instant, the next scan following one new period later. Channel i
+    (1-based) is converted ``(i - 1) * 250 us`` after the scan's time stamp; with
+    oversampling N, the N conversions of a channel are modeled as a burst at that instant
+    (the source is called N times with the same instants; only its noise differs).
 
 Source time base
-    The source sees seconds since the *first* power-on (``initial_uptime_s`` included),
-    which equals device time until a power cycle, and keeps running through power cycles
-    (the LVDTs do not restart with the module).
+    The source sees seconds since the *first* power-on (``initial_uptime_s`` included) by
+    the owner's clock, which equals device time until a power cycle (with a clock error,
+    within it), and keeps running through power cycles (the LVDTs do not restart with the
+    module).
 
 Oversampling
     The reported code is the mean of N conversion codes rounded half up:
@@ -74,6 +77,7 @@ from drivers.ldq412 import (
     volts_to_code,
 )
 
+from .open_points import OpenPoints
 from .source import SignalSource
 
 # Modbus exception codes the module answers (datasheet: 02 and 03; 01 for functions it
@@ -85,6 +89,8 @@ ILLEGAL_VALUE = 0x03
 # Protocol limits of a single Modbus register read / write (Modbus application spec).
 MODBUS_MAX_READ = 125
 MODBUS_MAX_WRITE = 123
+_NS_PER_S = 1_000_000_000
+_IR_MAP_END = IR_MODEL + IR_IDENTITY_LEN  # one past the last input register
 
 _US_PER_S = 1_000_000
 _NS_PER_US = 1_000
@@ -140,6 +146,8 @@ class LDQ412:
     truth_limit: None: :attr:`truth` keeps every scan; N: it keeps the latest N to 2N-1.
     drained: the FIFO starts empty, as if a host had just read it (with initial_uptime_s:
         a replay that starts in the middle of a power-on).
+    open_points: the choices the datasheet leaves open (:class:`OpenPoints`; the default
+        is the emulator as it always was).
     """
 
     def __init__(
@@ -154,6 +162,7 @@ class LDQ412:
         initial_uptime_s: float = 0.0,
         truth_limit: int | None = None,
         drained: bool = False,
+        open_points: OpenPoints | None = None,
     ) -> None:
         if truth_limit is not None and truth_limit < 1:
             raise ValueError("truth_limit must be >= 1 or None")
@@ -171,8 +180,14 @@ class LDQ412:
         self.firmware = (major, minor)
         self.power_on_scan_rate_hz = scan_rate_hz
         self.power_on_ascii_checksum = bool(ascii_checksum)
+        #: how often a host read the latest scan (a snapshot or ``#AA``), or the FIFO
+        self.latest_reads = 0
+        self.fifo_reads = 0
         self.truth: list[TruthScan] = []
         self.truth_limit = truth_limit
+        self.open = open_points if open_points is not None else OpenPoints()
+        # the module's clock error in parts per billion: integer arithmetic keeps it exact
+        self._ppb = round(self.open.clock_ppm * 1000)
 
         self._stuck: list[int | None] = [None] * N_CHANNELS
         self._sensor_fault: list[bool] = [False] * N_CHANNELS
@@ -184,8 +199,9 @@ class LDQ412:
         self._off_until_ns: int | None = None
         self._power_on(self._first_boot_ns)
         # Powered on long ago and never read: only the last FIFO_DEPTH scans still exist.
-        uptime_us = (now_ns - self._boot_ns) // _NS_PER_US
-        skipped = max(0, scans_due(uptime_us, scan_rate_hz) - FIFO_DEPTH)
+        since_scan0 = self._device_us(now_ns) - self._anchor_us
+        due = scans_due(since_scan0, scan_rate_hz) if since_scan0 >= 0 else 0
+        skipped = max(0, due - FIFO_DEPTH)
         if skipped:
             self._next_j = skipped
             self._counter = skipped % U32_MOD
@@ -197,6 +213,19 @@ class LDQ412:
 
     # ------------------------------------------------------------------ time
 
+    def _device_us(self, now_ns: int) -> int:
+        """Device time (µs since the current power-on, by the module's clock) at ``now_ns``."""
+        elapsed = now_ns - self._boot_ns
+        return (elapsed + elapsed * self._ppb // _NS_PER_S) // _NS_PER_US
+
+    def _source_s(self, t_us: int) -> float:
+        """Source time (s since the first power-on, by the owner's clock) of device time
+        ``t_us`` of the current power-on."""
+        if not self._ppb:
+            return ((self._boot_ns - self._first_boot_ns) // _NS_PER_US + t_us) / _US_PER_S
+        elapsed = t_us * _NS_PER_US * _NS_PER_S // (_NS_PER_S + self._ppb)
+        return (self._boot_ns - self._first_boot_ns + elapsed) / _NS_PER_S
+
     def _power_on(self, boot_ns: int) -> None:
         self._boot += 1
         self._boot_ns = boot_ns
@@ -205,7 +234,7 @@ class LDQ412:
         self._oversampling = 1
         self._ascii_checksum = self.power_on_ascii_checksum
         self._counter = 0
-        self._anchor_us = 0
+        self._anchor_us = self.open.scan_phase_us
         self._next_j = 0
         self._fifo: collections.deque[tuple[int, int, int, int, int]] = collections.deque()
         self._overflow = False
@@ -224,13 +253,17 @@ class LDQ412:
             if now_ns < self._off_until_ns:
                 return
             self._power_on(self._off_until_ns)
-        uptime_us = (now_ns - self._boot_ns) // _NS_PER_US
+        uptime_us = self._device_us(now_ns)
         while True:
-            t_us = self._anchor_us + self._next_j * _US_PER_S // self._scan_rate
-            if t_us > uptime_us:
+            t_us = self._next_scan_us()
+            if t_us is None or t_us > uptime_us:
                 break
             self._take_scan(t_us)
             self._next_j += 1
+
+    def _next_scan_us(self) -> int | None:
+        """Device time of the next scan of this power-on (None: it makes no more)."""
+        return self._anchor_us + self._next_j * _US_PER_S // self._scan_rate
 
     @property
     def now_ns(self) -> int:
@@ -248,9 +281,21 @@ class LDQ412:
         return self._boot
 
     @property
+    def ready(self) -> bool:
+        """Powered and past its first scan: the module answers requests."""
+        return self._off_until_ns is None and self._latest is not None
+
+    @property
     def uptime_us(self) -> int:
-        """Microseconds since the current power-on (unwrapped), as of the last sync."""
-        return (self._now_ns - self._boot_ns) // _NS_PER_US
+        """Device µs since the current power-on (unwrapped), as of the last sync."""
+        return self._device_us(self._now_ns)
+
+    def host_ns(self, boot: int, time64_us: int) -> int | None:
+        """The owner's clock (ns) at device time ``time64_us`` of the current power-on
+        (None for another power-on): when that scan was taken."""
+        if boot != self._boot:
+            return None
+        return self._boot_ns + time64_us * _NS_PER_US * _NS_PER_S // (_NS_PER_S + self._ppb)
 
     def power_cycle(self, off_s: float = POWER_CYCLE_S) -> None:
         """Switch the module off now and on again ``off_s`` seconds later.
@@ -264,7 +309,7 @@ class LDQ412:
 
     def _take_scan(self, t_us: int) -> None:
         n = self._oversampling
-        t_s = ((self._boot_ns - self._first_boot_ns) // _NS_PER_US + t_us) / _US_PER_S
+        t_s = self._source_s(t_us)
         instants = t_s + _CHANNEL_OFFSETS_S
         volts = np.empty((n, N_CHANNELS))
         for k in range(n):
@@ -283,12 +328,17 @@ class LDQ412:
                 codes[ch] = CODE_MAX
                 fault_bits |= 1 << (4 + ch)
         rail_bits = sum(1 << ch for ch, c in enumerate(codes) if c in (0, CODE_MAX))
-        counter = self._counter
+        self._push_scan(self._counter, t_us, codes, rail_bits | fault_bits, t_s)
+
+    def _push_scan(
+        self, counter: int, t_us: int, codes: list[int], low_status: int, t_s: float
+    ) -> None:
+        """Make a scan the latest and put it in the FIFO (low_status: rail and fault bits)."""
         if len(self._fifo) >= FIFO_DEPTH:
             self._fifo.popleft()
             self._overflow = True
         self._fifo.append((counter, *codes))
-        self._latest_low_status = rail_bits | fault_bits
+        self._latest_low_status = low_status
         self._latest = TruthScan(
             counter=counter,
             time_us=t_us % U32_MOD,
@@ -303,14 +353,15 @@ class LDQ412:
         self._counter = (counter + 1) % U32_MOD
 
     def _require_power(self) -> None:
-        if not self.powered:
-            raise DeviceOffError("the module is powered off")
+        if not self.ready:
+            raise DeviceOffError("the module is powered off (or before its first scan)")
 
     @property
     def latest(self) -> TruthScan:
         """The latest scan (what registers 0..7 and ``#AA`` report)."""
         self._require_power()
-        assert self._latest is not None  # the first scan is taken at power-on
+        assert self._latest is not None
+        self.latest_reads += 1
         return self._latest
 
     @property
@@ -368,34 +419,73 @@ class LDQ412:
         Raises :class:`DeviceError` with 03 for a count outside 1..125 or a FIFO-window
         read whose count is not a multiple of 6, and 02 for addresses outside 0..9,
         256..375, 512..515, a FIFO-window read not starting at 256 or reading past 375
-        (more than 20 scans).
+        (more than 20 scans). The open points (``max_read_registers``, ``over_limit``,
+        ``holes``, ``snapshot_reads``, ``fifo_underrun``) change these answers; a
+        truncated or short answer has fewer registers than asked.
         """
         self._require_power()
         if not 1 <= count <= MODBUS_MAX_READ:
             raise DeviceError(ILLEGAL_VALUE, f"count {count} outside 1..{MODBUS_MAX_READ}")
+        op = self.open
+        if count > op.max_read_registers:
+            if op.over_limit == "refuse":
+                raise DeviceError(
+                    ILLEGAL_VALUE, f"count {count} over this module's {op.max_read_registers}"
+                )
+            count = op.max_read_registers
+            if address == IR_FIFO:  # whole scans only; the rest stays waiting
+                count -= count % FIFO_SCAN_REGS
+                if not count:
+                    raise DeviceError(ILLEGAL_VALUE, "not one whole FIFO scan fits a read")
         end = address + count
         if 0 <= address and end <= IR_SNAPSHOT_LEN:
+            if op.snapshot_reads == "whole" and (address, count) != (0, IR_SNAPSHOT_LEN):
+                raise DeviceError(ILLEGAL_ADDRESS, "the snapshot is read whole (0..9)")
             return self.snapshot_registers()[address:end]
-        if IR_MODEL <= address and end <= IR_MODEL + IR_IDENTITY_LEN:
+        if IR_MODEL <= address and end <= _IR_MAP_END:
             return self.identity_registers()[address - IR_MODEL : end - IR_MODEL]
         if address == IR_FIFO and end <= IR_FIFO_END:
             if count % FIFO_SCAN_REGS:
                 raise DeviceError(ILLEGAL_VALUE, f"FIFO read of {count} registers, not N*6")
             return self.pop_fifo(count // FIFO_SCAN_REGS)
+        if op.holes == "zero" and 0 <= address and end <= _IR_MAP_END:
+            return self._read_across_holes(address, end)
         raise DeviceError(ILLEGAL_ADDRESS, f"input registers {address}..{end - 1}")
+
+    def _read_across_holes(self, address: int, end: int) -> list[int]:
+        """A read that leaves the listed blocks, on a module that answers it: unlisted
+        registers read 0, the snapshot and identity their values, and the FIFO window
+        (not read from its start) 0xFFFF without taking any scan."""
+        snap = self.snapshot_registers() if address < IR_SNAPSHOT_LEN else []
+        ident = self.identity_registers() if end > IR_MODEL else []
+        out = []
+        for a in range(address, end):
+            if a < IR_SNAPSHOT_LEN:
+                out.append(snap[a])
+            elif IR_FIFO <= a < IR_FIFO_END:
+                out.append(FIFO_FILLER)
+            elif a >= IR_MODEL:
+                out.append(ident[a - IR_MODEL])
+            else:
+                out.append(0)
+        return out
 
     def pop_fifo(self, n: int) -> list[int]:
         """Remove the ``n`` (1..20) oldest scans; registers as the FIFO window returns them.
 
-        Missing scans (fewer than ``n`` waiting) are all-0xFFFF filler scans.
+        Missing scans (fewer than ``n`` waiting) are all-0xFFFF filler scans, or left out
+        (``fifo_underrun="short"``: the answer is shorter).
         """
         if not 1 <= n <= FIFO_MAX_SCANS_PER_READ:
             raise DeviceError(ILLEGAL_VALUE, f"{n} scans per FIFO read")
+        self.fifo_reads += 1
         regs: list[int] = []
         for _ in range(n):
             if self._fifo:
                 counter, *codes = self._fifo.popleft()
                 regs += [*split_u32(counter), *codes]
+            elif self.open.fifo_underrun == "short":
+                break
             else:
                 regs += [FIFO_FILLER] * FIFO_SCAN_REGS
         return regs

@@ -40,6 +40,7 @@ from .device import LDQ412, TruthScan
 from .faults import FaultInjector
 from .handle import DeviceHandle
 from .modbus_server import ModbusRtuHost, ModbusTcpHost
+from .open_points import OpenPoints
 from .pty import PtyLink
 from .source import SignalSource, TestSource
 from .wire import WireFaults
@@ -51,6 +52,7 @@ TICK_S = 0.01
 _START_TIMEOUT_S = 5.0
 _STOP_TIMEOUT_S = 5.0
 _GARBAGE_STREAM = 0x6A756E6B  # second seed word: the garbage rng differs from the source's
+_LATENCY_STREAM = 0x6C617465  # and the answer delays' from both
 
 
 def _root_cause(exc: BaseException) -> str:
@@ -80,6 +82,13 @@ class Emulator:
     truth_limit: None keeps every scan in :attr:`truth`; N keeps at least the latest N
         (bounded memory for long real-time runs).
     drained: the FIFO starts empty (see :class:`~simulator.device.LDQ412`).
+    open_points: the choices the datasheet leaves open (:mod:`simulator.open_points`:
+        scan phase, clock error, answer latency, FIFO underrun, accepted reads); the
+        default is the emulator as it always was.
+    device: a device model to serve instead of a new :class:`~simulator.device.LDQ412`
+        (a replay's); source, scan_rate_hz, serial_number, firmware, ascii_checksum,
+        initial_uptime_s, truth_limit, drained and the open points other than the
+        latency are then the device's own.
     """
 
     def __init__(
@@ -100,6 +109,8 @@ class Emulator:
         port: int = 0,
         truth_limit: int | None = None,
         drained: bool = False,
+        open_points: OpenPoints | None = None,
+        device: LDQ412 | None = None,
     ) -> None:
         if transport not in TRANSPORTS:
             raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
@@ -114,7 +125,8 @@ class Emulator:
         self.ascii_addr = ascii_addr
         self.host = host
         self.port = port
-        self.device = LDQ412(
+        self.open_points = open_points if open_points is not None else OpenPoints()
+        self.device = device or LDQ412(
             self.source,
             now_ns=self.clock.now_ns(),
             scan_rate_hz=scan_rate_hz,
@@ -124,8 +136,13 @@ class Emulator:
             initial_uptime_s=initial_uptime_s,
             truth_limit=truth_limit,
             drained=drained,
+            open_points=self.open_points,
         )
-        self.wire = WireFaults(rng=np.random.default_rng([seed, _GARBAGE_STREAM]))
+        self.wire = WireFaults(
+            rng=np.random.default_rng([seed, _GARBAGE_STREAM]),
+            latency=self.open_points.latency,
+            latency_rng=np.random.default_rng([seed, _LATENCY_STREAM]),
+        )
         self.handle = DeviceHandle(self.device, self.clock, self.wire)
         self.faults = FaultInjector(self.handle, self._follow_link_state)
         self.url = ""
@@ -139,7 +156,7 @@ class Emulator:
         self._ascii: AsciiServer | None = None
         self._link: PtyLink | None = None
         self._reconcile_lock: asyncio.Lock | None = None
-        self._seen_boot = self.device.boot
+        self.handle.links_boot = self.device.boot
 
     # ------------------------------------------------------------------ public
 
@@ -162,6 +179,13 @@ class Emulator:
         """Every scan the module produced so far, in order (a copy, synced to the clock)."""
         with self.handle.synced() as device:
             return list(device.truth)
+
+    def take_truth(self) -> list[TruthScan]:
+        """The scans produced since the last call, in order, removed from :attr:`truth`
+        (for long runs that keep the ground truth elsewhere)."""
+        with self.handle.synced() as device:
+            out, device.truth = device.truth, []
+            return out
 
     @property
     def running(self) -> bool:
@@ -306,10 +330,10 @@ class Emulator:
             tcp = self._tcp
             if tcp is None:
                 return
-            if disconnected or (powered and boot != self._seen_boot):
+            if disconnected or (powered and boot != self.handle.links_boot):
                 tcp.reset_connections()
             if powered:
-                self._seen_boot = boot
+                self.handle.links_boot = boot
             want_listening = powered and not disconnected
             if want_listening and not tcp.listening:
                 await tcp.listen()

@@ -19,6 +19,8 @@ Meaning of each fault, where the contract leaves room:
 - ``garbage(nbytes)``: seeded random bytes go out just before the next answer.
 - ``corrupt_next(n)``: the next n answers carry a broken CRC (RTU), a broken MBAP
   protocol identifier (TCP) or a broken checksum / non-hex character (ASCII).
+- ``latency(Latency | None)``: from now on answers take this long (a burst of slow
+  answers; None: at once). Not ended by ``clear()``.
 - ``clear()``: ends every fault above except a power cycle already under way.
 """
 
@@ -29,6 +31,7 @@ from collections.abc import Callable
 from drivers.ldq412 import POWER_CYCLE_S
 
 from .handle import DeviceHandle
+from .open_points import Latency
 
 
 class FaultInjector:
@@ -68,6 +71,11 @@ class FaultInjector:
             device.power_cycle(off_s)
             self._handle.wire.stalled_until_ns = None
         self._on_link_change()
+
+    def latency(self, latency: Latency | None) -> None:
+        """Answers take ``latency`` from now on (None: sent at once)."""
+        with self._handle.lock:
+            self._handle.wire.latency = latency
 
     def garbage(self, nbytes: int) -> None:
         """Send ``nbytes`` junk bytes just before the next answer."""

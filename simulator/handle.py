@@ -25,6 +25,9 @@ class DeviceHandle:
         self.wire = wire
         self.lock = threading.RLock()
         self.requested = threading.Event()  # set by the first request a server handles
+        #: the power-on the open TCP connections belong to (the emulator resets them when
+        #: the module boots again; a request on one of them before that is not answered)
+        self.links_boot = device.boot
 
     def note_request(self) -> None:
         """A server received a request: the first one sets :attr:`requested` and starts a
@@ -43,9 +46,9 @@ class DeviceHandle:
 
     def responsive_locked(self) -> bool:
         """Whether the module would answer now (call holding the lock, after a sync):
-        powered, not stalled, link up."""
+        powered and past its first scan, not stalled, link up."""
         return (
-            self.device.powered
+            self.device.ready
             and not self.wire.disconnected
             and not self.wire.stalled(self.device.now_ns)
         )

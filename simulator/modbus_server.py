@@ -8,9 +8,13 @@ through pymodbus' own extension points:
   ``action`` hook runs the device model on every access: it fills the registers from the
   model before a read (so a FIFO-window read pops scans), applies writes, and returns the
   model's exception codes (02/03);
-- ``custom_pdu`` request classes: reads of 0 or more than 125 registers answer 03 (the
+- ``custom_pdu`` request classes: reads (03, 04) are answered by the device model itself,
+  so that an answer may have fewer registers than asked (a truncated or short FIFO read,
+  :mod:`simulator.open_points`); reads of 0 or more than 125 registers answer 03 (the
   stock classes reject them while decoding, which pymodbus answers with 01), and every
   function the module does not implement (anything but 03, 04, 06, 16) answers 01;
+- answer latency (an open point): the answer is decided when the request arrives, then
+  held back for the drawn delay on the server's event loop;
 - ``trace_pdu`` drops requests the module would not see (another unit address, module
   off, stalled) before they touch the datastore, and ``trace_packet`` puts wire faults on
   outgoing frames (garbage before, broken CRC/MBAP) and silences anything still not due.
@@ -21,6 +25,7 @@ TCP either (as on RS-485); a broadcast (unit 0) is ignored.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import socket
 import struct
@@ -32,7 +37,9 @@ from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.pdu.decoders import DecodePDU
 from pymodbus.pdu.register_message import (
     ReadHoldingRegistersRequest,
+    ReadHoldingRegistersResponse,
     ReadInputRegistersRequest,
+    ReadInputRegistersResponse,
 )
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
@@ -47,7 +54,10 @@ SUPPORTED_FUNCTIONS = (3, 4, 6, 16)
 
 
 class _CheckedReadHolding(ReadHoldingRegistersRequest):
-    """Function 03 whose count is checked when served (03), not while decoding (01)."""
+    """Function 03, answered by the adapter; its count is checked when served (03), not
+    while decoding (01)."""
+
+    adapter: ModbusAdapter
 
     def decode(self, data: bytes) -> None:
         self.address, self.count = struct.unpack(">HH", data[:4])
@@ -55,11 +65,11 @@ class _CheckedReadHolding(ReadHoldingRegistersRequest):
     async def datastore_update(self, context: ModbusServerContext, device_id: int) -> ModbusPDU:
         if not 1 <= self.count <= MODBUS_MAX_READ:
             return ExceptionResponse(self.function_code, ExcCodes.ILLEGAL_VALUE)
-        return await super().datastore_update(context, device_id)
+        return await self.adapter.read(self.function_code, self.address, self.count)
 
 
 class _CheckedReadInput(_CheckedReadHolding):
-    """Function 04, count checked when served."""
+    """Function 04, likewise."""
 
     function_code = ReadInputRegistersRequest.function_code
 
@@ -79,14 +89,18 @@ _RTU_FRAME_SIZE_OVERRIDE = {43: 7}
 _RTU_BARE_FRAME = 4
 
 
-def custom_pdus() -> list[type[ModbusPDU]]:
+def custom_pdus(adapter: ModbusAdapter) -> list[type[ModbusPDU]]:
     """Request classes replacing pymodbus' stock ones in the module's servers.
 
-    Every function code 1..127 other than 03, 04, 06, 16 answers 01; the RTU frame size
-    of a request comes from pymodbus' stock class where it has one (so an RTU request
-    is consumed whole), else a bare ``address fc crc`` frame is assumed.
+    Reads (03, 04) are answered by ``adapter``. Every function code 1..127 other than 03,
+    04, 06, 16 answers 01; the RTU frame size of a request comes from pymodbus' stock
+    class where it has one (so an RTU request is consumed whole), else a bare
+    ``address fc crc`` frame is assumed.
     """
-    classes: list[type[ModbusPDU]] = [_CheckedReadHolding, _CheckedReadInput]
+    classes: list[type[ModbusPDU]] = [
+        type("_ReadHolding", (_CheckedReadHolding,), {"adapter": adapter}),
+        type("_ReadInput", (_CheckedReadInput,), {"adapter": adapter}),
+    ]
     for fc in range(1, 0x80):
         if fc in SUPPORTED_FUNCTIONS:
             continue
@@ -107,15 +121,22 @@ class ModbusAdapter:
 
     unit: the module's unit id. unit_index: where the unit id sits in an outgoing frame
     (6 for TCP after the MBAP's first six bytes, 0 for RTU). corrupter: breaks a frame.
+    transport: "modbus-tcp" or "modbus-rtu" (the datasheet's latency bound differs).
     """
 
     def __init__(
-        self, handle: DeviceHandle, unit: int, unit_index: int, corrupter: Corrupter
+        self,
+        handle: DeviceHandle,
+        unit: int,
+        unit_index: int,
+        corrupter: Corrupter,
+        transport: str = "modbus-tcp",
     ) -> None:
         self.handle = handle
         self.unit = unit
         self.unit_index = unit_index
         self.corrupter = corrupter
+        self.transport = transport
 
     def sim_device(self) -> SimDevice:
         """The register map (holes answer 02 inside pymodbus) with the device as action."""
@@ -135,6 +156,33 @@ class ModbusAdapter:
             action=self.action,
         )
 
+    async def _latency(self) -> None:
+        with self.handle.lock:
+            delay = self.handle.wire.delay_s(self.transport)
+        if delay > 0:
+            await asyncio.sleep(delay)
+
+    async def read(self, function_code: int, address: int, count: int) -> ModbusPDU:
+        """Answer a read (03 or 04) from the device model: its registers (perhaps fewer
+        than asked), or its exception code."""
+        self.handle.note_request()
+        rsp: ModbusPDU
+        try:
+            with self.handle.synced() as device:
+                if function_code == 4:
+                    regs = device.read_input_registers(address, count)
+                else:
+                    regs = device.read_holding_registers(address, count)
+        except DeviceError as exc:
+            rsp = ExceptionResponse(function_code, ExcCodes(exc.code))
+        except DeviceOffError:  # never sent: trace_packet silences an off module
+            rsp = ExceptionResponse(function_code, ExcCodes.DEVICE_FAILURE)
+        else:
+            cls = ReadInputRegistersResponse if function_code == 4 else ReadHoldingRegistersResponse
+            rsp = cls(registers=regs)
+        await self._latency()
+        return rsp
+
     async def action(
         self,
         function_code: int,
@@ -152,6 +200,7 @@ class ModbusAdapter:
         """
         offset = address - start_address
         self.handle.note_request()
+        code: ExcCodes | None = None
         try:
             with self.handle.synced() as device:
                 if function_code == 4:
@@ -164,19 +213,29 @@ class ModbusAdapter:
                     if set_values is not None:
                         device.write_registers(address, [int(v) for v in set_values])
                 else:
-                    return ExcCodes.ILLEGAL_FUNCTION
+                    code = ExcCodes.ILLEGAL_FUNCTION
         except DeviceError as exc:
-            return ExcCodes(exc.code)
+            code = ExcCodes(exc.code)
         except DeviceOffError:
-            return ExcCodes.DEVICE_FAILURE  # never sent: trace_packet silences an off module
-        return None
+            code = ExcCodes.DEVICE_FAILURE  # never sent: trace_packet silences an off module
+        if set_values is not None:  # not again for pymodbus' read-back of the echo
+            await self._latency()
+        return code
 
     def trace_pdu(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU | None:
-        """Drop (return None) a received request the module would not act on."""
+        """Drop (return None) a received request the module would not act on.
+
+        Over TCP that includes a request on a connection opened before the module's
+        latest power-on: the rebooted module knows nothing of it (the emulator's next
+        housekeeping tick resets it), and answering it, say with the scans of a FIFO
+        read, would lose them when the reset comes.
+        """
         if sending:
             return pdu
-        with self.handle.synced():
+        with self.handle.synced() as device:
             if pdu.dev_id != self.unit or not self.handle.responsive_locked():
+                return None
+            if self.unit_index and device.boot != self.handle.links_boot:
                 return None
         return pdu
 
@@ -214,7 +273,7 @@ class ModbusTcpHost:
     """
 
     def __init__(self, handle: DeviceHandle, unit: int, host: str = "127.0.0.1", port: int = 0):
-        self.adapter = ModbusAdapter(handle, unit, 6, corrupt_mbap)
+        self.adapter = ModbusAdapter(handle, unit, 6, corrupt_mbap, "modbus-tcp")
         self.host = host
         self.port = port
         self._servers: list[ModbusTcpServer] = []
@@ -227,7 +286,7 @@ class ModbusTcpHost:
             address=(self.host, self.port),
             trace_packet=self.adapter.trace_packet,
             trace_pdu=self.adapter.trace_pdu,  # type: ignore[arg-type]
-            custom_pdu=custom_pdus(),
+            custom_pdu=custom_pdus(self.adapter),
         )
         await server.serve_forever(background=True)
         self._servers.append(server)
@@ -262,7 +321,7 @@ class ModbusRtuHost:
     """The module's Modbus RTU endpoint: a pymodbus serial server on a pty slave."""
 
     def __init__(self, handle: DeviceHandle, unit: int, port_path: str, baud: int = SERIAL_BAUD):
-        self.adapter = ModbusAdapter(handle, unit, 0, corrupt_rtu)
+        self.adapter = ModbusAdapter(handle, unit, 0, corrupt_rtu, "modbus-rtu")
         self.port_path = port_path
         self.baud = baud
         self._server: ModbusSerialServer | None = None
@@ -275,7 +334,7 @@ class ModbusRtuHost:
             baudrate=self.baud,
             trace_packet=self.adapter.trace_packet,
             trace_pdu=self.adapter.trace_pdu,  # type: ignore[arg-type]
-            custom_pdu=custom_pdus(),
+            custom_pdu=custom_pdus(self.adapter),
         )
         await self._server.serve_forever(background=True)
 

@@ -1,20 +1,33 @@
 """Playing recorded scans back through the emulated module, scan for scan.
 
 The caller hands over arrays (the simulator knows nothing of recording formats): for each
-power-on of the module, the scans' counters, device times and codes. The player serves them
-on the emulated LDQ-412 so that a driver reading it gets the same counters, device times and
-codes:
+power-on of the module, the scans' counters, device times, codes and status as recorded.
+:class:`RecordedModule` is a module that makes exactly those scans, whatever their phase,
+gaps, wraps or restarts, so that a driver reading it gets the recorded counters, device
+times, codes, missed counts, restarts and rail and fault bits (recording the replay gives
+the recording back):
 
-- the module starts as if powered on just before the first scan (``initial_uptime_s``, its
-  FIFO drained), so its counter and time continue the recording's;
-- between power-ons it is power-cycled (2 s off, as the datasheet says), so the counter and
-  time start again at 0;
-- each channel samples the recorded value of the scan at or before its instant (mid-code
-  volts, which the converter turns back into the very same code); scans the recording
-  missed repeat the one before.
+- each recorded scan happens at its own device time since its power-on (a recording that
+  starts in the middle of a power-on starts with the module powered on that long ago);
+  counters and device times are served modulo 2**32, as the module's registers hold them;
+- scans the recording never received are not made again: the counter jumps over them, so
+  a driver counts them as missed, as the recorder did;
+- between power-ons the module is power-cycled (off as long as the recording shows, at
+  most the datasheet's 2 s); a power-on whose first recorded scan came long after it (the
+  recorder missed its beginning) starts that long ago, so nobody waits for it.
 
-Time is a :class:`~simulator.clock.ManualClock` the player advances, ``speed`` times as fast
-as wall time, stepping exactly onto the power cycles, so nothing depends on thread timing.
+:class:`Player` drives the module's clock (a :class:`~simulator.clock.PlayClock`),
+``speed`` times as fast as wall time, and holds it still at the first and the last scan
+of each power-on until a client has read them (the latest scan, and the FIFO empty if the
+client reads it): a client that polls (ASCII) gets every power-on's first scan however
+long it takes to reconnect, a power cycle never takes unread scans with it, and a client
+that starts slowly misses nothing.
+
+Not replayed: the overflow flag and the restart flag after it was cleared (they depend on
+when a client read and cleared them, not on the scans), and FIFO scans' rail and fault bits
+where a driver derives them (only measured status is the recorded one). Device times that
+are not the counters' period apart replay exactly only where every time is measured (ASCII,
+or Modbus with ``fifo=0``): FIFO scans' times are derived from the rate.
 """
 
 from __future__ import annotations
@@ -25,39 +38,146 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.ldq412 import POWER_CYCLE_S, code_to_volts
+from drivers.ldq412 import (
+    CODE_MAX,
+    POWER_CYCLE_S,
+    SCAN_RATE_MAX_HZ,
+    SCAN_RATE_MIN_HZ,
+    STATUS_FAULT_MASK,
+    STATUS_RAIL_MASK,
+    U32_MOD,
+)
 
-from .clock import ManualClock
+from .clock import PlayClock
+from .device import LDQ412
 from .emulator import Emulator
-from .mechanism import ReplaySource
+from .open_points import OpenPoints
+from .source import ConstantSource
 
-STEP_S = 0.01  # wall time between clock advances
+STEP_S = 0.01  # how often the player looks at the clock and the module
 TAIL_S = 1.0  # device time served after the last scan, for the reader to catch up
+HOLD_MAX_S = 30.0  # longest wall time a power-on's first scan waits for a reader
+#: a power-on whose first recorded scan comes later than this after it starts earlier
+FIRST_SCAN_LEAD_NS = 100_000_000
+_NS_PER_US = 1_000
+_LOW_STATUS = STATUS_RAIL_MASK | STATUS_FAULT_MASK
 
 
 @dataclass(frozen=True)
 class RecordedPowerOn:
-    """The scans of one power-on: counters (n,), device times since power-on (n,) in µs,
-    codes (n, 4). Counters and times increase strictly."""
+    """The scans of one power-on as recorded.
+
+    counter: (n,) scan counters, unwrapped (may pass 2**32). time_us: (n,) device times
+    since the power-on, µs, unwrapped. codes: (n, 4). status: (n,) status words (their
+    rail and fault bits are served; None: rail bits from the codes, no faults).
+    restart_latched: the module's restart flag at the first scan (a recording that starts
+    after a client cleared it: False). off_s: how long the module was off before this
+    power-on, s (the first power-on's is not used). Counters and times increase strictly.
+    """
 
     counter: np.ndarray
     time_us: np.ndarray
     codes: np.ndarray
+    status: np.ndarray | None = None
+    restart_latched: bool = True
+    off_s: float = POWER_CYCLE_S
 
     def __post_init__(self) -> None:
         n = len(self.counter)
-        if n == 0 or self.time_us.shape != (n,) or self.codes.shape != (n, 4):
+        if n == 0 or np.shape(self.time_us) != (n,) or np.shape(self.codes) != (n, 4):
             raise ValueError("a power-on needs n >= 1 counters, n times and (n, 4) codes")
+        if self.status is not None and np.shape(self.status) != (n,):
+            raise ValueError("a power-on's status needs one word per scan")
         if np.any(np.diff(self.counter) <= 0) or np.any(np.diff(self.time_us) <= 0):
             raise ValueError("counters and times of a power-on must increase")
+        if self.counter[0] < 0 or self.time_us[0] < 0:
+            raise ValueError("counters and times start at 0 at power-on")
+        if np.any(self.codes < 0) or np.any(self.codes > CODE_MAX):
+            raise ValueError(f"codes must be 0..{CODE_MAX}")
+        if not 0 < self.off_s <= POWER_CYCLE_S:
+            raise ValueError(f"off_s must be in (0, {POWER_CYCLE_S}] s")
+
+
+class RecordedModule(LDQ412):
+    """An LDQ-412 whose power-on k makes exactly the scans of ``power_ons[k]`` and then
+    none (until the next power cycle). Registers, FIFO, flags and faults are the model's.
+
+    now_ns: the owner's clock; the first recorded scan is taken then. open_points: how the
+    module answers (FIFO underrun, read limits; its scans' phase and clock are the
+    recording's, so those two must be left at their defaults).
+    """
+
+    def __init__(
+        self,
+        power_ons: list[RecordedPowerOn],
+        *,
+        rate_hz: int,
+        now_ns: int = 0,
+        open_points: OpenPoints | None = None,
+    ) -> None:
+        if not power_ons:
+            raise ValueError("nothing to replay")
+        if not SCAN_RATE_MIN_HZ <= rate_hz <= SCAN_RATE_MAX_HZ:
+            raise ValueError(f"scan rate {rate_hz} Hz outside the datasheet's range")
+        op = open_points or OpenPoints()
+        if op.scan_phase_us or op.clock_ppm:
+            raise ValueError("a replay's scan phase and clock are the recording's")
+        self.power_ons = power_ons
+        self._i = 0  # next scan of the current power-on
+        super().__init__(
+            ConstantSource([0.0] * 4), now_ns=now_ns, scan_rate_hz=rate_hz, open_points=op
+        )
+        self._overflow = False  # the base counts scans "before" the first as dropped
+
+    def _power_on(self, boot_ns: int) -> None:
+        super()._power_on(boot_ns)
+        self._i = 0
+        if self._boot < len(self.power_ons):
+            first_ns = int(self.power_ons[self._boot].time_us[0]) * _NS_PER_US
+            lead = FIRST_SCAN_LEAD_NS if self._boot else 0
+            self._boot_ns -= max(0, first_ns - lead)  # it has been on that long
+            if self._boot == 0:
+                self._first_boot_ns = self._boot_ns
+                self._restart = self.power_ons[0].restart_latched
+
+    @property
+    def power_on(self) -> RecordedPowerOn | None:
+        """The recorded power-on being served (None after the last)."""
+        return self.power_ons[self._boot] if self._boot < len(self.power_ons) else None
+
+    def _next_scan_us(self) -> int | None:
+        po = self.power_on
+        if po is None or self._i >= len(po.counter):
+            return None
+        return int(po.time_us[self._i])
+
+    def _take_scan(self, t_us: int) -> None:
+        po = self.power_on
+        assert po is not None
+        i = self._i
+        self._i += 1
+        codes = [int(c) for c in po.codes[i]]
+        if po.status is not None:
+            low = int(po.status[i]) & _LOW_STATUS
+        else:
+            low = sum(1 << ch for ch, c in enumerate(codes) if c in (0, CODE_MAX))
+        self._push_scan(int(po.counter[i]) % U32_MOD, t_us, codes, low, self._source_s(t_us))
+
+    def scan_ns(self, k: int, i: int) -> int | None:
+        """The owner's clock when scan ``i`` of power-on ``k`` is taken (None: k is not
+        the power-on being served)."""
+        if k != self._boot:
+            return None
+        return self._boot_ns + int(self.power_ons[k].time_us[i]) * _NS_PER_US
 
 
 class Player:
     """Serve recorded power-ons on an emulated module.
 
     transport: "modbus-tcp", "modbus-rtu" or "ascii". rate_hz: the recording's scan rate.
-    speed: device seconds per wall second. The emulator starts with :meth:`start`; its
-    :attr:`url` is what a driver opens; :meth:`run` plays until the end or ``stop``.
+    speed: device seconds per wall second. open_points: how the module answers (latency,
+    FIFO underrun, read limits). The emulator starts with :meth:`start`; its :attr:`url`
+    is what a driver opens; :meth:`run` plays until the end or ``stop``.
     """
 
     def __init__(
@@ -70,6 +190,7 @@ class Player:
         host: str = "127.0.0.1",
         port: int = 0,
         seed: int = 0,
+        open_points: OpenPoints | None = None,
     ) -> None:
         if not power_ons:
             raise ValueError("nothing to replay")
@@ -77,32 +198,15 @@ class Player:
             raise ValueError(f"speed must be > 0, got {speed}")
         self.power_ons = power_ons
         self.speed = float(speed)
-        # Device (source) time of every scan: the first power-on runs from its own start;
-        # each later one boots POWER_CYCLE_S after a cycle one period past the previous end.
-        period = 1.0 / rate_hz
-        times, boots, t_end = [], [], 0.0
-        for k, po in enumerate(power_ons):
-            boot = 0.0 if k == 0 else t_end + period + POWER_CYCLE_S
-            if k:
-                boots.append(t_end + period)
-            t = boot + po.time_us / 1e6
-            times.append(t)
-            t_end = float(t[-1])
-        self.cycles = boots  # device times at which the module is switched off
-        self.end_s = t_end + TAIL_S
-        all_times = np.concatenate(times)
-        volts = code_to_volts(np.concatenate([po.codes for po in power_ons]))
-        self.source = ReplaySource(all_times, volts, start_s=float(all_times[0]))
-        self.clock = ManualClock()
-        first_us = int(power_ons[0].time_us[0])
-        # powered on just before the first scan (or at it, when that is the power-on's first)
-        start_s = max(first_us - 1, 0) / 1e6
-        self.clock.advance(start_s)
+        self.period_ns = 1_000_000_000 // rate_hz
+        self.clock = PlayClock(speed)
+        self.module = RecordedModule(
+            power_ons, rate_hz=rate_hz, now_ns=self.clock.now_ns(), open_points=open_points
+        )
         self.emulator = Emulator(
-            transport, self.source, scan_rate_hz=rate_hz, clock=self.clock, seed=seed,
-            initial_uptime_s=start_s, drained=first_us > 0, host=host, port=port,
+            transport, clock=self.clock, seed=seed, host=host, port=port, device=self.module,
+            open_points=open_points,
         )  # fmt: skip
-        self._t0 = start_s
 
     @property
     def url(self) -> str:
@@ -122,29 +226,61 @@ class Player:
         self.close()
 
     def run(self, stop: threading.Event | None = None, *, wait_for_client: bool = False) -> bool:
-        """Advance the clock until the end (True) or ``stop`` (False).
+        """Play every power-on to its end (True), or until ``stop`` (False).
 
-        wait_for_client: hold the first scan until a driver's first request, so that a
-        client that starts slowly (or a FIFO a few seconds deep at a high ``speed``) misses
+        wait_for_client: hold the first scan until a client has read it (later power-ons'
+        first scans are always held so), so that a client that starts slowly misses
         nothing of the recording.
         """
         stop = stop or threading.Event()
-        if wait_for_client:
-            while not self.emulator.first_request.wait(STEP_S):
-                if stop.is_set():
-                    return False
-        cycles = list(self.cycles)
-        wall0 = time.monotonic()
+        for k, po in enumerate(self.power_ons):
+            if k:
+                # switched off half a period after its last scan, on again off_s later
+                self._play_until(self.clock.now_ns() + self.period_ns // 2, stop)
+                self.emulator.faults.restart(po.off_s)
+                self._play_until(self.clock.now_ns() + round(po.off_s * 1e9), stop)
+                with self.emulator.lock:
+                    self.module.sync(self.clock.now_ns())
+                    first = self.module.scan_ns(k, 0)
+                assert first is not None
+                self._play_until(first, stop)
+            if (k or wait_for_client) and not self._hold(stop):
+                return False
+            with self.emulator.lock:
+                last = self.module.scan_ns(k, len(po.counter) - 1)
+                fifo_reads = self.module.fifo_reads
+            assert last is not None
+            if not self._play_until(last, stop):
+                return False
+            if k + 1 < len(self.power_ons) and not self._hold(stop, fifo_reads):
+                return False
+        return self._play_until(self.clock.now_ns() + round(TAIL_S * 1e9), stop)
+
+    def _play_until(self, target_ns: int, stop: threading.Event) -> bool:
+        """Let the clock run to ``target_ns`` at ``speed`` times wall time, and wait until it
+        is there (False: stopped)."""
+        self.clock.run_until(target_ns)
         while not stop.is_set():
-            target = min(self._t0 + (time.monotonic() - wall0) * self.speed, self.end_s)
-            now = self.clock.now()
-            while cycles and cycles[0] <= target:
-                self.clock.advance(max(0.0, cycles.pop(0) - now))
-                self.emulator.faults.restart(POWER_CYCLE_S)
-                now = self.clock.now()
-            if target > now:
-                self.clock.advance(target - now)
-            if target >= self.end_s:
+            if self.clock.now_ns() >= target_ns:
                 return True
             stop.wait(STEP_S)
+        return False
+
+    def _hold(self, stop: threading.Event, fifo_reads: int | None = None) -> bool:
+        """Keep the clock still until a client reads the latest scan, and with
+        ``fifo_reads`` (the module's FIFO reads before) until it emptied the FIFO if it read
+        it since (at most :data:`HOLD_MAX_S`); False if stopped."""
+        with self.emulator.lock:
+            self.module.sync(self.clock.now_ns())
+            reads = self.module.latest_reads
+        deadline = time.monotonic() + HOLD_MAX_S
+        while not stop.is_set():
+            with self.emulator.lock:
+                m = self.module
+                drained = fifo_reads is None or m.fifo_reads == fifo_reads or not m.fifo_level
+                if m.latest_reads > reads and drained:
+                    return True
+            if time.monotonic() > deadline:
+                return True
+            stop.wait(STEP_S / 2)
         return False

@@ -45,6 +45,8 @@ from .drift import OffsetDrift
 from .emulator import TRANSPORTS, Emulator
 from .faults import FaultInjector
 from .mechanism import MechanismSource, ReplaySource
+from .open_points import add_arguments as add_open_point_arguments
+from .open_points import from_arguments as open_points_from_arguments
 from .scenarios import HandMoves, Static, Sweep
 
 _FAULT = re.compile(
@@ -304,6 +306,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--truth-out", type=Path, default=None, help="write the ground truth here (JSON Lines)"
     )
+    add_open_point_arguments(p)
 
 
 def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
@@ -319,6 +322,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         if args.noise_mv < 0:
             raise ValueError("--noise-mv must not be negative")
         drifts = tuple(d for d in (e.drift() for e in faults) if d is not None)
+        open_points = open_points_from_arguments(args)
         if args.scenario == "replay":
             if args.replay is None:
                 raise ValueError("--scenario replay needs --replay FILE")
@@ -365,6 +369,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         host=args.host,
         port=args.port,
         truth_limit=max(20_000, int(60 * args.scan_rate * args.speed)),
+        open_points=open_points,
     )
     try:
         try:
@@ -389,6 +394,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
                     "scan_rate_hz": args.scan_rate,
                     "url": emu.url,
                     "faults": args.fault,
+                    "open_points": {k: str(v) for k, v in open_points.changed().items()},
                 }
                 writer = TruthWriter(out, header, source)
             t0 = clock.now()

@@ -13,14 +13,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .open_points import Latency
+
 Corrupter = Callable[[bytes], bytes]
 
 
 @dataclass
 class WireFaults:
-    """Mutable wire fault state. ``rng`` draws the garbage bytes (seeded: reproducible)."""
+    """Mutable wire fault state. ``rng`` draws the garbage bytes (seeded: reproducible).
+
+    latency: how long answers take (None: sent at once); ``latency_rng`` draws the delays.
+    """
 
     rng: np.random.Generator
+    latency: Latency | None = None
+    latency_rng: np.random.Generator | None = None
     disconnected: bool = False
     stalled_until_ns: int | None = None
     garbage: bytes = b""
@@ -32,6 +39,14 @@ class WireFaults:
         if self.stalled_until_ns is not None and now_ns >= self.stalled_until_ns:
             self.stalled_until_ns = None
         return self.stalled_until_ns is not None
+
+    def delay_s(self, transport: str) -> float:
+        """How long the answer being sent now waits, s (0 without latency)."""
+        if self.latency is None:
+            return 0.0
+        if self.latency_rng is None:
+            self.latency_rng = np.random.default_rng(0)
+        return self.latency.draw_s(self.latency_rng, transport)
 
     def add_garbage(self, nbytes: int) -> None:
         """Queue ``nbytes`` random bytes to go out just before the next answer."""

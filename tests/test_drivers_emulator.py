@@ -343,7 +343,7 @@ def test_channel_faults(emu_factory, transport: str) -> None:
 
 
 @pytest.mark.parametrize("transport", MODBUS)
-def test_fifo_overflow_is_reported_and_cleared(emu_factory, transport: str) -> None:
+def test_fifo_overflow_is_reported_and_the_fifo_is_never_cleared(emu_factory, transport) -> None:
     emu, daq, clock = emu_factory(transport)
     got = advance_and_read(daq, clock, 10)
     got += advance_and_read(daq, clock, 300)
@@ -353,10 +353,14 @@ def test_fifo_overflow_is_reported_and_cleared(emu_factory, transport: str) -> N
     assert first.overflow and first.missed == lost
     assert sum(s.overflow for s in got) == 1
     assert len(got) == 11 + ldq412.FIFO_DEPTH
-    with emu.lock:
-        assert not emu.device.status & ldq412.STATUS_OVERFLOW
+    with emu.lock:  # clearing the flag would have emptied the FIFO: it stays latched
+        assert emu.device.status & ldq412.STATUS_OVERFLOW
     more = advance_and_read(daq, clock, 30)
     assert len(more) == 30 and not any(s.overflow or s.missed for s in more)
+    # a second overflow, with the flag still latched from the first: told by the gap
+    again = advance_and_read(daq, clock, 270)
+    assert again[0].overflow and again[0].missed == 270 - ldq412.FIFO_DEPTH
+    check_against_truth(got + more + again, emu)
 
 
 def test_connect_to_a_long_running_module_with_wraps(emu_factory) -> None:

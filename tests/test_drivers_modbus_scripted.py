@@ -152,7 +152,7 @@ def test_fifo_partial_filler_is_a_protocol_error_and_the_driver_continues(device
             return [0, 12, 0x9, 0x27C0, 1, 2, 3, 4, 0, 2 if calls["n"] == 0 else 0]
         if a == ldq412.IR_FIFO:
             calls["n"] += 1
-            if c == 12:  # first read: asks for 2 scans, gets a broken second scan
+            if calls["n"] == 1:  # first read: asks for 2 (and 1 more), gets a broken second
                 return [0, 11, 5, 6, 7, 8, 0, 12, 0xFFFF, 0xFFFF, 0xFFFF, 0xFFFF]
         return good_input(a, c)
 

@@ -187,11 +187,13 @@ def test_parse_snapshot() -> None:
 def test_parse_fifo_drops_filler_and_rejects_partial_filler() -> None:
     f = [0xFFFF] * 6
     regs = [0, 5, 1, 2, 3, 4, 0xFFFF, 0xFFFF, 4095, 0, 7, 8, *f, *f]
-    assert parse_fifo(regs) == [(5, (1, 2, 3, 4)), (0xFFFFFFFF, (4095, 0, 7, 8))]
+    assert parse_fifo(regs) == ([(5, (1, 2, 3, 4)), (0xFFFFFFFF, (4095, 0, 7, 8))], 2)
     with pytest.raises(DAQProtocolError):
         parse_fifo([0, 5, 1, 2, 3, 0xFFFF])
     with pytest.raises(DAQProtocolError):
         parse_fifo(regs[:7])
+    with pytest.raises(DAQProtocolError):  # a scan after filler: not a FIFO answer
+        parse_fifo([*f, 0, 5, 1, 2, 3, 4])
 
 
 def test_format_firmware() -> None:

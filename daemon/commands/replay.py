@@ -18,12 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
+from drivers.ldq412 import POWER_CYCLE_S
 from simulator.emulator import TRANSPORTS
 from simulator.replay import Player, RecordedPowerOn
 from simulator.run import listen_host, tcp_port
 
 from ..recording import RecordingError, read_recordings
 from ..scans import scan_rate_hz
+
+OFF_MIN_S = 0.1  # shortest power cycle replayed
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -50,19 +53,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def power_ons(scans: np.ndarray) -> list[RecordedPowerOn]:
-    """The recording's scans split by power-on epoch, as arrays for the player."""
-    out = []
+    """The recording's scans split by power-on epoch, as arrays for the player: the
+    recorded counters, device times, codes and status themselves (the restart flag at the
+    first scan as the recording saw it; the time off before each restart from the stamps,
+    within the datasheet's 2 s)."""
+    out: list[RecordedPowerOn] = []
     epochs = scans["epoch"]
     cuts = np.flatnonzero(np.diff(epochs)) + 1
-    for part in np.split(scans, cuts):
-        if len(part):
-            out.append(
-                RecordedPowerOn(
-                    part["counter64"].astype(np.int64),
-                    part["time64_us"].astype(np.int64),
-                    part["codes"].astype(np.int64),
-                )
+    prev_ns = None
+    for k, part in enumerate(np.split(scans, cuts)):
+        first_ns = int(part["stamp_ns"][0]) - int(part["time64_us"][0]) * 1000  # its power-on
+        off_s = POWER_CYCLE_S if prev_ns is None else (first_ns - prev_ns) / 1e9
+        out.append(
+            RecordedPowerOn(
+                part["counter64"].astype(np.int64),
+                part["time64_us"].astype(np.int64),
+                part["codes"].astype(np.int64),
+                part["status"].astype(np.int64),
+                restart_latched=bool(part["restarted"][0]) or k > 0,
+                off_s=min(POWER_CYCLE_S, max(OFF_MIN_S, off_s)),
             )
+        )
+        prev_ns = int(part["stamp_ns"][-1])
     return out
 
 

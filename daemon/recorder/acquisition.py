@@ -12,17 +12,19 @@ What it adds to the driver's scans:
   counter going backwards) or another module answers at the URL. The scans lost while
   nobody read the module are counted on the first scan read (``missed``) and reported;
 - UTC time stamps: ``host_ns`` when the answer arrived, and ``stamp_ns``, the acquisition
-  instant, from the module's own clock mapped to UTC by a sliding minimum of
-  (arrival - device time) over the last minute (a minimum, because delays only add);
+  instant, from the module's own clock mapped to UTC by the lower envelope of
+  (arrival - device time), which follows the module's clock error (:mod:`daemon.recorder.clockmap`);
 - events: gaps, restarts, FIFO overflow, rail and sensor faults (onset at once, end after a
   second of clear scans, so a channel flickering at the rail does not flood the log),
   and the link going down and coming back.
 
-When the module stops answering, the loop retries with exponential backoff (0.1 s doubling
-to 2 s, far inside the 12.8 s the module's FIFO holds at 20 Hz), so a short outage loses
-nothing over Modbus. The FIFO is read every ``read_period`` (and again at once if it was
-more than half full); without a FIFO (ASCII, or Modbus with ``fifo=0``) the loop polls once
-per scan, just after the instant the next scan is due.
+When the module stops answering, the loop retries every 0.05 s through the datasheet's
+restart window (a power-cycled module answers again within 2 s), then with exponential
+backoff (0.1 s doubling to 2 s, or to a quarter of what the FIFO holds: far inside it), so
+a short outage loses nothing over Modbus and little over ASCII. The FIFO is read every
+``read_period`` (and again at once if it was more than half full); without a FIFO (ASCII,
+or Modbus with ``fifo=0``) the loop polls once per scan, phase-locked to the module's own
+clock (:mod:`daemon.recorder.polling`).
 """
 
 from __future__ import annotations
@@ -40,14 +42,16 @@ from drivers import DAQ, DAQError, Scan, ldq412, open_daq
 
 from ..events import Event, Level
 from ..scans import SCAN_DTYPE
+from .clockmap import ClockMap
+from .polling import PhaseLock
 
 log = logging.getLogger("daemon.recorder.acquisition")
 
+BACKOFF_FAST_S = 0.05  # retry period while a power-cycled module may be coming back
+RESTART_WINDOW_S = ldq412.POWER_CYCLE_S + 0.5  # the datasheet's 2 s, and some
 BACKOFF_MIN_S = 0.1
 BACKOFF_MAX_S = 2.0
-CLOCK_WINDOW_S = 60.0  # how far back the device-to-UTC offset looks
-CLOCK_STEP_NS = 500_000_000  # an offset change larger than this is a clock step: start over
-POLL_GUARD_S = 0.003  # poll this long after the next scan is due
+READ_DITHER_STEP = 0.6180339887498949  # golden ratio: even coverage of a scan period
 FAULT_CLEAR_S = 1.0  # a rail or fault condition ends after this long of clear scans
 STILL_DOWN_LOG_S = 60.0
 
@@ -119,49 +123,14 @@ class AcquisitionStats:
     read_starts: collections.deque = field(default_factory=lambda: collections.deque(maxlen=4096))
 
 
-class ClockMap:
-    """Device time -> UTC for one power-on epoch.
-
-    ``offset`` is the smallest (arrival - device time) seen over the last
-    :data:`CLOCK_WINDOW_S`: arrival is never earlier than the scan, and the smallest delay
-    over many reads is close to zero. The window follows a drifting crystal; an offset
-    jumping by more than :data:`CLOCK_STEP_NS` (the host clock was set) restarts it.
-    """
-
-    def __init__(self) -> None:
-        self._samples: collections.deque[tuple[float, int]] = collections.deque()
-        self.offset_ns: int | None = None
-        self._last_stamp = -(1 << 62)
-
-    def observe(self, mono_s: float, arrival_ns: int, time64_us: int) -> None:
-        sample = arrival_ns - time64_us * 1000
-        if self.offset_ns is not None and abs(sample - self.offset_ns) > CLOCK_STEP_NS:
-            self._samples.clear()
-            self._last_stamp = -(1 << 62)
-        q = self._samples
-        while q and q[-1][1] >= sample:
-            q.pop()
-        q.append((mono_s, sample))
-        while q[0][0] < mono_s - CLOCK_WINDOW_S:
-            q.popleft()
-        self.offset_ns = q[0][1]
-
-    def stamps(self, time64_us: np.ndarray) -> np.ndarray:
-        """UTC stamps, ns, strictly increasing within the epoch."""
-        assert self.offset_ns is not None
-        s = time64_us.astype(np.int64) * 1000 + self.offset_ns
-        s = np.maximum(s, self._last_stamp + 1 + np.arange(len(s)))
-        if len(s):
-            self._last_stamp = int(s[-1])
-        return s
-
-
 class _Flag:
     """A rail or fault condition of one channel: on at once, off after a clear stretch."""
 
     def __init__(self) -> None:
         self.on = False
         self.clear_since: int | None = None  # stamp_ns of the first clear scan
+        self.clear_counter = 0  # its counter64: where the condition ended
+        self.clear_epoch = 0
 
 
 class Acquisition:
@@ -205,8 +174,9 @@ class Acquisition:
         self._pending_events: list[Event] = []
         self._first_missed: int | None = None
         self._clock_hint: tuple[int, float, int, int] | None = None
-        self._poll_clock = ClockMap()  # device time -> host monotonic ns, for polling
+        self.poll_lock: PhaseLock | None = None  # without a FIFO: when to poll
         self._poll_epoch = -1
+        self._newest_us: int | None = None  # device time of the newest scan polled
         self._seen_driver_epochs: set[int] = set()
 
     @property
@@ -243,7 +213,7 @@ class Acquisition:
                 self._daq = open_daq(self.url, timeout=self.timeout)
             except DAQError as exc:
                 self._failed(exc, start)
-                return start + self._next_backoff()
+                return start + self._next_backoff(start)
             self._connected(self._daq)
         daq = self._daq
         self.stats.read_starts.append(start)
@@ -252,7 +222,7 @@ class Acquisition:
             scans = daq.read_scans()
         except DAQError as exc:
             self._failed(exc, start)
-            return start + self._next_backoff()
+            return start + self._next_backoff(start)
         if self._down_since is not None:
             self._recovered(start)
         self._backoff = BACKOFF_MIN_S
@@ -266,7 +236,7 @@ class Acquisition:
         if daq.has_fifo:
             if len(scans) >= ldq412.FIFO_DEPTH // 2:
                 return start  # falling behind: read again at once
-            return start + self.read_period
+            return start + self.read_period + self._read_dither()
         return self._next_poll(start, scans)
 
     def _sync_clock(self, daq: DAQ) -> None:
@@ -289,27 +259,46 @@ class Acquisition:
         except DAQError:
             return  # the next read reports it
 
-    def _next_backoff(self) -> float:
-        wait = self._backoff
-        self._backoff = min(BACKOFF_MAX_S, self._backoff * 2)
+    def _read_dither(self) -> float:
+        """Up to one scan period added to the read period, spread evenly over reads (golden
+        ratio steps): a read period that is a whole number of scan periods would otherwise
+        find the latest scan at the same age read after read (for minutes, as the clocks
+        drift by a few hundred ppm), and the device-to-UTC offset needs some reads just
+        after a scan (:mod:`daemon.recorder.clockmap`)."""
+        rate = self.device.scan_rate_hz if self.device else ldq412.SCAN_RATE_DEFAULT_HZ
+        return (self.stats.reads * READ_DITHER_STEP) % 1.0 / rate
+
+    def _next_backoff(self, now: float) -> float:
+        """Seconds to the next try: every BACKOFF_FAST_S through the restart window of an
+        outage (a power-cycled module answers again within the datasheet's 2 s, and over
+        ASCII every scan it makes before the first poll is lost), then doubling from
+        BACKOFF_MIN_S to BACKOFF_MAX_S, or to a quarter of what the FIFO holds if that is
+        less (1.28 s at 200 Hz: a link back after a long outage still finds its scans)."""
+        if self._down_since is not None and now - self._down_since < RESTART_WINDOW_S:
+            return BACKOFF_FAST_S
+        rate = self.device.scan_rate_hz if self.device else ldq412.SCAN_RATE_DEFAULT_HZ
+        cap = max(BACKOFF_MIN_S, min(BACKOFF_MAX_S, ldq412.FIFO_DEPTH / rate / 4))
+        wait = min(self._backoff, cap)
+        self._backoff = min(cap, self._backoff * 2)
         return wait
 
     def _next_poll(self, start: float, scans: list[Scan]) -> float:
-        """Without a FIFO: poll just after the next scan is due, on the host's monotonic
-        clock (device time + the smallest arrival delay seen: a poll never lands before
-        the scan it is meant for, and has the rest of the period to spare)."""
+        """Without a FIFO: when to poll next, phase-locked to the module's clock (one poll
+        per scan, at a safe point between two scans: :class:`daemon.recorder.polling.PhaseLock`)."""
         rate = self.device.scan_rate_hz if self.device else ldq412.SCAN_RATE_DEFAULT_HZ
-        period = 1.0 / rate
-        if not scans:
-            return start + min(0.005, period / 4)
-        newest = scans[-1]
-        if newest.epoch != self._poll_epoch:
-            self._poll_epoch, self._poll_clock = newest.epoch, ClockMap()
-        clock = self._poll_clock
-        clock.observe(newest.host_time, round(newest.host_time * 1e9), newest.time64_us)
-        assert clock.offset_ns is not None
-        due = ((newest.time64_us * 1000 + clock.offset_ns) * 1e-9) + period + POLL_GUARD_S
-        return min(max(due, start + 0.002), start + period)
+        lock = self.poll_lock
+        if lock is None or lock.rate_hz != rate:
+            lock = self.poll_lock = PhaseLock(rate)
+        received = time.monotonic()
+        if scans:
+            newest = scans[-1]
+            received = newest.host_time
+            if newest.epoch != self._poll_epoch:  # a restart: the scans' phase is new
+                self._poll_epoch = newest.epoch
+                lock.reset()
+            self._newest_us = newest.time64_us
+        lock.observe(start, received, self._newest_us, bool(scans))
+        return lock.next_poll(time.monotonic())
 
     # ------------------------------------------------------------------ link state
 
@@ -332,6 +321,9 @@ class Acquisition:
             daq.url, ident.model, ident.firmware, ident.serial, int(rate), daq.has_fifo
         )
         self._base_epoch = None
+        if self.poll_lock is not None:  # a new driver: epochs count from 0 again
+            self.poll_lock.reset()
+        self._poll_epoch, self._newest_us = -1, None
         serial = "" if ident.serial is None else f", serial {ident.serial}"
         self._emit(
             "connect",
@@ -528,9 +520,13 @@ class Acquisition:
             elif flag.on:
                 if flag.clear_since is None:
                     flag.clear_since = int(stamps[i])
-                elif stamps[i] - flag.clear_since >= clear_ns:
+                    flag.clear_counter = int(rows["counter64"][i])
+                    flag.clear_epoch = int(rows["epoch"][i])
+                if stamps[i] - flag.clear_since >= clear_ns:
+                    # reported a second later, it names the first clear scan: where it ended
                     flag.on = False
                     flag.clear_since = None
-                    c64 = int(rows["counter64"][i])
-                    self._emit(kind, Level.INFO, f"channel {ch + 1} no longer {what}",
-                               channel=ch + 1, on=False, counter64=c64)  # fmt: skip
+                    c64, ep = flag.clear_counter, flag.clear_epoch
+                    self._emit(kind, Level.INFO,
+                               f"channel {ch + 1} no longer {what} from counter {c64}",
+                               channel=ch + 1, on=False, counter64=c64, epoch=ep)  # fmt: skip

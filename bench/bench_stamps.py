@@ -1,0 +1,142 @@
+"""Time stamps and poll schedule against a module whose clock is not the host's, over
+simulated hours (pure arithmetic: tests/timeline_helpers.py; the datasheet's answer times,
+0.5-10 ms).
+
+Stamps (FIFO reads every 0.2 s): the recorder's stamp of every scan against the host time
+the scan was really taken, and, for the scans an answer carried as the latest, against the
+host receive time; baseline: the former map (the smallest arrival - device time of the
+last minute, reads every 0.2 s without the dither), in the same run.
+
+Polls (no FIFO, 20 Hz): polls per scan and scans missed by the phase lock; baseline: the
+former schedule (just after the next scan is due by the smallest arrival delay seen).
+
+Run: ``python bench/bench_stamps.py [--hours 6] [--ppm 200 -200 0 1000 -1000]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
+from timeline_helpers import Module, datasheet_latency, run_polls, run_stamps  # noqa: E402
+
+from daemon.recorder.clockmap import ClockMap  # noqa: E402
+
+
+class FormerClockMap:
+    """The map before issue 13: the smallest (arrival - device time) of the last minute."""
+
+    def __init__(self) -> None:
+        self._samples: collections.deque[tuple[float, int]] = collections.deque()
+        self.offset_ns: int | None = None
+        self._last_stamp = -(1 << 62)
+
+    def observe(self, mono_s: float, arrival_ns: int, time64_us: int) -> None:
+        sample = arrival_ns - time64_us * 1000
+        q = self._samples
+        while q and q[-1][1] >= sample:
+            q.pop()
+        q.append((mono_s, sample))
+        while q[0][0] < mono_s - 60.0:
+            q.popleft()
+        self.offset_ns = q[0][1]
+
+    def stamps(self, time64_us: np.ndarray) -> np.ndarray:
+        assert self.offset_ns is not None
+        s = time64_us.astype(np.int64) * 1000 + self.offset_ns
+        s = np.maximum(s, self._last_stamp + 1 + np.arange(len(s)))
+        self._last_stamp = int(s[-1])
+        return s
+
+
+class FormerPollSchedule:
+    """The poll schedule before issue 13: just after the next scan is due, by device time
+    plus the smallest arrival delay seen (which its own polls kept where they were)."""
+
+    def __init__(self, rate_hz: int) -> None:
+        self.period = 1.0 / rate_hz
+        self.clock = FormerClockMap()
+        self._newest_us: int | None = None
+        self._new = False
+        self._sent = 0.0
+
+    def observe(self, sent: float, received: float, newest_us: int | None, new: bool) -> None:
+        self._sent, self._new = sent, new
+        if new and newest_us is not None:
+            self._newest_us = newest_us
+            self.clock.observe(received, round(received * 1e9), newest_us)
+
+    def next_poll(self, now: float) -> float:
+        if not self._new or self._newest_us is None or self.clock.offset_ns is None:
+            return now + min(0.005, self.period / 4)
+        due = (self._newest_us * 1000 + self.clock.offset_ns) * 1e-9 + self.period + 0.003
+        return min(max(due, self._sent + 0.002), self._sent + self.period)
+
+
+def stamp_figures(hours: float, ppm: float) -> None:
+    rows = []
+    for name, cm, dither in (("former", FormerClockMap(), False), ("now", ClockMap(), True)):
+        t0 = time.perf_counter()
+        run = run_stamps(
+            cm,
+            Module(ppm=ppm, phase_us=1809),
+            hours,
+            datasheet_latency(np.random.default_rng(7)),
+            dither=dither,
+            rng=np.random.default_rng(8),
+        )
+        settled = np.abs(run.errors_ms[20 * 60 :])  # after the first minute
+        rows.append((name, run, settled, time.perf_counter() - t0))
+    (_, _, old, _), (_, run, new, took) = rows
+    print(
+        f"stamps, {hours:g} h at {ppm:+g} ppm: max |stamp - true| {new.max():.2f} ms "
+        f"(p99 {np.percentile(new, 99):.2f}, median {np.median(new):.2f}) after the first "
+        f"minute, {np.abs(run.errors_ms).max():.1f} ms in it; former {old.max():.2f} ms "
+        f"(p99 {np.percentile(old, 99):.2f}): ratio {old.max() / new.max():.1f}x"
+    )
+    rcv = run.receive_ms[int(60 / 0.2) :]  # after the first minute
+    print(
+        f"    receive - stamp for the latest scan of each read: min {rcv.min():.2f} ms "
+        f"({run.receive_ms.min():.2f} in the first minute), median {np.median(rcv):.2f}, "
+        f"max {rcv.max():.2f}; stamps not increasing: {run.backwards}; {took:.1f} s to simulate"
+    )
+
+
+def poll_figures(hours: float, ppm: float) -> None:
+    out = {}
+    for name, make in (("former", FormerPollSchedule), ("now", None)):
+        lock = make(20) if make else None
+        run = run_polls(
+            Module(ppm=ppm, phase_us=1809, boot_s=1.0),
+            hours * 3600,
+            datasheet_latency(np.random.default_rng(9)),
+            lock=lock,
+        )
+        out[name] = run
+    old, new = out["former"], out["now"]
+    print(
+        f"polls, {hours:g} h at {ppm:+g} ppm: {new.polls / new.scans:.4f} polls per scan, "
+        f"{new.missed} scans missed of {new.scans:,}; former {old.polls / old.scans:.4f} "
+        f"polls per scan, {old.missed} missed"
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--hours", type=float, default=6.0)
+    ap.add_argument("--ppm", type=float, nargs="+", default=[200.0, -200.0, 0.0, 1000.0, -1000.0])
+    args = ap.parse_args()
+    for ppm in args.ppm:
+        stamp_figures(args.hours, ppm)
+    for ppm in args.ppm:
+        poll_figures(args.hours, ppm)
+
+
+if __name__ == "__main__":
+    main()
