@@ -329,6 +329,10 @@ class AsciiDAQ(DAQ):
         return False
 
     @property
+    def scan_rate_hz(self) -> int:
+        return self._seq.scan_rate_hz
+
+    @property
     def sequencer(self) -> Sequencer:
         """Sequence state (restarts detected, total missed); read-only use."""
         return self._seq

@@ -378,6 +378,15 @@ class DAQ(ABC):
         return False
 
     @property
+    def scan_rate_hz(self) -> int:
+        """The scan rate the driver works with, Hz, without a request: read from the module
+        at connect, followed when set, and re-read when the scans' spacing shows that the
+        module changed it (a power cycle restores the power-on rate). What a recorder
+        stamps and expects; :attr:`scan_rate` asks the module. Drivers that keep no such
+        state ask the module."""
+        return self.scan_rate
+
+    @property
     def scan_rate(self) -> int:
         """Configured scan rate, Hz (read from the module)."""
         return self._get_scan_rate()

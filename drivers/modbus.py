@@ -417,6 +417,10 @@ class ModbusDAQ(DAQ):
         return True
 
     @property
+    def scan_rate_hz(self) -> int:
+        return self._seq.scan_rate_hz
+
+    @property
     def sequencer(self) -> Sequencer:
         """Sequence state (restarts detected, total missed); read-only use."""
         return self._seq

@@ -400,10 +400,11 @@ def test_scan_rate_change_keeps_times_exact(emu_factory, transport: str) -> None
     emu, daq, clock = emu_factory(transport)
     step = 1 if transport == "ascii" else 15
     got: list[Scan] = []
+    assert daq.scan_rate_hz == RATE  # what the driver works with, without a request
     for _ in range(10):
         got += advance_and_read(daq, clock, step)
     daq.scan_rate = 50
-    assert daq.scan_rate == 50
+    assert daq.scan_rate == 50 and daq.scan_rate_hz == 50
     for _ in range(10):
         clock.advance(step / 50)
         got += daq.read_scans()

@@ -29,12 +29,10 @@ clock (:mod:`daemon.recorder.polling`).
 
 from __future__ import annotations
 
-import collections
 import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -42,6 +40,7 @@ from drivers import DAQ, DAQError, Scan, ldq412, open_daq
 
 from ..events import Event, Level
 from ..scans import SCAN_DTYPE
+from .batches import AcquisitionStats, Batch, DeviceInfo, ResumePoint
 from .clockmap import ClockMap
 from .polling import PhaseLock
 
@@ -54,73 +53,6 @@ BACKOFF_MAX_S = 2.0
 READ_DITHER_STEP = 0.6180339887498949  # golden ratio: even coverage of a scan period
 FAULT_CLEAR_S = 1.0  # a rail or fault condition ends after this long of clear scans
 STILL_DOWN_LOG_S = 60.0
-
-
-@dataclass(frozen=True)
-class DeviceInfo:
-    """What the module at the URL said it is, at connect."""
-
-    url: str
-    model: str
-    firmware: str
-    serial: int | None
-    scan_rate_hz: int
-    has_fifo: bool
-
-    def as_metadata(self) -> dict[str, str]:
-        return {
-            "url": self.url,
-            "model": self.model,
-            "firmware": self.firmware,
-            "serial": "" if self.serial is None else str(self.serial),
-            "scan_rate_hz": str(self.scan_rate_hz),
-            "fifo": str(self.has_fifo).lower(),
-        }
-
-
-@dataclass(frozen=True)
-class ResumePoint:
-    """The last scan already recorded (where a new recorder carries on)."""
-
-    epoch: int
-    counter64: int
-    time64_us: int
-    serial: int | None
-
-    @classmethod
-    def from_row(cls, row: np.void, device_metadata: dict[str, str]) -> ResumePoint:
-        serial = device_metadata.get("serial") or None
-        return cls(
-            int(row["epoch"]),
-            int(row["counter64"]),
-            int(row["time64_us"]),
-            int(serial) if serial is not None else None,
-        )
-
-
-@dataclass
-class Batch:
-    """What one read produced: scan rows (SCAN_DTYPE, oldest first) and events."""
-
-    rows: np.ndarray
-    events: list[Event]
-    device: DeviceInfo | None
-
-
-@dataclass
-class AcquisitionStats:
-    """Counters for the status line and the benchmarks (read by other threads)."""
-
-    scans: int = 0
-    missed: int = 0
-    gaps: int = 0
-    restarts: int = 0
-    reads: int = 0
-    read_errors: int = 0
-    connected: bool = False
-    last_error: str = ""
-    #: monotonic start times of the latest reads, s (for the read-period jitter)
-    read_starts: collections.deque = field(default_factory=lambda: collections.deque(maxlen=4096))
 
 
 class _Flag:
@@ -316,7 +248,7 @@ class Acquisition:
 
     def _connected(self, daq: DAQ) -> None:
         ident = daq.identity
-        rate = daq.sequencer.scan_rate_hz if hasattr(daq, "sequencer") else daq.scan_rate
+        rate = daq.scan_rate_hz
         self.device = DeviceInfo(
             daq.url, ident.model, ident.firmware, ident.serial, int(rate), daq.has_fifo
         )
