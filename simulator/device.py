@@ -271,6 +271,12 @@ class LDQ412:
         return self._now_ns
 
     @property
+    def source_time_s(self) -> float:
+        """Source time (s since the first power-on, by the owner's clock) as of the last
+        :meth:`sync`: the time axis of scenarios and offset drifts."""
+        return (self._now_ns - self._first_boot_ns) / _NS_PER_S
+
+    @property
     def powered(self) -> bool:
         """False inside a power cycle (as of the last :meth:`sync`)."""
         return self._off_until_ns is None

@@ -8,16 +8,40 @@ voltages ``V = (d - d0) / S`` and adds seeded Gaussian noise. The module quantis
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 
 from calibration.kinematics import inverse_kinematics, lengths_to_volts
-from calibration.parameters import check_vector
-from calibration.simulate import NOISE_VOLTS
+from calibration.parameters import NAMES, ParameterModel, check_vector, from_dict
+from calibration.simulate import NOISE_VOLTS, perturbed_truth
 
 from .drift import OffsetDrift, offset_shift
 from .scenarios import Scenario
 
 _DIAG = np.arange(4)
+
+
+def true_parameters(
+    seed: int = 0, offset_error_mm: float = 3.0, overrides: Mapping[str, float] | None = None
+) -> np.ndarray:
+    """The simulated mechanism's true parameters (20,): the offsets (and the paper's seven
+    parameters' geometry) moved at random from the blueprint by ``seed`` (offsets by up to
+    ``offset_error_mm``), then explicit ``{NAME: value}`` overrides (mm, as in the config)."""
+    if not (np.isfinite(offset_error_mm) and offset_error_mm >= 0):
+        raise ValueError(f"offset error must be >= 0 mm, got {offset_error_mm!r}")
+    rng = np.random.default_rng([seed, 1])
+    p = perturbed_truth(rng, offsets_mm=offset_error_mm, model=ParameterModel.parse("paper7"))
+    overrides = dict(overrides or {})
+    unknown = sorted(set(overrides) - set(NAMES))
+    if unknown:
+        raise ValueError(
+            f"unknown parameter(s) {', '.join(map(repr, unknown))}: the 20 are {', '.join(NAMES)}"
+        )
+    for name, value in overrides.items():
+        if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+            raise ValueError(f"true parameter {name}: {value!r} is not a finite number")
+    return from_dict({k: float(v) for k, v in overrides.items()}, p)
 
 
 class MechanismSource:

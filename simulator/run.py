@@ -37,14 +37,14 @@ from typing import TextIO
 import numpy as np
 
 from calibration.kinematics import euler_zyz
-from calibration.parameters import NAMES, ParameterModel, from_dict, to_dict
-from calibration.simulate import NOISE_VOLTS, perturbed_truth
+from calibration.parameters import NAMES, to_dict
+from calibration.simulate import NOISE_VOLTS
 
 from .clock import Clock, HeldClock, RealClock, SimClock
 from .drift import OffsetDrift
 from .emulator import TRANSPORTS, Emulator
 from .faults import FaultInjector
-from .mechanism import MechanismSource, ReplaySource
+from .mechanism import MechanismSource, ReplaySource, true_parameters
 from .open_points import add_arguments as add_open_point_arguments
 from .open_points import from_arguments as open_points_from_arguments
 from .scenarios import HandMoves, Static, Sweep
@@ -190,9 +190,7 @@ class TruthWriter:
 
 def truth_parameters(args: argparse.Namespace) -> np.ndarray:
     """True parameters: offsets (and the paper's geometry) moved at random by the seed,
-    then explicit ``NAME=VALUE`` overrides."""
-    rng = np.random.default_rng([args.seed, 1])
-    p = perturbed_truth(rng, offsets_mm=args.offset_error, model=ParameterModel.parse("paper7"))
+    then explicit ``NAME=VALUE`` overrides (``--truth``)."""
     overrides = {}
     for item in filter(None, (s.strip() for s in (args.truth or "").split(","))):
         name, eq, value = item.partition("=")
@@ -204,7 +202,7 @@ def truth_parameters(args: argparse.Namespace) -> np.ndarray:
             overrides[name.strip()] = float(value)
         except ValueError:
             raise ValueError(f"bad --truth entry {item!r}: {value!r} is not a number") from None
-    return from_dict(overrides, p)
+    return true_parameters(args.seed, args.offset_error, overrides)
 
 
 def _pause(text: str) -> tuple[float, float]:

@@ -1,0 +1,130 @@
+"""pytest plugin: an emulated LDQ-412 on a real transport, per test (docs/testing.md).
+
+Installing loopcal registers it (the ``pytest11`` entry point ``ldq412``); a project that
+talks to the module needs nothing else::
+
+    from drivers import open_daq
+
+    @pytest.mark.ldq412(scenario="static", seed=7)
+    def test_reads(ldq412):
+        with open_daq(ldq412.url) as daq:
+            ...
+        ldq412.power_cycle()
+
+    @pytest.mark.parametrize("ldq412", ["modbus-tcp", "modbus-rtu", "ascii"], indirect=True)
+    def test_every_transport(ldq412): ...
+
+    def test_two_modules(ldq412_factory):
+        a, b = ldq412_factory(seed=1), ldq412_factory(transport="ascii", seed=2)
+
+Fixtures:
+
+- ``ldq412``: an :class:`~simulator.testing.EmulatedLDQ412` started for the test and
+  closed after it. Its options, later ones winning: the defaults, ``--ldq412-transport``
+  on the command line, the closest ``@pytest.mark.ldq412(**options)``, and an indirect
+  parameter (a transport name or a dict of options).
+- ``ldq412_factory``: ``make(**options)`` builds as many modules as a test wants (marker
+  options as defaults), all closed after it.
+
+Options are the fields of :class:`~simulator.testing.LDQ412Options`; an unknown one fails
+the test's setup with a message naming it. Importing this module costs nothing until a
+fixture is used (the emulator is imported then).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING, Any
+
+import pytest
+
+if TYPE_CHECKING:
+    from .testing import EmulatedLDQ412
+
+_TRANSPORTS = ("modbus-tcp", "modbus-rtu", "ascii")
+_MARKER = (
+    "ldq412(**options): options of the emulated LDQ-412 the ldq412 fixtures serve "
+    "(transport, scan_rate_hz, speed, clock, seed, scenario, pause_s, noise_volts, "
+    "offset_error_mm, truth, open_points, unit, ascii_addr, ascii_checksum)"
+)
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    group = parser.getgroup("ldq412", "emulated LDQ-412 DAQ module (loopcal)")
+    group.addoption(
+        "--ldq412-transport",
+        choices=_TRANSPORTS,
+        default=None,
+        help="transport of the ldq412 fixture where a test does not choose one "
+        "(default modbus-tcp)",
+    )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", _MARKER)
+
+
+def _options(request: pytest.FixtureRequest) -> dict[str, Any]:
+    """Options from the command line and the closest marker (later ones win)."""
+    options: dict[str, Any] = {}
+    transport = request.config.getoption("ldq412_transport", default=None)
+    if transport:
+        options["transport"] = transport
+    marker = request.node.get_closest_marker("ldq412")
+    if marker is not None:
+        if marker.args:
+            raise pytest.UsageError(
+                f"@pytest.mark.ldq412 takes keyword options only, got {marker.args!r} "
+                "(e.g. @pytest.mark.ldq412(transport='ascii'))"
+            )
+        options.update(marker.kwargs)
+    return options
+
+
+def _make(options: dict[str, Any]) -> EmulatedLDQ412:
+    from .testing import EmulatedLDQ412, LDQ412Options
+
+    return EmulatedLDQ412(LDQ412Options.from_mapping(options))
+
+
+@pytest.fixture
+def ldq412_factory(request: pytest.FixtureRequest) -> Iterator[Callable[..., EmulatedLDQ412]]:
+    """``make(**options)``: a started emulated module per call, closed after the test."""
+    defaults = _options(request)
+    made: list[EmulatedLDQ412] = []
+
+    def make(**options: Any) -> EmulatedLDQ412:
+        module = _make({**defaults, **options})
+        made.append(module)
+        return module
+
+    yield make
+    errors = []
+    for module in reversed(made):
+        try:
+            module.close()
+        except Exception as exc:  # close the others; report after
+            errors.append(exc)
+    if errors:
+        raise errors[0]
+
+
+@pytest.fixture
+def ldq412(request: pytest.FixtureRequest) -> Iterator[EmulatedLDQ412]:
+    """An emulated LDQ-412 started for the test and closed after it (``.url``)."""
+    options = _options(request)
+    param = getattr(request, "param", None)
+    if isinstance(param, str):
+        options["transport"] = param
+    elif isinstance(param, dict):
+        options.update(param)
+    elif param is not None:
+        raise pytest.UsageError(
+            f"an indirect ldq412 parameter is a transport name or a dict of options, "
+            f"got {param!r}"
+        )
+    module = _make(options)
+    try:
+        yield module
+    finally:
+        module.close()

@@ -1,0 +1,310 @@
+"""An emulated LDQ-412 for other projects' integration tests: options, truth, fault injection.
+
+What the pytest plugin (:mod:`simulator.pytest_plugin`, fixtures ``ldq412`` and
+``ldq412_factory``) hands a test, usable without pytest as well::
+
+    from simulator.testing import EmulatedLDQ412
+
+    with EmulatedLDQ412(transport="ascii", seed=3) as module:
+        daq = open_daq(module.url)        # any driver or Modbus client
+        module.wait_scans(40)             # 2 s of scans at 20 Hz
+        module.offset_step(3, +0.5)       # sensor 3's offset moves by 0.5 mm, now
+        module.power_cycle()              # 2 s dark, then counter 0 and the restart bit
+        module.truth.parameters           # the mechanism's true 20 parameters
+        module.scans                      # every scan the module produced
+
+The module is driven by a simulated shoulder joint (a technician's hand moving the plate,
+the plate held still, or a sweep) with the true parameters of a seeded mechanism, exactly
+as ``loopcal simulate`` serves it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from calibration.parameters import to_dict
+from calibration.simulate import NOISE_VOLTS
+from drivers.ldq412 import POWER_CYCLE_S
+
+from .clock import Clock, ManualClock, RealClock, SimClock
+from .device import TruthScan
+from .drift import OffsetDrift, offset_shift
+from .emulator import TRANSPORTS, Emulator
+from .faults import FaultInjector
+from .mechanism import MechanismSource, true_parameters
+from .open_points import OpenPoints
+from .scenarios import HandMoves, Static, Sweep
+
+SCENARIOS = ("hand", "static", "sweep")
+CLOCKS = ("real", "manual")
+
+
+@dataclass(frozen=True)
+class LDQ412Options:
+    """How the emulated module is built; every field has the default of ``loopcal simulate``.
+
+    transport: "modbus-tcp" (127.0.0.1, a free port), "modbus-rtu" or "ascii" (each on a
+        pseudo-terminal whose path is in the URL).
+    scan_rate_hz: the module's scan rate at power-on, 1..200 Hz.
+    speed: device seconds per real second (a 10 makes a minute of scans in 6 s).
+    clock: "real" (time passes by itself, ``speed`` times as fast) or "manual" (time moves
+        only by :meth:`EmulatedLDQ412.advance`: the same requests give the same bytes).
+    seed: the mechanism's true parameters, the hand's moves and the noise.
+    scenario: "hand" (moves with still pauses), "static" (home) or "sweep".
+    pause_s: with "hand", how long (min, max) each still pause lasts, seconds.
+    noise_volts: 1-sigma noise per conversion, volts.
+    offset_error_mm: the true offsets differ from the blueprint by up to this.
+    truth: true parameters to set exactly, {name: value} in the config's units.
+    open_points: the choices the datasheet leaves open (:mod:`simulator.open_points`).
+    unit, ascii_addr, ascii_checksum: the Modbus unit id, the ASCII address, and the
+        ASCII checksum mode at power-on.
+    """
+
+    transport: str = "modbus-tcp"
+    scan_rate_hz: int = 20
+    speed: float = 1.0
+    clock: str = "real"
+    seed: int = 0
+    scenario: str = "hand"
+    pause_s: tuple[float, float] = (1.0, 3.0)
+    noise_volts: float = NOISE_VOLTS
+    offset_error_mm: float = 3.0
+    truth: Mapping[str, float] = field(default_factory=dict)
+    open_points: OpenPoints = field(default_factory=OpenPoints)
+    unit: int = 1
+    ascii_addr: int = 1
+    ascii_checksum: bool = False
+
+    def __post_init__(self) -> None:
+        def bad(what: str) -> ValueError:
+            return ValueError(f"ldq412 option {what}")
+
+        if self.transport not in TRANSPORTS:
+            raise bad(f"transport={self.transport!r}: one of {', '.join(TRANSPORTS)}")
+        if self.scenario not in SCENARIOS:
+            raise bad(f"scenario={self.scenario!r}: one of {', '.join(SCENARIOS)}")
+        if self.clock not in CLOCKS:
+            raise bad(f"clock={self.clock!r}: one of {', '.join(CLOCKS)}")
+        if not isinstance(self.speed, int | float) or not self.speed > 0:
+            raise bad(f"speed={self.speed!r}: a positive number of device seconds per second")
+        if self.clock == "manual" and self.speed != 1.0:
+            raise bad("speed: a manual clock moves only when advanced (leave speed at 1)")
+        if not isinstance(self.noise_volts, int | float) or not self.noise_volts >= 0:
+            raise bad(f"noise_volts={self.noise_volts!r}: volts, >= 0")
+        lo, hi = self.pause_s
+        if not 0 < lo <= hi:
+            raise bad(f"pause_s={self.pause_s!r}: (min, max) seconds with 0 < min <= max")
+        if not isinstance(self.open_points, OpenPoints):
+            raise bad("open_points: a simulator.open_points.OpenPoints")
+
+    @classmethod
+    def from_mapping(cls, options: Mapping[str, Any]) -> LDQ412Options:
+        """Options from keyword arguments, an unknown name a clear error."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise TypeError(
+                f"unknown ldq412 option(s) {', '.join(map(repr, unknown))}; "
+                f"the options are {', '.join(sorted(known))}"
+            )
+        return cls(**options)
+
+
+@dataclass
+class Truth:
+    """What the emulated mechanism really is, for a test to compare against.
+
+    parameters: the 20 true parameters (20,) in the order of
+        :data:`calibration.parameters.NAMES` (mm and degrees, as in the config).
+    scenario: the plate's motion, as ``loopcal simulate --truth-out`` describes it.
+    noise_volts, seed: as built.
+    drifts: the offset drifts injected so far (:class:`~simulator.drift.OffsetDrift`,
+        times in seconds since the module was first switched on).
+    """
+
+    parameters: np.ndarray
+    scenario: dict
+    noise_volts: float
+    seed: int
+    drifts: list[OffsetDrift] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, float]:
+        """The true parameters by name, e.g. ``{"d01": 101.3, ...}``."""
+        return to_dict(self.parameters)
+
+    def offset_shift_mm(self, t_s: float) -> np.ndarray:
+        """Each sensor's offset change (4,) mm at source time ``t_s`` (a scan's ``t_s``, or
+        :attr:`EmulatedLDQ412.time_s` for now), from the drifts injected so far."""
+        return offset_shift(self.drifts, np.full(4, float(t_s)))
+
+
+class EmulatedLDQ412:
+    """An emulated LDQ-412 on a real transport, started on construction; a context manager.
+
+    Keyword arguments are :class:`LDQ412Options` fields (or pass ``options=``). Close it
+    (or leave the ``with``) to stop its servers and free its port or pseudo-terminal.
+    """
+
+    def __init__(self, options: LDQ412Options | None = None, **kwargs: Any) -> None:
+        if options is not None and kwargs:
+            raise TypeError("give options= or keyword options, not both")
+        self.options = options or LDQ412Options.from_mapping(kwargs)
+        o = self.options
+        params = true_parameters(o.seed, o.offset_error_mm, o.truth)
+        scenario = {
+            "hand": lambda: HandMoves(o.seed, params=params, pause_s=o.pause_s),
+            "static": Static,
+            "sweep": Sweep,
+        }[o.scenario]()
+        self._source = MechanismSource(scenario, params, noise_volts=o.noise_volts, seed=o.seed)
+        self.truth = Truth(params.copy(), scenario.describe(), float(o.noise_volts), o.seed)
+        clock: Clock
+        if o.clock == "manual":
+            clock = ManualClock()
+        else:
+            clock = RealClock() if o.speed == 1.0 else SimClock(o.speed)
+        self.emulator = Emulator(
+            o.transport,
+            self._source,
+            scan_rate_hz=o.scan_rate_hz,
+            clock=clock,
+            seed=o.seed,
+            unit=o.unit,
+            ascii_addr=o.ascii_addr,
+            ascii_checksum=o.ascii_checksum,
+            open_points=o.open_points,
+        )
+        self._lock = threading.Lock()
+        self.emulator.start()
+
+    # ------------------------------------------------------------------ what it is
+
+    @property
+    def url(self) -> str:
+        """The driver URL: ``modbus-tcp://127.0.0.1:PORT?unit=1``,
+        ``modbus-rtu:///dev/pts/N?baud=115200&unit=1`` or ``ascii:///dev/pts/N?...``."""
+        return self.emulator.url
+
+    @property
+    def transport(self) -> str:
+        return self.options.transport
+
+    @property
+    def port(self) -> str | int:
+        """The TCP port (modbus-tcp), else the pseudo-terminal a serial client opens."""
+        if self.transport == "modbus-tcp":
+            return self.emulator.port
+        return self.url.split("://", 1)[1].split("?", 1)[0]
+
+    @property
+    def clock(self) -> Clock:
+        return self.emulator.clock
+
+    @property
+    def faults(self) -> FaultInjector:
+        """Every fault the emulator knows (garbage bytes, corrupt answers, stuck channels,
+        sensor faults, saturation, latency): :class:`~simulator.faults.FaultInjector`."""
+        return self.emulator.faults
+
+    @property
+    def scans(self) -> list[TruthScan]:
+        """Every scan the module produced so far, in order: counter, device time, codes,
+        status, source time and power-on index (ground truth, a copy)."""
+        return self.emulator.truth
+
+    @property
+    def time_s(self) -> float:
+        """Seconds since the module was first switched on (the drifts' time axis)."""
+        with self.emulator.handle.synced() as device:
+            return device.source_time_s
+
+    # ------------------------------------------------------------------ time
+
+    def advance(self, seconds: float) -> None:
+        """Move a manual clock forward (``clock="manual"`` only)."""
+        if not isinstance(self.clock, ManualClock):
+            raise RuntimeError("advance() needs clock='manual'; a real clock moves by itself")
+        self.clock.advance(seconds)
+
+    def wait_scans(self, n: int, timeout: float = 10.0) -> list[TruthScan]:
+        """Wait until the module has produced ``n`` more scans (a manual clock is advanced
+        scan by scan); returns them. Raises TimeoutError after ``timeout`` real seconds."""
+        if n < 0:
+            raise ValueError("n must be >= 0")
+        before = len(self.scans)
+        deadline = time.monotonic() + timeout
+        manual = isinstance(self.clock, ManualClock)
+        step = 1.0 / self.options.scan_rate_hz
+        while True:
+            scans = self.scans
+            if len(scans) - before >= n:
+                return scans[before : before + n]
+            if time.monotonic() > deadline:
+                raise TimeoutError(
+                    f"the module produced {len(scans) - before} of {n} scans in {timeout} s"
+                )
+            if manual:
+                self.clock.advance(step)
+            else:
+                time.sleep(min(step / self.options.speed, 0.02))
+
+    # ------------------------------------------------------------------ faults
+
+    def power_cycle(self, off_s: float = POWER_CYCLE_S) -> None:
+        """Switch the module off now and on ``off_s`` seconds later: counter 0, device time
+        0, the restart flag set, the FIFO empty (the datasheet's power-on)."""
+        self.faults.restart(off_s)
+
+    def disconnect(self) -> None:
+        """Cut the link (TCP: connections reset and the port closed; serial: silence)."""
+        self.faults.disconnect()
+
+    def reconnect(self) -> None:
+        self.faults.reconnect()
+
+    def stall(self, seconds: float) -> None:
+        """No answers for ``seconds`` of device time; the module keeps scanning."""
+        self.faults.stall(seconds)
+
+    def offset_step(self, sensor: int, mm: float, duration: float | None = None) -> OffsetDrift:
+        """Sensor ``sensor`` (1..4) reads as if its offset moved by ``mm`` from now on (for
+        ``duration`` seconds, None: for good): a loose core or a refitted LVDT."""
+        return self._drift("step", sensor, mm, duration)
+
+    def offset_creep(
+        self, sensor: int, mm_per_min: float, duration: float | None = None
+    ) -> OffsetDrift:
+        """Sensor ``sensor``'s offset creeps by ``mm_per_min`` from now on (for ``duration``
+        seconds, then held; None: for ever)."""
+        return self._drift("creep", sensor, mm_per_min, duration)
+
+    def _drift(self, kind: str, sensor: int, amount: float, duration: float | None) -> OffsetDrift:
+        # taken under the device's lock, synced to now: scans already due are not affected
+        with self.emulator.handle.synced() as device:
+            drift = OffsetDrift(kind, sensor, device.source_time_s, float(amount), duration)
+            self._source.drifts.append(drift)
+        self.truth.drifts.append(drift)
+        return drift
+
+    # ------------------------------------------------------------------ lifetime
+
+    def close(self) -> None:
+        """Stop the servers and free the port or pseudo-terminal. Idempotent."""
+        with self._lock:
+            self.emulator.close()
+
+    def __enter__(self) -> EmulatedLDQ412:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"EmulatedLDQ412({self.url!r}, seed={self.options.seed})"
