@@ -145,16 +145,19 @@ DATASHEET_LINES = {
 }
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
+def add_arguments(p: argparse.ArgumentParser, *, scanning: bool = True) -> None:
     """The ``loopcal simulate`` options for :class:`OpenPoints` (defaults: the datasheet's
-    most literal reading, what the emulator always did)."""
+    most literal reading, what the emulator always did). ``scanning=False`` leaves out
+    when and how fast the module scans (a replay serves the recorded times): only how it
+    answers."""
     g = p.add_argument_group(
         "what the datasheet leaves open (docs/daq.md; defaults: the emulator as it was)"
     )
-    g.add_argument("--scan-phase-us", type=int, default=0, metavar="US",
-                   help="device time of scan 0 after power-on, us (0)")  # fmt: skip
-    g.add_argument("--clock-ppm", type=float, default=0.0, metavar="PPM",
-                   help="the module's clock rate error against the host's, ppm (0)")  # fmt: skip
+    if scanning:
+        g.add_argument("--scan-phase-us", type=int, default=0, metavar="US",
+                       help="device time of scan 0 after power-on, us (0)")  # fmt: skip
+        g.add_argument("--clock-ppm", type=float, default=0.0, metavar="PPM",
+                       help="the module's clock error against the host's, ppm (0)")  # fmt: skip
     g.add_argument("--latency", default=None, metavar="datasheet|MS|MIN-MAX",
                    help="answer delay, ms ('datasheet': 0.5 ms to 5 ms RTU, 10 ms TCP and "
                         "ASCII; default: at once)")  # fmt: skip
@@ -177,10 +180,18 @@ def from_arguments(args: argparse.Namespace) -> OpenPoints:
     """OpenPoints from the options :func:`add_arguments` added. Raises ValueError."""
     if args.slow_answers and args.latency is None:
         raise ValueError("--slow-answers needs --latency")
-    latency = None if args.latency is None else Latency.parse(args.latency, args.slow_answers)
+    try:
+        latency = None if args.latency is None else Latency.parse(args.latency, args.slow_answers)
+        return _open_points(args, latency)
+    except ValueError as exc:  # named by the option, as the user typed it
+        setting = str(exc).split()[0].rstrip(":")
+        raise ValueError(f"--{setting.replace('_', '-')}: {exc}") from None
+
+
+def _open_points(args: argparse.Namespace, latency: Latency | None) -> OpenPoints:
     return OpenPoints(
-        scan_phase_us=args.scan_phase_us,
-        clock_ppm=args.clock_ppm,
+        scan_phase_us=getattr(args, "scan_phase_us", 0),
+        clock_ppm=getattr(args, "clock_ppm", 0.0),
         latency=latency,
         fifo_underrun=args.fifo_underrun,
         max_read_registers=args.max_read_registers,

@@ -97,9 +97,12 @@ def write_recording(directory: Path, rows: np.ndarray, rate: int) -> Path:
     return directory
 
 
-def replay_and_record(src: Path, out: Path, transport: str, speed: float) -> tuple[Proc, Proc]:
-    """``loopcal replay SRC`` and ``loopcal record`` reading it (both running)."""
-    player = Proc(["replay", str(src), "--transport", transport, "--speed", f"{speed:g}"])
+def replay_and_record(
+    src: Path, out: Path, transport: str, speed: float, *options: str
+) -> tuple[Proc, Proc]:
+    """``loopcal replay SRC [options]`` and ``loopcal record`` reading it (both running)."""
+    player = Proc(["replay", str(src), "--transport", transport, "--speed", f"{speed:g}",
+                   *options])  # fmt: skip
     url = player.lines[player.wait_for("listening: ", timeout=30)].split(": ", 1)[1]
     return player, record(url, out, "--read-period", "0.05")
 

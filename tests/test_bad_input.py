@@ -104,6 +104,8 @@ def test_replay_and_simulate_options(tmp_path):
         with _taken_port() as s:
             port = s.getsockname()[1]
             refused(loopcal(*cmd, "--port", port), f"127.0.0.1:{port}", "in use")
+        refused(loopcal(*cmd, "--max-read-registers", "0"), "--max-read-registers", "1..125")
+        refused(loopcal(*cmd, "--slow-answers", "0.1"), "--slow-answers needs --latency")
     refused(loopcal("simulate", "--truth-out", "/no/dir/t.jsonl", "--duration", "1"),
             "--truth-out /no/dir/t.jsonl")  # fmt: skip
     eight = tmp_path / "eight.mcap"

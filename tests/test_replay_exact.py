@@ -62,19 +62,19 @@ def test_round_trip_on_every_transport(tmp_path):
     """All three transports at once: ASCII through ``loopcal replay`` at the recording's own
     pace (polled once per scan, phase-locked); Modbus at twice it, served by modules that
     answer as other makers' might (the emulator's open points): late and without filler
-    scans, truncating long reads (TCP); refusing them, answering across holes, only whole
-    snapshots, with slow answers (RTU)."""
+    scans, truncating long reads (TCP, set by ``loopcal replay``'s options); refusing them,
+    answering across holes, only whole snapshots, with slow answers (RTU, in process)."""
     rows = synthetic_rows(RATE)
     src = write_recording(tmp_path / "src", rows, RATE)
     original = read_scans(src)
-    tcp = OpenPoints(latency=Latency(), fifo_underrun="short", max_read_registers=64,
-                     over_limit="truncate")  # fmt: skip
     rtu = OpenPoints(latency=Latency(slow_fraction=0.02, slow_ms=(50.0, 70.0)),
                      max_read_registers=60, holes="zero", snapshot_reads="whole")  # fmt: skip
     runs = {
         "ascii": replay_and_record(src, tmp_path / "ascii", "ascii", 1.0),
-        "modbus-tcp": replay_in_process(original, tmp_path / "tcp", "modbus-tcp", RATE, 2.0,
-                                        open_points=tcp),  # fmt: skip
+        "modbus-tcp": replay_and_record(src, tmp_path / "tcp", "modbus-tcp", 2.0,
+                                        "--latency", "datasheet", "--fifo-underrun", "short",
+                                        "--max-read-registers", "64", "--over-limit",
+                                        "truncate"),  # fmt: skip
         "modbus-rtu": replay_in_process(original, tmp_path / "rtu", "modbus-rtu", RATE, 2.0,
                                         open_points=rtu),  # fmt: skip
     }

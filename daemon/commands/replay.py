@@ -20,6 +20,8 @@ import numpy as np
 
 from drivers.ldq412 import POWER_CYCLE_S
 from simulator.emulator import TRANSPORTS
+from simulator.open_points import add_arguments as add_open_point_arguments
+from simulator.open_points import from_arguments as open_points_from_arguments
 from simulator.replay import Player, RecordedPowerOn
 from simulator.run import listen_host, tcp_port
 
@@ -50,6 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--host", type=listen_host, default="127.0.0.1", help="TCP address (default 127.0.0.1)"
     )
     p.add_argument("--port", type=tcp_port, default=0, help="TCP port (default: a free one)")
+    add_open_point_arguments(p, scanning=False)
 
 
 def power_ons(scans: np.ndarray) -> list[RecordedPowerOn]:
@@ -82,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         if not args.speed > 0:
             raise ValueError("--speed must be positive")
+        open_points = open_points_from_arguments(args)
         rec = read_recordings(args.recordings)
         if len(rec) == 0:
             names = ", ".join(str(p) for p in args.recordings)
@@ -97,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
             speed=args.speed,
             host=args.host,
             port=args.port,
+            open_points=open_points,
         )
         player.start()
     except (RecordingError, ValueError, OSError, RuntimeError) as exc:
