@@ -5,25 +5,19 @@ with Emulator("modbus-tcp", clock=ManualClock()) as emu:
     ...  # open_daq(emu.url), emu.clock.advance(1.0), emu.faults.restart(), emu.truth
 """
 
-from importlib import import_module
-from typing import TYPE_CHECKING, Any
+import importlib
+from typing import TYPE_CHECKING
 
-# Loaded on first use: the pytest plugin (simulator.pytest_plugin) is imported by every
-# pytest run where loopcal is installed and must not pull in numpy and pymodbus for that.
-_WHERE = {
-    "Clock": "clock",
-    "ManualClock": "clock",
-    "RealClock": "clock",
-    "SimClock": "clock",
-    "LDQ412": "device",
-    "DeviceError": "device",
-    "TruthScan": "device",
+# Loaded on first use, as calibration/ and drivers/ do: the pytest plugin
+# (simulator.pytest_plugin) is imported by every pytest run where loopcal is installed and
+# must not pull in numpy and pymodbus for that.
+_LAZY = {
+    "Clock": "clock", "ManualClock": "clock", "RealClock": "clock", "SimClock": "clock",
+    "LDQ412": "device", "DeviceError": "device", "TruthScan": "device",
     "Emulator": "emulator",
     "FaultInjector": "faults",
-    "ConstantSource": "source",
-    "SignalSource": "source",
-    "TestSource": "source",
-}
+    "ConstantSource": "source", "SignalSource": "source", "TestSource": "source",
+}  # fmt: skip
 
 if TYPE_CHECKING:
     from .clock import Clock, ManualClock, RealClock, SimClock
@@ -33,10 +27,17 @@ if TYPE_CHECKING:
     from .source import ConstantSource, SignalSource, TestSource
 
 
-def __getattr__(name: str) -> Any:
-    if name in _WHERE:
-        return getattr(import_module(f".{_WHERE[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'simulator' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)
 
 
 __all__ = [

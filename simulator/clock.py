@@ -72,6 +72,11 @@ class SimClock:
         return self.now_ns() / NS_PER_S
 
 
+def clock_for(speed: float) -> RealClock | SimClock:
+    """Wall time running ``speed`` times as fast: a :class:`RealClock` at 1."""
+    return RealClock() if speed == 1.0 else SimClock(speed)
+
+
 class HeldClock:
     """Wall time, ``speed`` times as fast, standing at 0 until :meth:`release`.
 

@@ -182,20 +182,16 @@ def from_arguments(args: argparse.Namespace) -> OpenPoints:
         raise ValueError("--slow-answers needs --latency")
     try:
         latency = None if args.latency is None else Latency.parse(args.latency, args.slow_answers)
-        return _open_points(args, latency)
+        return OpenPoints(
+            scan_phase_us=getattr(args, "scan_phase_us", 0),
+            clock_ppm=getattr(args, "clock_ppm", 0.0),
+            latency=latency,
+            fifo_underrun=args.fifo_underrun,
+            max_read_registers=args.max_read_registers,
+            over_limit=args.over_limit,
+            holes=args.holes,
+            snapshot_reads=args.snapshot_reads,
+        )
     except ValueError as exc:  # named by the option, as the user typed it
         setting = str(exc).split()[0].rstrip(":")
         raise ValueError(f"--{setting.replace('_', '-')}: {exc}") from None
-
-
-def _open_points(args: argparse.Namespace, latency: Latency | None) -> OpenPoints:
-    return OpenPoints(
-        scan_phase_us=getattr(args, "scan_phase_us", 0),
-        clock_ppm=getattr(args, "clock_ppm", 0.0),
-        latency=latency,
-        fifo_underrun=args.fifo_underrun,
-        max_read_registers=args.max_read_registers,
-        over_limit=args.over_limit,
-        holes=args.holes,
-        snapshot_reads=args.snapshot_reads,
-    )

@@ -40,14 +40,14 @@ from calibration.kinematics import euler_zyz
 from calibration.parameters import NAMES, to_dict
 from calibration.simulate import NOISE_VOLTS
 
-from .clock import Clock, HeldClock, RealClock, SimClock
+from .clock import Clock, HeldClock, clock_for
 from .drift import OffsetDrift
 from .emulator import TRANSPORTS, Emulator
 from .faults import FaultInjector
 from .mechanism import MechanismSource, ReplaySource, true_parameters
 from .open_points import add_arguments as add_open_point_arguments
 from .open_points import from_arguments as open_points_from_arguments
-from .scenarios import HandMoves, Static, Sweep
+from .scenarios import SCENARIOS, scenario_named
 
 _FAULT = re.compile(
     r"^(?P<kind>[a-z]+)@(?P<at>\d+(?:\.\d*)?)(?:\+(?P<dur>\d+(?:\.\d*)?))?(?::(?P<arg>.+))?$"
@@ -265,7 +265,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="switch the module on at a client's first request (default: at once)",
     )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--scenario", choices=("hand", "static", "sweep", "replay"), default="hand")
+    p.add_argument("--scenario", choices=(*SCENARIOS, "replay"), default="hand")
     p.add_argument(
         "--replay",
         type=Path,
@@ -329,11 +329,9 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             source = ReplaySource.from_truth_file(args.replay, loop=True)
             scenario = None
         else:
-            scenario = {
-                "hand": lambda: HandMoves(args.seed, params=truth, pause_s=args.pause),
-                "static": Static,
-                "sweep": Sweep,
-            }[args.scenario]()
+            scenario = scenario_named(
+                args.scenario, seed=args.seed, params=truth, pause_s=args.pause
+            )
             source = MechanismSource(
                 scenario, truth, noise_volts=args.noise_mv / 1000, seed=args.seed, drifts=drifts
             )
@@ -345,12 +343,8 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         what = f"--truth-out {args.truth_out}: " if isinstance(exc, OSError) else ""
         print(f"loopcal simulate: error: {what}{exc}", file=sys.stderr)
         return 2
-    if args.wait_for_client:
-        clock: Clock = HeldClock(args.speed)  # released by the emulator's first request
-    elif args.speed == 1.0:
-        clock = RealClock()
-    else:
-        clock = SimClock(args.speed)
+    # a held clock is released by the emulator's first request
+    clock: Clock = HeldClock(args.speed) if args.wait_for_client else clock_for(args.speed)
     stop = stop or threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         if threading.current_thread() is threading.main_thread():

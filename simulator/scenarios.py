@@ -193,3 +193,20 @@ class HandMoves(Scenario):
 
 
 SCENARIOS = {"hand": HandMoves, "static": Static, "sweep": Sweep}
+
+
+def scenario_named(
+    name: str,
+    *,
+    seed: int = 0,
+    params: np.ndarray = NOMINAL,
+    pause_s: tuple[float, float] = (1.0, 3.0),
+) -> Scenario:
+    """The scenario ``loopcal simulate --scenario NAME`` serves: "hand" (moves from
+    ``seed`` to orientations reachable for ``params``, pausing ``pause_s``), "static"
+    (held at home) or "sweep"."""
+    if name not in SCENARIOS:
+        raise ValueError(f"scenario {name!r}: one of {', '.join(SCENARIOS)}")
+    if name == "hand":
+        return HandMoves(seed, params=params, pause_s=pause_s)
+    return SCENARIOS[name]()

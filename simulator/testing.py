@@ -33,16 +33,15 @@ from calibration.parameters import to_dict
 from calibration.simulate import NOISE_VOLTS
 from drivers.ldq412 import POWER_CYCLE_S
 
-from .clock import Clock, ManualClock, RealClock, SimClock
+from .clock import Clock, ManualClock, clock_for
 from .device import TruthScan
 from .drift import OffsetDrift, offset_shift
 from .emulator import TRANSPORTS, Emulator
 from .faults import FaultInjector
 from .mechanism import MechanismSource, true_parameters
 from .open_points import OpenPoints
-from .scenarios import HandMoves, Static, Sweep
+from .scenarios import SCENARIOS, scenario_named
 
-SCENARIOS = ("hand", "static", "sweep")
 CLOCKS = ("real", "manual")
 
 
@@ -158,18 +157,10 @@ class EmulatedLDQ412:
         self.options = options or LDQ412Options.from_mapping(kwargs)
         o = self.options
         params = true_parameters(o.seed, o.offset_error_mm, o.truth)
-        scenario = {
-            "hand": lambda: HandMoves(o.seed, params=params, pause_s=o.pause_s),
-            "static": Static,
-            "sweep": Sweep,
-        }[o.scenario]()
+        scenario = scenario_named(o.scenario, seed=o.seed, params=params, pause_s=o.pause_s)
         self._source = MechanismSource(scenario, params, noise_volts=o.noise_volts, seed=o.seed)
         self.truth = Truth(params.copy(), scenario.describe(), float(o.noise_volts), o.seed)
-        clock: Clock
-        if o.clock == "manual":
-            clock = ManualClock()
-        else:
-            clock = RealClock() if o.speed == 1.0 else SimClock(o.speed)
+        clock: Clock = ManualClock() if o.clock == "manual" else clock_for(o.speed)
         self.emulator = Emulator(
             o.transport,
             self._source,
