@@ -116,11 +116,10 @@ def check(files: list[Path], config_path: Path, false_alarm: float, *,
 def plot(doc: dict[str, Any], path: Path) -> None:
     """Each sensor's estimated offset shift (with one standard deviation) and statistic
     over time, the alarm threshold, and the changes found."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.dates as mdates
     import matplotlib.pyplot as plt
+
+    from ..worker.report import save_figure  # sets matplotlib's Agg backend: files only
 
     stamps, shift, std, stat = doc["_trace"].arrays()
     t = stamps.astype("datetime64[ns]")  # matplotlib plots these as UTC times
@@ -154,8 +153,6 @@ def plot(doc: dict[str, Any], path: Path) -> None:
     for ax in (a1, a2):
         ax.legend(fontsize=8, loc="upper left")
         ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 

@@ -32,6 +32,14 @@ from .gates import holdout_residuals  # noqa: E402
 from .run import METHOD_NAMES, WorkerResult  # noqa: E402
 
 
+def save_figure(fig: plt.Figure, path: Path) -> None:
+    """Write a figure as the report's (and ``loopcal check --plot``'s) PNGs are written,
+    and free it."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def _axis_angles(volts: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Tilt (deg) and azimuth (rad) of the plate's output axis for each pose."""
     if len(volts) == 0:
@@ -61,9 +69,7 @@ def _plot_changes(res: WorkerResult, path: Path) -> None:
     ax.set_xlabel("new - previous")
     ax.set_title("Change of each identified parameter")
     ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def _plot_residuals(res: WorkerResult, path: Path) -> None:
@@ -104,9 +110,7 @@ def _plot_residuals(res: WorkerResult, path: Path) -> None:
     ax.set_yscale("symlog")
     ax.set_title("How well the loops close, before and after")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def _plot_singular_values(res: WorkerResult, path: Path, progress: Callable[[str], None]) -> None:
@@ -134,9 +138,7 @@ def _plot_singular_values(res: WorkerResult, path: Path, progress: Callable[[str
     ax.set_yscale("log")
     ax.set_title("Observability against the number of poses")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def _plot_workspace(res: WorkerResult, path: Path) -> None:
@@ -161,9 +163,7 @@ def _plot_workspace(res: WorkerResult, path: Path) -> None:
     ax.set_ylim(0, 45)
     ax.set_title("Where the poses lie: output axis tilt (radius, deg) and direction", fontsize=9)
     ax.legend(loc="lower left", bbox_to_anchor=(-0.1, -0.15), fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def write_report(
