@@ -33,7 +33,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
-from fuzz_helpers import ACCEPTABLE, MUTATIONS, judge, make_rows, write_recording  # noqa: E402
+from fuzz_helpers import (  # noqa: E402
+    ACCEPTABLE,
+    DAEMON_TOML,
+    MUTATIONS,
+    judge,
+    make_rows,
+    write_recording,
+)
 
 from daemon.config.controller import (  # noqa: E402
     ControllerConfigError,
@@ -200,23 +207,6 @@ def toml_case(rnd: random.Random, work: Path, daemon_text: str) -> str:
     return "daemon: loaded"
 
 
-DAEMON_TOML = """[daq]
-url = "modbus-tcp://192.168.1.50:502?unit=1"
-timeout = 0.1
-read_period = 0.2
-[recording]
-directory = "/var/lib/loopcal/recordings"
-flush_period = 1.0
-rotate_seconds = 3600
-rotate_size = "256 MiB"
-disk_budget = "20 GiB"
-max_backlog_scans = 500000
-[controller]
-config = "/etc/loopcal/controller/controller.toml"
-[health]
-enabled = true
-false_alarm = 1e-8
-"""
 
 
 def main() -> int:

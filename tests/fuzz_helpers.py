@@ -1,7 +1,8 @@
-"""Damaging real recordings the way storage does, and judging what the reader made of them.
+"""Real recordings for tests: scan rows, written by the daemon's own writer
+(:func:`write_rows`), damaged the way storage damages them, and what the reader made of
+them judged.
 
-Shared by the hypothesis tests (tests/test_recording_damage.py) and the long fuzz run
-(bench/fuzz_parsers.py). A mutation is a plain function of the file's bytes and a few
+Shared by the tests and the long fuzz run (bench/fuzz_parsers.py). A mutation is a plain function of the file's bytes and a few
 integers, so hypothesis can draw the integers and shrink them.
 """
 
@@ -27,6 +28,29 @@ from drivers.ldq412 import volts_to_code
 T0 = 1_795_000_000_000_000_000  # ns, late 2026
 
 
+#: a daemon config as an installation has it (the TOML fuzzers mutate it)
+DAEMON_TOML = """[daq]
+url = "modbus-tcp://192.168.1.50:502?unit=1"
+timeout = 0.1
+read_period = 0.2
+
+[recording]
+directory = "/var/lib/loopcal/recordings"
+flush_period = 1.0
+rotate_seconds = 3600
+rotate_size = "256 MiB"
+disk_budget = "20 GiB"
+max_backlog_scans = 500000
+
+[controller]
+config = "/etc/loopcal/controller/controller.toml"
+
+[health]
+enabled = true
+false_alarm = 1e-8
+"""
+
+
 def make_rows(n: int, *, start: int = 0, seed: int = 0, t0: int = T0, epoch: int = 3) -> np.ndarray:
     """n consecutive scans of a 20 Hz module, codes of simulated poses."""
     ps = simulate_poses(max(n, 10), seed=seed)
@@ -42,30 +66,51 @@ def make_rows(n: int, *, start: int = 0, seed: int = 0, t0: int = T0, epoch: int
     return rows
 
 
-def write_recording(path: Path, rows: np.ndarray, *, per: int = 20, close: bool = True,
-                    events: bool = True) -> list[int]:  # fmt: skip
-    """A recording of ``rows`` written by the daemon's writer, ``per`` scans a flush, with
-    an event every 100 scans; returns the durable size after each flush."""
-    w = rec.RecordingWriter(
-        path,
-        metadata=rec.metadata_records(
+def write_rows(
+    path: Path,
+    rows: np.ndarray,
+    *,
+    per: int = 20,
+    events: list[Event] | tuple[Event, ...] = (),
+    close: bool = True,
+    metadata: dict[str, dict[str, str]] | None = None,
+    params: np.ndarray = NOMINAL,
+    fsync: bool = True,
+) -> tuple[rec.RecordingWriter, list[int]]:
+    """A recording of ``rows`` by the daemon's writer, ``per`` scans a flush. Each event is
+    written with the flush whose scans' time holds it (from the flush's first scan, for at
+    most a second): events outside every flush are not written, so one list can serve
+    several files. Returns the writer (closed unless ``close`` is False) and the durable
+    size after each flush."""
+    if metadata is None:
+        metadata = rec.metadata_records(
             device={"model": "LDQ412", "serial": "12648430"},
             controller={"path": "", "d01": "97.4"},
             command="pytest",
-        ),
-        params=NOMINAL,
-    )
+        )
+    w = rec.RecordingWriter(path, metadata=metadata, params=params, fsync=fsync)
+    stamps = rows["stamp_ns"].astype(np.int64)
     sizes = []
     for k in range(0, len(rows), per):
-        block = rows[k : k + per]
-        evs = []
-        if events and k % 100 == 0:
-            evs = [Event(int(block["stamp_ns"][0]), "gap", Level.WARNING, f"test {k}", {"k": k})]
-        w.write(block, evs)
+        lo = int(stamps[k])
+        hi = lo + 10**9 if k + per >= len(rows) else min(lo + 10**9, int(stamps[k + per]))
+        w.write(rows[k : k + per], [e for e in events if lo <= e.stamp_ns < hi])
         sizes.append(w.durable_size)
     if close:
         w.close()
-    return sizes
+    return w, sizes
+
+
+def write_recording(path: Path, rows: np.ndarray, *, per: int = 20, close: bool = True,
+                    events: bool = True) -> list[int]:  # fmt: skip
+    """:func:`write_rows` with an event every 100 scans; returns the durable size after
+    each flush."""
+    evs = [
+        Event(int(rows["stamp_ns"][k]), "gap", Level.WARNING, f"test {k}", {"k": k})
+        for k in range(0, len(rows), per)
+        if events and k % 100 == 0
+    ]
+    return write_rows(path, rows, per=per, events=evs, close=close)[1]
 
 
 def chunk_spans(data: bytes) -> list[tuple[int, int]]:

@@ -8,9 +8,9 @@ import threading
 from pathlib import Path
 
 import numpy as np
+from fuzz_helpers import write_rows
 from recorder_helpers import Proc, record
 
-from calibration.parameters import NOMINAL
 from daemon import recording as rec
 from daemon import scans as S
 from daemon.recording import read_recordings
@@ -85,15 +85,8 @@ def write_recording(directory: Path, rows: np.ndarray, rate: int) -> Path:
     meta = rec.metadata_records(
         device={"model": "LDQ412", "scan_rate_hz": str(rate)}, controller={}, command="tests"
     )
-    w = rec.RecordingWriter(
-        directory / rec.recording_name(int(rows["stamp_ns"][0])),
-        metadata=meta,
-        params=NOMINAL,
-        fsync=False,
-    )
-    for k in range(0, len(rows), 25):
-        w.write(rows[k : k + 25])
-    w.close()
+    write_rows(directory / rec.recording_name(int(rows["stamp_ns"][0])), rows, per=25,
+               metadata=meta, fsync=False)  # fmt: skip
     return directory
 
 

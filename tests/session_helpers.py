@@ -11,9 +11,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from fuzz_helpers import write_rows
 from recorder_helpers import Proc, record
 
-from calibration.parameters import NOMINAL, PAPER7
+from calibration.parameters import PAPER7
 from calibration.simulate import perturbed_truth
 from daemon import recording as rec
 from daemon import scans as S
@@ -124,15 +125,8 @@ def trim(src: Path, dst: Path, first: int, stop: int) -> Path:
     assert len(keep) == stop - first, f"{src}: scans {first}..{stop - 1} not all recorded"
     dst.mkdir(parents=True, exist_ok=True)
     meta = rec.metadata_records(device={"model": "LDQ412"}, controller={}, command="trim")
-    w = rec.RecordingWriter(
-        dst / rec.recording_name(int(keep["stamp_ns"][0])),
-        metadata=meta,
-        params=NOMINAL,
-        fsync=False,
-    )
-    for k in range(0, len(keep), 20):
-        w.write(keep[k : k + 20])
-    w.close()
+    write_rows(dst / rec.recording_name(int(keep["stamp_ns"][0])), keep, metadata=meta,
+               fsync=False)  # fmt: skip
     return dst
 
 
@@ -181,15 +175,8 @@ def write_session(
     )
     for a in range(0, n, per_file):
         part = rows[a : a + per_file]
-        w = rec.RecordingWriter(
-            path / rec.recording_name(int(part["stamp_ns"][0])),
-            metadata=meta,
-            params=NOMINAL,
-            fsync=False,
-        )
-        for k in range(0, len(part), rate):
-            w.write(part[k : k + rate])
-        w.close()
+        write_rows(path / rec.recording_name(int(part["stamp_ns"][0])), part, per=rate,
+                   metadata=meta, fsync=False)  # fmt: skip
     return n
 
 

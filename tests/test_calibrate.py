@@ -12,6 +12,7 @@ from datetime import UTC, datetime
 import numpy as np
 import pytest
 import tomlkit
+from fuzz_helpers import write_rows
 from recorder_helpers import Proc, record
 from session_helpers import (
     PAUSE_S,
@@ -307,13 +308,8 @@ def test_a_cut_recording_with_faults_and_gaps(offline, tmp_path):
     rows["status"][300:340] |= 1 << 5  # sensor 2 faulted for 2 s
     rows["codes"][300:340, 1] = 4095
     rows["missed"][900] = 3  # three scans lost before this one
-    w = rec_mod.RecordingWriter(
-        tmp_path / "cut.mcap",
-        params=NOMINAL,
-        metadata=rec_mod.metadata_records(device={}, controller={}, command="test"),
-    )
-    for k in range(0, len(rows), 20):
-        w.write(rows[k : k + 20])
+    meta = rec_mod.metadata_records(device={}, controller={}, command="test")
+    w, _ = write_rows(tmp_path / "cut.mcap", rows, close=False, metadata=meta)
     size = w.durable_size
     w.abandon()  # no summary: as after a crash
     assert (tmp_path / "cut.mcap").stat().st_size == size

@@ -8,7 +8,7 @@ from datetime import UTC, datetime
 
 import numpy as np
 import pytest
-from fuzz_helpers import chunk_spans, make_rows
+from fuzz_helpers import chunk_spans, make_rows, write_rows
 from session_helpers import PAUSE_S, T0, loopcal, truth_for, write_session
 
 from daemon import recording as rec
@@ -21,8 +21,10 @@ pytestmark = pytest.mark.timeout(180)
 
 
 def _write(path, rows, events=()):
-    w = rec.RecordingWriter(
+    write_rows(
         path,
+        rows,
+        events=events,
         metadata=rec.metadata_records(
             device={"model": "LDQ412", "serial": "12648430"},
             controller={"path": "/etc/loopcal/controller/controller.toml", "sha256": "ab" * 32,
@@ -33,10 +35,6 @@ def _write(path, rows, events=()):
         params=np.array(truth_for(1)),
         fsync=False,
     )
-    for k in range(0, len(rows), 20):
-        evs = [e for e in events if rows["stamp_ns"][k] <= e.stamp_ns < rows["stamp_ns"][k] + 10**9]
-        w.write(rows[k : k + 20], evs)
-    w.close()
 
 
 def test_info_counts_scans_gaps_restarts_events_and_damage(tmp_path):

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import string
 
+from fuzz_helpers import DAEMON_TOML
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
@@ -118,34 +119,14 @@ def test_controller_configs_load_or_raise_their_error(tmp_path, data):
         assert str(path) in str(exc)
 
 
-_DAEMON = """[daq]
-url = "modbus-tcp://192.168.1.50:502?unit=1"
-timeout = 0.1
-read_period = 0.2
-
-[recording]
-directory = "/var/lib/loopcal/recordings"
-flush_period = 1.0
-rotate_seconds = 3600
-rotate_size = "256 MiB"
-disk_budget = "20 GiB"
-max_backlog_scans = 500000
-
-[controller]
-config = "/etc/loopcal/controller/controller.toml"
-
-[health]
-enabled = true
-false_alarm = 1e-8
-"""
 
 
 def _daemon_with(old: str, new: str) -> bytes:
-    return _DAEMON.replace(old, new).encode()
+    return DAEMON_TOML.replace(old, new).encode()
 
 
 @settings(max_examples=250, deadline=None, suppress_health_check=_FIXTURE)
-@given(data=st.one_of(_toml_like(_DAEMON), st.binary(max_size=300)))
+@given(data=st.one_of(_toml_like(DAEMON_TOML), st.binary(max_size=300)))
 @example(data=_daemon_with('"256 MiB"', '"' + "9" * 400 + ' TiB"'))  # was OverflowError
 @example(data=_daemon_with('"/etc/loopcal/controller/controller.toml"', '"\\u0000"'))
 @example(data=_daemon_with('"/var/lib/loopcal/recordings"', '"/var/\\u0000x"'))

@@ -17,6 +17,7 @@ from fuzz_helpers import (
     judge,
     make_rows,
     write_recording,
+    write_rows,
 )
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -280,14 +281,8 @@ def test_parameters_without_forward_kinematics_never_stop_the_raw_scans(tmp_path
     params = NOMINAL.copy()
     params[0] = 1e300
     rows = make_rows(100)
-    w = rec.RecordingWriter(
-        tmp_path / "v.mcap",
-        metadata=rec.metadata_records(device={}, controller={}, command="pytest"),
-        params=params,
-    )
-    for k in range(0, 100, 20):
-        w.write(rows[k : k + 20])
-    w.close()
+    meta = rec.metadata_records(device={}, controller={}, command="pytest")
+    w, _ = write_rows(tmp_path / "v.mcap", rows, params=params, metadata=meta)
     assert w.views_error and w.scans_written == 100
     out = rec.read_recordings(tmp_path / "v.mcap")
     assert np.array_equal(out.scans, rows) and out.warnings == []

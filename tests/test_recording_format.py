@@ -7,6 +7,7 @@ import shutil
 
 import numpy as np
 import pytest
+from fuzz_helpers import T0, make_rows, write_rows
 from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_ros2.decoder import DecoderFactory
@@ -18,40 +19,6 @@ from daemon import recording as rec
 from daemon import scans as S
 from daemon.events import Event, Level
 from drivers.ldq412 import volts_to_code
-
-T0 = 1_795_000_000_000_000_000  # ns, late 2026
-
-
-def make_rows(n: int, *, start: int = 0, seed: int = 0, t0: int = T0) -> np.ndarray:
-    ps = simulate_poses(max(n, 10), seed=seed)
-    rows = S.empty(n)
-    c = np.arange(start, start + n, dtype=np.uint64)
-    rows["counter64"] = c
-    rows["time64_us"] = c * 50_000 + 7
-    rows["stamp_ns"] = t0 + (c * 50_000_000).astype(np.int64)
-    rows["host_ns"] = rows["stamp_ns"] + 2_500_000
-    rows["epoch"] = 3
-    rows["codes"] = volts_to_code(ps.volts[:n])
-    rows["from_fifo"] = True
-    return rows
-
-
-def write_file(path, rows, per=20, events=()):
-    w = rec.RecordingWriter(
-        path,
-        metadata=rec.metadata_records(
-            device={"model": "LDQ412", "serial": "12648430"},
-            controller={"path": "", "d01": "97.4"},
-            command="pytest",
-        ),
-        params=NOMINAL,
-    )
-    sizes = []
-    for k in range(0, len(rows), per):
-        evs = [e for e in events if rows["stamp_ns"][k] <= e.stamp_ns < rows["stamp_ns"][k] + 10**9]
-        w.write(rows[k : k + per], evs)
-        sizes.append(w.durable_size)
-    return w, sizes
 
 
 def test_scan_rows_are_the_cdr_layout_of_the_scan_message():
@@ -81,7 +48,7 @@ def test_block_round_trip_and_ros2_decoder_agree(tmp_path):
     with pytest.raises(ValueError, match="bytes, not"):
         rec.decode_scan_blocks([data[:-1]])
     path = tmp_path / "a.mcap"
-    w, _ = write_file(path, rows, per=57)
+    w, _ = write_rows(path, rows, per=57, close=False)
     w.close()
     with open(path, "rb") as f:
         msgs = [d for _, ch, _, d in make_reader(f, decoder_factories=[DecoderFactory()])
@@ -99,7 +66,7 @@ def test_views_decode_with_the_ros2_decoder(tmp_path):
     rows = make_rows(40)
     rows["status"][5] = 1 << 2  # channel 3 at the rail: no pose for that scan
     path = tmp_path / "v.mcap"
-    w, _ = write_file(path, rows)
+    w, _ = write_rows(path, rows, close=False)
     w.close()
     js = rec.joint_states(rows, NOMINAL)
     assert not js.pose_ok[5] and js.pose_ok.sum() >= 35
@@ -142,7 +109,7 @@ def test_complete_file_round_trip(tmp_path):
         Event(int(rows["stamp_ns"][250]), "restart", Level.WARNING, "restart", {"epoch": 4}),
     ]
     path = tmp_path / rec.recording_name(T0)
-    w, _ = write_file(path, rows, events=ev)
+    w, _ = write_rows(path, rows, events=ev, close=False)
     w.close()
     out = rec.read_recordings(path)
     assert np.array_equal(out.scans, rows)
@@ -170,7 +137,7 @@ def test_complete_file_round_trip(tmp_path):
 def test_a_file_cut_anywhere_reads_back_a_prefix(tmp_path):
     rows = make_rows(200)
     path = tmp_path / "whole.mcap"
-    w, sizes = write_file(path, rows)
+    w, sizes = write_rows(path, rows, close=False)
     data = path.read_bytes()
     w.close()
     cut = tmp_path / "cut.mcap"
@@ -191,7 +158,7 @@ def test_a_file_cut_anywhere_reads_back_a_prefix(tmp_path):
 def test_abandon_cuts_back_to_what_was_durable(tmp_path):
     rows = make_rows(60)
     path = tmp_path / "a.mcap"
-    w, sizes = write_file(path, rows)
+    w, sizes = write_rows(path, rows, close=False)
     w._writer.add_message(1, T0, b"junk in the chunk builder", T0)
     os.write(w._file.fileno(), b"half a record")  # as if the disk filled up mid-write
     w.abandon()
@@ -203,9 +170,9 @@ def test_many_files_time_window_and_duplicates(tmp_path):
     a = make_rows(100, start=0)
     b = make_rows(100, start=100)
     pa, pb = tmp_path / rec.recording_name(T0), tmp_path / rec.recording_name(T0 + 5 * 10**9)
-    write_file(pa, a)[0].close()
+    write_rows(pa, a)
     # a restarted recorder that read the last polled scan again: its file repeats it
-    write_file(pb, np.concatenate([a[-1:], b]))[0].close()
+    write_rows(pb, np.concatenate([a[-1:], b]))
     (tmp_path / "notes.txt").write_text("not a recording")
     both = rec.read_recordings(tmp_path)
     assert np.array_equal(both.scans, np.concatenate([a, b]))
@@ -250,7 +217,7 @@ def test_bad_input_is_named(tmp_path):
 def test_a_damaged_chunk_is_skipped_and_reported(tmp_path):
     rows = make_rows(100)
     path = tmp_path / "d.mcap"
-    w, sizes = write_file(path, rows)
+    w, sizes = write_rows(path, rows, close=False)
     w.close()
     data = bytearray(path.read_bytes())
     with open(path, "rb") as f:
