@@ -21,7 +21,6 @@ as ``loopcal simulate`` serves it.
 from __future__ import annotations
 
 import dataclasses
-import threading
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -159,7 +158,9 @@ class EmulatedLDQ412:
         params = true_parameters(o.seed, o.offset_error_mm, o.truth)
         scenario = scenario_named(o.scenario, seed=o.seed, params=params, pause_s=o.pause_s)
         self._source = MechanismSource(scenario, params, noise_volts=o.noise_volts, seed=o.seed)
-        self.truth = Truth(params.copy(), scenario.describe(), float(o.noise_volts), o.seed)
+        # the mechanism's own list: what the module scans with is what a test is told
+        self.truth = Truth(params.copy(), scenario.describe(), float(o.noise_volts), o.seed,
+                           self._source.drifts)  # fmt: skip
         clock: Clock = ManualClock() if o.clock == "manual" else clock_for(o.speed)
         self.emulator = Emulator(
             o.transport,
@@ -172,7 +173,6 @@ class EmulatedLDQ412:
             ascii_checksum=o.ascii_checksum,
             open_points=o.open_points,
         )
-        self._lock = threading.Lock()
         self.emulator.start()
 
     # ------------------------------------------------------------------ what it is
@@ -281,15 +281,13 @@ class EmulatedLDQ412:
         with self.emulator.handle.synced() as device:
             drift = OffsetDrift(kind, sensor, device.source_time_s, float(amount), duration)
             self._source.drifts.append(drift)
-        self.truth.drifts.append(drift)
         return drift
 
     # ------------------------------------------------------------------ lifetime
 
     def close(self) -> None:
         """Stop the servers and free the port or pseudo-terminal. Idempotent."""
-        with self._lock:
-            self.emulator.close()
+        self.emulator.close()
 
     def __enter__(self) -> EmulatedLDQ412:
         return self
