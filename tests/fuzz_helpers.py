@@ -2,8 +2,9 @@
 (:func:`write_rows`), damaged the way storage damages them, and what the reader made of
 them judged.
 
-Shared by the tests and the long fuzz run (bench/fuzz_parsers.py). A mutation is a plain function of the file's bytes and a few
-integers, so hypothesis can draw the integers and shrink them.
+Shared by the tests and the long fuzz run (bench/fuzz_parsers.py). A mutation is a plain
+function of the file's bytes and a few integers, so hypothesis can draw the integers and
+shrink them.
 """
 
 from __future__ import annotations
