@@ -71,7 +71,7 @@ class Summary:
         self.files.append({
             "path": str(path), "bytes": size, "complete": info.complete,
             "scans": len(rows),
-            "start_utc": _iso(info.first_stamp_ns), "end_utc": _iso(info.last_stamp_ns),
+            "start_utc": utc_iso(info.first_stamp_ns), "end_utc": utc_iso(info.last_stamp_ns),
             "note": info.note or None, "warning": info.warning or None,
         })  # fmt: skip
         if info.warning:
@@ -117,8 +117,8 @@ class Summary:
             "files": self.files,
             "bytes": sum(f["bytes"] for f in self.files),
             "scans": self.scans,
-            "start_utc": _iso(self.start_ns),
-            "end_utc": _iso(self.end_ns),
+            "start_utc": utc_iso(self.start_ns),
+            "end_utc": utc_iso(self.end_ns),
             "duration_s": round(span, 3),
             "scan_rate_hz": None if self.scan_rate_hz is None else round(self.scan_rate_hz, 4),
             "missed": self.missed,
@@ -133,7 +133,9 @@ class Summary:
         }
 
 
-def _iso(ns: int | None) -> str | None:
+def utc_iso(ns: int | None) -> str | None:
+    """A stamp (ns) as ISO 8601 UTC to the millisecond, as the ``--json`` documents give
+    times (``loopcal info``, ``loopcal check``); None stays None."""
     if ns is None:
         return None
     return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds")
