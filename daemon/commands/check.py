@@ -22,7 +22,8 @@ from pathlib import Path
 from ..config.controller import ControllerConfigError
 from ..inspect.loops import check, plot
 from ..live.health import FALSE_ALARM
-from ..recording import RecordingError, find_recordings
+from ..recording import RecordingError
+from ..recording.names import recording_paths
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -45,16 +46,11 @@ def run(args: argparse.Namespace) -> int:
                              "(0, 0.01)")  # fmt: skip
         if args.plot is not None and args.plot.parent.exists() is False:
             raise ValueError(f"--plot {args.plot}: directory {args.plot.parent} does not exist")
-        files: list[Path] = []
-        for p in args.recordings:
-            files += find_recordings(p) if p.is_dir() else [p]
+        files = recording_paths(args.recordings)
         if not files:
             raise ValueError("no recordings (loopcal-*.mcap) in " +
                              ", ".join(map(str, args.recordings)))  # fmt: skip
-        for f in files:
-            if not f.exists():
-                raise RecordingError(f"{f}: no such file")
-        doc = check(list(dict.fromkeys(files)), args.controller_config, args.false_alarm,
+        doc = check(files, args.controller_config, args.false_alarm,
                     trace=args.plot is not None)  # fmt: skip
     except (RecordingError, ControllerConfigError, ValueError, OSError) as exc:
         print(f"loopcal check: error: {exc}", file=sys.stderr)

@@ -15,7 +15,8 @@ from typing import Any
 import numpy as np
 from numpy.lib.recfunctions import repack_fields
 
-from ..recording import RecordingError, find_recordings, read_recordings
+from ..recording import RecordingError, read_recordings
+from ..recording.names import recording_paths
 from ..recording.reader import identities
 from ..scans import scan_rate_hz
 from ..worker.poses import poses_of_scans
@@ -159,15 +160,11 @@ def _config_entry(cfg: dict[str, str]) -> dict[str, Any]:
 
 def collect(paths: list[Path], *, poses: bool = True) -> Summary:
     """The summary of recording files and directories (files in time order by name)."""
-    files: list[Path] = []
-    for p in paths:
-        files += find_recordings(p) if p.is_dir() else [p]
+    files = recording_paths(paths)
     if not files:
         raise RecordingError(f"{', '.join(map(str, paths))}: no recordings (loopcal-*.mcap)")
     out = Summary(poses=0 if poses else None)
-    for f in dict.fromkeys(files):
-        if not f.exists():
-            raise RecordingError(f"{f}: no such file")
+    for f in files:
         out.add(f, poses=poses)
     return out
 

@@ -15,9 +15,8 @@ from mcap.records import Statistics
 
 from .. import scans as scan_rows
 from ..events import Event
-from .errors import RecordingError
 from .filereader import FileReader, RecordingFile, utc_text
-from .names import find_recordings
+from .names import recording_paths
 from .records import (
     FOOTER_BYTES,
     MAGIC,
@@ -145,20 +144,14 @@ def read_recordings(
     unreadable, not MCAP at all, not a loopcal recording, or of another format version,
     and ValueError for an empty time window.
     """
-    items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
-    files: list[Path] = []
-    for item in map(Path, items):
-        files += find_recordings(item) if item.is_dir() else [item]
-    files = list(dict.fromkeys(files))  # a file named twice is read once
     lo, hi = _as_ns(since), _as_ns(until)
     if lo is not None and hi is not None and hi <= lo:
         raise ValueError(
             f"empty time window: until ({utc_text(hi)}) is not after since ({utc_text(lo)})"
         )
+    files = recording_paths([paths] if isinstance(paths, (str, os.PathLike)) else paths)
     parts: list[tuple[np.ndarray, RecordingFile, list[Event]]] = []
     for path in files:
-        if not path.exists():
-            raise RecordingError(f"{path}: no such file")
         if lo is not None or hi is not None:
             span = message_time_range(path)  # skip whole files outside the window cheaply
             if span is not None and not (
