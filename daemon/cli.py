@@ -21,7 +21,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"loopcal {loopcal_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name, _, help_text in COMMANDS:
+    for name, help_text in COMMANDS:
         if name != command:
             sub.add_parser(name, help=help_text, add_help=False)
             continue
@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     # the command is the first word that is not an option (loopcal has no global option
     # that takes a value)
-    names = {name for name, _, _ in COMMANDS}
+    names = {name for name, _ in COMMANDS}
     command = next((a for a in argv if not a.startswith("-")), None)
     args = build_parser(command if command in names else None).parse_args(argv)
     try:

@@ -16,33 +16,30 @@ from __future__ import annotations
 import importlib
 from types import ModuleType
 
-#: (name, module, one-line help) in the order ``loopcal --help`` lists them
-COMMANDS: tuple[tuple[str, str, str], ...] = (
-    ("demo", "demo",
+#: (name, one-line help) in the order ``loopcal --help`` lists them
+COMMANDS: tuple[tuple[str, str], ...] = (
+    ("demo",
      "the field job on an emulated DAQ: record a session, calibrate, write, check the truth"),
-    ("record", "record", "record the DAQ to MCAP files in the foreground"),
-    ("daemon", "daemon",
-     "the acquisition daemon (systemd's entry point): record the DAQ for months"),
-    ("init-config", "init_config",
+    ("record", "record the DAQ to MCAP files in the foreground"),
+    ("daemon", "the acquisition daemon (systemd's entry point): record the DAQ for months"),
+    ("init-config",
      "write a controller config (TOML) with the 20 parameters at the reference geometry"),
-    ("calibrate", "calibrate",
+    ("calibrate",
      "identify new parameters from recordings; --write puts them in the controller config"),
-    ("info", "info",
+    ("info",
      "what recordings hold: time span, scans, gaps, restarts, events, poses, config, damage"),
-    ("check", "check",
-     "did the loops close at a controller config: which sensor moved, when, by how much"),
-    ("fleet", "fleet",
-     "info or check over a fleet's archives, per robot and day, on Dask (loopcal[fleet])"),
-    ("compact", "compact",
-     "rewrite closed recordings with large chunks, for fast reading (verified, atomic)"),
-    ("replay", "replay", "serve a recording through the emulated DAQ, scan for scan"),
-    ("simulate", "simulate", "serve an emulated LDQ-412 driven by a simulated shoulder joint"),
-    ("observability", "observability",
-     "which of the chosen free parameters the workspace can identify"),
+    ("check", "did the loops close at a controller config: which sensor moved, when, by how much"),
+    ("fleet", "info or check over a fleet's archives, per robot and day, on Dask (loopcal[fleet])"),
+    ("compact", "rewrite closed recordings with large chunks, for fast reading (verified, atomic)"),
+    ("replay", "serve a recording through the emulated DAQ, scan for scan"),
+    ("simulate", "serve an emulated LDQ-412 driven by a simulated shoulder joint"),
+    ("observability", "which of the chosen free parameters the workspace can identify"),
 )  # fmt: skip
 
 
 def load(name: str) -> ModuleType:
-    """The module of command ``name`` (imported now). Raises KeyError for an unknown one."""
-    module = {n: m for n, m, _ in COMMANDS}[name]
-    return importlib.import_module(f".{module}", __name__)
+    """The module of command ``name`` (imported now): ``name`` with ``_`` for ``-``. Raises
+    KeyError for an unknown one."""
+    if name not in {n for n, _ in COMMANDS}:
+        raise KeyError(name)
+    return importlib.import_module(f".{name.replace('-', '_')}", __name__)

@@ -198,21 +198,17 @@ def run(args: argparse.Namespace) -> int:
         ties = args.ties if args.free else (",".join(config.ties) or None)
         model = ParameterModel.parse(free, ties or ())
         since, until = args.since, args.until
-        if args.last is not None:
-            if since is not None:
-                raise _Fail("give --since or --last, not both")
-            end = until or _latest(files)
-            try:
-                since = end - args.last
-            except OverflowError:
-                since = datetime.min.replace(tzinfo=UTC)
+        if args.last is not None and since is not None:
+            raise _Fail("give --since or --last, not both")
         if since is not None and until is not None and until <= since:
             raise _Fail(f"empty time window: --until is not after --since "
                         f"({_window_text(since, until)})")  # fmt: skip
         if args.select < model.n_free:
             raise _Fail(f"--select {args.select}: at least {model.n_free} poses are needed")
         progress(f"reading {len(files)} recording file(s)")
-        rec = read_recordings(files, since=since, until=until)
+        rec = read_recordings(files, since=since, until=until, last=args.last)
+        if args.last is not None and rec.since_ns is not None:  # where --last began
+            since = datetime.fromtimestamp(rec.since_ns / 1e9, UTC)
     except (_Fail, ControllerConfigError, RecordingError, CalibrationError, ValueError) as exc:
         print(f"loopcal calibrate: error: {exc}", file=sys.stderr)
         return 2
@@ -268,28 +264,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         _print_human(result, config.path, written, args.write)
     return 0 if result.accepted else 1
-
-
-def _latest(files: list[Path]) -> datetime:
-    from ..recording import message_time_range
-
-    ends, unclosed = [], []
-    for f in files:
-        span = message_time_range(f)
-        if span is None:
-            unclosed.append(f)  # a file still being written, or cut: read it to find out
-        else:
-            ends.append(span[1])
-    if unclosed:
-        rec = read_recordings(unclosed)
-        if len(rec):
-            ends.append(int(rec.scans["stamp_ns"].max()))
-    if not ends:
-        raise _Fail("no scans in the recordings")
-    try:
-        return datetime.fromtimestamp(max(ends) / 1e9, UTC) + timedelta(microseconds=1)
-    except (OverflowError, OSError, ValueError):
-        raise _Fail(f"the recordings end at an impossible time ({max(ends)} ns)") from None
 
 
 def _ns(t: datetime | None) -> int | None:

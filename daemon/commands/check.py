@@ -22,7 +22,8 @@ from pathlib import Path
 from ..config.controller import ControllerConfigError
 from ..inspect.loops import check, plot
 from ..live.health import FALSE_ALARM
-from ..recording import RecordingError, find_recordings
+from ..recording import RecordingError
+from ..recording.names import recording_paths
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -30,31 +31,36 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="recording files or directories of them")  # fmt: skip
     p.add_argument("--controller-config", type=Path, required=True, metavar="PATH",
                    help="the controller config to check the loops against")  # fmt: skip
-    p.add_argument("--false-alarm", type=float, default=FALSE_ALARM, metavar="P",
-                   help=f"probability per still pose of an alarm when nothing moved "
-                        f"(default {FALSE_ALARM:g}, the daemon's)")  # fmt: skip
+    add_false_alarm_option(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--plot", type=Path, metavar="FILE.png",
                    help="draw each sensor's estimated shift and statistic over time")  # fmt: skip
 
 
+def add_false_alarm_option(p: argparse.ArgumentParser, *, what: str = "") -> None:
+    """``--false-alarm P``, the daemon's rate by default (``loopcal check``, ``loopcal fleet
+    check``, whose help says ``what`` first); :func:`check_false_alarm` checks it."""
+    p.add_argument("--false-alarm", type=float, default=FALSE_ALARM, metavar="P",
+                   help=f"{what}probability per still pose of an alarm when nothing moved "
+                        f"(default {FALSE_ALARM:g}, the daemon's)")  # fmt: skip
+
+
+def check_false_alarm(p: float) -> None:
+    """Raises ValueError, naming the option, for a ``--false-alarm`` outside (0, 0.01)."""
+    if not 0 < p < 1e-2:
+        raise ValueError(f"--false-alarm {p:g}: give a probability in (0, 0.01)")
+
+
 def run(args: argparse.Namespace) -> int:
     try:
-        if not 0 < args.false_alarm < 1e-2:
-            raise ValueError(f"--false-alarm {args.false_alarm:g}: give a probability in "
-                             "(0, 0.01)")  # fmt: skip
+        check_false_alarm(args.false_alarm)
         if args.plot is not None and args.plot.parent.exists() is False:
             raise ValueError(f"--plot {args.plot}: directory {args.plot.parent} does not exist")
-        files: list[Path] = []
-        for p in args.recordings:
-            files += find_recordings(p) if p.is_dir() else [p]
+        files = recording_paths(args.recordings)
         if not files:
             raise ValueError("no recordings (loopcal-*.mcap) in " +
                              ", ".join(map(str, args.recordings)))  # fmt: skip
-        for f in files:
-            if not f.exists():
-                raise RecordingError(f"{f}: no such file")
-        doc = check(list(dict.fromkeys(files)), args.controller_config, args.false_alarm,
+        doc = check(files, args.controller_config, args.false_alarm,
                     trace=args.plot is not None)  # fmt: skip
     except (RecordingError, ControllerConfigError, ValueError, OSError) as exc:
         print(f"loopcal check: error: {exc}", file=sys.stderr)

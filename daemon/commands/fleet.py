@@ -27,8 +27,8 @@ from ..inspect.fleet import (
     run_on_dask,
     write_table,
 )
-from ..live.health import FALSE_ALARM
 from ..recording import RecordingError
+from .check import add_false_alarm_option, check_false_alarm
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -46,9 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="processes of the local cluster (default 2)")  # fmt: skip
     p.add_argument("--config-name", default=CONFIG_NAME, metavar="NAME",
                    help=f"each robot's controller config file (default {CONFIG_NAME})")  # fmt: skip
-    p.add_argument("--false-alarm", type=float, default=FALSE_ALARM, metavar="P",
-                   help=f"check: false-alarm probability per still pose (default "
-                        f"{FALSE_ALARM:g})")  # fmt: skip
+    add_false_alarm_option(p, what="check: ")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -61,12 +59,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.workers < 1:
             raise FleetError(f"--workers {args.workers}: at least 1")
-        if not 0 < args.false_alarm < 1e-2:
-            raise FleetError(f"--false-alarm {args.false_alarm:g}: a probability in (0, 0.01)")
+        check_false_alarm(args.false_alarm)
         if args.out is not None and not args.out.parent.is_dir():
             raise FleetError(f"--out {args.out}: directory {args.out.parent} does not exist")
         tasks = [t for root in args.roots for t in robot_days(root, args.config_name)]
-    except (FleetError, RecordingError, OSError) as exc:
+    except (ValueError, RecordingError, OSError) as exc:  # FleetError is a ValueError
         print(f"loopcal fleet: error: {exc}", file=sys.stderr)
         return 2
     n_robots = len({t.robot for t in tasks})

@@ -5,7 +5,7 @@ trace of every test, and its plot."""
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +16,7 @@ from calibration.closure import DriftTest
 from ..config.controller import load_controller_config
 from ..live.health import HealthMonitor
 from ..recording import read_recordings
+from .summary import utc_iso
 
 
 class Trace:
@@ -49,12 +50,6 @@ class Trace:
         return stamps, v[:, 0:4], v[:, 4:8], v[:, 8:12]
 
 
-def _iso(ns: int | None) -> str | None:
-    if ns is None:
-        return None
-    return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds")
-
-
 def check(files: list[Path], config_path: Path, false_alarm: float, *,
           trace: bool = False) -> dict[str, Any]:  # fmt: skip
     """Run the monitor over the files, one at a time; the ``--json`` document (and, under
@@ -75,17 +70,17 @@ def check(files: list[Path], config_path: Path, false_alarm: float, *,
         if kind == "offset_drift":
             if changes and changes[-1]["sensor"] == d["sensor"] and changes[-1]["end_utc"] is None:
                 changes[-1].update(shift_mm=d["shift_mm"], std_mm=d["std_mm"],
-                                   shape=d["shape"], last_report_utc=_iso(now))  # fmt: skip
+                                   shape=d["shape"], last_report_utc=utc_iso(now))  # fmt: skip
                 return
             changes.append({
-                "sensor": d["sensor"], "start_utc": _iso(d["since_ns"]),
+                "sensor": d["sensor"], "start_utc": utc_iso(d["since_ns"]),
                 "start_offset_s": round((d["since_ns"] - first_ns[0]) / 1e9, 3),
-                "detected_utc": _iso(now), "last_report_utc": _iso(now),
+                "detected_utc": utc_iso(now), "last_report_utc": utc_iso(now),
                 "shift_mm": d["shift_mm"], "std_mm": d["std_mm"], "shape": d["shape"],
                 "statistic": d["statistic"], "end_utc": None, "message": message,
             })  # fmt: skip
         elif kind == "offset_drift_cleared" and changes:
-            changes[-1]["end_utc"] = _iso(now)
+            changes[-1]["end_utc"] = utc_iso(now)
 
     monitor = HealthMonitor(config, emit, false_alarm=false_alarm, on_test=on_test)
     warnings: list[str] = []
@@ -105,8 +100,8 @@ def check(files: list[Path], config_path: Path, false_alarm: float, *,
         "threshold": round(monitor.threshold, 3),
         "false_alarm": false_alarm,
         "config": {"path": str(config.path), "sha256": config.sha256},
-        "start_utc": _iso(first_ns[0] if first_ns else None),
-        "end_utc": _iso(last_ns),
+        "start_utc": utc_iso(first_ns[0] if first_ns else None),
+        "end_utc": utc_iso(last_ns),
         "recordings": [str(f) for f in files],
         "warnings": warnings,
         "_trace": kept,

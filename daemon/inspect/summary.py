@@ -15,7 +15,8 @@ from typing import Any
 import numpy as np
 from numpy.lib.recfunctions import repack_fields
 
-from ..recording import RecordingError, find_recordings, read_recordings
+from ..recording import RecordingError, read_recordings
+from ..recording.names import recording_paths
 from ..recording.reader import identities
 from ..scans import scan_rate_hz
 from ..worker.poses import poses_of_scans
@@ -71,7 +72,7 @@ class Summary:
         self.files.append({
             "path": str(path), "bytes": size, "complete": info.complete,
             "scans": len(rows),
-            "start_utc": _iso(info.first_stamp_ns), "end_utc": _iso(info.last_stamp_ns),
+            "start_utc": utc_iso(info.first_stamp_ns), "end_utc": utc_iso(info.last_stamp_ns),
             "note": info.note or None, "warning": info.warning or None,
         })  # fmt: skip
         if info.warning:
@@ -117,8 +118,8 @@ class Summary:
             "files": self.files,
             "bytes": sum(f["bytes"] for f in self.files),
             "scans": self.scans,
-            "start_utc": _iso(self.start_ns),
-            "end_utc": _iso(self.end_ns),
+            "start_utc": utc_iso(self.start_ns),
+            "end_utc": utc_iso(self.end_ns),
             "duration_s": round(span, 3),
             "scan_rate_hz": None if self.scan_rate_hz is None else round(self.scan_rate_hz, 4),
             "missed": self.missed,
@@ -133,7 +134,9 @@ class Summary:
         }
 
 
-def _iso(ns: int | None) -> str | None:
+def utc_iso(ns: int | None) -> str | None:
+    """A stamp (ns) as ISO 8601 UTC to the millisecond, as the ``--json`` documents give
+    times (``loopcal info``, ``loopcal check``); None stays None."""
     if ns is None:
         return None
     return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds")
@@ -157,15 +160,11 @@ def _config_entry(cfg: dict[str, str]) -> dict[str, Any]:
 
 def collect(paths: list[Path], *, poses: bool = True) -> Summary:
     """The summary of recording files and directories (files in time order by name)."""
-    files: list[Path] = []
-    for p in paths:
-        files += find_recordings(p) if p.is_dir() else [p]
+    files = recording_paths(paths)
     if not files:
         raise RecordingError(f"{', '.join(map(str, paths))}: no recordings (loopcal-*.mcap)")
     out = Summary(poses=0 if poses else None)
-    for f in dict.fromkeys(files):
-        if not f.exists():
-            raise RecordingError(f"{f}: no such file")
+    for f in files:
         out.add(f, poses=poses)
     return out
 

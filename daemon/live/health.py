@@ -27,7 +27,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import chdtri
 
 from calibration.closure import (
     Closure,
@@ -50,8 +49,8 @@ from ..worker.poses import LONGEST_POSE_S, poses_of_scans
 WINDOW = 30  # poses per test
 MIN_AFFECTED = 6  # a shift must show in at least this many of the latest poses
 CHANGE_POINTS = WINDOW
-ATTRIBUTION_MARGIN = float(chdtri(1, 1e-6))  # 23.9: the sensor is 1.5e5x likelier
-CLEAR_STATISTIC = float(chdtri(1, 1e-2 / CHANGE_POINTS))  # 12.1
+ATTRIBUTION_MARGIN = threshold(1e-6, tests=1)  # 23.9: the sensor is 1.5e5x likelier
+CLEAR_STATISTIC = threshold(1e-2, tests=CHANGE_POINTS)  # 12.9
 REPORT_STEP_MM = 0.5
 REPORT_EVERY_S = 60.0  # a growing shift of the same sensor is reported at most this often
 #: the offsets' standard deviation assumed for a config without a calibration's provenance

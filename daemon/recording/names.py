@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Iterable
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -38,3 +39,17 @@ def find_recordings(directory: str | os.PathLike) -> list[Path]:
     if not d.is_dir():
         raise RecordingError(f"{d}: not a directory")
     return sorted(p for p in d.iterdir() if NAME_RE.match(p.name) and p.is_file())
+
+
+def recording_paths(paths: Iterable[str | os.PathLike]) -> list[Path]:
+    """The recording files that files and directories name: a directory's recordings (by
+    their names, oldest first), a file as named; each once, in the order named. Raises
+    :class:`RecordingError` for a file that does not exist."""
+    files: list[Path] = []
+    for p in map(Path, paths):
+        files += find_recordings(p) if p.is_dir() else [p]
+    files = list(dict.fromkeys(files))  # a file named twice is read once
+    for f in files:
+        if not f.exists():
+            raise RecordingError(f"{f}: no such file")
+    return files

@@ -7,7 +7,7 @@ import os
 import struct
 from collections.abc import Iterable
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +16,8 @@ from mcap.records import Statistics
 from .. import scans as scan_rows
 from ..events import Event
 from .errors import RecordingError
-from .filereader import FileReader, RecordingFile, utc_text
-from .names import find_recordings
+from .filereader import FileReader, RecordingFile, _losses, utc_text
+from .names import recording_paths
 from .records import (
     FOOTER_BYTES,
     MAGIC,
@@ -40,6 +40,8 @@ class Recording:
     scans: np.ndarray
     events: list[Event]
     files: list[RecordingFile]
+    #: where the time window began, ns: ``since``, or where ``last`` put it (None: no start)
+    since_ns: int | None = None
 
     def __len__(self) -> int:
         return len(self.scans)
@@ -130,12 +132,19 @@ def read_recordings(
     *,
     since: int | float | datetime | None = None,
     until: int | float | datetime | None = None,
+    last: timedelta | None = None,
 ) -> Recording:
     """Load one or many recording files into numpy arrays.
 
     paths: files or directories (all recordings in them). Files are put in time order by
     their first scan. since, until: keep scans with ``since <= stamp < until`` (ns since the
-    Unix epoch, or aware datetimes); events likewise.
+    Unix epoch, or aware datetimes); events likewise. last (instead of since): keep the last
+    ``last`` of them, from ``until - last``, or without until from ``last`` before the end
+    of the recordings (the newest scan of a file that was not closed, the last message of a
+    closed one, to the microsecond and included); :attr:`Recording.since_ns` says where.
+    Each file is read once: the closed ones' ends come from their statistics, the others
+    are read whole and cut in memory (their :class:`RecordingFile` then counts duplicates
+    and undecodable messages of the whole file).
 
     Whatever the bytes, it returns the scans that are intact, each once, and says in each
     file's :class:`RecordingFile` what could not be read (:attr:`Recording.warnings` has one
@@ -145,26 +154,40 @@ def read_recordings(
     unreadable, not MCAP at all, not a loopcal recording, or of another format version,
     and ValueError for an empty time window.
     """
-    items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
-    files: list[Path] = []
-    for item in map(Path, items):
-        files += find_recordings(item) if item.is_dir() else [item]
-    files = list(dict.fromkeys(files))  # a file named twice is read once
     lo, hi = _as_ns(since), _as_ns(until)
+    if last is not None:
+        if since is not None:
+            raise ValueError("give since or last, not both")
+        if last <= timedelta(0):
+            raise ValueError(f"last ({last}) is not a positive duration")
     if lo is not None and hi is not None and hi <= lo:
         raise ValueError(
             f"empty time window: until ({utc_text(hi)}) is not after since ({utc_text(lo)})"
         )
+    files = recording_paths([paths] if isinstance(paths, (str, os.PathLike)) else paths)
+    windowed = lo is not None or hi is not None or last is not None
+    spans = {path: message_time_range(path) for path in files} if windowed else {}
+    read_whole: dict[Path, tuple[np.ndarray, RecordingFile, list[Event]]] = {}
+    if last is not None and isinstance(until, datetime):
+        lo = _as_ns(_before(until, last))
+    elif last is not None and hi is not None:
+        lo = hi - last // timedelta(microseconds=1) * 1000
+    elif last is not None:  # the end: closed files' statistics, the others read whole
+        read_whole = {p: FileReader(p, None, None).read() for p in files if spans[p] is None}
+        ends = [span[1] for span in spans.values() if span is not None]
+        ends += [int(r["stamp_ns"].max()) for r, _, _ in read_whole.values() if len(r)]
+        if ends:
+            lo = _as_ns(_before(_end_time(max(ends)), last))
     parts: list[tuple[np.ndarray, RecordingFile, list[Event]]] = []
     for path in files:
-        if not path.exists():
-            raise RecordingError(f"{path}: no such file")
-        if lo is not None or hi is not None:
-            span = message_time_range(path)  # skip whole files outside the window cheaply
-            if span is not None and not (
-                (lo is None or span[1] + BLOCK_SPAN_NS >= lo) and (hi is None or span[0] < hi)
-            ):
-                continue
+        if path in read_whole:
+            parts.append(_cut(*read_whole[path], lo))
+            continue
+        span = spans.get(path)  # skip whole files outside the window cheaply
+        if span is not None and not (
+            (lo is None or span[1] + BLOCK_SPAN_NS >= lo) and (hi is None or span[0] < hi)
+        ):
+            continue
         parts.append(FileReader(path, lo, hi).read())
     parts.sort(key=lambda x: (x[1].first_stamp_ns is None, x[1].first_stamp_ns or 0, x[1].path))
     kept: list[np.ndarray] = []
@@ -189,4 +212,34 @@ def read_recordings(
         events = [e for e in events if (lo is None or e.stamp_ns >= lo)
                   and (hi is None or e.stamp_ns < hi)]  # fmt: skip
     events.sort(key=lambda e: e.stamp_ns)
-    return Recording(rows, events, [info for _, info, _ in parts])
+    return Recording(rows, events, [info for _, info, _ in parts], since_ns=lo)
+
+
+def _end_time(end_ns: int) -> datetime:
+    """Just after the newest stamp, to the microsecond: the end of the last ``last``."""
+    try:
+        return datetime.fromtimestamp(end_ns / 1e9, UTC) + timedelta(microseconds=1)
+    except (OverflowError, OSError, ValueError):
+        raise RecordingError(f"the recordings end at an impossible time ({end_ns} ns)") from None
+
+
+def _before(end: datetime, last: timedelta) -> datetime:
+    try:
+        return end - last
+    except OverflowError:
+        return datetime.min.replace(tzinfo=UTC)
+
+
+def _cut(
+    rows: np.ndarray, info: RecordingFile, events: list[Event], since_ns: int | None
+) -> tuple[np.ndarray, RecordingFile, list[Event]]:
+    """A file read whole, as if read from ``since_ns`` on (its events are cut with the
+    others')."""
+    if since_ns is None:
+        return rows, info, events
+    rows = rows[rows["stamp_ns"] >= since_ns]
+    info.scans = len(rows)
+    info.first_stamp_ns = int(rows["stamp_ns"][0]) if len(rows) else None
+    info.last_stamp_ns = int(rows["stamp_ns"][-1]) if len(rows) else None
+    info.lost = _losses(rows)
+    return rows, info, events
