@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+from datetime import timedelta
 
 import numpy as np
 import pytest
@@ -184,6 +185,37 @@ def test_many_files_time_window_and_duplicates(tmp_path):
     assert late.scans["counter64"].tolist() == list(range(150, 200))
     with pytest.raises(ValueError, match="empty time window"):
         rec.read_recordings(pa, since=T0 + 10, until=T0)
+
+
+def test_the_last_duration_reads_each_file_once(tmp_path, monkeypatch):
+    """last=: the end from a closed file's statistics or from the newest scan of a file
+    still being written (read once, cut in memory); whole files before the window skipped."""
+    a = make_rows(100, start=0)  # 5 s at 20 Hz
+    b = make_rows(100, start=100)
+    pa, pb = tmp_path / rec.recording_name(T0), tmp_path / rec.recording_name(T0 + 5 * 10**9)
+    write_rows(pa, a)
+    reads = []
+    real = rec.reader.FileReader.read
+    monkeypatch.setattr(rec.reader.FileReader, "read",
+                        lambda self: reads.append(self.path) or real(self))  # fmt: skip
+    w, _ = write_rows(pb, b, close=False)  # the daemon's current file: no statistics yet
+    got = rec.read_recordings(tmp_path, last=timedelta(seconds=2))
+    assert got.scans["counter64"].tolist() == list(range(160, 200))  # 2 s up to the newest
+    # a datetime's microseconds: where the window began, within a microsecond
+    assert abs(got.since_ns - (int(b["stamp_ns"][-1]) + 1000 - 2 * 10**9)) < 1000
+    assert reads == [pb]  # the unclosed file once; the closed one, wholly before, not at all
+    assert [f.scans for f in got.files] == [40]
+    w.close()
+    reads.clear()
+    closed = rec.read_recordings(tmp_path, last=timedelta(seconds=6))
+    assert closed.scans["counter64"].tolist() == list(range(80, 200))
+    assert sorted(reads) == [pa, pb]
+    until = rec.read_recordings(tmp_path, last=timedelta(seconds=1), until=int(a["stamp_ns"][50]))
+    assert until.scans["counter64"].tolist() == list(range(30, 50))
+    with pytest.raises(ValueError, match="since or last"):
+        rec.read_recordings(tmp_path, since=T0, last=timedelta(seconds=1))
+    with pytest.raises(ValueError, match="not a positive duration"):
+        rec.read_recordings(tmp_path, last=timedelta(0))
 
 
 def test_names_sort_by_time():
