@@ -246,8 +246,8 @@ def ml_candidates(
     """Prepare N candidate poses for the maximum-likelihood estimator at the estimate ``p``.
 
     Each pose's information about the free parameters once its rotation is eliminated is
-    rank one (:func:`calibration.implicit.information_rows`); its row, per unit noise of one
-    scan (weighted by sqrt(scans_per_pose)), is both the pose's Jacobian and its
+    rank one (:func:`calibration.implicit.weighted_information`); its row, per unit noise of
+    one scan (weighted by sqrt(scans_per_pose)), is both the pose's Jacobian and its
     information, shape (N, 1, n). Poses whose rotation the lengths do not determine are
     unusable (rows of zeros).
     """
