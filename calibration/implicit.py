@@ -60,7 +60,15 @@ from .kinematics import (
     volts_to_lengths,
 )
 from .parameters import BASE_COORDS, I_K1, I_K2, I_K3, N_PARAMS, SL_GAIN, SL_OFFSET, check_vector
-from .smallmat import cholesky3, cross3, gram3, matmul3, null_vector_4x3, rotvec_to_matrix
+from .smallmat import (
+    cholesky3,
+    cross3,
+    gram3,
+    matmul3,
+    matvec3,
+    null_vector_4x3,
+    rotvec_to_matrix,
+)
 
 #: a pose whose forward-kinematics Jacobian has a smallest singular value below this (mm per
 #: rad of rotation) is near a singularity: its rotation is not determined by its lengths
@@ -150,7 +158,7 @@ def _derivatives(Rc: np.ndarray, p: np.ndarray, pairs: _Pairs, f: np.ndarray):
     RdB = None
     if pairs.k_derivative:  # dB/dk rotated into the base frame, (3 k, 2 points, 3, m)
         dB = home_derivative(p)
-        RdB = [[Rc[:, 0] * v[0] + Rc[:, 1] * v[1] + Rc[:, 2] * v[2] for v in dk] for dk in dB]
+        RdB = [[matvec3(Rc, v) for v in dk] for dk in dB]
     m = Rc.shape[-1]
     G = np.empty((len(pairs.param), m))
     for row, (i, leg) in enumerate(zip(pairs.param, pairs.leg, strict=True)):
