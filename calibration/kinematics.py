@@ -315,8 +315,7 @@ def check_geometry(p: np.ndarray) -> np.ndarray:
                 f"{name} = {value:g} {UNITS[name]} is outside the plausible range "
                 f"-{limit:g}..{limit:g} {UNITS[name]} for this mechanism"
             )
-    B = plate_home(p)[list(LEG_POINT)]
-    home = np.linalg.norm(B - base_points(p), axis=-1)
+    home = inverse_kinematics(np.eye(3), p)[0]
     volts = lengths_to_volts(home, p)
     for i in np.flatnonzero(np.abs(volts) > STROKE_VOLTS):
         n = i + 1
