@@ -323,7 +323,7 @@ def select_poses(
     # positions tried in a row without a swap: once every position has been tried against
     # the current set, the rest of the pass would repeat those very trials and stop
     unchanged = 0
-    while short > 0 and passes < max_passes and unchanged < k:
+    while short > 0 and passes < max_passes:
         passes += 1
         improved = False
         for pos in range(k):
