@@ -156,7 +156,6 @@ class Emulator:
         self._ascii: AsciiServer | None = None
         self._link: PtyLink | None = None
         self._reconcile_lock: asyncio.Lock | None = None
-        self.handle.links_boot = self.device.boot
 
     # ------------------------------------------------------------------ public
 
