@@ -99,6 +99,12 @@ _CHANNEL_OFFSETS_S = np.arange(N_CHANNELS) * CHANNEL_SKEW_S
 _SATURATION_V = {"high": V_MAX + 1.0, "low": V_MIN - 1.0}
 
 
+def rail_bits(codes: list[int]) -> int:
+    """The status word's rail bits of a scan's codes: bit ch for a channel at 0 or
+    :data:`~drivers.ldq412.CODE_MAX`."""
+    return sum(1 << ch for ch, c in enumerate(codes) if c in (0, CODE_MAX))
+
+
 class DeviceError(Exception):
     """A request the module refuses with a Modbus exception code (``code``)."""
 
@@ -223,8 +229,12 @@ class LDQ412:
         ``t_us`` of the current power-on."""
         if not self._ppb:
             return ((self._boot_ns - self._first_boot_ns) // _NS_PER_US + t_us) / _US_PER_S
-        elapsed = t_us * _NS_PER_US * _NS_PER_S // (_NS_PER_S + self._ppb)
-        return (self._boot_ns - self._first_boot_ns + elapsed) / _NS_PER_S
+        return (self._boot_ns - self._first_boot_ns + self._owner_ns(t_us)) / _NS_PER_S
+
+    def _owner_ns(self, t_us: int) -> int:
+        """Owner's-clock ns since the current power-on when the module's clock reads
+        ``t_us`` (rounded down)."""
+        return t_us * _NS_PER_US * _NS_PER_S // (_NS_PER_S + self._ppb)
 
     def _power_on(self, boot_ns: int) -> None:
         self._boot += 1
@@ -301,7 +311,7 @@ class LDQ412:
         (None for another power-on): when that scan was taken."""
         if boot != self._boot:
             return None
-        return self._boot_ns + time64_us * _NS_PER_US * _NS_PER_S // (_NS_PER_S + self._ppb)
+        return self._boot_ns + self._owner_ns(time64_us)
 
     def power_cycle(self, off_s: float = POWER_CYCLE_S) -> None:
         """Switch the module off now and on again ``off_s`` seconds later.
@@ -333,8 +343,7 @@ class LDQ412:
             if self._sensor_fault[ch]:
                 codes[ch] = CODE_MAX
                 fault_bits |= 1 << (4 + ch)
-        rail_bits = sum(1 << ch for ch, c in enumerate(codes) if c in (0, CODE_MAX))
-        self._push_scan(self._counter, t_us, codes, rail_bits | fault_bits, t_s)
+        self._push_scan(self._counter, t_us, codes, rail_bits(codes) | fault_bits, t_s)
 
     def _push_scan(
         self, counter: int, t_us: int, codes: list[int], low_status: int, t_s: float
