@@ -55,14 +55,13 @@ _GARBAGE_STREAM = 0x6A756E6B  # second seed word: the garbage rng differs from t
 _LATENCY_STREAM = 0x6C617465  # and the answer delays' from both
 
 
-def _root_cause(exc: BaseException) -> str:
-    """The innermost OS error of an exception chain (pymodbus wraps "address already in
-    use" in a vaguer message), else the exception itself."""
-    seen = exc
-    while seen is not None:
-        if isinstance(seen, OSError) and seen.strerror:
-            return seen.strerror
-        seen = seen.__cause__ or seen.__context__
+def _reason(exc: BaseException) -> str:
+    """Why the servers did not start, for :meth:`Emulator.start`'s message: an OS error's
+    own words (a pty that cannot be opened), else the exception's message. A taken TCP port
+    does not come here as an OS error: pymodbus logs it and raises a RuntimeError of its own
+    without a cause ("Could not start listen"), which is why start() asks the OS first."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
     return str(exc)
 
 
@@ -215,7 +214,7 @@ class Emulator:
             err = self._startup_error
             self.close()
             where = f" on {self.host}:{self.port}" if self.transport == "modbus-tcp" else ""
-            raise RuntimeError(f"emulator failed to start{where}: {_root_cause(err)}") from err
+            raise RuntimeError(f"emulator failed to start{where}: {_reason(err)}") from err
         return self
 
     def close(self) -> None:
