@@ -150,8 +150,6 @@ class LDQ412:
     scan_rate_hz, ascii_checksum: power-on values of holding registers 0 and 4.
     serial_number, firmware: identity (input registers 513..515, ``$AAF``).
     truth_limit: None: :attr:`truth` keeps every scan; N: it keeps the latest N to 2N-1.
-    drained: the FIFO starts empty, as if a host had just read it (with initial_uptime_s:
-        a replay that starts in the middle of a power-on).
     open_points: the choices the datasheet leaves open (:class:`OpenPoints`; the default
         is the emulator as it always was).
     """
@@ -167,7 +165,6 @@ class LDQ412:
         ascii_checksum: bool = False,
         initial_uptime_s: float = 0.0,
         truth_limit: int | None = None,
-        drained: bool = False,
         open_points: OpenPoints | None = None,
     ) -> None:
         if truth_limit is not None and truth_limit < 1:
@@ -213,9 +210,6 @@ class LDQ412:
             self._counter = skipped % U32_MOD
             self._overflow = True
         self.sync(now_ns)
-        if drained:  # as if a host had just read everything (a replay starting mid-power-on)
-            self._fifo.clear()
-            self._overflow = False
 
     # ------------------------------------------------------------------ time
 

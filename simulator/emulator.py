@@ -80,14 +80,13 @@ class Emulator:
     host, port: TCP listening address (port 0: a free port, reported in ``url``).
     truth_limit: None keeps every scan in :attr:`truth`; N keeps at least the latest N
         (bounded memory for long real-time runs).
-    drained: the FIFO starts empty (see :class:`~simulator.device.LDQ412`).
     open_points: the choices the datasheet leaves open (:mod:`simulator.open_points`:
         scan phase, clock error, answer latency, FIFO underrun, accepted reads); the
         default is the emulator as it always was.
     device: a device model to serve instead of a new :class:`~simulator.device.LDQ412`
         (a replay's); source, scan_rate_hz, serial_number, firmware, ascii_checksum,
-        initial_uptime_s, truth_limit, drained and the open points other than the
-        latency are then the device's own.
+        initial_uptime_s, truth_limit and the open points other than the latency are then
+        the device's own.
     """
 
     def __init__(
@@ -107,7 +106,6 @@ class Emulator:
         host: str = "127.0.0.1",
         port: int = 0,
         truth_limit: int | None = None,
-        drained: bool = False,
         open_points: OpenPoints | None = None,
         device: LDQ412 | None = None,
     ) -> None:
@@ -134,7 +132,6 @@ class Emulator:
             ascii_checksum=ascii_checksum,
             initial_uptime_s=initial_uptime_s,
             truth_limit=truth_limit,
-            drained=drained,
             open_points=self.open_points,
         )
         self.wire = WireFaults(
