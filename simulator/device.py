@@ -77,7 +77,7 @@ from drivers.ldq412 import (
     volts_to_code,
 )
 
-from .open_points import OpenPoints
+from .open_points import MODBUS_MAX_READ, OpenPoints
 from .source import SignalSource
 
 # Modbus exception codes the module answers (datasheet: 02 and 03; 01 for functions it
@@ -86,8 +86,8 @@ ILLEGAL_FUNCTION = 0x01
 ILLEGAL_ADDRESS = 0x02
 ILLEGAL_VALUE = 0x03
 
-# Protocol limits of a single Modbus register read / write (Modbus application spec).
-MODBUS_MAX_READ = 125
+# Protocol limit of a single Modbus register write (Modbus application spec; the read's,
+# MODBUS_MAX_READ, is in open_points).
 MODBUS_MAX_WRITE = 123
 _NS_PER_S = 1_000_000_000
 _IR_MAP_END = IR_MODEL + IR_IDENTITY_LEN  # one past the last input register

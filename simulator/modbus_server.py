@@ -48,8 +48,9 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from drivers.ldq412 import HR_COUNT, IR_FIFO, IR_FIFO_END, IR_MODEL, IR_SNAPSHOT_LEN, SERIAL_BAUD
 
-from .device import LDQ412, MODBUS_MAX_READ, DeviceError, DeviceOffError
+from .device import LDQ412, DeviceError, DeviceOffError
 from .handle import DeviceHandle
+from .open_points import MODBUS_MAX_READ
 from .wire import Corrupter, corrupt_mbap, corrupt_rtu
 
 SUPPORTED_FUNCTIONS = (3, 4, 6, 16)
