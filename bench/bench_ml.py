@@ -367,9 +367,10 @@ def _exp_and_left_jacobian(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def anchor_fit(volts, weights, R0, directions, p_start):
     """scipy's least_squares (trf, lsmr) on the maximum-likelihood problem of
-    :func:`calibration.implicit.fit`: unknowns z = (dx (n,), w (m, 3)), ``p = p_start + T dx``,
-    ``R_k = exp([w_k]x) R0_k``, residuals ``(Vhat - V) * weights`` (4m,), from z = 0, with
-    the analytic Jacobian as a CSR matrix (each row: n parameter entries and its pose's 3).
+    :func:`calibration.implicit.fit_linearised`: unknowns z = (dx (n,), w (m, 3)),
+    ``p = p_start + T dx``, ``R_k = exp([w_k]x) R0_k``, residuals ``(Vhat - V) * weights``
+    (4m,), from z = 0, with the analytic Jacobian as a CSR matrix (each row: n parameter
+    entries and its pose's 3).
     Returns (params, rotations (m, 3, 3), the OptimizeResult)."""
     m, n = len(volts), directions.shape[1]
     rows = 4 * m

@@ -60,7 +60,15 @@ from .kinematics import (
     volts_to_lengths,
 )
 from .parameters import BASE_COORDS, I_K1, I_K2, I_K3, N_PARAMS, SL_GAIN, SL_OFFSET, check_vector
-from .smallmat import cholesky3, cross3, gram3, matmul3, null_vector_4x3, rotvec_to_matrix
+from .smallmat import (
+    cholesky3,
+    cross3,
+    gram3,
+    matmul3,
+    matvec3,
+    null_vector_4x3,
+    rotvec_to_matrix,
+)
 
 #: a pose whose forward-kinematics Jacobian has a smallest singular value below this (mm per
 #: rad of rotation) is near a singularity: its rotation is not determined by its lengths
@@ -150,7 +158,7 @@ def _derivatives(Rc: np.ndarray, p: np.ndarray, pairs: _Pairs, f: np.ndarray):
     RdB = None
     if pairs.k_derivative:  # dB/dk rotated into the base frame, (3 k, 2 points, 3, m)
         dB = home_derivative(p)
-        RdB = [[Rc[:, 0] * v[0] + Rc[:, 1] * v[1] + Rc[:, 2] * v[2] for v in dk] for dk in dB]
+        RdB = [[matvec3(Rc, v) for v in dk] for dk in dB]
     m = Rc.shape[-1]
     G = np.empty((len(pairs.param), m))
     for row, (i, leg) in enumerate(zip(pairs.param, pairs.leg, strict=True)):
@@ -213,20 +221,13 @@ def loop_direction(Jr: np.ndarray) -> np.ndarray:
     return _loop_direction(np.moveaxis(np.asarray(Jr, dtype=float), 0, -1).transpose(1, 0, 2)).T
 
 
-def information_rows(Jp: np.ndarray, Jr: np.ndarray) -> np.ndarray:
-    """Each pose's information about the parameters once its rotation is eliminated.
-
-    Jp: (m, 4, n) and Jr: (m, 4, 3) Jacobians of whitened residuals. Returns a (m, n): the
-    pose's information matrix is ``a_k a_k^T`` (rank one: four readings, three angles).
-    """
-    return np.einsum("mrn,mr->mn", Jp, loop_direction(Jr))
-
-
 def weighted_information(
     R: np.ndarray, p: np.ndarray, directions: np.ndarray, weights: np.ndarray
 ) -> np.ndarray:
-    """:func:`information_rows` (m, n) of poses at rotations R (m, 3, 3) and parameters p,
-    along ``directions`` (20, n), with the readings whitened by ``weights`` (m, 4), 1/sigma."""
+    """The information rows a_k (m, n) of poses at rotations R (m, 3, 3) and parameters p
+    (module docstring: pose k's information about the parameters once its rotation is
+    eliminated is ``a_k a_k^T``), along ``directions`` (20, n), with the readings whitened
+    by ``weights`` (m, 4), 1/sigma."""
     pairs = _Pairs(directions)
     f = np.asarray(weights, dtype=float).T / p[SL_GAIN][:, None]
     _, Jr, G = _derivatives(_cm(R), p, pairs, f)
@@ -300,7 +301,7 @@ class Linearised:
     cost: float
 
     def information(self) -> np.ndarray:
-        """:func:`information_rows` (m, n) at this point."""
+        """The information rows a_k (m, n) at this point (:func:`weighted_information`)."""
         return self.pairs.contract(self.G, _loop_direction(self.Jr)).T
 
 
@@ -324,30 +325,6 @@ def linearise(
     return _evaluate(_cm(R), p, Vc, wc, _Pairs(directions))
 
 
-def fit(
-    volts: np.ndarray,
-    weights: np.ndarray,
-    R0: np.ndarray,
-    directions: np.ndarray,
-    p_start: np.ndarray,
-    *,
-    max_iter: int = 100,
-    max_change: float = 50.0,
-    history: list[float] | None = None,
-) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
-    """Levenberg-Marquardt on parameters and rotations with the pose blocks eliminated.
-
-    volts: (m, 4); weights: (m, 4) 1/sigma; R0: (m, 3, 3) start rotations; directions:
-    (20, n) free directions; p_start: (20,) start (fixed parameters keep its values).
-    Returns (params, rotations, iterations, converged, message).
-    """
-    p, R, it, converged, message, _ = fit_linearised(
-        volts, weights, R0, directions, p_start, max_iter=max_iter, max_change=max_change,
-        history=history,
-    )  # fmt: skip
-    return p, R, it, converged, message
-
-
 def fit_linearised(
     volts: np.ndarray,
     weights: np.ndarray,
@@ -360,9 +337,15 @@ def fit_linearised(
     history: list[float] | None = None,
     at_start: Linearised | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int, bool, str, Linearised]:
-    """:func:`fit`, also returning the :class:`Linearised` problem at the solution (for the
-    covariance), and starting from ``at_start`` if given (the problem linearised at
-    (p_start, R0), for example for an observability check before the fit)."""
+    """Levenberg-Marquardt on parameters and rotations with the pose blocks eliminated.
+
+    volts: (m, 4); weights: (m, 4) 1/sigma; R0: (m, 3, 3) start rotations; directions:
+    (20, n) free directions; p_start: (20,) start (fixed parameters keep its values);
+    at_start: the problem linearised at (p_start, R0) if already at hand (for example from
+    an observability check before the fit). Returns (params, rotations, iterations,
+    converged, message, the :class:`Linearised` problem at the solution (for the
+    covariance)).
+    """
     history = [] if history is None else history
     Vc = np.ascontiguousarray(np.asarray(volts, dtype=float).T)  # (4, m)
     wc = np.ascontiguousarray(np.asarray(weights, dtype=float).T)

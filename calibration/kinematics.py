@@ -30,7 +30,7 @@ from .parameters import (
     UNITS,
     check_vector,
 )
-from .smallmat import cross3, eigmin_sym3, gram3, matmul3, rotvec_to_matrix, solve_sym3
+from .smallmat import cross3, eigmin_sym3, gram3, matmul3, matvec3, rotvec_to_matrix, solve_sym3
 from .spheres import solve as solve_spheres
 
 LEG_POINT = (0, 0, 1, 1)  # actuator i ends at B1 (0) or B2 (1)
@@ -272,7 +272,7 @@ def leg_vectors(Rc: np.ndarray, home: np.ndarray, A: np.ndarray):
     plate end of each leg B (3, 4, m), mm, the unit vectors u (3, 4, m) from A_i to it and
     the leg lengths (4, m), mm.
     """
-    Bp = [Rc[:, 0] * h[0] + Rc[:, 1] * h[1] + Rc[:, 2] * h[2] for h in home]  # (3, m) each
+    Bp = [matvec3(Rc, h) for h in home]  # (3, m) each
     B = np.stack([Bp[b] for b in LEG_POINT], axis=1)
     diff = B - A.T[:, :, None]
     dist = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
@@ -315,8 +315,7 @@ def check_geometry(p: np.ndarray) -> np.ndarray:
                 f"{name} = {value:g} {UNITS[name]} is outside the plausible range "
                 f"-{limit:g}..{limit:g} {UNITS[name]} for this mechanism"
             )
-    B = plate_home(p)[list(LEG_POINT)]
-    home = np.linalg.norm(B - base_points(p), axis=-1)
+    home = inverse_kinematics(np.eye(3), p)[0]
     volts = lengths_to_volts(home, p)
     for i in np.flatnonzero(np.abs(volts) > STROKE_VOLTS):
         n = i + 1

@@ -246,8 +246,8 @@ def ml_candidates(
     """Prepare N candidate poses for the maximum-likelihood estimator at the estimate ``p``.
 
     Each pose's information about the free parameters once its rotation is eliminated is
-    rank one (:func:`calibration.implicit.information_rows`); its row, per unit noise of one
-    scan (weighted by sqrt(scans_per_pose)), is both the pose's Jacobian and its
+    rank one (:func:`calibration.implicit.weighted_information`); its row, per unit noise of
+    one scan (weighted by sqrt(scans_per_pose)), is both the pose's Jacobian and its
     information, shape (N, 1, n). Poses whose rotation the lengths do not determine are
     unusable (rows of zeros).
     """
@@ -323,7 +323,7 @@ def select_poses(
     # positions tried in a row without a swap: once every position has been tried against
     # the current set, the rest of the pass would repeat those very trials and stop
     unchanged = 0
-    while short > 0 and passes < max_passes and unchanged < k:
+    while short > 0 and passes < max_passes:
         passes += 1
         improved = False
         for pos in range(k):

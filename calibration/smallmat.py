@@ -62,7 +62,8 @@ def matmul3(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 
 def matvec3(A: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Products ``A_k x_k``: A (3, 3, m) (or (3, 3, 1)), x (3, m) (or (3, 1)); returns (3, m)."""
+    """Products ``A_k x_k``: A (3, 3, m) (or (3, 3, 1)), x (3, m) (or (3, 1), or (3,): one
+    vector for every k); returns (3, m)."""
     return A[:, 0] * x[0] + A[:, 1] * x[1] + A[:, 2] * x[2]
 
 

@@ -33,7 +33,7 @@ except ImportError:  # pragma: no cover - not POSIX
     _PORT_ERRORS = (serial.SerialException, OSError)
 
 from . import ldq412
-from .base import DAQ, DaqUrl, Identity, Scan, register_scheme
+from .base import DAQ, DaqUrl, Identity, Scan, register_scheme, serial_options
 from .errors import (
     DAQDisconnected,
     DAQIdentityError,
@@ -188,18 +188,14 @@ class AsciiDAQ(DAQ):
 
     @classmethod
     def url_options(cls, url: DaqUrl) -> dict[str, object]:
-        if not url.path:
-            raise ValueError(f"{url.raw}: no serial port (ascii:///dev/ttyUSB0)")
+        line = serial_options(url, "ascii:///dev/ttyUSB0")
         addr_text = url.params.get("addr", f"{ldq412.ASCII_DEFAULT_ADDR:02X}")
         if not 1 <= len(addr_text) <= 2:
             raise ValueError(f"{url.raw}: addr={addr_text!r} is not two hex digits")
         return {
-            "port": url.path,
-            "baud": url.get_int("baud", ldq412.SERIAL_BAUD, lo=1, hi=4_000_000),
+            **line,
             "addr": url.get_int("addr", ldq412.ASCII_DEFAULT_ADDR, base=16, lo=0, hi=0xFF),
             "checksum": url.get_bool("checksum", False),
-            "parity": url.get_choice("parity", "N", ("N", "E", "O")),
-            "stopbits": url.get_int("stopbits", 1, lo=1, hi=2),
         }
 
     # -- transport -----------------------------------------------------------------------

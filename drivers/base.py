@@ -255,6 +255,25 @@ def parse_url(url: str) -> DaqUrl:
     return DaqUrl(scheme, host, port, path, MappingProxyType(params), url)
 
 
+#: the fastest serial line a URL may ask for (RS-485 transceivers top out around here)
+MAX_BAUD = 4_000_000
+
+
+def serial_options(url: DaqUrl, example: str) -> dict[str, object]:
+    """The serial line a URL names, every value checked: ``port`` (the URL's path),
+    ``baud``, ``parity``, ``stopbits`` (datasheet defaults 115200, 8N1). example: a URL of
+    the scheme with a port, for the error if the URL has none. Raises ValueError naming
+    the URL."""
+    if not url.path:
+        raise ValueError(f"{url.raw}: no serial port ({example})")
+    return {
+        "port": url.path,
+        "baud": url.get_int("baud", ldq412.SERIAL_BAUD, lo=1, hi=MAX_BAUD),
+        "parity": url.get_choice("parity", "N", ("N", "E", "O")),
+        "stopbits": url.get_int("stopbits", 1, lo=1, hi=2),
+    }
+
+
 D = TypeVar("D", bound="DAQ")
 _REGISTRY: dict[str, type[DAQ]] = {}
 

@@ -15,11 +15,9 @@ from pymodbus.client.base import ModbusBaseSyncClient
 from pymodbus.framer import FramerType
 
 from . import ldq412
-from .base import DaqUrl, register_scheme
+from .base import DaqUrl, register_scheme, serial_options
 from .modbus import ModbusDAQ
 
-#: the fastest line a URL may ask for (RS-485 transceivers top out around here)
-MAX_BAUD = 4_000_000
 #: silence on the line that ends a drain after an error, s (many RTU frame times)
 QUIET_S = 0.005
 
@@ -61,13 +59,8 @@ class ModbusRtuDAQ(ModbusDAQ):
 
     @classmethod
     def url_options(cls, url: DaqUrl) -> dict[str, object]:
-        if not url.path:
-            raise ValueError(f"{url.raw}: no serial port (modbus-rtu:///dev/ttyUSB0)")
         return {
-            "port": url.path,
-            "baud": url.get_int("baud", ldq412.SERIAL_BAUD, lo=1, hi=MAX_BAUD),
-            "parity": url.get_choice("parity", "N", ("N", "E", "O")),
-            "stopbits": url.get_int("stopbits", 1, lo=1, hi=2),
+            **serial_options(url, "modbus-rtu:///dev/ttyUSB0"),
             **ModbusDAQ.common_options(url),
         }
 

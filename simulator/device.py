@@ -77,7 +77,7 @@ from drivers.ldq412 import (
     volts_to_code,
 )
 
-from .open_points import OpenPoints
+from .open_points import MODBUS_MAX_READ, OpenPoints
 from .source import SignalSource
 
 # Modbus exception codes the module answers (datasheet: 02 and 03; 01 for functions it
@@ -86,8 +86,8 @@ ILLEGAL_FUNCTION = 0x01
 ILLEGAL_ADDRESS = 0x02
 ILLEGAL_VALUE = 0x03
 
-# Protocol limits of a single Modbus register read / write (Modbus application spec).
-MODBUS_MAX_READ = 125
+# Protocol limit of a single Modbus register write (Modbus application spec; the read's,
+# MODBUS_MAX_READ, is in open_points).
 MODBUS_MAX_WRITE = 123
 _NS_PER_S = 1_000_000_000
 _IR_MAP_END = IR_MODEL + IR_IDENTITY_LEN  # one past the last input register
@@ -97,6 +97,12 @@ _NS_PER_US = 1_000
 _CHANNEL_OFFSETS_S = np.arange(N_CHANNELS) * CHANNEL_SKEW_S
 # Analog levels beyond the converter's range, used to model a saturated conditioner.
 _SATURATION_V = {"high": V_MAX + 1.0, "low": V_MIN - 1.0}
+
+
+def rail_bits(codes: list[int]) -> int:
+    """The status word's rail bits of a scan's codes: bit ch for a channel at 0 or
+    :data:`~drivers.ldq412.CODE_MAX`."""
+    return sum(1 << ch for ch, c in enumerate(codes) if c in (0, CODE_MAX))
 
 
 class DeviceError(Exception):
@@ -144,8 +150,6 @@ class LDQ412:
     scan_rate_hz, ascii_checksum: power-on values of holding registers 0 and 4.
     serial_number, firmware: identity (input registers 513..515, ``$AAF``).
     truth_limit: None: :attr:`truth` keeps every scan; N: it keeps the latest N to 2N-1.
-    drained: the FIFO starts empty, as if a host had just read it (with initial_uptime_s:
-        a replay that starts in the middle of a power-on).
     open_points: the choices the datasheet leaves open (:class:`OpenPoints`; the default
         is the emulator as it always was).
     """
@@ -161,7 +165,6 @@ class LDQ412:
         ascii_checksum: bool = False,
         initial_uptime_s: float = 0.0,
         truth_limit: int | None = None,
-        drained: bool = False,
         open_points: OpenPoints | None = None,
     ) -> None:
         if truth_limit is not None and truth_limit < 1:
@@ -207,9 +210,6 @@ class LDQ412:
             self._counter = skipped % U32_MOD
             self._overflow = True
         self.sync(now_ns)
-        if drained:  # as if a host had just read everything (a replay starting mid-power-on)
-            self._fifo.clear()
-            self._overflow = False
 
     # ------------------------------------------------------------------ time
 
@@ -223,8 +223,12 @@ class LDQ412:
         ``t_us`` of the current power-on."""
         if not self._ppb:
             return ((self._boot_ns - self._first_boot_ns) // _NS_PER_US + t_us) / _US_PER_S
-        elapsed = t_us * _NS_PER_US * _NS_PER_S // (_NS_PER_S + self._ppb)
-        return (self._boot_ns - self._first_boot_ns + elapsed) / _NS_PER_S
+        return (self._boot_ns - self._first_boot_ns + self._owner_ns(t_us)) / _NS_PER_S
+
+    def _owner_ns(self, t_us: int) -> int:
+        """Owner's-clock ns since the current power-on when the module's clock reads
+        ``t_us`` (rounded down)."""
+        return t_us * _NS_PER_US * _NS_PER_S // (_NS_PER_S + self._ppb)
 
     def _power_on(self, boot_ns: int) -> None:
         self._boot += 1
@@ -301,7 +305,7 @@ class LDQ412:
         (None for another power-on): when that scan was taken."""
         if boot != self._boot:
             return None
-        return self._boot_ns + time64_us * _NS_PER_US * _NS_PER_S // (_NS_PER_S + self._ppb)
+        return self._boot_ns + self._owner_ns(time64_us)
 
     def power_cycle(self, off_s: float = POWER_CYCLE_S) -> None:
         """Switch the module off now and on again ``off_s`` seconds later.
@@ -333,8 +337,7 @@ class LDQ412:
             if self._sensor_fault[ch]:
                 codes[ch] = CODE_MAX
                 fault_bits |= 1 << (4 + ch)
-        rail_bits = sum(1 << ch for ch, c in enumerate(codes) if c in (0, CODE_MAX))
-        self._push_scan(self._counter, t_us, codes, rail_bits | fault_bits, t_s)
+        self._push_scan(self._counter, t_us, codes, rail_bits(codes) | fault_bits, t_s)
 
     def _push_scan(
         self, counter: int, t_us: int, codes: list[int], low_status: int, t_s: float

@@ -55,14 +55,13 @@ _GARBAGE_STREAM = 0x6A756E6B  # second seed word: the garbage rng differs from t
 _LATENCY_STREAM = 0x6C617465  # and the answer delays' from both
 
 
-def _root_cause(exc: BaseException) -> str:
-    """The innermost OS error of an exception chain (pymodbus wraps "address already in
-    use" in a vaguer message), else the exception itself."""
-    seen = exc
-    while seen is not None:
-        if isinstance(seen, OSError) and seen.strerror:
-            return seen.strerror
-        seen = seen.__cause__ or seen.__context__
+def _reason(exc: BaseException) -> str:
+    """Why the servers did not start, for :meth:`Emulator.start`'s message: an OS error's
+    own words (a pty that cannot be opened), else the exception's message. A taken TCP port
+    does not come here as an OS error: pymodbus logs it and raises a RuntimeError of its own
+    without a cause ("Could not start listen"), which is why start() asks the OS first."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
     return str(exc)
 
 
@@ -81,14 +80,13 @@ class Emulator:
     host, port: TCP listening address (port 0: a free port, reported in ``url``).
     truth_limit: None keeps every scan in :attr:`truth`; N keeps at least the latest N
         (bounded memory for long real-time runs).
-    drained: the FIFO starts empty (see :class:`~simulator.device.LDQ412`).
     open_points: the choices the datasheet leaves open (:mod:`simulator.open_points`:
         scan phase, clock error, answer latency, FIFO underrun, accepted reads); the
         default is the emulator as it always was.
     device: a device model to serve instead of a new :class:`~simulator.device.LDQ412`
         (a replay's); source, scan_rate_hz, serial_number, firmware, ascii_checksum,
-        initial_uptime_s, truth_limit, drained and the open points other than the
-        latency are then the device's own.
+        initial_uptime_s, truth_limit and the open points other than the latency are then
+        the device's own.
     """
 
     def __init__(
@@ -108,7 +106,6 @@ class Emulator:
         host: str = "127.0.0.1",
         port: int = 0,
         truth_limit: int | None = None,
-        drained: bool = False,
         open_points: OpenPoints | None = None,
         device: LDQ412 | None = None,
     ) -> None:
@@ -135,7 +132,6 @@ class Emulator:
             ascii_checksum=ascii_checksum,
             initial_uptime_s=initial_uptime_s,
             truth_limit=truth_limit,
-            drained=drained,
             open_points=self.open_points,
         )
         self.wire = WireFaults(
@@ -156,7 +152,6 @@ class Emulator:
         self._ascii: AsciiServer | None = None
         self._link: PtyLink | None = None
         self._reconcile_lock: asyncio.Lock | None = None
-        self.handle.links_boot = self.device.boot
 
     # ------------------------------------------------------------------ public
 
@@ -216,7 +211,7 @@ class Emulator:
             err = self._startup_error
             self.close()
             where = f" on {self.host}:{self.port}" if self.transport == "modbus-tcp" else ""
-            raise RuntimeError(f"emulator failed to start{where}: {_root_cause(err)}") from err
+            raise RuntimeError(f"emulator failed to start{where}: {_reason(err)}") from err
         return self
 
     def close(self) -> None:

@@ -85,17 +85,14 @@ class MechanismSource:
 
 class ReplaySource:
     """:class:`~simulator.source.SignalSource` replaying a recording: each channel reads the
-    latest recorded value at or before its instant (sample and hold), shifted so that the
-    recording starts at device time ``start_s``; after the end it holds the last value, or
-    starts over with ``loop``.
+    latest recorded value at or before its instant (sample and hold), the recording starting
+    at source time 0; after the end it holds the last value, or starts over with ``loop``.
 
     times_s: (n,) increasing recording times, s; volts: (n, 4). Recorded codes replay
     bit for bit when given as their mid-code volts (:func:`drivers.ldq412.code_to_volts`).
     """
 
-    def __init__(
-        self, times_s: np.ndarray, volts: np.ndarray, *, start_s: float = 0.0, loop: bool = False
-    ) -> None:
+    def __init__(self, times_s: np.ndarray, volts: np.ndarray, *, loop: bool = False) -> None:
         self.times = np.asarray(times_s, dtype=float)
         self.volts = np.asarray(volts, dtype=float)
         if self.times.ndim != 1 or self.volts.shape != (len(self.times), 4) or not len(self.times):
@@ -103,12 +100,11 @@ class ReplaySource:
         if np.any(np.diff(self.times) <= 0):
             raise ValueError("replay times must increase strictly")
         self.times = self.times - self.times[0]
-        self.start_s = float(start_s)
         self.loop = loop
         self.span = self.times[-1] + (np.median(np.diff(self.times)) if len(self.times) > 1 else 1)
 
     def convert(self, t: np.ndarray) -> np.ndarray:
-        rel = np.asarray(t, dtype=float) - self.start_s
+        rel = np.asarray(t, dtype=float)
         if self.loop:
             rel = np.mod(rel, self.span)
         k = np.clip(np.searchsorted(self.times, rel, side="right") - 1, 0, len(self.times) - 1)

@@ -4,15 +4,15 @@ pymodbus does all framing, MBAP headers and CRCs. The module's behaviour is atta
 through pymodbus' own extension points:
 
 - a :class:`pymodbus.simulator.SimDevice` whose register blocks mirror the module's
-  address map (addresses outside it answer exception 02 inside pymodbus) and whose
-  ``action`` hook runs the device model on every access: it fills the registers from the
-  model before a read (so a FIFO-window read pops scans), applies writes, and returns the
-  model's exception codes (02/03);
+  address map (a write outside the holding registers answers exception 02 inside
+  pymodbus) and whose ``action`` hook applies writes (06, 16) to the device model and
+  returns its exception codes (02/03);
 - ``custom_pdu`` request classes: reads (03, 04) are answered by the device model itself,
   so that an answer may have fewer registers than asked (a truncated or short FIFO read,
-  :mod:`simulator.open_points`); reads of 0 or more than 125 registers answer 03 (the
-  stock classes reject them while decoding, which pymodbus answers with 01), and every
-  function the module does not implement (anything but 03, 04, 06, 16) answers 01;
+  :mod:`simulator.open_points`), and a FIFO-window read pops scans; reads of 0 or more
+  than 125 registers answer 03 (the stock classes reject them while decoding, which
+  pymodbus answers with 01), and every function the module does not implement (anything
+  but 03, 04, 06, 16) answers 01 without reaching the datastore;
 - answer latency (an open point): the answer is decided when the request arrives, then
   held back for the drawn delay on the server's event loop;
 - ``trace_pdu`` drops requests the module would not see (another unit address, module
@@ -29,6 +29,8 @@ import asyncio
 import contextlib
 import socket
 import struct
+from collections.abc import Callable
+from typing import TypeVar
 
 from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusServerContext
@@ -46,11 +48,14 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from drivers.ldq412 import HR_COUNT, IR_FIFO, IR_FIFO_END, IR_MODEL, IR_SNAPSHOT_LEN, SERIAL_BAUD
 
-from .device import MODBUS_MAX_READ, DeviceError, DeviceOffError
+from .device import LDQ412, DeviceError, DeviceOffError
 from .handle import DeviceHandle
+from .open_points import MODBUS_MAX_READ
 from .wire import Corrupter, corrupt_mbap, corrupt_rtu
 
 SUPPORTED_FUNCTIONS = (3, 4, 6, 16)
+
+_T = TypeVar("_T")
 
 
 class _CheckedReadHolding(ReadHoldingRegistersRequest):
@@ -139,7 +144,8 @@ class ModbusAdapter:
         self.transport = transport
 
     def sim_device(self) -> SimDevice:
-        """The register map (holes answer 02 inside pymodbus) with the device as action."""
+        """The register map (a write outside it answers 02 inside pymodbus) with the device
+        as action."""
         regs = DataType.REGISTERS
         return SimDevice(
             id=self.unit,
@@ -147,7 +153,7 @@ class ModbusAdapter:
                 [SimData(0, values=False, datatype=DataType.BITS)],  # never reached: fc 1/5/15
                 [SimData(0, values=False, datatype=DataType.BITS)],  # never reached: fc 2
                 [SimData(0, count=HR_COUNT, datatype=regs)],
-                [
+                [  # never reached: fc 4 has its own request class
                     SimData(0, count=IR_SNAPSHOT_LEN, datatype=regs),
                     SimData(IR_FIFO, count=IR_FIFO_END - IR_FIFO, datatype=regs),
                     SimData(IR_MODEL, count=4, datatype=regs),
@@ -162,21 +168,28 @@ class ModbusAdapter:
         if delay > 0:
             await asyncio.sleep(delay)
 
+    def _on_device(self, operation: Callable[[LDQ412], _T]) -> _T | ExcCodes:
+        """Note the request and run ``operation`` on the device model synced to now: its
+        result, or the exception code of the :class:`DeviceError` it raised."""
+        self.handle.note_request()
+        try:
+            with self.handle.synced() as device:
+                return operation(device)
+        except DeviceError as exc:
+            return ExcCodes(exc.code)
+        except DeviceOffError:  # never sent: trace_packet silences an off module
+            return ExcCodes.DEVICE_FAILURE
+
     async def read(self, function_code: int, address: int, count: int) -> ModbusPDU:
         """Answer a read (03 or 04) from the device model: its registers (perhaps fewer
         than asked), or its exception code."""
-        self.handle.note_request()
         rsp: ModbusPDU
-        try:
-            with self.handle.synced() as device:
-                if function_code == 4:
-                    regs = device.read_input_registers(address, count)
-                else:
-                    regs = device.read_holding_registers(address, count)
-        except DeviceError as exc:
-            rsp = ExceptionResponse(function_code, ExcCodes(exc.code))
-        except DeviceOffError:  # never sent: trace_packet silences an off module
-            rsp = ExceptionResponse(function_code, ExcCodes.DEVICE_FAILURE)
+        if function_code == 4:
+            regs = self._on_device(lambda device: device.read_input_registers(address, count))
+        else:
+            regs = self._on_device(lambda device: device.read_holding_registers(address, count))
+        if isinstance(regs, ExcCodes):
+            rsp = ExceptionResponse(function_code, regs)
         else:
             cls = ReadInputRegistersResponse if function_code == 4 else ReadHoldingRegistersResponse
             rsp = cls(registers=regs)
@@ -192,34 +205,19 @@ class ModbusAdapter:
         registers: list[int],
         set_values: list[int] | list[bool] | None,
     ) -> ExcCodes | None:
-        """pymodbus access hook: run the request on the device model.
+        """pymodbus access hook, reached by writes (06, 16) only: reads and the functions
+        the module does not implement have request classes of their own
+        (:func:`custom_pdus`) that do not touch the datastore.
 
-        For a read, fills ``registers`` (pymodbus returns that slice). For a write, applies
-        it; pymodbus then stores the values, and its read-back of a function 06 (used for
-        the echo) returns exactly the value written.
+        Applies the write to the device model; pymodbus then stores the values, and its
+        read-back of a function 06 (``set_values`` None, for the echo) returns exactly the
+        value written.
         """
-        offset = address - start_address
-        self.handle.note_request()
-        code: ExcCodes | None = None
-        try:
-            with self.handle.synced() as device:
-                if function_code == 4:
-                    registers[offset : offset + count] = device.read_input_registers(address, count)
-                elif function_code == 3:
-                    registers[offset : offset + count] = device.read_holding_registers(
-                        address, count
-                    )
-                elif function_code in (6, 16):
-                    if set_values is not None:
-                        device.write_registers(address, [int(v) for v in set_values])
-                else:
-                    code = ExcCodes.ILLEGAL_FUNCTION
-        except DeviceError as exc:
-            code = ExcCodes(exc.code)
-        except DeviceOffError:
-            code = ExcCodes.DEVICE_FAILURE  # never sent: trace_packet silences an off module
-        if set_values is not None:  # not again for pymodbus' read-back of the echo
-            await self._latency()
+        if set_values is None:  # the read-back of a 06: the write was applied already
+            return None
+        values = [int(v) for v in set_values]
+        code = self._on_device(lambda device: device.write_registers(address, values))
+        await self._latency()
         return code
 
     def trace_pdu(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU | None:

@@ -49,7 +49,7 @@ from drivers.ldq412 import (
 )
 
 from .clock import PlayClock
-from .device import LDQ412
+from .device import LDQ412, rail_bits
 from .emulator import Emulator
 from .open_points import OpenPoints
 from .source import ConstantSource
@@ -160,15 +160,8 @@ class RecordedModule(LDQ412):
         if po.status is not None:
             low = int(po.status[i]) & _LOW_STATUS
         else:
-            low = sum(1 << ch for ch, c in enumerate(codes) if c in (0, CODE_MAX))
+            low = rail_bits(codes)
         self._push_scan(int(po.counter[i]) % U32_MOD, t_us, codes, low, self._source_s(t_us))
-
-    def scan_ns(self, k: int, i: int) -> int | None:
-        """The owner's clock when scan ``i`` of power-on ``k`` is taken (None: k is not
-        the power-on being served)."""
-        if k != self._boot:
-            return None
-        return self._boot_ns + int(self.power_ons[k].time_us[i]) * _NS_PER_US
 
 
 class Player:
@@ -241,13 +234,13 @@ class Player:
                 self._play_until(self.clock.now_ns() + round(po.off_s * 1e9), stop)
                 with self.emulator.lock:
                     self.module.sync(self.clock.now_ns())
-                    first = self.module.scan_ns(k, 0)
+                    first = self.module.host_ns(k, int(po.time_us[0]))
                 assert first is not None
                 self._play_until(first, stop)
             if (k or wait_for_client) and not self._hold(stop):
                 return False
             with self.emulator.lock:
-                last = self.module.scan_ns(k, len(po.counter) - 1)
+                last = self.module.host_ns(k, int(po.time_us[-1]))
                 fifo_reads = self.module.fifo_reads
             assert last is not None
             if not self._play_until(last, stop):

@@ -26,8 +26,8 @@ class WireFaults:
     """
 
     rng: np.random.Generator
+    latency_rng: np.random.Generator
     latency: Latency | None = None
-    latency_rng: np.random.Generator | None = None
     disconnected: bool = False
     stalled_until_ns: int | None = None
     garbage: bytes = b""
@@ -44,8 +44,6 @@ class WireFaults:
         """How long the answer being sent now waits, s (0 without latency)."""
         if self.latency is None:
             return 0.0
-        if self.latency_rng is None:
-            self.latency_rng = np.random.default_rng(0)
         return self.latency.draw_s(self.latency_rng, transport)
 
     def add_garbage(self, nbytes: int) -> None:
