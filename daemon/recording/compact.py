@@ -13,7 +13,8 @@ Nothing can be lost doing it: the new version goes to a temporary file beside th
 (``.NAME.compact.tmp``), is read back with :func:`~daemon.recording.read_recordings` and
 compared scan for scan, event for event, message count for message count with the original,
 fsynced, and only then renamed over it (atomic), and the directory fsynced. A file that is
-not closed, not intact, or already compact is left as it is. Killed at any step, the
+not closed, not intact, or already compact is left as it is (already compact is told from
+its metadata record alone, without reading its chunks). Killed at any step, the
 original is there, whole, or the compacted copy is; a temporary file left behind is removed
 by the next compaction of the directory.
 """
@@ -36,7 +37,7 @@ from ..config import durable
 from .errors import RecordingError
 from .names import find_recordings
 from .reader import read_recordings
-from .schemas import TOPIC_EVENTS, TOPIC_LOG, TOPIC_SCANS
+from .schemas import FORMAT_VERSION, TOPIC_EVENTS, TOPIC_LOG, TOPIC_SCANS
 
 log = logging.getLogger("daemon.recording.compact")
 
@@ -72,6 +73,8 @@ def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compac
     deleted or replaced meanwhile: the recorder's retention holds the same lock) and
     replaced."""
     path = Path(path)
+    if _says_compacted(path):
+        return Compacted(path, False, "already compact")
     try:
         original = read_recordings(path)
     except RecordingError as exc:
@@ -109,6 +112,27 @@ def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compac
         tmp.unlink(missing_ok=True)
         raise
     return Compacted(path, True, "", chunks_before, chunks_after, size, path.stat().st_size)
+
+
+def _says_compacted(path: Path) -> bool:
+    """Whether a closed file's ``loopcal`` metadata record says it was compacted (with this
+    loopcal's format), read through the summary's metadata index: the footer, the summary
+    and one small record, no chunk. False whenever that cannot be told so cheaply (no
+    summary, anything unreadable): the file is then read whole and judged as before. A file
+    this finds compact is left alone without that read, damaged or not."""
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            if summary is None or not (summary.chunk_indexes or summary.statistics):
+                return False  # read_recordings reads it as not closed
+            record: dict[str, str] = {}
+            for m in reader.iter_metadata():
+                if m.name == "loopcal":
+                    record = dict(m.metadata)  # the last one, as read_recordings keeps it
+    except Exception:  # noqa: BLE001 - any damage: the careful read below decides
+        return False
+    return "compacted_utc" in record and record.get("format", FORMAT_VERSION) == FORMAT_VERSION
 
 
 def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
