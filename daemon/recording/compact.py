@@ -144,7 +144,6 @@ def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
         summary = reader.get_summary()
         assert summary is not None  # a closed, intact file (checked by the caller)
         metadata = [(m.name, dict(m.metadata)) for m in reader.iter_metadata()]
-        raw_ids = {i for i, c in summary.channels.items() if c.topic in _RAW_TOPICS}
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC,
                      os.stat(path).st_mode & 0o7777)  # fmt: skip
         with os.fdopen(fd, "wb") as out:
@@ -167,10 +166,10 @@ def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
                     record = {**record, "compacted_utc": stamp}
                 w.add_metadata(name, record)
             counts: dict[int, int] = {}
-            for raw in (True, False):  # the scans' chunks first, then the views' own
-                for _, channel, message in reader.iter_messages(log_time_order=False):
-                    if (channel.id in raw_ids) != raw:
-                        continue
+            views = {c.topic for c in summary.channels.values()} - set(_RAW_TOPICS)
+            for topics in (_RAW_TOPICS, views):  # the scans' chunks first, then the views' own
+                # topics: the chunks holding none of them are skipped, not decompressed
+                for _, channel, message in reader.iter_messages(topics, log_time_order=False):
                     counts[channel.id] = counts.get(channel.id, 0) + 1
                     w.add_message(channel.id, message.log_time, message.data,
                                   message.publish_time, message.sequence)  # fmt: skip
