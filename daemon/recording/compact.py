@@ -65,6 +65,13 @@ def _tmp_of(path: Path) -> Path:
     return path.with_name(f".{path.name}.compact.tmp")
 
 
+def remove_stale_temporaries(directory: Path) -> None:
+    """Remove the temporary files (:func:`_tmp_of`) that killed compactions left in a
+    directory; call it before any compaction there."""
+    for stale in Path(directory).glob(".loopcal-*.mcap.compact.tmp"):
+        stale.unlink(missing_ok=True)
+
+
 def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compacted:
     """Rewrite the closed recording ``path`` with large chunks, verified, atomically (see the
     module docstring). Raises OSError if the disk refuses (the original is then as it was).
@@ -203,8 +210,7 @@ def _verify(tmp: Path, original, counts: dict[int, int]) -> tuple[int, str]:
 def compact_directory(directory: Path, *, skip: Path | None = None) -> list[Compacted]:
     """Compact every closed recording of a directory but ``skip`` (the file being
     written), oldest first; remove temporary files that a killed compaction left."""
-    for stale in directory.glob(".loopcal-*.mcap.compact.tmp"):
-        stale.unlink(missing_ok=True)
+    remove_stale_temporaries(directory)
     out = []
     for path in find_recordings(directory):
         if skip is not None and path == skip:
@@ -213,4 +219,4 @@ def compact_directory(directory: Path, *, skip: Path | None = None) -> list[Comp
     return out
 
 
-__all__ = ["CHUNK_BYTES", "Compacted", "compact", "compact_directory"]
+__all__ = ["CHUNK_BYTES", "Compacted", "compact", "compact_directory", "remove_stale_temporaries"]
