@@ -108,7 +108,6 @@ class Recorder:
         self.analysis = AnalysisThread([])
         self._watch = ConfigWatch(settings.controller_config)
         self.followed = ""  # what the status line says after following a replaced config
-        self._events: Counter[tuple[str, str]] = Counter()  # (kind, level) -> count
         #: when the newest scan arrived, ns since the Unix epoch (None before the first)
         self.last_scan_ns: int | None = None
         self.compactor = Compactor() if settings.compact else None
@@ -154,15 +153,13 @@ class Recorder:
         the next flush. Safe from any thread."""
         ev = Event(time.time_ns(), kind, level, message, dict(details))
         ev.log(log)
-        with self.shared.lock:
-            self.shared.events.append(ev)
-            self._events[ev.kind, ev.level.name.lower()] += 1
+        self.shared.record(ev)
         self._queue.wake()
 
     def event_counts(self) -> Counter[tuple[str, str]]:
-        """How many events of each (kind, level) the recorder has recorded so far."""
-        with self.shared.lock:
-            return Counter(self._events)
+        """How many events of each (kind, level) the recorder has recorded so far (its own,
+        the acquisition's, the writer's, the observers')."""
+        return self.shared.event_counts()
 
     # ------------------------------------------------------------------ main thread
 
@@ -316,10 +313,8 @@ class Recorder:
         self.analysis.put(batch.rows)
         if len(batch.rows):
             self.last_scan_ns = int(batch.rows["host_ns"][-1])
-        if batch.events:
-            with self.shared.lock:
-                for ev in batch.events:
-                    self._events[ev.kind, ev.level.name.lower()] += 1
+        for ev in batch.events:  # written with the batch's scans
+            self.shared.record(ev, pending=False)
 
     def _acq_main(self, acq: Acquisition, stop: threading.Event) -> None:
         try:
