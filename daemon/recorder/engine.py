@@ -343,12 +343,7 @@ class Recorder:
                         ok=False, error=str(exc))  # fmt: skip
             self.notifier.ready(self.status_line())
             return
-        with self.shared.lock:
-            self.shared.settings = new
-            self.shared.controller = controller
-            self._queue.cap = new.max_backlog_scans
-            self.shared.rotate = True
-        self.analysis.reload(controller)
+        self._put_in_force(controller, new)
         self._watch = ConfigWatch(new.controller_config)
         restart_daq = (new.daq_url, new.timeout_s, new.read_period_s) != (
             old.daq_url, old.timeout_s, old.read_period_s)  # fmt: skip
@@ -361,6 +356,18 @@ class Recorder:
                     f"{', DAQ reopened' if restart_daq else ''}); starting a new file",
                     ok=True, controller_sha256=controller.sha256)  # fmt: skip
         self.notifier.ready(self.status_line())
+
+    def _put_in_force(self, controller: ControllerConfig,
+                      settings: RecorderSettings | None = None) -> None:  # fmt: skip
+        """Record with ``controller`` (and ``settings``, if given) from a new file on, which
+        is asked for; the observers get the controller at once."""
+        with self.shared.lock:
+            if settings is not None:
+                self.shared.settings = settings
+                self._queue.cap = settings.max_backlog_scans
+            self.shared.controller = controller
+            self.shared.rotate = True
+        self.analysis.reload(controller)
 
     def _follow_config(self) -> None:
         """The controller config file changed on disk (``loopcal calibrate --write``, the
@@ -377,10 +384,7 @@ class Recorder:
             return
         if controller.sha256 == self.controller.sha256:
             return  # touched, not changed
-        with self.shared.lock:
-            self.shared.controller = controller
-            self.shared.rotate = True
-        self.analysis.reload(controller)
+        self._put_in_force(controller)
         prov = controller.provenance or {}
         how = (f" (calibrated {prov.get('written_utc', '?')} by {prov.get('method', '?')})"
                if prov else "")  # fmt: skip
