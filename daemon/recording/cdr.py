@@ -12,6 +12,9 @@ import numpy as np
 from ..scans import SCAN_DTYPE
 from .schemas import BASE_FRAME, CDR_LE, PLATE_FRAME
 
+# CDR (little endian) of messages with fixed-size fields only, vectorised: a numpy dtype
+# with each field at its CDR offset (aligned to its size, counted from the end of the
+# 4-byte encapsulation header), so n messages encode with one tobytes().
 _CDR_PRIMITIVES = {"bool": "?", "uint8": "u1", "uint16": "<u2", "int32": "<i4", "uint32": "<u4",
                    "int64": "<i8", "uint64": "<u8", "float32": "<f4", "float64": "<f8"}  # fmt: skip
 

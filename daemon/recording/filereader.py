@@ -152,7 +152,8 @@ def utc_text(ns: int | None) -> str:
     return f"{t:%Y-%m-%d %H:%M:%S}.{rest // 10_000_000:02d} UTC"
 
 
-
+#: channel ids our writer gives the topics (in CHANNELS order, from 1), for a file of ours
+#: whose channel records were lost with its first chunk
 _OUR_CHANNEL_IDS = {topic: i for i, topic in enumerate(CHANNELS, start=1)}
 
 

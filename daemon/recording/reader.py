@@ -63,7 +63,6 @@ class Recording:
         return [e for e in self.events if e.kind == kind]
 
 
-
 def _as_ns(t: int | float | datetime | None) -> int | None:
     if t is None:
         return None
@@ -73,9 +72,6 @@ def _as_ns(t: int | float | datetime | None) -> int | None:
         return round(t.timestamp() * NS_PER_S)
     return int(t)
 
-
-#: channel ids our writer gives the topics (in CHANNELS order, from 1), for a file of ours
-#: whose channel records were lost with its first chunk
 
 def identities(rows: np.ndarray) -> list[bytes]:
     """What makes a scan the same scan in two files: epoch, counter, device time, codes."""
