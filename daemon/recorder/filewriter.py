@@ -171,12 +171,12 @@ class Shared:
             events, self.events = self.events, []
         return events
 
-    def take_rotation(self) -> tuple[bool, ControllerConfig]:
-        """Whether a new file was asked for (the request is consumed), and the controller
-        config a new file is to record."""
+    def take_rotation(self) -> ControllerConfig:
+        """The controller config a new file is to record; a new file asked for is so taken
+        (the request is consumed)."""
         with self.lock:
-            rotate, self.rotate = self.rotate, False
-            return rotate, self.controller
+            self.rotate = False
+            return self.controller
 
 
 class FileWriter:
@@ -284,7 +284,7 @@ class FileWriter:
 
     def _open_file(self, now: float) -> RecordingWriter:
         s = self.shared.settings
-        _, controller = self.shared.take_rotation()
+        controller = self.shared.take_rotation()
         s.directory.mkdir(parents=True, exist_ok=True)
         t = time.time_ns()
         path = s.directory / recording_name(t)
