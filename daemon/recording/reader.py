@@ -22,6 +22,7 @@ from .records import (
     FOOTER_BYTES,
     MAGIC,
     RECORD_HEAD,
+    is_ours,
     read_header,
     read_statistics,
 )
@@ -107,8 +108,7 @@ def _read_tail_statistics(path: Path) -> Statistics | None:
     except (OSError, struct.error):
         return None
     header = read_header(memoryview(head))
-    ours = header is None or header.library.startswith("loopcal")
-    return read_statistics(memoryview(tail), strict=ours, base=start)
+    return read_statistics(memoryview(tail), strict=is_ours(header), base=start)
 
 
 def message_time_range(path: Path) -> tuple[int, int] | None:
