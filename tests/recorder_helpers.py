@@ -11,10 +11,12 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.request
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from prometheus_client.parser import text_string_to_metric_families
 
 from calibration.parameters import NOMINAL
 from simulator import Emulator
@@ -126,6 +128,28 @@ class Proc:
 def record(url: str, out: Path, *extra: str, **kw) -> Proc:
     """``loopcal record --daq URL --out DIR ...`` as a subprocess."""
     return Proc(["record", "--daq", url, "--out", str(out), *extra], **kw)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def scrape(port: int) -> dict[str, list]:
+    """name -> [(labels, value)] of every sample a recorder's /metrics serves."""
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as r:
+        text = r.read().decode()
+    out: dict[str, list] = {}
+    for fam in text_string_to_metric_families(text):
+        for s in fam.samples:
+            out.setdefault(s.name, []).append((s.labels, s.value))
+    return out
+
+
+def value(m: dict, name: str, **labels: str) -> float:
+    [v] = [v for lab, v in m[name] if all(lab.get(k) == x for k, x in labels.items())]
+    return v
 
 
 def truth_table(emu: Emulator) -> dict[tuple[int, int], tuple[int, tuple[int, ...]]]:

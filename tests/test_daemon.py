@@ -20,8 +20,11 @@ from recorder_helpers import (
     Proc,
     assert_matches_truth,
     cpu_seconds,
+    free_port,
     hand_emulator,
     record,
+    scrape,
+    value,
     write_config,
 )
 
@@ -236,8 +239,9 @@ def test_a_directory_that_cannot_be_made_is_refused_at_start(tmp_path):
 
 def test_a_directory_that_becomes_unwritable_recovers_when_fixed(tmp_path):
     top = tmp_path / "rec"
+    port = free_port()
     with hand_emulator() as emu:
-        rec = record(emu.url, top / "sub")
+        rec = record(emu.url, top / "sub", "--metrics", f"127.0.0.1:{port}")
         rec.wait_for("recording to")
         time.sleep(1.0)
         top.rename(tmp_path / "moved")  # the open file goes on in moved/sub
@@ -247,12 +251,17 @@ def test_a_directory_that_becomes_unwritable_recovers_when_fixed(tmp_path):
         time.sleep(1.0)
         top.unlink()
         rec.wait_for("disk_recovered", timeout=15)
+        m = scrape(port)
         time.sleep(1.0)
         rc, _ = rec.stop()
     assert rc == 0, rec.text
     out = read_recordings([tmp_path / "moved" / "sub", top / "sub"])
     assert consecutive(out.scans) and out.scans["counter64"][0] == 0
     assert out.events_of("disk_error")[0].details["errno"] in (20, 17, 2)  # ENOTDIR etc.
+    # the writer's own events are counted in the metrics like every other
+    assert value(m, "loopcal_events_total", kind="disk_error", level="error") == 1
+    assert value(m, "loopcal_events_total", kind="disk_recovered", level="info") == 1
+    assert value(m, "loopcal_disk_error") == 0
 
 
 def _can_mount() -> bool:

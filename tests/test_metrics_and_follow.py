@@ -5,40 +5,16 @@ from __future__ import annotations
 
 import socket
 import time
-import urllib.request
 
 import numpy as np
 import pytest
-from prometheus_client.parser import text_string_to_metric_families
-from recorder_helpers import Proc, hand_emulator, record, write_config
+from recorder_helpers import Proc, free_port, hand_emulator, record, scrape, value, write_config
 from session_helpers import truth_for
 
 from daemon.config.controller import load_controller_config, write_initial_config
 from daemon.recording import read_recordings
 
 pytestmark = pytest.mark.timeout(120)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def scrape(port: int) -> dict[str, list]:
-    """name -> [(labels, value)] of every sample /metrics serves."""
-    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as r:
-        text = r.read().decode()
-    out: dict[str, list] = {}
-    for fam in text_string_to_metric_families(text):
-        for s in fam.samples:
-            out.setdefault(s.name, []).append((s.labels, s.value))
-    return out
-
-
-def value(m: dict, name: str, **labels: str) -> float:
-    [v] = [v for lab, v in m[name] if all(lab.get(k) == x for k, x in labels.items())]
-    return v
 
 
 def test_record_serves_prometheus_metrics(tmp_path):

@@ -116,6 +116,11 @@ class Acquisition:
         """The last scan handed on (where another acquisition would carry on)."""
         return self._last
 
+    @property
+    def _rate_hz(self) -> int:
+        """The module's scan rate (the datasheet's default before it is identified)."""
+        return self.device.scan_rate_hz if self.device else ldq412.SCAN_RATE_DEFAULT_HZ
+
     # ------------------------------------------------------------------ thread body
 
     def run(self, stop: threading.Event) -> None:
@@ -175,8 +180,7 @@ class Acquisition:
         """Catch the moment a new scan appears (polling the latest scan for up to 1.5 scan
         periods), so that the first device-to-UTC offset of an epoch is not off by the age
         of the scan a FIFO read happened to be anchored on."""
-        rate = self.device.scan_rate_hz if self.device else ldq412.SCAN_RATE_DEFAULT_HZ
-        t_end = time.monotonic() + 1.5 / rate
+        t_end = time.monotonic() + 1.5 / self._rate_hz
         try:
             prev = daq.snapshot()
             while time.monotonic() < t_end:
@@ -197,8 +201,7 @@ class Acquisition:
         find the latest scan at the same age read after read (for minutes, as the clocks
         drift by a few hundred ppm), and the device-to-UTC offset needs some reads just
         after a scan (:mod:`daemon.recorder.clockmap`)."""
-        rate = self.device.scan_rate_hz if self.device else ldq412.SCAN_RATE_DEFAULT_HZ
-        return (self.stats.reads * READ_DITHER_STEP) % 1.0 / rate
+        return (self.stats.reads * READ_DITHER_STEP) % 1.0 / self._rate_hz
 
     def _next_backoff(self, now: float) -> float:
         """Seconds to the next try: every BACKOFF_FAST_S through the restart window of an
@@ -208,8 +211,7 @@ class Acquisition:
         less (1.28 s at 200 Hz: a link back after a long outage still finds its scans)."""
         if self._down_since is not None and now - self._down_since < RESTART_WINDOW_S:
             return BACKOFF_FAST_S
-        rate = self.device.scan_rate_hz if self.device else ldq412.SCAN_RATE_DEFAULT_HZ
-        cap = max(BACKOFF_MIN_S, min(BACKOFF_MAX_S, ldq412.FIFO_DEPTH / rate / 4))
+        cap = max(BACKOFF_MIN_S, min(BACKOFF_MAX_S, ldq412.FIFO_DEPTH / self._rate_hz / 4))
         wait = min(self._backoff, cap)
         self._backoff = min(cap, self._backoff * 2)
         return wait
@@ -217,7 +219,7 @@ class Acquisition:
     def _next_poll(self, start: float, scans: list[Scan]) -> float:
         """Without a FIFO: when to poll next, phase-locked to the module's clock (one poll
         per scan, at a safe point between two scans: :class:`daemon.recorder.polling.PhaseLock`)."""
-        rate = self.device.scan_rate_hz if self.device else ldq412.SCAN_RATE_DEFAULT_HZ
+        rate = self._rate_hz
         lock = self.poll_lock
         if lock is None or lock.rate_hz != rate:
             lock = self.poll_lock = PhaseLock(rate)
@@ -427,7 +429,7 @@ class Acquisition:
                            counter64=c64)  # fmt: skip
             st.missed += missed
         status = rows["status"].astype(np.int64)
-        rate = self.device.scan_rate_hz if self.device else ldq412.SCAN_RATE_DEFAULT_HZ
+        rate = self._rate_hz
         for ch in range(4):
             self._flag_events("rail", self._rail[ch], ch, (status >> ch) & 1, rows, rate)
             self._flag_events("sensor_fault", self._fault[ch], ch, (status >> (4 + ch)) & 1,

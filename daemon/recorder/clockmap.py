@@ -66,13 +66,14 @@ class ClockMap:
         if bins and bins[-1][0] == k:
             # the bin keeps its lowest sample once the slope is taken out
             old_t, old = bins[-1][1], bins[-1][2]
-            if sample - old < self.slope * (time64_us - old_t) * 1000:
-                bins[-1] = (k, time64_us, sample)
+            if not sample - old < self.slope * (time64_us - old_t) * 1000:
+                return  # not lower: the bins, so the line, are as they were
+            bins[-1] = (k, time64_us, sample)
         elif not bins or k > bins[-1][0]:
             bins.append((k, time64_us, sample))
         else:  # an older bin than the newest: its scans are already stamped
             return
-        self._refit()
+        self._refit()  # only when the bins changed: the line is a function of them
 
     def _refit(self) -> None:
         bins = self._bins

@@ -18,7 +18,7 @@ import threading
 from pathlib import Path
 
 from ..recording import RecordingError, find_recordings
-from ..recording.compact import compact
+from ..recording.compact import compact, remove_stale_temporaries
 
 log = logging.getLogger("daemon.recorder.compactor")
 
@@ -37,8 +37,7 @@ class Compactor:
     def start(self, directory: Path | None = None) -> Compactor:
         """Start the thread; queue the closed files of ``directory`` not compact yet."""
         if directory is not None and directory.is_dir():
-            for stale in directory.glob(".loopcal-*.mcap.compact.tmp"):
-                stale.unlink(missing_ok=True)  # left by a compaction that was killed
+            remove_stale_temporaries(directory)
             try:
                 for path in find_recordings(directory):
                     self.submit(path)

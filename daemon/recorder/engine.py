@@ -108,7 +108,6 @@ class Recorder:
         self.analysis = AnalysisThread([])
         self._watch = ConfigWatch(settings.controller_config)
         self.followed = ""  # what the status line says after following a replaced config
-        self._events: Counter[tuple[str, str]] = Counter()  # (kind, level) -> count
         #: when the newest scan arrived, ns since the Unix epoch (None before the first)
         self.last_scan_ns: int | None = None
         self.compactor = Compactor() if settings.compact else None
@@ -154,15 +153,13 @@ class Recorder:
         the next flush. Safe from any thread."""
         ev = Event(time.time_ns(), kind, level, message, dict(details))
         ev.log(log)
-        with self.shared.lock:
-            self.shared.events.append(ev)
-            self._events[ev.kind, ev.level.name.lower()] += 1
+        self.shared.record(ev)
         self._queue.wake()
 
     def event_counts(self) -> Counter[tuple[str, str]]:
-        """How many events of each (kind, level) the recorder has recorded so far."""
-        with self.shared.lock:
-            return Counter(self._events)
+        """How many events of each (kind, level) the recorder has recorded so far (its own,
+        the acquisition's, the writer's, the observers')."""
+        return self.shared.event_counts()
 
     # ------------------------------------------------------------------ main thread
 
@@ -316,10 +313,8 @@ class Recorder:
         self.analysis.put(batch.rows)
         if len(batch.rows):
             self.last_scan_ns = int(batch.rows["host_ns"][-1])
-        if batch.events:
-            with self.shared.lock:
-                for ev in batch.events:
-                    self._events[ev.kind, ev.level.name.lower()] += 1
+        for ev in batch.events:  # written with the batch's scans
+            self.shared.record(ev, pending=False)
 
     def _acq_main(self, acq: Acquisition, stop: threading.Event) -> None:
         try:
@@ -348,12 +343,7 @@ class Recorder:
                         ok=False, error=str(exc))  # fmt: skip
             self.notifier.ready(self.status_line())
             return
-        with self.shared.lock:
-            self.shared.settings = new
-            self.shared.controller = controller
-            self._queue.cap = new.max_backlog_scans
-            self.shared.rotate = True
-        self.analysis.reload(controller)
+        self._put_in_force(controller, new)
         self._watch = ConfigWatch(new.controller_config)
         restart_daq = (new.daq_url, new.timeout_s, new.read_period_s) != (
             old.daq_url, old.timeout_s, old.read_period_s)  # fmt: skip
@@ -366,6 +356,18 @@ class Recorder:
                     f"{', DAQ reopened' if restart_daq else ''}); starting a new file",
                     ok=True, controller_sha256=controller.sha256)  # fmt: skip
         self.notifier.ready(self.status_line())
+
+    def _put_in_force(self, controller: ControllerConfig,
+                      settings: RecorderSettings | None = None) -> None:  # fmt: skip
+        """Record with ``controller`` (and ``settings``, if given) from a new file on, which
+        is asked for; the observers get the controller at once."""
+        with self.shared.lock:
+            if settings is not None:
+                self.shared.settings = settings
+                self._queue.cap = settings.max_backlog_scans
+            self.shared.controller = controller
+            self.shared.rotate = True
+        self.analysis.reload(controller)
 
     def _follow_config(self) -> None:
         """The controller config file changed on disk (``loopcal calibrate --write``, the
@@ -382,10 +384,7 @@ class Recorder:
             return
         if controller.sha256 == self.controller.sha256:
             return  # touched, not changed
-        with self.shared.lock:
-            self.shared.controller = controller
-            self.shared.rotate = True
-        self.analysis.reload(controller)
+        self._put_in_force(controller)
         prov = controller.provenance or {}
         how = (f" (calibrated {prov.get('written_utc', '?')} by {prov.get('method', '?')})"
                if prov else "")  # fmt: skip

@@ -8,7 +8,8 @@ every few seconds, and writes them all once the disk takes them again.
 
 What it shares with the other threads is explicit: the :class:`ScanQueue` the acquisition
 fills, and the :class:`Shared` state (settings and controller config in force, the
-recorder's own events, whether a new file was asked for) behind one lock.
+recorder's own events and the count of every event recorded, whether a new file was asked
+for) behind one lock.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import logging
 import os
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -139,26 +141,42 @@ class RecorderStatus:
 @dataclass
 class Shared:
     """What the recorder's threads share, behind :attr:`lock`: the settings and controller
-    config in force, the recorder's own events waiting for the next flush, and whether a
-    new file was asked for (a reload)."""
+    config in force, the recorder's own events waiting for the next flush, how many events
+    of each (kind, level) were recorded (the metrics), and whether a new file was asked for
+    (a reload)."""
 
     settings: RecorderSettings
     controller: ControllerConfig
     lock: threading.Lock = field(default_factory=threading.Lock)
     events: list[Event] = field(default_factory=list)
     rotate: bool = False
+    counts: Counter[tuple[str, str]] = field(default_factory=Counter)
+
+    def record(self, event: Event, *, pending: bool = True) -> None:
+        """Count ``event`` as recorded (:meth:`event_counts`); ``pending``: also keep it
+        for the writer's next flush (False: it reaches the file by another way, a batch of
+        the acquisition or the writer's own list). Every event recorded goes through here."""
+        with self.lock:
+            if pending:
+                self.events.append(event)
+            self.counts[event.kind, event.level.name.lower()] += 1
+
+    def event_counts(self) -> Counter[tuple[str, str]]:
+        """How many events of each (kind, level) have been recorded so far."""
+        with self.lock:
+            return Counter(self.counts)
 
     def take_events(self) -> list[Event]:
         with self.lock:
             events, self.events = self.events, []
         return events
 
-    def take_rotation(self) -> tuple[bool, ControllerConfig]:
-        """Whether a new file was asked for (the request is consumed), and the controller
-        config a new file is to record."""
+    def take_rotation(self) -> ControllerConfig:
+        """The controller config a new file is to record; a new file asked for is so taken
+        (the request is consumed)."""
         with self.lock:
-            rotate, self.rotate = self.rotate, False
-            return rotate, self.controller
+            self.rotate = False
+            return self.controller
 
 
 class FileWriter:
@@ -233,17 +251,16 @@ class FileWriter:
         if len(self.events) > MAX_PENDING_EVENTS:
             del self.events[: len(self.events) - MAX_PENDING_EVENTS]
 
+    def _event(self, kind: str, level: Level, message: str, **details: object) -> None:
+        """An event of the writer's own: counted, logged, and written with the next flush."""
+        ev = Event(time.time_ns(), kind, level, message, dict(details))
+        self.shared.record(ev, pending=False)
+        ev.log(log)
+        self.events.append(ev)
+
     def _drop_event(self, n: int, why: str) -> None:
-        self.events.append(
-            Event(
-                time.time_ns(),
-                "backlog_dropped",
-                Level.ERROR,
-                f"{n} scans dropped from memory: {why}",
-                {"scans": n},
-            )  # fmt: skip
-        )
-        self.events[-1].log(log)
+        self._event("backlog_dropped", Level.ERROR, f"{n} scans dropped from memory: {why}",
+                    scans=n)  # fmt: skip
 
     # ------------------------------------------------------------------ files
 
@@ -267,7 +284,7 @@ class FileWriter:
 
     def _open_file(self, now: float) -> RecordingWriter:
         s = self.shared.settings
-        _, controller = self.shared.take_rotation()
+        controller = self.shared.take_rotation()
         s.directory.mkdir(parents=True, exist_ok=True)
         t = time.time_ns()
         path = s.directory / recording_name(t)
@@ -329,12 +346,10 @@ class FileWriter:
         self.rows, self.n_rows = [], 0
         if f.views_error and self.views_reported != f.path:
             self.views_reported = f.path
-            ev = Event(time.time_ns(), "views_failed", Level.ERROR,
-                       f"no plate poses for {f.path.name}: the controller config's parameters "
-                       f"give no forward kinematics ({f.views_error}); the raw scans are "
-                       "recorded", {"path": str(f.path), "error": f.views_error})  # fmt: skip
-            ev.log(log)
-            self.events.append(ev)
+            self._event("views_failed", Level.ERROR,
+                        f"no plate poses for {f.path.name}: the controller config's parameters "
+                        f"give no forward kinematics ({f.views_error}); the raw scans are "
+                        "recorded", path=str(f.path), error=f.views_error)  # fmt: skip
 
     def _flush(self, now: float) -> None:
         if not self.rows and (self.file is None or not self.events):
@@ -358,12 +373,9 @@ class FileWriter:
             outage = now - self.disk_error_since
             self.disk_error_since = None
             self.status.disk_error = ""
-            ev = Event(time.time_ns(), "disk_recovered", Level.INFO,
-                       f"writing works again after {outage:.1f} s", {
-                           "path": str(self.file.path if self.file else ""),
-                           "outage_s": round(outage, 3)})  # fmt: skip
-            ev.log(log)
-            self.events.append(ev)
+            self._event("disk_recovered", Level.INFO, f"writing works again after {outage:.1f} s",
+                        path=str(self.file.path if self.file else ""),
+                        outage_s=round(outage, 3))  # fmt: skip
         self.status.backlog = 0
 
     def _disk_failed(self, exc: OSError, now: float) -> None:
@@ -382,12 +394,10 @@ class FileWriter:
         self.retry_at = now + DISK_RETRY_S
         if self.disk_error_since is None:
             self.disk_error_since = self.failing_logged = now
-            ev = Event(time.time_ns(), "disk_error", Level.ERROR,
-                       f"cannot write {path}: {text}; keeping scans in memory and retrying "
-                       f"every {DISK_RETRY_S:g} s", {"path": str(path), "error": text,
-                                                     "errno": exc.errno})  # fmt: skip
-            ev.log(log)
-            self.events.append(ev)
+            self._event("disk_error", Level.ERROR,
+                        f"cannot write {path}: {text}; keeping scans in memory and retrying "
+                        f"every {DISK_RETRY_S:g} s", path=str(path), error=text,
+                        errno=exc.errno)  # fmt: skip
         elif now - self.failing_logged >= STILL_FAILING_LOG_S:
             self.failing_logged = now
             log.warning("disk still refuses writes after %.0f s (%s); %d scans waiting in memory",
@@ -423,8 +433,6 @@ class FileWriter:
                 log.warning("retention: cannot delete %s: %s", p, exc)
                 continue
             total -= sz
-            ev = Event(time.time_ns(), "retention", Level.INFO,
-                       f"deleted {p.name} ({sz} bytes) to stay under the disk budget of "
-                       f"{budget} bytes", {"path": str(p), "bytes": sz})  # fmt: skip
-            ev.log(log)
-            self.events.append(ev)
+            self._event("retention", Level.INFO,
+                        f"deleted {p.name} ({sz} bytes) to stay under the disk budget of "
+                        f"{budget} bytes", path=str(p), bytes=sz)  # fmt: skip

@@ -12,6 +12,9 @@ import numpy as np
 from ..scans import SCAN_DTYPE
 from .schemas import BASE_FRAME, CDR_LE, PLATE_FRAME
 
+# CDR (little endian) of messages with fixed-size fields only, vectorised: a numpy dtype
+# with each field at its CDR offset (aligned to its size, counted from the end of the
+# 4-byte encapsulation header), so n messages encode with one tobytes().
 _CDR_PRIMITIVES = {"bool": "?", "uint8": "u1", "uint16": "<u2", "int32": "<i4", "uint32": "<u4",
                    "int64": "<i8", "uint64": "<u8", "float32": "<f4", "float64": "<f8"}  # fmt: skip
 
@@ -103,25 +106,27 @@ def encode_scan_block(rows: np.ndarray) -> bytes:
     return CDR_LE + struct.pack("<I4x", len(rows)) + body
 
 
-def _block_count(data: bytes) -> int | None:
-    """The number of scans a ``/daq/scans`` message holds, or None if it is not a
-    well-formed block (CDR little endian, a length that fits the count exactly)."""
+def _block_count(data: bytes) -> int | str:
+    """The number of scans a ``/daq/scans`` message holds, or why it is not a well-formed
+    block (CDR little endian, a length that fits the count exactly)."""
     if len(data) < 8 or data[:4] != CDR_LE:
-        return None
+        return "scan block is not little-endian CDR"
     (n,) = struct.unpack_from("<I", data, 4)
-    if len(data) != (_ROWS_AT + n * SCAN_DTYPE.itemsize - _TAIL if n else 8):
-        return None
+    want = _ROWS_AT + n * SCAN_DTYPE.itemsize - _TAIL if n else 8
+    if len(data) != want:
+        return f"scan block of {n} scans has {len(data)} bytes, not {want}"
     return n
 
 
-def decode_scan_blocks_checked(messages: Iterable[bytes]) -> tuple[np.ndarray, int]:
-    """Rows (SCAN_DTYPE) of ``/daq/scans`` messages, in order, and how many messages were
-    not well-formed blocks (skipped). Each block's body is copied once, straight into the
-    rows (the last row of a block lacks CDR's trailing padding, which stays zero)."""
+def _decode(messages: Iterable[bytes], *, strict: bool) -> tuple[np.ndarray, int]:
+    """Rows and how many messages were not well-formed blocks (skipped; ``strict``: the
+    first raises ValueError saying why)."""
     blocks, bad, total = [], 0, 0
     for data in messages:
         n = _block_count(data)
-        if n is None:
+        if isinstance(n, str):
+            if strict:
+                raise ValueError(n)
             bad += 1
         elif n:
             blocks.append((data, n))
@@ -136,16 +141,14 @@ def decode_scan_blocks_checked(messages: Iterable[bytes]) -> tuple[np.ndarray, i
     return rows, bad
 
 
+def decode_scan_blocks_checked(messages: Iterable[bytes]) -> tuple[np.ndarray, int]:
+    """Rows (SCAN_DTYPE) of ``/daq/scans`` messages, in order, and how many messages were
+    not well-formed blocks (skipped). Each block's body is copied once, straight into the
+    rows (the last row of a block lacks CDR's trailing padding, which stays zero)."""
+    return _decode(messages, strict=False)
+
+
 def decode_scan_blocks(messages: Iterable[bytes]) -> np.ndarray:
     """Rows (SCAN_DTYPE) of ``/daq/scans`` messages, in order. Raises ValueError if one is
     not a well-formed block."""
-    messages = list(messages)
-    rows, bad = decode_scan_blocks_checked(messages)
-    if bad:
-        first = next(m for m in messages if _block_count(m) is None)
-        if first[:4] != CDR_LE or len(first) < 8:
-            raise ValueError("scan block is not little-endian CDR")
-        (n,) = struct.unpack_from("<I", first, 4)
-        raise ValueError(f"scan block of {n} scans has {len(first)} bytes, not "
-                         f"{_ROWS_AT + n * SCAN_DTYPE.itemsize - _TAIL if n else 8}")  # fmt: skip
-    return rows
+    return _decode(messages, strict=True)[0]

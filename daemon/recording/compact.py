@@ -13,7 +13,8 @@ Nothing can be lost doing it: the new version goes to a temporary file beside th
 (``.NAME.compact.tmp``), is read back with :func:`~daemon.recording.read_recordings` and
 compared scan for scan, event for event, message count for message count with the original,
 fsynced, and only then renamed over it (atomic), and the directory fsynced. A file that is
-not closed, not intact, or already compact is left as it is. Killed at any step, the
+not closed, not intact, or already compact is left as it is (already compact is told from
+its metadata record alone, without reading its chunks). Killed at any step, the
 original is there, whole, or the compacted copy is; a temporary file left behind is removed
 by the next compaction of the directory.
 """
@@ -36,7 +37,7 @@ from ..config import durable
 from .errors import RecordingError
 from .names import find_recordings
 from .reader import read_recordings
-from .schemas import TOPIC_EVENTS, TOPIC_LOG, TOPIC_SCANS
+from .schemas import FORMAT_VERSION, TOPIC_EVENTS, TOPIC_LOG, TOPIC_SCANS
 
 log = logging.getLogger("daemon.recording.compact")
 
@@ -64,6 +65,13 @@ def _tmp_of(path: Path) -> Path:
     return path.with_name(f".{path.name}.compact.tmp")
 
 
+def remove_stale_temporaries(directory: Path) -> None:
+    """Remove the temporary files (:func:`_tmp_of`) that killed compactions left in a
+    directory; call it before any compaction there."""
+    for stale in Path(directory).glob(".loopcal-*.mcap.compact.tmp"):
+        stale.unlink(missing_ok=True)
+
+
 def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compacted:
     """Rewrite the closed recording ``path`` with large chunks, verified, atomically (see the
     module docstring). Raises OSError if the disk refuses (the original is then as it was).
@@ -72,6 +80,8 @@ def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compac
     deleted or replaced meanwhile: the recorder's retention holds the same lock) and
     replaced."""
     path = Path(path)
+    if _says_compacted(path):
+        return Compacted(path, False, "already compact")
     try:
         original = read_recordings(path)
     except RecordingError as exc:
@@ -111,6 +121,27 @@ def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compac
     return Compacted(path, True, "", chunks_before, chunks_after, size, path.stat().st_size)
 
 
+def _says_compacted(path: Path) -> bool:
+    """Whether a closed file's ``loopcal`` metadata record says it was compacted (with this
+    loopcal's format), read through the summary's metadata index: the footer, the summary
+    and one small record, no chunk. False whenever that cannot be told so cheaply (no
+    summary, anything unreadable): the file is then read whole and judged as before. A file
+    this finds compact is left alone without that read, damaged or not."""
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            if summary is None or not (summary.chunk_indexes or summary.statistics):
+                return False  # read_recordings reads it as not closed
+            record: dict[str, str] = {}
+            for m in reader.iter_metadata():
+                if m.name == "loopcal":
+                    record = dict(m.metadata)  # the last one, as read_recordings keeps it
+    except Exception:  # noqa: BLE001 - any damage: the careful read below decides
+        return False
+    return "compacted_utc" in record and record.get("format", FORMAT_VERSION) == FORMAT_VERSION
+
+
 def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
     """Write the compacted copy; returns the original's chunk count and its message count
     per channel id."""
@@ -120,7 +151,6 @@ def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
         summary = reader.get_summary()
         assert summary is not None  # a closed, intact file (checked by the caller)
         metadata = [(m.name, dict(m.metadata)) for m in reader.iter_metadata()]
-        raw_ids = {i for i, c in summary.channels.items() if c.topic in _RAW_TOPICS}
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC,
                      os.stat(path).st_mode & 0o7777)  # fmt: skip
         with os.fdopen(fd, "wb") as out:
@@ -143,10 +173,10 @@ def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
                     record = {**record, "compacted_utc": stamp}
                 w.add_metadata(name, record)
             counts: dict[int, int] = {}
-            for raw in (True, False):  # the scans' chunks first, then the views' own
-                for _, channel, message in reader.iter_messages(log_time_order=False):
-                    if (channel.id in raw_ids) != raw:
-                        continue
+            views = {c.topic for c in summary.channels.values()} - set(_RAW_TOPICS)
+            for topics in (_RAW_TOPICS, views):  # the scans' chunks first, then the views' own
+                # topics: the chunks holding none of them are skipped, not decompressed
+                for _, channel, message in reader.iter_messages(topics, log_time_order=False):
                     counts[channel.id] = counts.get(channel.id, 0) + 1
                     w.add_message(channel.id, message.log_time, message.data,
                                   message.publish_time, message.sequence)  # fmt: skip
@@ -180,8 +210,7 @@ def _verify(tmp: Path, original, counts: dict[int, int]) -> tuple[int, str]:
 def compact_directory(directory: Path, *, skip: Path | None = None) -> list[Compacted]:
     """Compact every closed recording of a directory but ``skip`` (the file being
     written), oldest first; remove temporary files that a killed compaction left."""
-    for stale in directory.glob(".loopcal-*.mcap.compact.tmp"):
-        stale.unlink(missing_ok=True)
+    remove_stale_temporaries(directory)
     out = []
     for path in find_recordings(directory):
         if skip is not None and path == skip:
@@ -190,4 +219,4 @@ def compact_directory(directory: Path, *, skip: Path | None = None) -> list[Comp
     return out
 
 
-__all__ = ["CHUNK_BYTES", "Compacted", "compact", "compact_directory"]
+__all__ = ["CHUNK_BYTES", "Compacted", "compact", "compact_directory", "remove_stale_temporaries"]

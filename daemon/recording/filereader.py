@@ -29,6 +29,7 @@ from .records import (
     ChunkRecords,
     Damage,
     Summary,
+    is_ours,
     parse_record,
     read_chunk,
     read_header,
@@ -152,7 +153,8 @@ def utc_text(ns: int | None) -> str:
     return f"{t:%Y-%m-%d %H:%M:%S}.{rest // 10_000_000:02d} UTC"
 
 
-
+#: channel ids our writer gives the topics (in CHANNELS order, from 1), for a file of ours
+#: whose channel records were lost with its first chunk
 _OUR_CHANNEL_IDS = {topic: i for i, topic in enumerate(CHANNELS, start=1)}
 
 
@@ -188,7 +190,7 @@ class FileReader:
             if NAME_RE.match(self.path.name) is None and not _has_intact_chunk(buf):
                 raise RecordingError(f"{self.path}: not an MCAP file (no MCAP magic bytes)")
         header = read_header(buf)
-        self.ours = header is None or header.library.startswith("loopcal")
+        self.ours = is_ours(header)
         summary, why = read_summary(buf, strict=self.ours)
         if summary is not None and (summary.chunk_indexes or summary.statistics is not None):
             self._read_indexed(buf, summary)

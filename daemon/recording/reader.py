@@ -22,6 +22,7 @@ from .records import (
     FOOTER_BYTES,
     MAGIC,
     RECORD_HEAD,
+    is_ours,
     read_header,
     read_statistics,
 )
@@ -65,7 +66,6 @@ class Recording:
         return [e for e in self.events if e.kind == kind]
 
 
-
 def _as_ns(t: int | float | datetime | None) -> int | None:
     if t is None:
         return None
@@ -75,9 +75,6 @@ def _as_ns(t: int | float | datetime | None) -> int | None:
         return round(t.timestamp() * NS_PER_S)
     return int(t)
 
-
-#: channel ids our writer gives the topics (in CHANNELS order, from 1), for a file of ours
-#: whose channel records were lost with its first chunk
 
 def identities(rows: np.ndarray) -> list[bytes]:
     """What makes a scan the same scan in two files: epoch, counter, device time, codes."""
@@ -113,8 +110,7 @@ def _read_tail_statistics(path: Path) -> Statistics | None:
     except (OSError, struct.error):
         return None
     header = read_header(memoryview(head))
-    ours = header is None or header.library.startswith("loopcal")
-    return read_statistics(memoryview(tail), strict=ours, base=start)
+    return read_statistics(memoryview(tail), strict=is_ours(header), base=start)
 
 
 def message_time_range(path: Path) -> tuple[int, int] | None:

@@ -181,6 +181,12 @@ def read_header(buf: memoryview) -> Header | None:
         return None
 
 
+def is_ours(header: Header | None) -> bool:
+    """Whether a file is taken to be written by loopcal (its records then checked strictly):
+    its header names the loopcal library, or is not intact (a damaged start)."""
+    return header is None or header.library.startswith("loopcal")
+
+
 def _footer(buf: memoryview, *, strict: bool, base: int) -> tuple[Footer | None, str]:
     """The footer of a file whose summary's CRC matches, or (None, why not). ``buf`` holds
     the file from offset ``base`` to its end."""
@@ -510,6 +516,7 @@ __all__ = [
     "ChunkRecords",
     "Damage",
     "Summary",
+    "is_ours",
     "parse_record",
     "read_chunk",
     "read_header",

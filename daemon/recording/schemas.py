@@ -25,8 +25,6 @@ BASE_FRAME, PLATE_FRAME = "base", "plate"
 CDR_LE = b"\x00\x01\x00\x00"  # CDR encapsulation header: little endian, no options
 #: a raw block never spans more stamp time than this (readers widen time windows by it)
 BLOCK_SPAN_NS = 1_000_000_000
-#: chunks are closed by flushes only, never by size
-_CHUNK_SIZE = 1 << 30
 NS_PER_S = 1_000_000_000
 
 # ---------------------------------------------------------------------------- schemas
@@ -231,7 +229,3 @@ _MSGDEFS = {
         "float64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1\n"
     ),
 }
-
-# CDR (little endian) of messages with fixed-size fields only, vectorised: a numpy dtype
-# with each field at its CDR offset (aligned to its size, counted from the end of the
-# 4-byte encapsulation header), so n messages encode with one tobytes().
