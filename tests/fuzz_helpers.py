@@ -2,8 +2,9 @@
 (:func:`write_rows`), damaged the way storage damages them, and what the reader made of
 them judged.
 
-Shared by the tests and the long fuzz run (bench/fuzz_parsers.py). A mutation is a plain function of the file's bytes and a few
-integers, so hypothesis can draw the integers and shrink them.
+Shared by the tests and the long fuzz run (bench/fuzz_parsers.py). A mutation is a plain
+function of the file's bytes and a few integers, so hypothesis can draw the integers and
+shrink them.
 """
 
 from __future__ import annotations
@@ -193,6 +194,17 @@ def overwrite(data: bytes, at: int, junk: bytes) -> bytes:
     out = bytearray(data)
     out[at : at + len(junk)] = junk[: len(out) - at]
     return bytes(out)
+
+
+def tear_chunk(path: Path, k: int, *, head: int = 50, tail: int = 5) -> bytes:
+    """Zero chunk ``k`` (in file order) of the recording at ``path`` but for its first
+    ``head`` and last ``tail`` bytes: its data torn, its record header intact. Writes the
+    file back; returns its new bytes."""
+    data = path.read_bytes()
+    off, length = chunk_spans(data)[k]
+    data = zero_run(data, off + head, length - head - tail)
+    path.write_bytes(data)
+    return data
 
 
 MUTATIONS: dict[str, Callable[..., bytes]] = {

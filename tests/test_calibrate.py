@@ -399,16 +399,13 @@ def test_backups_never_share_a_name(offline, tmp_path):
 def test_json_warnings_name_the_damaged_file(offline, tmp_path):
     import shutil
 
-    from fuzz_helpers import chunk_spans
+    from fuzz_helpers import tear_chunk
 
     rec_dir, _ = offline
     copy = tmp_path / "rec"
     shutil.copytree(rec_dir, copy)
     [path] = sorted(copy.glob("*.mcap"))
-    data = bytearray(path.read_bytes())
-    off, length = chunk_spans(bytes(data))[200]  # a flush's raw chunk
-    data[off + 50 : off + length - 5] = bytes(length - 55)
-    path.write_bytes(bytes(data))
+    tear_chunk(path, 200)  # a flush's raw chunk
     config = fresh_config(tmp_path / "controller.toml")
     rc, doc, err = calibrate_json(copy, "--controller-config", config)
     assert len(doc["warnings"]) == 1 and str(path) in doc["warnings"][0]

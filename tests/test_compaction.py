@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 import pytest
-from fuzz_helpers import chunk_spans, identities, make_rows, write_recording
+from fuzz_helpers import identities, make_rows, tear_chunk, write_recording
 from js_helpers import JS, npm_installed
 from mcap.reader import make_reader
 from recorder_helpers import Proc, assert_matches_truth, hand_emulator, record
@@ -61,12 +61,9 @@ def test_files_not_closed_or_damaged_are_left_alone(tmp_path):
     data = open_file.read_bytes()
     assert not compact(open_file).done and open_file.read_bytes() == data
     damaged = _recording(tmp_path)
-    raw = bytearray(damaged.read_bytes())
-    off, length = chunk_spans(bytes(raw))[10]
-    raw[off + 50 : off + length - 5] = bytes(length - 55)
-    damaged.write_bytes(bytes(raw))
+    raw = tear_chunk(damaged, 10)
     r = compact(damaged)
-    assert not r.done and "damaged" in r.reason and damaged.read_bytes() == bytes(raw)
+    assert not r.done and "damaged" in r.reason and damaged.read_bytes() == raw
 
 
 @pytest.mark.parametrize("step", ["compact-written", "compact-verified", "compact-renamed"])
