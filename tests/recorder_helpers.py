@@ -123,6 +123,11 @@ class Proc:
         self._reader.join(5)
 
 
+def listening_url(proc: Proc, timeout: float = 10.0) -> str:
+    """The URL a ``loopcal simulate`` or ``loopcal replay`` subprocess says it listens on."""
+    return proc.lines[proc.wait_for("listening: ", timeout)].split(": ", 1)[1]
+
+
 def record(url: str, out: Path, *extra: str, **kw) -> Proc:
     """``loopcal record --daq URL --out DIR ...`` as a subprocess."""
     return Proc(["record", "--daq", url, "--out", str(out), *extra], **kw)

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 import tomlkit
 from fuzz_helpers import write_rows
-from recorder_helpers import Proc, record
+from recorder_helpers import Proc
+from replay_helpers import finish, replay_and_record
 from session_helpers import (
     PAUSE_S,
     calibrate_json,
@@ -214,14 +215,8 @@ def test_report(offline, tmp_path):
 def test_replay_round_trip_is_exact(sessions, tmp_path, transport):
     # 50 s from the middle of a session: the module was powered on before the first scan
     src = trim(sessions[0].directory, tmp_path / "src", 600, 1600)
-    player = Proc(["replay", src, "--speed", "10", "--transport", transport])
-    line = player.lines[player.wait_for("listening: ")]
-    url = line.split(": ", 1)[1]
-    rec = record(url, tmp_path / "again", "--read-period", "0.05")
-    player.wait_for("replay finished", timeout=60)
-    time.sleep(0.5)
-    rc, _ = rec.stop()
-    assert rc == 0 and player.wait() == 0, rec.text
+    player, recorder = replay_and_record(src, tmp_path / "again", transport, 10)
+    finish(player, recorder, settle_s=0.5)  # the replay's 1 s tail is 0.1 s at ten times
     a = read_recordings(src).scans
     b = read_recordings(tmp_path / "again").scans
     got = {
