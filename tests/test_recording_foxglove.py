@@ -4,14 +4,12 @@ cut short by a crash (tests/js/read_mcap.mjs is the TypeScript side)."""
 
 from __future__ import annotations
 
-import json
-import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
-from js_helpers import JS, npm_installed
+from js_helpers import mcap_reader, read_ts, run_node
 from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_ros2.decoder import DecoderFactory
@@ -54,17 +52,7 @@ METADATA = rec.metadata_records(
 @pytest.fixture(scope="session")
 def node_reader() -> list[str]:
     """The command that runs read_mcap.mjs."""
-    return [npm_installed(), str(JS / "read_mcap.mjs")]
-
-
-def run_node(node_reader: list[str], path: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([*node_reader, str(path)], capture_output=True, text=True, timeout=60)
-
-
-def read_ts(node_reader: list[str], path: Path) -> dict:
-    proc = run_node(node_reader, path)
-    assert proc.returncode == 0, proc.stderr
-    return json.loads(proc.stdout)
+    return mcap_reader()
 
 
 def as_rows(ts_scans: list[dict]) -> np.ndarray:
