@@ -27,6 +27,7 @@ from session_helpers import (
 )
 
 from calibration.parameters import INDEX, NAMES, NOMINAL
+from daemon.config import durable
 from daemon.config.controller import load_controller_config
 from daemon.recording import read_recordings
 from daemon.worker.writeback import STEPS
@@ -318,17 +319,13 @@ def test_a_cut_recording_with_faults_and_gaps(offline, tmp_path):
     assert rc == 0, doc["gates"]
 
 
-def _locked_by_someone(directory) -> bool:
-    import fcntl
-
-    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+def _locked_by_someone(config) -> bool:
+    """Whether another writer holds the config's lock (the writers' own lock, not waited for)."""
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
+        with durable.locked(config, timeout=0):
+            return False
+    except durable.Busy:
         return True
-    finally:
-        os.close(fd)
-    return False
 
 
 def test_two_writers_at_once_never_lose_an_update(offline, tmp_path):
@@ -341,7 +338,7 @@ def test_two_writers_at_once_never_lose_an_update(offline, tmp_path):
     a = Proc(["calibrate", str(rec_dir), "--controller-config", str(config), "--write",
               "--json"], env={"LOOPCAL_PAUSE_AT": "locked:8"})  # fmt: skip
     deadline = time.monotonic() + 60
-    while not _locked_by_someone(tmp_path):
+    while not _locked_by_someone(config):
         assert time.monotonic() < deadline and a.proc.poll() is None, a.text
         time.sleep(0.05)
     b = Proc(["calibrate", str(rec_dir), "--controller-config", str(config), "--write",
