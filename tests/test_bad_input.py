@@ -3,10 +3,9 @@ traceback, and nothing is started, recorded or written. Each case was a tracebac
 
 from __future__ import annotations
 
-import socket
-
 import pytest
 from fuzz_helpers import make_rows, write_recording
+from recorder_helpers import taken_port
 from session_helpers import fresh_config, loopcal
 
 from daemon import recording as rec
@@ -88,21 +87,13 @@ def test_report_path_is_checked_before_the_config_is_written(tmp_path):
     assert config.read_bytes() == before and not list(tmp_path.glob("*.prev"))
 
 
-def _taken_port():
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    s.listen()
-    return s
-
-
 def test_replay_and_simulate_options(tmp_path):
     recording = tmp_path / rec.recording_name(1_795_000_000_000_000_000)
     write_recording(recording, make_rows(100))
     for cmd in (["replay", recording], ["simulate", "--duration", "1"]):
         refused(loopcal(*cmd, "--port", "70000"), "--port", "70000", "0..65535")
         refused(loopcal(*cmd, "--host", "256.1.1.1"), "--host", "256.1.1.1")
-        with _taken_port() as s:
-            port = s.getsockname()[1]
+        with taken_port() as port:
             refused(loopcal(*cmd, "--port", port), f"127.0.0.1:{port}", "in use")
         refused(loopcal(*cmd, "--max-read-registers", "0"), "--max-read-registers", "1..125")
         refused(loopcal(*cmd, "--slow-answers", "0.1"), "--slow-answers needs --latency")

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 import pytest
-from recorder_helpers import assert_matches_truth, hand_emulator, record
+from recorder_helpers import assert_matches_truth, free_port, hand_emulator, record
 
 from daemon.recording import find_recordings, read_recordings
 
@@ -252,12 +252,7 @@ def test_rotation_by_size(tmp_path):
 
 
 def test_a_daq_that_never_answers(tmp_path):
-    import socket
-
-    with socket.socket() as s:  # a port nobody listens on
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    rec = record(f"modbus-tcp://127.0.0.1:{port}?unit=1", tmp_path, "--duration", "2")
+    rec = record(f"modbus-tcp://127.0.0.1:{free_port()}?unit=1", tmp_path, "--duration", "2")
     assert rec.wait(30) == 1
     assert "disconnect: DAQDisconnected" in rec.text
     assert "nothing was recorded" in rec.text
