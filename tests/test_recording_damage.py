@@ -3,6 +3,7 @@ the intact scans, each once, and says per file what was lost, or raises Recordin
 
 from __future__ import annotations
 
+import io
 import struct
 import zlib
 
@@ -25,6 +26,7 @@ from fuzz_helpers import (
 )
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from daemon import recording as rec
@@ -246,13 +248,7 @@ def test_writer_channel_ids_are_what_the_reader_falls_back_on(tmp_path, original
     assert out.files[0].lost_scans == 0  # the first 20 are before any scan it has
     assert "zeros" in out.warnings[0]
     # and the writer does number them so
-    src = rec.read_recordings  # noqa: F841 - keep the import used explicitly
-    from mcap.reader import make_reader
-
-    with open(tmp_path / "x.mcap", "wb") as f:
-        f.write(data[True])
-    with open(tmp_path / "x.mcap", "rb") as f:
-        channels = make_reader(f).get_summary().channels
+    channels = make_reader(io.BytesIO(data[True])).get_summary().channels
     assert {c.topic: i for i, c in channels.items()} == {
         t: i for i, t in enumerate(rec.CHANNELS, start=1)
     }
