@@ -35,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from fuzz_helpers import (  # noqa: E402
     ACCEPTABLE,
+    ASCII_ANSWERS,
     DAEMON_TOML,
     MUTATIONS,
     judge,
@@ -120,10 +121,6 @@ def recording_cases(rnd: random.Random, n: int, work: Path) -> collections.Count
 
 # ---------------------------------------------------------------------------- wire and text
 
-ANSWERS = [b">0000123400ABCDEF800001FFFBB80004\r", b"!01LDQ412\r", b"!012.01\r", b"!010014\r",
-           b">800\r", b"?01\r"]  # fmt: skip
-
-
 def _near(rnd: random.Random, good: bytes) -> bytes:
     if rnd.random() < 0.2:
         return rnd.randbytes(rnd.randint(0, 48))
@@ -142,7 +139,7 @@ def _near(rnd: random.Random, good: bytes) -> bytes:
 
 def ascii_case(rnd: random.Random) -> str:
     checksum = rnd.random() < 0.5
-    good = rnd.choice(ANSWERS)
+    good = rnd.choice(ASCII_ANSWERS)
     if checksum:  # the same answer as a module in checksum mode sends it
         good = good[:-1] + ascii_checksum(good[:-1]) + good[-1:]
     line = _near(rnd, good) if rnd.random() < 0.9 else good

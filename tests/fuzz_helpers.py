@@ -28,6 +28,9 @@ from drivers.ldq412 import volts_to_code
 
 T0 = 1_795_000_000_000_000_000  # ns, late 2026
 
+#: answers of the LDQ-412's ASCII protocol as the module sends them (the fuzzers mutate them)
+ASCII_ANSWERS = [b">0000123400ABCDEF800001FFFBB80004\r", b"!01LDQ412\r", b"!012.01\r",
+                 b"!010014\r", b">800\r", b"?01\r"]  # fmt: skip
 
 #: a daemon config as an installation has it (the TOML fuzzers mutate it)
 DAEMON_TOML = """[daq]
