@@ -38,9 +38,9 @@ from fuzz_helpers import (  # noqa: E402
     ASCII_ANSWERS,
     DAEMON_TOML,
     MUTATIONS,
+    closed_and_unclosed,
     judge,
     make_rows,
-    write_recording,
 )
 
 from daemon.config.controller import (  # noqa: E402
@@ -99,11 +99,7 @@ def _draw(rnd: random.Random, kind: str, size: int) -> list:
 
 def recording_cases(rnd: random.Random, n: int, work: Path) -> collections.Counter:
     rows = make_rows(2628)
-    data = {}
-    for closed in (True, False):
-        p = work / f"orig{closed}.mcap"
-        write_recording(p, rows, close=closed)
-        data[closed] = p.read_bytes()
+    data = closed_and_unclosed(rows, work)
     target = work / recording_name(1_795_000_000_000_000_000)
     counts: collections.Counter = collections.Counter()
     for _ in range(n):

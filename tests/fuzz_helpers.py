@@ -117,6 +117,17 @@ def write_recording(path: Path, rows: np.ndarray, *, per: int = 20, close: bool 
     return write_rows(path, rows, per=per, events=evs, close=close)[1]
 
 
+def closed_and_unclosed(rows: np.ndarray, directory: Path) -> dict[bool, bytes]:
+    """The bytes of ``rows`` written (:func:`write_recording`, in ``directory``) as a closed
+    (True) and as an unclosed, crashed (False) recording."""
+    out = {}
+    for closed in (True, False):
+        path = directory / f"original-{closed}.mcap"
+        write_recording(path, rows, close=closed)
+        out[closed] = path.read_bytes()
+    return out
+
+
 def chunk_spans(data: bytes) -> list[tuple[int, int]]:
     """(offset, length) of every chunk record of an intact file, in file order (found by
     walking its records with the mcap library's stream reader)."""

@@ -15,6 +15,7 @@ from fuzz_helpers import (
     T0,
     bad_length,
     chunk_spans,
+    closed_and_unclosed,
     duplicate_chunk,
     identities,
     judge,
@@ -37,14 +38,8 @@ N = 600  # scans in the fuzzed recording: 30 flushes of 20
 @pytest.fixture(scope="module")
 def originals(tmp_path_factory):
     """The bytes of the same 600 scans as a closed and as an unclosed (crashed) file."""
-    d = tmp_path_factory.mktemp("orig")
     rows = make_rows(N)
-    out = {}
-    for closed in (True, False):
-        p = d / f"{closed}.mcap"
-        write_recording(p, rows, close=closed)
-        out[closed] = p.read_bytes()
-    return rows, out
+    return rows, closed_and_unclosed(rows, tmp_path_factory.mktemp("orig"))
 
 
 _INT = st.integers(min_value=0, max_value=1 << 24)
