@@ -38,6 +38,7 @@ from fuzz_helpers import (  # noqa: E402
     ASCII_ANSWERS,
     DAEMON_TOML,
     MUTATIONS,
+    T0,
     closed_and_unclosed,
     judge,
     make_rows,
@@ -100,7 +101,7 @@ def _draw(rnd: random.Random, kind: str, size: int) -> list:
 def recording_cases(rnd: random.Random, n: int, work: Path) -> collections.Counter:
     rows = make_rows(2628)
     data = closed_and_unclosed(rows, work)
-    target = work / recording_name(1_795_000_000_000_000_000)
+    target = work / recording_name(T0)
     counts: collections.Counter = collections.Counter()
     for _ in range(n):
         closed = rnd.random() < 0.5

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from fuzz_helpers import write_rows
+from fuzz_helpers import T0, write_rows
 from recorder_helpers import Proc, listening_url, record
 
 from daemon import recording as rec
@@ -17,7 +17,6 @@ from daemon import scans as S
 from daemon.recording import read_recordings
 
 U32 = 1 << 32
-T0_NS = 1_795_000_000_000_000_000
 
 
 def _power_on(first: int, n: int, *, phase_us: int, rate: int, gaps: dict[int, int], seed: int):
@@ -53,7 +52,7 @@ def synthetic_rows(rate: int = 50) -> np.ndarray:
         (_power_on(0, 60, phase_us=700, rate=rate, gaps={25: 3}, seed=2), -200e-6),
         (_power_on(U32 - 40, 80, phase_us=1809, rate=rate, gaps={30: 5}, seed=1), 200e-6),
     ]
-    out, host0 = [], T0_NS
+    out, host0 = [], T0
     for epoch, ((counter, time_us, codes, skip), ppm) in enumerate(parts):
         rows = S.empty(len(counter))
         rows["counter64"] = counter

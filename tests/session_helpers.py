@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from fuzz_helpers import write_rows
+from fuzz_helpers import T0, write_rows
 from recorder_helpers import Proc, listening_url, record
 
 from calibration.parameters import PAPER7
@@ -21,7 +21,6 @@ from daemon import scans as S
 from simulator.offline import mechanism_scans
 from simulator.scenarios import Scenario
 
-T0 = 1_795_000_000_000_000_000
 #: a technician pausing about a second between moves
 PAUSE_S = (0.8, 1.5)
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fuzz_helpers import T0
 from js_helpers import mcap_reader, read_ts, run_node
 from mcap.reader import make_reader
 from mcap.writer import Writer
@@ -21,7 +22,6 @@ from daemon import scans as S
 from daemon.events import Event, Level
 from drivers.ldq412 import volts_to_code
 
-T0 = 1_795_000_000_000_000_000  # ns, late 2026
 N, PER = 300, 25  # scans, scans per write() (1.25 s: two blocks per flush)
 CUT_AFTER = 5  # the durable copy is taken after this many writes
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
+from fuzz_helpers import T0
 
 from daemon.recorder.polling import PhaseLock
 from simulator.open_points import Latency
@@ -119,7 +120,7 @@ def run_stamps(
     latency_s: Callable[[], float],
     *,
     read_period_s: float = 0.2,
-    utc0_ns: int = 1_795_000_000_000_000_000,
+    utc0_ns: int = T0,
     jitter_s: float = 0.002,
     dither: bool = True,
     sync_first: bool = True,
