@@ -19,9 +19,10 @@ import numpy as np
 
 from calibration.parameters import NOMINAL
 from simulator import Emulator
-from simulator.clock import HeldClock
+from simulator.clock import Clock, HeldClock
 from simulator.drift import OffsetDrift
 from simulator.mechanism import MechanismSource
+from simulator.open_points import OpenPoints
 from simulator.scenarios import HandMoves
 
 LOOPCAL = [sys.executable, "-m", "daemon.cli"]
@@ -34,14 +35,20 @@ def hand_emulator(
     speed: float = 1.0,
     seed: int = 0,
     drifts: tuple[OffsetDrift, ...] = (),
+    clock: Clock | None = None,
+    open_points: OpenPoints | None = None,
 ) -> Emulator:
     """An emulated LDQ-412 on a technician-moved shoulder joint (not started), whose clock
     (``speed`` times wall time) starts at the recorder's first request: however long the
     recorder subprocess takes to start on a busy machine, the FIFO (1.28 s deep at 200 Hz)
-    does not overflow before it connects."""
-    clock = HeldClock(speed)  # the emulator starts it at the first request
+    does not overflow before it connects. ``clock``: another clock instead (``speed`` is
+    then not used); ``open_points``: the emulator's settings for what the datasheet leaves
+    open."""
+    if clock is None:
+        clock = HeldClock(speed)  # the emulator starts it at the first request
     source = MechanismSource(HandMoves(seed), NOMINAL, noise_volts=0.04, seed=seed, drifts=drifts)
-    return Emulator(transport, source, scan_rate_hz=rate, clock=clock, seed=seed)
+    return Emulator(transport, source, scan_rate_hz=rate, clock=clock, seed=seed,
+                    open_points=open_points)  # fmt: skip
 
 
 class Proc:
