@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import statistics
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
+from _timing import median_time  # noqa: E402
 from session_helpers import PAUSE_S, T0, truth_for, write_session  # noqa: E402
 
 from daemon.config.controller import write_initial_config  # noqa: E402
@@ -82,8 +82,7 @@ def main() -> int:
     tasks = robot_days(root)
     print(f"{len(tasks)} robot-days ({args.robots} robots x {args.days} days of "
           f"{args.minutes:g} min); medians of {args.repeats}")  # fmt: skip
-    start = statistics.median(_timed(lambda: run_on_dask([], nothing, workers=2))
-                              for _ in range(args.repeats))  # fmt: skip
+    start, _ = median_time(lambda: run_on_dask([], nothing, workers=2), args.repeats)
     from dask.distributed import LocalCluster
 
     clusters = {w: LocalCluster(n_workers=w, threads_per_worker=1, processes=True,
@@ -93,12 +92,11 @@ def main() -> int:
         for w, cluster in clusters.items():  # warm: the workers import numpy and loopcal once
             run_on_dask(tasks[:w], info_task, scheduler=cluster.scheduler_address)
         for name, fn, extra in (("check", check_task, (FALSE_ALARM,)), ("info", info_task, ())):
-            base = statistics.median(_timed(lambda fn=fn, extra=extra: list(run_here(
-                tasks, fn, *extra))) for _ in range(args.repeats))  # fmt: skip
-            warm = {w: statistics.median(_timed(
-                lambda fn=fn, extra=extra, c=c: run_on_dask(
-                    tasks, fn, *extra, scheduler=c.scheduler_address))
-                for _ in range(args.repeats)) for w, c in clusters.items()}  # fmt: skip
+            base, _ = median_time(lambda fn=fn, extra=extra: list(run_here(tasks, fn, *extra)),
+                                  args.repeats)  # fmt: skip
+            warm = {w: median_time(lambda fn=fn, extra=extra, c=c: run_on_dask(
+                        tasks, fn, *extra, scheduler=c.scheduler_address), args.repeats)[0]
+                    for w, c in clusters.items()}  # fmt: skip
             cold = {w: t + start for w, t in warm.items()}
             print(f"{name}: in this process {base:.2f} s ({1000 * base / len(tasks):.0f} ms a "
                   f"robot-day); on a running cluster of 1 worker {warm[1]:.2f} s, of 2 workers "
@@ -109,18 +107,11 @@ def main() -> int:
         for c in clusters.values():
             c.close()
     many = tasks * 25
-    empty = statistics.median(_timed(lambda: run_on_dask(many, nothing, workers=2))
-                              for _ in range(args.repeats))  # fmt: skip
+    empty, _ = median_time(lambda: run_on_dask(many, nothing, workers=2), args.repeats)
     per_task = (empty - start) / len(many)
     print(f"a local cluster of 2 workers starts and stops in {start:.2f} s; Dask's own cost "
           f"per task (no work, {len(many)} tasks): {1000 * per_task:.2f} ms")  # fmt: skip
     return 0
-
-
-def _timed(fn) -> float:
-    t = time.perf_counter()
-    fn()
-    return time.perf_counter() - t
 
 
 if __name__ == "__main__":

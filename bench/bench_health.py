@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
-from recorder_helpers import Proc  # noqa: E402
+from recorder_helpers import Proc, listening_url  # noqa: E402
 from session_helpers import PAUSE_S, rows_from, truth_for  # noqa: E402
 
 from calibration.parameters import NAMES  # noqa: E402
@@ -278,7 +278,7 @@ def part_live(speed: float, fault_at: float, after: float, seed: int = 3) -> Non
              "--fault", fault]
         )  # fmt: skip
         try:
-            url = sim.lines[sim.wait_for("listening: ", timeout=30)].split(": ", 1)[1]
+            url = listening_url(sim, timeout=30)
             out = work / "rec"
             t0 = time.perf_counter()
             proc = subprocess.run(

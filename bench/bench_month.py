@@ -29,9 +29,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
+from fuzz_helpers import write_rows  # noqa: E402
 from session_helpers import PAUSE_S, rows_from, truth_for  # noqa: E402
 
-from calibration.parameters import NOMINAL  # noqa: E402
 from daemon import recording as rec  # noqa: E402
 from daemon.config.controller import write_initial_config  # noqa: E402
 from simulator.offline import mechanism_scans  # noqa: E402
@@ -68,10 +68,8 @@ def make_month(directory: Path, days: int, seed: int = 7) -> tuple[Path, Path]:
             path = rec_dir / rec.recording_name(int(part["stamp_ns"][0]))
             if path.exists():
                 continue
-            w = rec.RecordingWriter(path, metadata=meta, params=NOMINAL, fsync=False)
-            for k in range(0, HOUR, 600 * RATE):  # ten minutes a write: large chunks
-                w.write(part[k : k + 600 * RATE])
-            w.close()
+            # ten minutes a write: large chunks
+            write_rows(path, part, per=600 * RATE, metadata=meta, fsync=False)
         print(f"  day {d + 1}/{days} written, {time.perf_counter() - t:.0f} s so far", flush=True)
     write_initial_config(config, force=True, params=truth)
     marker.touch()

@@ -21,7 +21,6 @@ Run: ``python bench/bench_recording.py [--repeats 5] [--dir bench/results/day]``
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -30,13 +29,13 @@ import numpy as np
 from mcap.reader import make_reader
 
 sys.path.insert(0, str(Path(__file__).parent))
+from _recordings import compacted_copy  # noqa: E402
 from _timing import median_time  # noqa: E402
 
 from calibration.parameters import NOMINAL  # noqa: E402
 from calibration.simulate import simulate_poses  # noqa: E402
 from daemon import recording as rec  # noqa: E402
 from daemon import scans as S  # noqa: E402
-from daemon.recording.compact import compact  # noqa: E402
 from drivers.ldq412 import volts_to_code  # noqa: E402
 
 RATE = 20
@@ -98,14 +97,8 @@ def main() -> int:
     print(f"{len(files)} files, {size / 1e6:.0f} MB, {n_scans:,} scans "
           f"({size / n_scans:.0f} bytes per scan)")  # fmt: skip
     t_written, _ = median_time(lambda: rec.read_recordings(files), args.repeats)
-    kept = args.dir.parent / "day-compacted"
-    if kept.is_dir():
-        shutil.rmtree(kept)
-    shutil.copytree(args.dir, kept)
-    t = time.perf_counter()
-    for f in rec.find_recordings(kept):
-        assert compact(f).done
-    t_compact = (time.perf_counter() - t) / len(files)
+    kept, t = compacted_copy(args.dir, args.dir.parent / "day-compacted")
+    t_compact = t / len(files)
     compacted = rec.find_recordings(kept)
     size_c = sum(p.stat().st_size for p in compacted)
     print(f"compacted as the daemon does after each rotation: {t_compact:.1f} s a file, "

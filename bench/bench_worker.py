@@ -24,7 +24,6 @@ Run: ``python bench/bench_worker.py [--repeats 3] [--dir bench/results/worker]``
 from __future__ import annotations
 
 import argparse
-import shutil
 import statistics
 import subprocess
 import sys
@@ -32,13 +31,13 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
+from _recordings import compacted_copy  # noqa: E402
 from session_helpers import PAUSE_S, truth_for, write_session  # noqa: E402
 
 import calibration.pipeline as pipeline  # noqa: E402
 import daemon.worker.run as worker_run  # noqa: E402
 from daemon.config.controller import load_controller_config, write_initial_config  # noqa: E402
 from daemon.recording import find_recordings, read_recordings  # noqa: E402
-from daemon.recording.compact import compact  # noqa: E402
 from daemon.worker.poses import poses_of_scans  # noqa: E402
 from daemon.worker.run import run_worker  # noqa: E402
 from simulator.scenarios import HandMoves  # noqa: E402
@@ -56,18 +55,6 @@ def ensure(directory: Path, seconds: float, seed: int = 9) -> Path:
     )
     print(f"  wrote {directory.name}: {time.perf_counter() - t:.0f} s", flush=True)
     return directory
-
-
-def compacted(directory: Path) -> Path:
-    """A copy of the recording as the daemon keeps it: every closed file compacted."""
-    kept = directory.with_name(directory.name + "-compacted")
-    if kept.is_dir() and find_recordings(kept):
-        return kept
-    shutil.copytree(directory, kept, dirs_exist_ok=True)
-    for f in find_recordings(kept):
-        if not compact(f).done:
-            raise SystemExit(f"could not compact {f}")
-    return kept
 
 
 def command(rec_dir: Path, work: Path) -> tuple[float, int]:
@@ -179,8 +166,10 @@ def main() -> int:
     work.mkdir(parents=True, exist_ok=True)
     print(f"recordings under {args.dir} (written once, cached):")
     rows = []
-    runs_of = [(label, compacted(ensure(args.dir / label.replace(" ", ""), LENGTHS[label])))
-               for label in args.only]  # fmt: skip
+    runs_of = []
+    for label in args.only:  # each as the daemon keeps it (compacted: cached too)
+        written = ensure(args.dir / label.replace(" ", ""), LENGTHS[label])
+        runs_of.append((label, compacted_copy(written, reuse=True)[0]))
     if "24 h" in args.only:
         runs_of.append(("24 h*", args.dir / "24h"))
     for label, rec_dir in runs_of:

@@ -35,11 +35,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from fuzz_helpers import (  # noqa: E402
     ACCEPTABLE,
+    ASCII_ANSWERS,
     DAEMON_TOML,
     MUTATIONS,
+    T0,
+    closed_and_unclosed,
     judge,
     make_rows,
-    write_recording,
 )
 
 from daemon.config.controller import (  # noqa: E402
@@ -98,12 +100,8 @@ def _draw(rnd: random.Random, kind: str, size: int) -> list:
 
 def recording_cases(rnd: random.Random, n: int, work: Path) -> collections.Counter:
     rows = make_rows(2628)
-    data = {}
-    for closed in (True, False):
-        p = work / f"orig{closed}.mcap"
-        write_recording(p, rows, close=closed)
-        data[closed] = p.read_bytes()
-    target = work / recording_name(1_795_000_000_000_000_000)
+    data = closed_and_unclosed(rows, work)
+    target = work / recording_name(T0)
     counts: collections.Counter = collections.Counter()
     for _ in range(n):
         closed = rnd.random() < 0.5
@@ -119,10 +117,6 @@ def recording_cases(rnd: random.Random, n: int, work: Path) -> collections.Count
 
 
 # ---------------------------------------------------------------------------- wire and text
-
-ANSWERS = [b">0000123400ABCDEF800001FFFBB80004\r", b"!01LDQ412\r", b"!012.01\r", b"!010014\r",
-           b">800\r", b"?01\r"]  # fmt: skip
-
 
 def _near(rnd: random.Random, good: bytes) -> bytes:
     if rnd.random() < 0.2:
@@ -142,7 +136,7 @@ def _near(rnd: random.Random, good: bytes) -> bytes:
 
 def ascii_case(rnd: random.Random) -> str:
     checksum = rnd.random() < 0.5
-    good = rnd.choice(ANSWERS)
+    good = rnd.choice(ASCII_ANSWERS)
     if checksum:  # the same answer as a module in checksum mode sends it
         good = good[:-1] + ascii_checksum(good[:-1]) + good[-1:]
     line = _near(rnd, good) if rnd.random() < 0.9 else good

@@ -43,13 +43,12 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.parameters import NOMINAL
-from daemon.recording import read_recordings
-from simulator.clock import RealClock
-from simulator.emulator import Emulator
-from simulator.mechanism import MechanismSource
-from simulator.open_points import Latency, OpenPoints
-from simulator.scenarios import HandMoves
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from recorder_helpers import hand_emulator  # noqa: E402
+
+from daemon.recording import read_recordings  # noqa: E402
+from simulator.clock import RealClock  # noqa: E402
+from simulator.open_points import Latency, OpenPoints  # noqa: E402
 
 RATE = 200
 PHASE_US = 1809
@@ -176,11 +175,10 @@ class Soak:
             self.mounted = r.returncode == 0
         self.rec_dir = self.mnt / "rec"
         self.op = OpenPoints(scan_phase_us=PHASE_US, clock_ppm=PPM, latency=Latency())
-        source = MechanismSource(HandMoves(args.seed), NOMINAL, noise_volts=0.04, seed=args.seed)
         self.mono0 = time.monotonic_ns()
         self.clock = RealClock()
-        self.emu = Emulator("modbus-tcp", source, scan_rate_hz=RATE, clock=self.clock,
-                            seed=args.seed, open_points=self.op)  # fmt: skip
+        self.emu = hand_emulator(rate=RATE, seed=args.seed, clock=self.clock,
+                                 open_points=self.op)  # fmt: skip
         self.truth = Truth()
         self.boot_ns: dict[int, int] = {}
         self.faults: list[Fault] = []

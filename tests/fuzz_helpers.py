@@ -28,6 +28,9 @@ from drivers.ldq412 import volts_to_code
 
 T0 = 1_795_000_000_000_000_000  # ns, late 2026
 
+#: answers of the LDQ-412's ASCII protocol as the module sends them (the fuzzers mutate them)
+ASCII_ANSWERS = [b">0000123400ABCDEF800001FFFBB80004\r", b"!01LDQ412\r", b"!012.01\r",
+                 b"!010014\r", b">800\r", b"?01\r"]  # fmt: skip
 
 #: a daemon config as an installation has it (the TOML fuzzers mutate it)
 DAEMON_TOML = """[daq]
@@ -114,6 +117,17 @@ def write_recording(path: Path, rows: np.ndarray, *, per: int = 20, close: bool 
     return write_rows(path, rows, per=per, events=evs, close=close)[1]
 
 
+def closed_and_unclosed(rows: np.ndarray, directory: Path) -> dict[bool, bytes]:
+    """The bytes of ``rows`` written (:func:`write_recording`, in ``directory``) as a closed
+    (True) and as an unclosed, crashed (False) recording."""
+    out = {}
+    for closed in (True, False):
+        path = directory / f"original-{closed}.mcap"
+        write_recording(path, rows, close=closed)
+        out[closed] = path.read_bytes()
+    return out
+
+
 def chunk_spans(data: bytes) -> list[tuple[int, int]]:
     """(offset, length) of every chunk record of an intact file, in file order (found by
     walking its records with the mcap library's stream reader)."""
@@ -194,6 +208,17 @@ def overwrite(data: bytes, at: int, junk: bytes) -> bytes:
     out = bytearray(data)
     out[at : at + len(junk)] = junk[: len(out) - at]
     return bytes(out)
+
+
+def tear_chunk(path: Path, k: int, *, head: int = 50, tail: int = 5) -> bytes:
+    """Zero chunk ``k`` (in file order) of the recording at ``path`` but for its first
+    ``head`` and last ``tail`` bytes: its data torn, its record header intact. Writes the
+    file back; returns its new bytes."""
+    data = path.read_bytes()
+    off, length = chunk_spans(data)[k]
+    data = zero_run(data, off + head, length - head - tail)
+    path.write_bytes(data)
+    return data
 
 
 MUTATIONS: dict[str, Callable[..., bytes]] = {

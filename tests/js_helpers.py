@@ -3,6 +3,7 @@ TypeScript MCAP reader; headless Chromium through playwright-core): tests/js/.""
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 from pathlib import Path
@@ -30,3 +31,19 @@ def npm_installed() -> str:
         except subprocess.TimeoutExpired:
             pytest.fail(f"npm ci in {JS} took more than 300 s")
     return node
+
+
+def mcap_reader() -> list[str]:
+    """The command that runs read_mcap.mjs (Foxglove's TypeScript MCAP reader) on a file."""
+    return [npm_installed(), str(JS / "read_mcap.mjs")]
+
+
+def run_node(node_reader: list[str], path: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([*node_reader, str(path)], capture_output=True, text=True, timeout=60)
+
+
+def read_ts(node_reader: list[str], path: Path) -> dict:
+    """What read_mcap.mjs read of the file at ``path`` (it must succeed)."""
+    proc = run_node(node_reader, path)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout)

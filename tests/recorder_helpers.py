@@ -12,7 +12,8 @@ import sys
 import threading
 import time
 import urllib.request
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -20,9 +21,10 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from calibration.parameters import NOMINAL
 from simulator import Emulator
-from simulator.clock import HeldClock
+from simulator.clock import Clock, HeldClock
 from simulator.drift import OffsetDrift
 from simulator.mechanism import MechanismSource
+from simulator.open_points import OpenPoints
 from simulator.scenarios import HandMoves
 
 LOOPCAL = [sys.executable, "-m", "daemon.cli"]
@@ -35,14 +37,20 @@ def hand_emulator(
     speed: float = 1.0,
     seed: int = 0,
     drifts: tuple[OffsetDrift, ...] = (),
+    clock: Clock | None = None,
+    open_points: OpenPoints | None = None,
 ) -> Emulator:
     """An emulated LDQ-412 on a technician-moved shoulder joint (not started), whose clock
     (``speed`` times wall time) starts at the recorder's first request: however long the
     recorder subprocess takes to start on a busy machine, the FIFO (1.28 s deep at 200 Hz)
-    does not overflow before it connects."""
-    clock = HeldClock(speed)  # the emulator starts it at the first request
+    does not overflow before it connects. ``clock``: another clock instead (``speed`` is
+    then not used); ``open_points``: the emulator's settings for what the datasheet leaves
+    open."""
+    if clock is None:
+        clock = HeldClock(speed)  # the emulator starts it at the first request
     source = MechanismSource(HandMoves(seed), NOMINAL, noise_volts=0.04, seed=seed, drifts=drifts)
-    return Emulator(transport, source, scan_rate_hz=rate, clock=clock, seed=seed)
+    return Emulator(transport, source, scan_rate_hz=rate, clock=clock, seed=seed,
+                    open_points=open_points)  # fmt: skip
 
 
 class Proc:
@@ -125,15 +133,14 @@ class Proc:
         self._reader.join(5)
 
 
+def listening_url(proc: Proc, timeout: float = 10.0) -> str:
+    """The URL a ``loopcal simulate`` or ``loopcal replay`` subprocess says it listens on."""
+    return proc.lines[proc.wait_for("listening: ", timeout)].split(": ", 1)[1]
+
+
 def record(url: str, out: Path, *extra: str, **kw) -> Proc:
     """``loopcal record --daq URL --out DIR ...`` as a subprocess."""
     return Proc(["record", "--daq", url, "--out", str(out), *extra], **kw)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def scrape(port: int) -> dict[str, list]:
@@ -172,6 +179,22 @@ def cpu_seconds(pid: int) -> float:
     """User + system CPU time of a process so far, s."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def free_port() -> int:
+    """A TCP port of 127.0.0.1 that nobody listens on (the system's choice, released)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextmanager
+def taken_port() -> Iterator[int]:
+    """A TCP port of 127.0.0.1 that a listening socket holds for the ``with`` block."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        yield s.getsockname()[1]
 
 
 def write_config(path: Path, url: str, directory: Path, extra: str = "") -> Path:

@@ -5,18 +5,18 @@ the project's own recording writer; and the comparison a round trip must pass.""
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
-from fuzz_helpers import write_rows
-from recorder_helpers import Proc, record
+from fuzz_helpers import T0, write_rows
+from recorder_helpers import Proc, listening_url, record
 
 from daemon import recording as rec
 from daemon import scans as S
 from daemon.recording import read_recordings
 
 U32 = 1 << 32
-T0_NS = 1_795_000_000_000_000_000
 
 
 def _power_on(first: int, n: int, *, phase_us: int, rate: int, gaps: dict[int, int], seed: int):
@@ -52,7 +52,7 @@ def synthetic_rows(rate: int = 50) -> np.ndarray:
         (_power_on(0, 60, phase_us=700, rate=rate, gaps={25: 3}, seed=2), -200e-6),
         (_power_on(U32 - 40, 80, phase_us=1809, rate=rate, gaps={30: 5}, seed=1), 200e-6),
     ]
-    out, host0 = [], T0_NS
+    out, host0 = [], T0
     for epoch, ((counter, time_us, codes, skip), ppm) in enumerate(parts):
         rows = S.empty(len(counter))
         rows["counter64"] = counter
@@ -96,8 +96,7 @@ def replay_and_record(
     """``loopcal replay SRC [options]`` and ``loopcal record`` reading it (both running)."""
     player = Proc(["replay", str(src), "--transport", transport, "--speed", f"{speed:g}",
                    *options])  # fmt: skip
-    url = player.lines[player.wait_for("listening: ", timeout=30)].split(": ", 1)[1]
-    return player, record(url, out, "--read-period", "0.05")
+    return player, record(listening_url(player, timeout=30), out, "--read-period", "0.05")
 
 
 class PlayerThread:
@@ -141,8 +140,11 @@ def replay_in_process(
     return player, record(player.player.url, out, "--read-period", "0.05", "--timeout", "0.5")
 
 
-def finish(player: Proc | PlayerThread, recorder: Proc) -> None:
+def finish(player: Proc | PlayerThread, recorder: Proc, *, settle_s: float = 0.0) -> None:
+    """Wait for the replay's end (and ``settle_s`` more, for the recorder's last reads after
+    a short tail), then stop the recorder: both must exit 0."""
     player.wait_for("replay finished", timeout=120)
+    time.sleep(settle_s)
     rc_rec, _ = recorder.stop()
     assert rc_rec == 0 and player.wait() == 0, recorder.text + "\n" + player.text
 

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from fuzz_helpers import write_rows
-from recorder_helpers import Proc, record
+from fuzz_helpers import T0, write_rows
+from recorder_helpers import Proc, listening_url, record
 
 from calibration.parameters import PAPER7
 from calibration.simulate import perturbed_truth
@@ -21,7 +21,6 @@ from daemon import scans as S
 from simulator.offline import mechanism_scans
 from simulator.scenarios import Scenario
 
-T0 = 1_795_000_000_000_000_000
 #: a technician pausing about a second between moves
 PAUSE_S = (0.8, 1.5)
 
@@ -93,9 +92,8 @@ def _record_sessions(root: Path, seeds: list[int], wanted: int, speed: float) ->
                 ]
             )
             sims.append(sim)
-            url = sim.lines[sim.wait_for("listening: ")].split(": ", 1)[1]
             out = root / f"session-{seed}"
-            procs.append(record(url, out, "--read-period", "0.05"))
+            procs.append(record(listening_url(sim), out, "--read-period", "0.05"))
             sessions.append(Session(out, truth, seed))
         for p in procs:
             p.wait_for("recording to")

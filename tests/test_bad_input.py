@@ -3,10 +3,9 @@ traceback, and nothing is started, recorded or written. Each case was a tracebac
 
 from __future__ import annotations
 
-import socket
-
 import pytest
-from fuzz_helpers import make_rows, write_recording
+from fuzz_helpers import T0, make_rows, write_recording
+from recorder_helpers import taken_port
 from session_helpers import fresh_config, loopcal
 
 from daemon import recording as rec
@@ -51,7 +50,7 @@ def test_an_absurd_controller_config_is_refused_naming_the_key(tmp_path):
                 "--controller-config", config, "--duration", "1"),  # fmt: skip
         "A1x", "1e+300",
     )
-    recording = tmp_path / rec.recording_name(1_795_000_000_000_000_000)
+    recording = tmp_path / rec.recording_name(T0)
     write_recording(recording, make_rows(200))
     proc = loopcal("calibrate", recording, "--controller-config", config)
     refused(proc, "A1x", "plausible")
@@ -60,7 +59,7 @@ def test_an_absurd_controller_config_is_refused_naming_the_key(tmp_path):
 
 def test_calibrate_options(tmp_path):
     config = fresh_config(tmp_path / "controller.toml")
-    recording = tmp_path / rec.recording_name(1_795_000_000_000_000_000)
+    recording = tmp_path / rec.recording_name(T0)
     write_recording(recording, make_rows(200))
     refused(loopcal("calibrate", recording, "--controller-config", config, "--last",
                     "99999999999d"), "--last", "3650 days")  # fmt: skip
@@ -80,7 +79,7 @@ def test_report_path_is_checked_before_the_config_is_written(tmp_path):
     before = config.read_bytes()
     blocker = tmp_path / "report.html"
     blocker.write_text("not a directory")
-    recording = tmp_path / rec.recording_name(1_795_000_000_000_000_000)
+    recording = tmp_path / rec.recording_name(T0)
     write_recording(recording, make_rows(200))
     proc = loopcal("calibrate", recording, "--controller-config", config, "--write",
                    "--report", blocker)  # fmt: skip
@@ -88,21 +87,13 @@ def test_report_path_is_checked_before_the_config_is_written(tmp_path):
     assert config.read_bytes() == before and not list(tmp_path.glob("*.prev"))
 
 
-def _taken_port():
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    s.listen()
-    return s
-
-
 def test_replay_and_simulate_options(tmp_path):
-    recording = tmp_path / rec.recording_name(1_795_000_000_000_000_000)
+    recording = tmp_path / rec.recording_name(T0)
     write_recording(recording, make_rows(100))
     for cmd in (["replay", recording], ["simulate", "--duration", "1"]):
         refused(loopcal(*cmd, "--port", "70000"), "--port", "70000", "0..65535")
         refused(loopcal(*cmd, "--host", "256.1.1.1"), "--host", "256.1.1.1")
-        with _taken_port() as s:
-            port = s.getsockname()[1]
+        with taken_port() as port:
             refused(loopcal(*cmd, "--port", port), f"127.0.0.1:{port}", "in use")
         refused(loopcal(*cmd, "--max-read-registers", "0"), "--max-read-registers", "1..125")
         refused(loopcal(*cmd, "--slow-answers", "0.1"), "--slow-answers needs --latency")

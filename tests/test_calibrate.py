@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 import tomlkit
 from fuzz_helpers import write_rows
-from recorder_helpers import Proc, record
+from recorder_helpers import Proc
+from replay_helpers import finish, replay_and_record
 from session_helpers import (
     PAUSE_S,
     calibrate_json,
@@ -26,6 +27,7 @@ from session_helpers import (
 )
 
 from calibration.parameters import INDEX, NAMES, NOMINAL
+from daemon.config import durable
 from daemon.config.controller import load_controller_config
 from daemon.recording import read_recordings
 from daemon.worker.writeback import STEPS
@@ -214,14 +216,8 @@ def test_report(offline, tmp_path):
 def test_replay_round_trip_is_exact(sessions, tmp_path, transport):
     # 50 s from the middle of a session: the module was powered on before the first scan
     src = trim(sessions[0].directory, tmp_path / "src", 600, 1600)
-    player = Proc(["replay", src, "--speed", "10", "--transport", transport])
-    line = player.lines[player.wait_for("listening: ")]
-    url = line.split(": ", 1)[1]
-    rec = record(url, tmp_path / "again", "--read-period", "0.05")
-    player.wait_for("replay finished", timeout=60)
-    time.sleep(0.5)
-    rc, _ = rec.stop()
-    assert rc == 0 and player.wait() == 0, rec.text
+    player, recorder = replay_and_record(src, tmp_path / "again", transport, 10)
+    finish(player, recorder, settle_s=0.5)  # the replay's 1 s tail is 0.1 s at ten times
     a = read_recordings(src).scans
     b = read_recordings(tmp_path / "again").scans
     got = {
@@ -323,17 +319,13 @@ def test_a_cut_recording_with_faults_and_gaps(offline, tmp_path):
     assert rc == 0, doc["gates"]
 
 
-def _locked_by_someone(directory) -> bool:
-    import fcntl
-
-    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+def _locked_by_someone(config) -> bool:
+    """Whether another writer holds the config's lock (the writers' own lock, not waited for)."""
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
+        with durable.locked(config, timeout=0):
+            return False
+    except durable.Busy:
         return True
-    finally:
-        os.close(fd)
-    return False
 
 
 def test_two_writers_at_once_never_lose_an_update(offline, tmp_path):
@@ -346,7 +338,7 @@ def test_two_writers_at_once_never_lose_an_update(offline, tmp_path):
     a = Proc(["calibrate", str(rec_dir), "--controller-config", str(config), "--write",
               "--json"], env={"LOOPCAL_PAUSE_AT": "locked:8"})  # fmt: skip
     deadline = time.monotonic() + 60
-    while not _locked_by_someone(tmp_path):
+    while not _locked_by_someone(config):
         assert time.monotonic() < deadline and a.proc.poll() is None, a.text
         time.sleep(0.05)
     b = Proc(["calibrate", str(rec_dir), "--controller-config", str(config), "--write",
@@ -399,16 +391,13 @@ def test_backups_never_share_a_name(offline, tmp_path):
 def test_json_warnings_name_the_damaged_file(offline, tmp_path):
     import shutil
 
-    from fuzz_helpers import chunk_spans
+    from fuzz_helpers import tear_chunk
 
     rec_dir, _ = offline
     copy = tmp_path / "rec"
     shutil.copytree(rec_dir, copy)
     [path] = sorted(copy.glob("*.mcap"))
-    data = bytearray(path.read_bytes())
-    off, length = chunk_spans(bytes(data))[200]  # a flush's raw chunk
-    data[off + 50 : off + length - 5] = bytes(length - 55)
-    path.write_bytes(bytes(data))
+    tear_chunk(path, 200)  # a flush's raw chunk
     config = fresh_config(tmp_path / "controller.toml")
     rc, doc, err = calibrate_json(copy, "--controller-config", config)
     assert len(doc["warnings"]) == 1 and str(path) in doc["warnings"][0]

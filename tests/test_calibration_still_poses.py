@@ -15,6 +15,7 @@ from calibration.poses import (
     running_sums_at,
     still_poses,
 )
+from calibration.simulate import quantize_volts
 
 
 def reference_still_poses(V, *, window=10, band_volts=0.25, max_scans=None, valid=None):
@@ -68,7 +69,7 @@ def hand_moves(rng, n, noise=0.04):
         V[i : i + move] = np.linspace(level, target, move + 2)[1:-1][: n - i]
         i, level = i + move, target
     V += rng.normal(0, noise, V.shape)
-    return np.floor((V + 10) * 4096 / 20).clip(0, 4095) * 20 / 4096 - 10 + 10 / 4096
+    return quantize_volts(V)[1]
 
 
 @pytest.mark.parametrize("window", [2, 3, 4, 7, 8, 10, 16, 25])

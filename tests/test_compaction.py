@@ -12,10 +12,10 @@ import time
 
 import numpy as np
 import pytest
-from fuzz_helpers import chunk_spans, identities, make_rows, write_recording
-from js_helpers import JS, npm_installed
+from fuzz_helpers import identities, make_rows, tear_chunk, write_recording
+from js_helpers import mcap_reader, read_ts
 from mcap.reader import make_reader
-from recorder_helpers import Proc, assert_matches_truth, hand_emulator, record
+from recorder_helpers import assert_matches_truth, hand_emulator, record
 from session_helpers import T0, loopcal
 
 from daemon import recording as rec
@@ -49,9 +49,7 @@ def test_a_compacted_file_holds_the_same_and_reads_everywhere(tmp_path):
         assert reader.get_summary().statistics.channel_message_counts == counts
         n = sum(1 for _ in reader.iter_messages(log_time_order=True))
     assert n == sum(counts.values())
-    proc = subprocess.run([npm_installed(), str(JS / "read_mcap.mjs"), str(path)],
-                          capture_output=True, text=True, timeout=60)  # fmt: skip
-    assert proc.returncode == 0, proc.stderr  # Foxglove's TypeScript reader
+    read_ts(mcap_reader(), path)  # Foxglove's TypeScript reader: it must read it
     assert not compact(path).done  # already compact
 
 
@@ -61,12 +59,9 @@ def test_files_not_closed_or_damaged_are_left_alone(tmp_path):
     data = open_file.read_bytes()
     assert not compact(open_file).done and open_file.read_bytes() == data
     damaged = _recording(tmp_path)
-    raw = bytearray(damaged.read_bytes())
-    off, length = chunk_spans(bytes(raw))[10]
-    raw[off + 50 : off + length - 5] = bytes(length - 55)
-    damaged.write_bytes(bytes(raw))
+    raw = tear_chunk(damaged, 10)
     r = compact(damaged)
-    assert not r.done and "damaged" in r.reason and damaged.read_bytes() == bytes(raw)
+    assert not r.done and "damaged" in r.reason and damaged.read_bytes() == raw
 
 
 @pytest.mark.parametrize("step", ["compact-written", "compact-verified", "compact-renamed"])
@@ -110,9 +105,8 @@ def test_the_recorder_compacts_the_files_it_closes(tmp_path):
         proc = record(emu.url, tmp_path, "--rotate-seconds", "2", "--read-period", "0.05")
         proc.wait_for("recording to")
         deadline = time.monotonic() + 30
-        while proc.text.count("compacted loopcal-") < 2:
-            assert time.monotonic() < deadline, proc.text
-            time.sleep(0.2)
+        first = proc.wait_for("compacted loopcal-", 30)
+        proc.wait_for("compacted loopcal-", deadline - time.monotonic(), after=first + 1)
         rc, _ = proc.stop()
     assert rc == 0, proc.text
     out = rec.read_recordings(tmp_path)
@@ -123,7 +117,6 @@ def test_the_recorder_compacts_the_files_it_closes(tmp_path):
     assert len(compacted) >= 2 and all(f.intact for f in out.files)
     assert not out.files[-1].metadata["loopcal"].get("compacted_utc")  # the last: at a stop
     # a later start (here with no module answering) takes the file left uncompacted
-    again = Proc(["record", "--daq", "modbus-tcp://127.0.0.1:1", "--out", str(tmp_path),
-                  "--duration", "3"])  # fmt: skip
+    again = record("modbus-tcp://127.0.0.1:1", tmp_path, "--duration", "3")
     again.wait(30)
     assert "compacted " + out.files[-1].path.name in again.text

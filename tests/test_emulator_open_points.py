@@ -6,14 +6,13 @@ from __future__ import annotations
 
 import json
 import statistics
-import subprocess
-import sys
 import time
 
 import pytest
 import serial
 from emulator_helpers import golden_source
 from pymodbus.client import ModbusTcpClient
+from session_helpers import loopcal
 
 from drivers.ldq412 import FIFO_FILLER, IR_FIFO, join_u32
 from simulator.clock import ManualClock
@@ -156,13 +155,12 @@ def test_slow_answers_come_late_but_come():
 
 
 def test_loopcal_simulate_takes_the_settings_and_names_them(tmp_path):
-    args = [sys.executable, "-m", "daemon.cli", "simulate", "--duration", "0.3",
-            "--scan-phase-us", "1809", "--clock-ppm", "-150", "--latency", "datasheet",
-            "--slow-answers", "0.01", "--fifo-underrun", "short", "--max-read-registers",
-            "60", "--over-limit", "truncate", "--holes", "zero", "--snapshot-reads", "whole",
-            "--truth-out"]  # fmt: skip
+    args = ["simulate", "--duration", "0.3", "--scan-phase-us", "1809", "--clock-ppm", "-150",
+            "--latency", "datasheet", "--slow-answers", "0.01", "--fifo-underrun", "short",
+            "--max-read-registers", "60", "--over-limit", "truncate", "--holes", "zero",
+            "--snapshot-reads", "whole", "--truth-out"]  # fmt: skip
     out = tmp_path / "truth.jsonl"
-    proc = subprocess.run([*args, str(out)], capture_output=True, text=True, timeout=60)
+    proc = loopcal(*args, out, timeout=60)
     assert proc.returncode == 0, proc.stderr
     header, first = (json.loads(line) for line in out.read_text().splitlines()[:2])
     assert set(header["open_points"]) == {
@@ -170,6 +168,5 @@ def test_loopcal_simulate_takes_the_settings_and_names_them(tmp_path):
         "over_limit", "holes", "snapshot_reads",
     }  # fmt: skip
     assert first["time_us"] == 1809
-    bad = subprocess.run([*args[:6], "--slow-answers", "0.1"], capture_output=True, text=True,
-                         timeout=60)  # fmt: skip
+    bad = loopcal(*args[:3], "--slow-answers", "0.1", timeout=60)
     assert bad.returncode == 2 and "--slow-answers needs --latency" in bad.stderr

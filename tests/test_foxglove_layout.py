@@ -7,7 +7,7 @@ import json
 import re
 from pathlib import Path
 
-from fuzz_helpers import make_rows, write_recording
+from fuzz_helpers import T0, make_rows, write_recording
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
@@ -40,7 +40,7 @@ def test_every_path_in_the_layout_exists_in_a_recording(tmp_path):
     panels = set(layout["configById"])
     placed = set(re.findall(r'"([\w ]+![\w]+)"', json.dumps(layout["layout"])))
     assert placed == panels  # every panel is placed, every placed one configured
-    path = tmp_path / rec.recording_name(1_795_000_000_000_000_000)
+    path = tmp_path / rec.recording_name(T0)
     write_recording(path, make_rows(200))  # raw scans, views, the scene, events
     first: dict[str, object] = {}
     ros2 = DecoderFactory()

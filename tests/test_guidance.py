@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from recorder_helpers import Proc, record
+from recorder_helpers import Proc, listening_url, record
 from session_helpers import PAUSE_S, calibrate_json, fresh_config, rows_from, truth_for
 
 from calibration.parameters import INDEX, NAMES, PAPER7
@@ -59,8 +59,7 @@ def test_until_enough_stops_by_itself_and_calibrate_agrees(tmp_path):
     sim = Proc(["simulate", "--seed", str(seed), "--speed", "10", "--wait-for-client",
                 "--pause", f"{PAUSE_S[0]},{PAUSE_S[1]}", "--truth", every])  # fmt: skip
     try:
-        url = sim.lines[sim.wait_for("listening: ")].split(": ", 1)[1]
-        rec = record(url, tmp_path / "rec", "--controller-config", str(config),
+        rec = record(listening_url(sim), tmp_path / "rec", "--controller-config", str(config),
                      "--until-enough", "--json", "--read-period", "0.05")  # fmt: skip
         rc = rec.wait(120)
     finally:

@@ -8,7 +8,7 @@ from datetime import UTC, datetime
 
 import numpy as np
 import pytest
-from fuzz_helpers import chunk_spans, make_rows, write_rows
+from fuzz_helpers import make_rows, tear_chunk, write_rows
 from session_helpers import PAUSE_S, T0, loopcal, truth_for, write_session
 
 from daemon import recording as rec
@@ -67,10 +67,7 @@ def test_info_counts_scans_gaps_restarts_events_and_damage(tmp_path):
     [cfg] = doc["controller_configs"]
     assert cfg["calibrated_utc"].startswith("2026-11-20") and cfg["method"] == "ml"
     # damage a file: info says what was lost, by name
-    data = bytearray(fb.read_bytes())
-    off, n = chunk_spans(bytes(data))[8]
-    data[off + 40 : off + n - 5] = bytes(n - 45)
-    fb.write_bytes(bytes(data))
+    tear_chunk(fb, 8, head=40)
     proc = loopcal("info", d)
     assert proc.returncode == 0
     assert "scan(s) missing" in proc.stdout and fb.name in proc.stdout

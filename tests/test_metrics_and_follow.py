@@ -3,12 +3,20 @@ controller config followed by itself when a calibration replaces it."""
 
 from __future__ import annotations
 
-import socket
 import time
 
 import numpy as np
 import pytest
-from recorder_helpers import Proc, free_port, hand_emulator, record, scrape, value, write_config
+from recorder_helpers import (
+    Proc,
+    free_port,
+    hand_emulator,
+    record,
+    scrape,
+    taken_port,
+    value,
+    write_config,  # fmt: skip
+)
 from session_helpers import truth_for
 
 from daemon.config.controller import load_controller_config, write_initial_config
@@ -45,10 +53,7 @@ def test_record_serves_prometheus_metrics(tmp_path):
 
 
 def test_a_taken_or_bad_metrics_address_is_refused(tmp_path):
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        s.listen()
-        port = s.getsockname()[1]
+    with taken_port() as port:
         proc = record("modbus-tcp://127.0.0.1:1", tmp_path / "r", "--metrics",
                       f"127.0.0.1:{port}", "--duration", "1")  # fmt: skip
         assert proc.wait(30) == 2 and "--metrics" in proc.text and "in use" in proc.text

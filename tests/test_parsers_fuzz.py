@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import string
 
-from fuzz_helpers import DAEMON_TOML
+from fuzz_helpers import ASCII_ANSWERS, DAEMON_TOML
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
@@ -30,12 +30,10 @@ from drivers import ascii as ascii_proto
 
 _FIXTURE = [HealthCheck.function_scoped_fixture]
 
-GOOD_ANSWERS = [b">0000123400ABCDEF800001FFFBB80004\r", b"!01LDQ412\r", b"!012.01\r",
-                b"!010014\r", b">800\r", b"?01\r"]  # fmt: skip
 
 
 def _answer_bytes():
-    near = st.sampled_from(GOOD_ANSWERS).flatmap(
+    near = st.sampled_from(ASCII_ANSWERS).flatmap(
         lambda a: st.tuples(st.just(a), st.integers(0, len(a)), st.binary(max_size=4)).map(
             lambda t: t[0][: t[1]] + t[2] + t[0][t[1] + len(t[2]) :]
         )

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 import pytest
-from recorder_helpers import assert_matches_truth, hand_emulator, record
+from recorder_helpers import assert_matches_truth, free_port, hand_emulator, record
 
 from daemon.recording import find_recordings, read_recordings
 
@@ -252,34 +252,23 @@ def test_rotation_by_size(tmp_path):
 
 
 def test_a_daq_that_never_answers(tmp_path):
-    import socket
-
-    with socket.socket() as s:  # a port nobody listens on
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    rec = record(f"modbus-tcp://127.0.0.1:{port}?unit=1", tmp_path, "--duration", "2")
+    rec = record(f"modbus-tcp://127.0.0.1:{free_port()}?unit=1", tmp_path, "--duration", "2")
     assert rec.wait(30) == 1
     assert "disconnect: DAQDisconnected" in rec.text
     assert "nothing was recorded" in rec.text
     assert find_recordings(tmp_path) == []
 
 
-def _damaged(kind: str, data_closed: bytes, data_open: bytes) -> bytes:
-    """The newest recording as power loss or flaky storage leaves it."""
-    import struct
-
-    from fuzz_helpers import chunk_spans
+def _damaged(kind: str, data: bytes) -> bytes:
+    """The newest recording as power loss or flaky storage leaves it: ``data`` is the file
+    closed for "summary bit" (only a closed file has a summary), unclosed otherwise."""
+    from fuzz_helpers import bad_length, flip_bits, truncate
 
     if kind == "30 bytes":  # created, never flushed
-        return data_open[:30]
+        return truncate(data, 30)
     if kind == "summary bit":
-        out = bytearray(data_closed)
-        out[-60] ^= 0x08
-        return bytes(out)
-    out = bytearray(data_open)  # "huge chunk length"
-    off, _ = chunk_spans(data_open)[6]
-    struct.pack_into("<Q", out, off + 1, 1 << 62)
-    return bytes(out)
+        return flip_bits(data, [(len(data) - 60) * 8 + 3])
+    return bad_length(data, 6, 1 << 62)  # "huge chunk length"
 
 
 @pytest.mark.parametrize("kind", ["30 bytes", "summary bit", "huge chunk length"])
@@ -293,11 +282,9 @@ def test_a_damaged_newest_recording_never_stops_the_recorder(tmp_path, kind):
     write_recording(tmp_path / recording_name(t0), rows)  # a good, older recording
     scratch = tmp_path / "scratch"
     scratch.mkdir()
-    write_recording(scratch / "c.mcap", rows)
-    write_recording(scratch / "o.mcap", rows, close=False)
+    write_recording(scratch / "r.mcap", rows, close=kind == "summary bit")
     newest = tmp_path / recording_name(t0 + 60 * 10**9)
-    newest.write_bytes(_damaged(kind, (scratch / "c.mcap").read_bytes(),
-                                (scratch / "o.mcap").read_bytes()))  # fmt: skip
+    newest.write_bytes(_damaged(kind, (scratch / "r.mcap").read_bytes()))
     before = newest.read_bytes()
     with hand_emulator() as emu:
         proc = record(emu.url, tmp_path, "--duration", "3")
@@ -327,7 +314,7 @@ def test_the_daemon_too_starts_over_a_damaged_newest_recording(tmp_path):
     rec_dir = tmp_path / "rec"
     rec_dir.mkdir()
     newest = rec_dir / recording_name(t0)
-    newest.write_bytes(_damaged("huge chunk length", b"", (scratch / "o.mcap").read_bytes()))
+    newest.write_bytes(_damaged("huge chunk length", (scratch / "o.mcap").read_bytes()))
     with hand_emulator() as emu:
         daemon = Proc(["daemon", "--config", str(write_config(tmp_path / "d.toml", emu.url,
                                                               rec_dir))])  # fmt: skip

@@ -3,6 +3,7 @@ the intact scans, each once, and says per file what was lost, or raises Recordin
 
 from __future__ import annotations
 
+import io
 import struct
 import zlib
 
@@ -12,15 +13,21 @@ from fuzz_helpers import (
     ACCEPTABLE,
     MUTATIONS,
     T0,
+    bad_length,
     chunk_spans,
+    closed_and_unclosed,
+    duplicate_chunk,
     identities,
     judge,
     make_rows,
+    tear_chunk,
     write_recording,
     write_rows,
+    zero_run,
 )
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from daemon import recording as rec
@@ -31,14 +38,8 @@ N = 600  # scans in the fuzzed recording: 30 flushes of 20
 @pytest.fixture(scope="module")
 def originals(tmp_path_factory):
     """The bytes of the same 600 scans as a closed and as an unclosed (crashed) file."""
-    d = tmp_path_factory.mktemp("orig")
     rows = make_rows(N)
-    out = {}
-    for closed in (True, False):
-        p = d / f"{closed}.mcap"
-        write_recording(p, rows, close=closed)
-        out[closed] = p.read_bytes()
-    return rows, out
+    return rows, closed_and_unclosed(rows, tmp_path_factory.mktemp("orig"))
 
 
 _INT = st.integers(min_value=0, max_value=1 << 24)
@@ -102,10 +103,7 @@ def test_a_zeroed_run_inside_a_chunk_is_reported_with_the_scans_lost(tmp_path):
     rows = make_rows(2628)
     path = tmp_path / rec.recording_name(T0)
     write_recording(path, rows)
-    data = bytearray(path.read_bytes())
-    off, length = _scan_chunks(bytes(data))[40]
-    data[off + 60 : off + length - 10] = bytes(length - 70)  # the chunk's data, torn
-    path.write_bytes(bytes(data))
+    tear_chunk(path, 2 * 40, head=60, tail=10)  # flush 40's scan chunk (each flush has two)
     out = rec.read_recordings(path)
     assert len(out) == 2628 - 20
     [warning] = out.warnings
@@ -120,10 +118,9 @@ def test_a_zeroed_chunk_header_behind_an_intact_index_is_not_trusted(tmp_path):
     rows = make_rows(400)
     path = tmp_path / rec.recording_name(T0)
     write_recording(path, rows)
-    data = bytearray(path.read_bytes())
-    off, length = _scan_chunks(bytes(data))[5]
-    data[off : off + 64] = bytes(64)
-    path.write_bytes(bytes(data))
+    data = path.read_bytes()
+    off, _ = _scan_chunks(data)[5]
+    path.write_bytes(zero_run(data, off, 64))
     out = rec.read_recordings(path)
     assert out.files[0].complete  # read through its index
     assert len(out) == 380 and out.files[0].lost_scans == 20
@@ -166,9 +163,7 @@ def test_a_chunk_written_twice_gives_each_scan_once(tmp_path):
     for closed in (True, False):
         path = tmp_path / rec.recording_name(T0 + closed * 10**9)
         write_recording(path, rows, close=closed)
-        data = path.read_bytes()
-        off, length = _scan_chunks(data)[4]
-        path.write_bytes(data[: off + length] + data[off : off + length] + data[off + length :])
+        path.write_bytes(duplicate_chunk(path.read_bytes(), 2 * 4))  # flush 4's scan chunk
         out = rec.read_recordings(path)
         assert np.array_equal(out.scans, rows)
         assert identities(out.scans) == identities(rows)
@@ -194,10 +189,8 @@ def test_a_huge_length_field_costs_one_chunk_not_the_file(tmp_path):
     rows = make_rows(300)
     path = tmp_path / rec.recording_name(T0)
     write_recording(path, rows, close=False)
-    data = bytearray(path.read_bytes())
-    off, _ = _scan_chunks(bytes(data))[7]
-    struct.pack_into("<Q", data, off + 1, (1 << 63) + 12345)
-    path.write_bytes(bytes(data))
+    data = path.read_bytes()
+    path.write_bytes(bad_length(data, 2 * 7, (1 << 63) + 12345))  # flush 7's scan chunk
     out = rec.read_recordings(path)
     assert len(out) == 280 and out.files[0].lost_scans == 20
 
@@ -242,22 +235,15 @@ def test_writer_channel_ids_are_what_the_reader_falls_back_on(tmp_path, original
     """A file whose first chunk (with the channel records) is lost still gives its scans,
     because our writer always numbers the channels in CHANNELS order from 1."""
     rows, data = originals
-    spans = chunk_spans(data[False])
-    off, length = spans[0]
+    off, length = chunk_spans(data[False])[0]
     path = tmp_path / rec.recording_name(T0)
-    path.write_bytes(data[False][:off] + bytes(length) + data[False][off + length :])
+    path.write_bytes(zero_run(data[False], off, length))
     out = rec.read_recordings(path)
     assert np.array_equal(out.scans, rows[20:])
     assert out.files[0].lost_scans == 0  # the first 20 are before any scan it has
     assert "zeros" in out.warnings[0]
     # and the writer does number them so
-    src = rec.read_recordings  # noqa: F841 - keep the import used explicitly
-    from mcap.reader import make_reader
-
-    with open(tmp_path / "x.mcap", "wb") as f:
-        f.write(data[True])
-    with open(tmp_path / "x.mcap", "rb") as f:
-        channels = make_reader(f).get_summary().channels
+    channels = make_reader(io.BytesIO(data[True])).get_summary().channels
     assert {c.topic: i for i, c in channels.items()} == {
         t: i for i, t in enumerate(rec.CHANNELS, start=1)
     }

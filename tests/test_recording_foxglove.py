@@ -4,14 +4,13 @@ cut short by a crash (tests/js/read_mcap.mjs is the TypeScript side)."""
 
 from __future__ import annotations
 
-import json
-import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
-from js_helpers import JS, npm_installed
+from fuzz_helpers import T0
+from js_helpers import mcap_reader, read_ts, run_node
 from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_ros2.decoder import DecoderFactory
@@ -23,7 +22,6 @@ from daemon import scans as S
 from daemon.events import Event, Level
 from drivers.ldq412 import volts_to_code
 
-T0 = 1_795_000_000_000_000_000  # ns, late 2026
 N, PER = 300, 25  # scans, scans per write() (1.25 s: two blocks per flush)
 CUT_AFTER = 5  # the durable copy is taken after this many writes
 
@@ -54,17 +52,7 @@ METADATA = rec.metadata_records(
 @pytest.fixture(scope="session")
 def node_reader() -> list[str]:
     """The command that runs read_mcap.mjs."""
-    return [npm_installed(), str(JS / "read_mcap.mjs")]
-
-
-def run_node(node_reader: list[str], path: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([*node_reader, str(path)], capture_output=True, text=True, timeout=60)
-
-
-def read_ts(node_reader: list[str], path: Path) -> dict:
-    proc = run_node(node_reader, path)
-    assert proc.returncode == 0, proc.stderr
-    return json.loads(proc.stdout)
+    return mcap_reader()
 
 
 def as_rows(ts_scans: list[dict]) -> np.ndarray:

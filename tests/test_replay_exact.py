@@ -20,6 +20,7 @@ from replay_helpers import (
 )
 
 from daemon.commands.replay import power_ons
+from drivers.ldq412 import FIFO_DEPTH
 from simulator.open_points import Latency, OpenPoints
 from simulator.replay import FIRST_SCAN_LEAD_NS, RecordedModule, RecordedPowerOn
 
@@ -39,7 +40,7 @@ def test_the_recorded_module_makes_exactly_the_recorded_scans():
     assert first == [
         (int(c) % U32, int(t) % U32) for c, t in zip(pos[0].counter, pos[0].time_us, strict=True)
     ]
-    assert module.fifo_level == FIFO_OR_ALL(n0)
+    assert module.fifo_level == min(n0, FIFO_DEPTH)
     module.power_cycle(2.0)
     module.sync(10**12 + 2 * 10**9 + 699_999)
     assert not module.ready  # silent until its first scan, 700 µs after power-on
@@ -52,10 +53,6 @@ def test_the_recorded_module_makes_exactly_the_recorded_scans():
     assert module.truth[-1].counter == pos[2].counter[0] % U32 and module.ready
     with pytest.raises(ValueError):
         RecordedPowerOn(np.array([1, 1]), np.array([0, 1]), np.zeros((2, 4), int))
-
-
-def FIFO_OR_ALL(n: int) -> int:  # noqa: N802 - reads as the quantity it is
-    return min(n, 256)
 
 
 def test_round_trip_on_every_transport(tmp_path):

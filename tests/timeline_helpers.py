@@ -10,10 +10,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
+from fuzz_helpers import T0
 
 from daemon.recorder.polling import PhaseLock
+from simulator.open_points import Latency
 
 
 @dataclass
@@ -95,15 +98,10 @@ def run_polls(
     return out
 
 
-def datasheet_latency(rng: np.random.Generator, max_ms: float = 10.0, slow: float = 0.0):
-    """The emulator's latency model: uniform(0.5, max) ms, with ``slow`` of them 50-90 ms."""
-
-    def draw() -> float:
-        if slow and rng.random() < slow:
-            return rng.uniform(0.050, 0.090)
-        return rng.uniform(0.0005, max_ms / 1000)
-
-    return draw
+def datasheet_latency(rng: np.random.Generator, slow: float = 0.0) -> Callable[[], float]:
+    """The emulator's latency model over Modbus TCP (:class:`simulator.open_points.Latency`):
+    uniform(0.5, 10) ms, with ``slow`` of them 50-90 ms; s."""
+    return partial(Latency(slow_fraction=slow).draw_s, rng, "modbus-tcp")
 
 
 @dataclass
@@ -122,7 +120,7 @@ def run_stamps(
     latency_s: Callable[[], float],
     *,
     read_period_s: float = 0.2,
-    utc0_ns: int = 1_795_000_000_000_000_000,
+    utc0_ns: int = T0,
     jitter_s: float = 0.002,
     dither: bool = True,
     sync_first: bool = True,
