@@ -13,8 +13,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..recording import RecordingError, find_recordings
-from ..recording.compact import compact
+from ..recording import RecordingError
+from ..recording.compact import compact, remove_stale_temporaries
+from ..recording.names import recording_paths
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -24,16 +25,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        files: list[Path] = []
         for p in args.recordings:
             if p.is_dir():
-                for stale in p.glob(".loopcal-*.mcap.compact.tmp"):
-                    stale.unlink(missing_ok=True)  # left by a compaction that was killed
-                files += find_recordings(p)
-            elif p.exists():
-                files.append(p)
-            else:
-                raise RecordingError(f"{p}: no such file")
+                remove_stale_temporaries(p)  # left by compactions that were killed
+        files = recording_paths(args.recordings)
     except (RecordingError, OSError) as exc:
         print(f"loopcal compact: error: {exc}", file=sys.stderr)
         return 2

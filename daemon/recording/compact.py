@@ -35,7 +35,6 @@ from numpy.lib.recfunctions import repack_fields
 
 from ..config import durable
 from .errors import RecordingError
-from .names import find_recordings
 from .reader import read_recordings
 from .schemas import FORMAT_VERSION, TOPIC_EVENTS, TOPIC_LOG, TOPIC_SCANS
 
@@ -207,16 +206,4 @@ def _verify(tmp: Path, original, counts: dict[int, int]) -> tuple[int, str]:
     return len(summary.chunk_indexes), ""
 
 
-def compact_directory(directory: Path, *, skip: Path | None = None) -> list[Compacted]:
-    """Compact every closed recording of a directory but ``skip`` (the file being
-    written), oldest first; remove temporary files that a killed compaction left."""
-    remove_stale_temporaries(directory)
-    out = []
-    for path in find_recordings(directory):
-        if skip is not None and path == skip:
-            continue
-        out.append(compact(path))
-    return out
-
-
-__all__ = ["CHUNK_BYTES", "Compacted", "compact", "compact_directory", "remove_stale_temporaries"]
+__all__ = ["CHUNK_BYTES", "Compacted", "compact", "remove_stale_temporaries"]
