@@ -6,8 +6,8 @@ import shutil
 import time
 from pathlib import Path
 
-from daemon.recording import find_recordings
-from daemon.recording.compact import compact
+from loopcal.daemon.recording import find_recordings
+from loopcal.daemon.recording.compact import compact
 
 
 def compacted_copy(

@@ -32,15 +32,15 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
 from recorder_helpers import cpu_seconds, hand_emulator  # noqa: E402
 
-from daemon.recording import read_recordings  # noqa: E402
-from simulator import Emulator, SimClock  # noqa: E402
-from simulator.source import TestSource  # noqa: E402
+from loopcal.daemon.recording import read_recordings  # noqa: E402
+from loopcal.simulator import Emulator, SimClock  # noqa: E402
+from loopcal.simulator.source import TestSource  # noqa: E402
 
-LOOPCAL = [sys.executable, "-m", "daemon.cli"]
+LOOPCAL = [sys.executable, "-m", "loopcal.daemon.cli"]
 
 BARE_LOOP = """
 import sys, time
-from drivers import open_daq
+from loopcal.drivers import open_daq
 daq = open_daq(sys.argv[1])
 n = 0
 while True:

@@ -23,9 +23,9 @@ import statistics
 import sys
 import time
 
-from drivers import DAQ, ldq412, open_daq
-from simulator.clock import ManualClock, SimClock
-from simulator.emulator import Emulator
+from loopcal.drivers import DAQ, ldq412, open_daq
+from loopcal.simulator.clock import ManualClock, SimClock
+from loopcal.simulator.emulator import Emulator
 
 RATE = 200
 

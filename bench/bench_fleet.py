@@ -31,8 +31,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from _timing import median_time  # noqa: E402
 from session_helpers import PAUSE_S, T0, truth_for, write_session  # noqa: E402
 
-from daemon.config.controller import write_initial_config  # noqa: E402
-from daemon.inspect.fleet import (  # noqa: E402
+from loopcal.daemon.config.controller import write_initial_config  # noqa: E402
+from loopcal.daemon.inspect.fleet import (  # noqa: E402
     RobotDay,
     check_task,
     info_task,
@@ -40,8 +40,8 @@ from daemon.inspect.fleet import (  # noqa: E402
     run_here,
     run_on_dask,
 )
-from daemon.live.health import FALSE_ALARM  # noqa: E402
-from simulator.scenarios import HandMoves  # noqa: E402
+from loopcal.daemon.live.health import FALSE_ALARM  # noqa: E402
+from loopcal.simulator.scenarios import HandMoves  # noqa: E402
 
 DAY_NS = 86_400 * 10**9
 

@@ -1,9 +1,9 @@
-"""Loop-closure health (:mod:`daemon.live.health`): false alarms, detection delay, cost.
+"""Loop-closure health (:mod:`loopcal.daemon.live.health`): false alarms, detection delay, cost.
 
 The monitor is fed a technician's hand-moved session (pausing about a second between
 moves, 40 mV of noise, a mechanism whose offsets are up to 3 mm off nominal) a quarter
 second (5 scans) at a time, as the recorder feeds it, at a controller config equal to the
-truth. Scans are :mod:`simulator.offline`'s, the emulator's own, bit for bit.
+truth. Scans are :mod:`loopcal.simulator.offline`'s, the emulator's own, bit for bit.
 
 * ``clean``: ``--hours`` of clean data for each of ``--seeds`` seeds (1, 2, ...): poses
   checked and alarms raised, against the baseline the threshold states, the expected number
@@ -42,15 +42,15 @@ sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
 from recorder_helpers import Proc, listening_url  # noqa: E402
 from session_helpers import PAUSE_S, rows_from, truth_for  # noqa: E402
 
-from calibration.parameters import NAMES  # noqa: E402
-from daemon.config.controller import nominal_config, write_initial_config  # noqa: E402
-from daemon.live.health import HealthMonitor  # noqa: E402
-from daemon.recording import read_recordings  # noqa: E402
-from simulator.drift import OffsetDrift  # noqa: E402
-from simulator.offline import mechanism_scans  # noqa: E402
-from simulator.scenarios import HandMoves  # noqa: E402
+from loopcal.calibration.parameters import NAMES  # noqa: E402
+from loopcal.daemon.config.controller import nominal_config, write_initial_config  # noqa: E402
+from loopcal.daemon.live.health import HealthMonitor  # noqa: E402
+from loopcal.daemon.recording import read_recordings  # noqa: E402
+from loopcal.simulator.drift import OffsetDrift  # noqa: E402
+from loopcal.simulator.offline import mechanism_scans  # noqa: E402
+from loopcal.simulator.scenarios import HandMoves  # noqa: E402
 
-LOOPCAL = [sys.executable, "-m", "daemon.cli"]
+LOOPCAL = [sys.executable, "-m", "loopcal.daemon.cli"]
 RATE = 20
 NOISE_V = 0.04
 FEED = 5  # scans per feed: a quarter second, as the recorder hands them on

@@ -17,10 +17,10 @@ import numpy as np
 from _timing import median_time
 from scipy.optimize import least_squares
 
-from calibration.identify import fit_fixed, identify
-from calibration.parameters import NOMINAL, PAPER7
-from calibration.residuals import loop_residuals, reference_points
-from calibration.simulate import simulate_poses
+from loopcal.calibration.identify import fit_fixed, identify
+from loopcal.calibration.parameters import NOMINAL, PAPER7
+from loopcal.calibration.residuals import loop_residuals, reference_points
+from loopcal.calibration.simulate import simulate_poses
 
 
 def scipy_fit(

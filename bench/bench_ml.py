@@ -69,12 +69,12 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
 
-from calibration import implicit  # noqa: E402
-from calibration.identify import identify  # noqa: E402
-from calibration.implicit import cramer_rao, start_rotations  # noqa: E402
-from calibration.parameters import INDEX, NOMINAL, PAPER7  # noqa: E402
-from calibration.pipeline import calibrate  # noqa: E402
-from calibration.simulate import simulate_poses  # noqa: E402
+from loopcal.calibration import implicit  # noqa: E402
+from loopcal.calibration.identify import identify  # noqa: E402
+from loopcal.calibration.implicit import cramer_rao, start_rotations  # noqa: E402
+from loopcal.calibration.parameters import INDEX, NOMINAL, PAPER7  # noqa: E402
+from loopcal.calibration.pipeline import calibrate  # noqa: E402
+from loopcal.calibration.simulate import simulate_poses  # noqa: E402
 
 METHODS = ("ml", "paper")
 NOISE_VOLTS = 0.040
@@ -275,8 +275,8 @@ def evaluations(volts: np.ndarray, method: str) -> int:
     accepted and rejected LM steps (ml: ``implicit._evaluate``, whose last one also gives
     the covariance; the paper's method: ``loop_residuals``, the covariance included)."""
     # the package exports the function identify(), which hides its module's name
-    ident_mod = importlib.import_module("calibration.identify")
-    implicit_mod = importlib.import_module("calibration.implicit")
+    ident_mod = importlib.import_module("loopcal.calibration.identify")
+    implicit_mod = importlib.import_module("loopcal.calibration.implicit")
     if method == "ml":
         module, name = implicit_mod, "_evaluate"
     else:
@@ -367,7 +367,7 @@ def _exp_and_left_jacobian(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def anchor_fit(volts, weights, R0, directions, p_start):
     """scipy's least_squares (trf, lsmr) on the maximum-likelihood problem of
-    :func:`calibration.implicit.fit_linearised`: unknowns z = (dx (n,), w (m, 3)),
+    :func:`loopcal.calibration.implicit.fit_linearised`: unknowns z = (dx (n,), w (m, 3)),
     ``p = p_start + T dx``, ``R_k = exp([w_k]x) R0_k``, residuals ``(Vhat - V) * weights``
     (4m,), from z = 0, with the analytic Jacobian as a CSR matrix (each row: n parameter
     entries and its pose's 3).
@@ -517,7 +517,7 @@ def run_anchor(repeats: int) -> None:
 def run_sessions(seeds: list[int], directory: Path | None) -> None:
     from session_helpers import calibrate_json, fresh_config, live_sessions, trim, truth_for
 
-    from daemon.recording import find_recordings
+    from loopcal.daemon.recording import find_recordings
 
     print(
         f"== sessions: {len(seeds)} technician sessions, 40 mV, recorded through loopcal "

@@ -4,7 +4,7 @@
 
 Writes (once, cached) ``--days`` days of 20 Hz recording in hourly files, as the daemon
 keeps them after compaction (large chunks): a technician's hand-moved session
-(:mod:`simulator.offline`, 40 mV), one simulated day repeated with the counters and stamps
+(:mod:`loopcal.simulator.offline`, 40 mV), one simulated day repeated with the counters and stamps
 running on, so every day's scans are distinct. Then runs the real commands in
 subprocesses and reports wall time and peak RSS (the processes' ``ru_maxrss``):
 
@@ -32,10 +32,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from fuzz_helpers import write_rows  # noqa: E402
 from session_helpers import PAUSE_S, rows_from, truth_for  # noqa: E402
 
-from daemon import recording as rec  # noqa: E402
-from daemon.config.controller import write_initial_config  # noqa: E402
-from simulator.offline import mechanism_scans  # noqa: E402
-from simulator.scenarios import HandMoves  # noqa: E402
+from loopcal.daemon import recording as rec  # noqa: E402
+from loopcal.daemon.config.controller import write_initial_config  # noqa: E402
+from loopcal.simulator.offline import mechanism_scans  # noqa: E402
+from loopcal.simulator.scenarios import HandMoves  # noqa: E402
 
 RATE = 20
 HOUR = 3600 * RATE
@@ -85,7 +85,7 @@ def main() -> int:
     files = rec.find_recordings(rec_dir)
     size = sum(f.stat().st_size for f in files)
     print(f"{len(files)} files, {size / 1e9:.2f} GB, {args.days * DAY / 1e6:.1f} M scans")
-    loopcal = [sys.executable, "-m", "daemon.cli"]
+    loopcal = [sys.executable, "-m", "loopcal.daemon.cli"]
     for name, cmd in (
         ("info", [*loopcal, "info", str(rec_dir), "--json"]),
         ("check", [*loopcal, "check", str(rec_dir), "--controller-config", str(config),

@@ -4,8 +4,8 @@ Writes (once, cached under ``--dir``) a day of recording as the daemon writes it
 scans at 20 Hz, one flush per second (a raw chunk and a views chunk each), rotated hourly
 into 24 files, realistic codes. Then, each the median of ``--repeats`` runs:
 
-* ``read day``: :func:`daemon.recording.read_recordings` of the 24 files as the daemon
-  keeps them: each compacted after its rotation (:mod:`daemon.recording.compact`; target
+* ``read day``: :func:`loopcal.daemon.recording.read_recordings` of the 24 files as the daemon
+  keeps them: each compacted after its rotation (:mod:`loopcal.daemon.recording.compact`; target
   < 1 s); ``read day as written``: the same files before compaction (one chunk a second,
   what an unclosed file and recordings of older versions hold);
 * ``read hour window``: one hour out of the day, by time window over all 24 files;
@@ -32,11 +32,11 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _recordings import compacted_copy  # noqa: E402
 from _timing import median_time  # noqa: E402
 
-from calibration.parameters import NOMINAL  # noqa: E402
-from calibration.simulate import simulate_poses  # noqa: E402
-from daemon import recording as rec  # noqa: E402
-from daemon import scans as S  # noqa: E402
-from drivers.ldq412 import volts_to_code  # noqa: E402
+from loopcal.calibration.parameters import NOMINAL  # noqa: E402
+from loopcal.calibration.simulate import simulate_poses  # noqa: E402
+from loopcal.daemon import recording as rec  # noqa: E402
+from loopcal.daemon import scans as S  # noqa: E402
+from loopcal.drivers.ldq412 import volts_to_code  # noqa: E402
 
 RATE = 20
 HOUR = 3600 * RATE

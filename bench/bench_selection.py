@@ -17,10 +17,10 @@ import argparse
 import numpy as np
 from _timing import median_time
 
-from calibration.observability import column_scales, observability_indices
-from calibration.parameters import NOMINAL, PAPER7
-from calibration.selection import candidate_jacobian, select_poses
-from calibration.simulate import simulate_poses
+from loopcal.calibration.observability import column_scales, observability_indices
+from loopcal.calibration.parameters import NOMINAL, PAPER7
+from loopcal.calibration.selection import candidate_jacobian, select_poses
+from loopcal.calibration.simulate import simulate_poses
 
 
 def run(n_candidates: int, k: int, repeats: int, seed: int) -> None:

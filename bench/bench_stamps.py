@@ -26,7 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
 from timeline_helpers import Module, datasheet_latency, run_polls, run_stamps  # noqa: E402
 
-from daemon.recorder.clockmap import ClockMap  # noqa: E402
+from loopcal.daemon.recorder.clockmap import ClockMap  # noqa: E402
 
 
 class FormerClockMap:

@@ -2,7 +2,7 @@
 
     python bench/bench_startup.py [--repeats 15]
 
-Every command is a fresh process (``python -m daemon.cli ...``), timed wall to wall, the
+Every command is a fresh process (``python -m loopcal.daemon.cli ...``), timed wall to wall, the
 runs of all commands interleaved so that a busy machine slows them alike; medians:
 
 * baseline: ``python -c "import numpy, scipy.linalg"`` (what any numerical command pays);
@@ -26,8 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from session_helpers import PAUSE_S, truth_for, write_session  # noqa: E402
 
-from daemon.config.controller import write_initial_config  # noqa: E402
-from simulator.scenarios import HandMoves  # noqa: E402
+from loopcal.daemon.config.controller import write_initial_config  # noqa: E402
+from loopcal.simulator.scenarios import HandMoves  # noqa: E402
 
 PY = sys.executable
 
@@ -51,7 +51,7 @@ def main() -> int:
         write_session(work / "rec", HandMoves(4, params=truth, pause_s=PAUSE_S), truth, 120,
                       seed=4)  # fmt: skip
         config = write_initial_config(work / "controller.toml")
-        cli = [PY, "-m", "daemon.cli"]
+        cli = [PY, "-m", "loopcal.daemon.cli"]
         cases = {
             "baseline: import numpy, scipy.linalg": [PY, "-c", "import numpy, scipy.linalg"],
             "loopcal --help": [*cli, "--help"],

@@ -2,17 +2,17 @@
 
 Each recording is a technician's hand moving the simulated shoulder joint (pausing about a
 second between moves, 40 mV of noise), written once as the daemon writes it (hourly files,
-cached under ``--dir``; scans from :mod:`simulator.offline`, the emulator's own) and kept as
-the daemon keeps it: each file compacted after its rotation (:mod:`daemon.recording.compact`);
-the day is also run as written, before compaction (one chunk a second). For each
-length, the median of ``--repeats`` runs of the real command,
+cached under ``--dir``; scans from :mod:`loopcal.simulator.offline`, the emulator's own) and kept as
+the daemon keeps it: each file compacted after its rotation
+(:mod:`loopcal.daemon.recording.compact`); the day is also run as written, before compaction (one
+chunk a second). For each length, the median of ``--repeats`` runs of the real command,
 ``loopcal calibrate DIR --controller-config C --write`` in a subprocess on a fresh config,
 and, in this process, where the time goes (read, poses, fit and gates). The baseline,
 measured in the same run, is reading the recording alone: the growth of the rest against it
 shows how the worker scales. Target (issue #16): a day in under 3 s.
 
 Then a line per stage of the worker with its median over the repeats, a column per
-recording (:func:`daemon.worker.run.run_worker` on the scans read, the stages timed where it
+recording (:func:`loopcal.daemon.worker.run.run_worker` on the scans read, the stages timed where it
 calls them): the still-pose search, the held-out split and the gates, the selection
 (candidates prepared and chosen, every round), the identification (every fit, the first
 estimate's included), and the worker's total; and the command's total, with the share of it
@@ -34,13 +34,13 @@ sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
 from _recordings import compacted_copy  # noqa: E402
 from session_helpers import PAUSE_S, truth_for, write_session  # noqa: E402
 
-import calibration.pipeline as pipeline  # noqa: E402
-import daemon.worker.run as worker_run  # noqa: E402
-from daemon.config.controller import load_controller_config, write_initial_config  # noqa: E402
-from daemon.recording import find_recordings, read_recordings  # noqa: E402
-from daemon.worker.poses import poses_of_scans  # noqa: E402
-from daemon.worker.run import run_worker  # noqa: E402
-from simulator.scenarios import HandMoves  # noqa: E402
+import loopcal.calibration.pipeline as pipeline  # noqa: E402
+import loopcal.daemon.worker.run as worker_run  # noqa: E402
+from loopcal.daemon.config.controller import load_controller_config, write_initial_config  # noqa: E402
+from loopcal.daemon.recording import find_recordings, read_recordings  # noqa: E402
+from loopcal.daemon.worker.poses import poses_of_scans  # noqa: E402
+from loopcal.daemon.worker.run import run_worker  # noqa: E402
+from loopcal.simulator.scenarios import HandMoves  # noqa: E402
 
 LENGTHS = {"2 min": 120, "1 h": 3600, "24 h": 86400}
 
@@ -66,7 +66,7 @@ def command(rec_dir: Path, work: Path) -> tuple[float, int]:
         [
             sys.executable,
             "-m",
-            "daemon.cli",
+            "loopcal.daemon.cli",
             "calibrate",
             str(rec_dir),
             "--controller-config",

@@ -44,16 +44,16 @@ from fuzz_helpers import (  # noqa: E402
     make_rows,
 )
 
-from daemon.config.controller import (  # noqa: E402
+from loopcal.daemon.config.controller import (  # noqa: E402
     ControllerConfigError,
     load_controller_config,
     render_initial_config,
 )
-from daemon.recorder.settings import SettingsError, load_daemon_config  # noqa: E402
-from daemon.recording import recording_name  # noqa: E402
-from drivers import DAQInvalidCommand, DAQProtocolError, driver_for_url  # noqa: E402
-from drivers import ascii as ascii_proto  # noqa: E402
-from drivers.ldq412 import ascii_checksum  # noqa: E402
+from loopcal.daemon.recorder.settings import SettingsError, load_daemon_config  # noqa: E402
+from loopcal.daemon.recording import recording_name  # noqa: E402
+from loopcal.drivers import DAQInvalidCommand, DAQProtocolError, driver_for_url  # noqa: E402
+from loopcal.drivers import ascii as ascii_proto  # noqa: E402
+from loopcal.drivers.ldq412 import ascii_checksum  # noqa: E402
 
 HANG_S = 10
 

@@ -46,9 +46,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from recorder_helpers import hand_emulator  # noqa: E402
 
-from daemon.recording import read_recordings  # noqa: E402
-from simulator.clock import RealClock  # noqa: E402
-from simulator.open_points import Latency, OpenPoints  # noqa: E402
+from loopcal.daemon.recording import read_recordings  # noqa: E402
+from loopcal.simulator.clock import RealClock  # noqa: E402
+from loopcal.simulator.open_points import Latency, OpenPoints  # noqa: E402
 
 RATE = 200
 PHASE_US = 1809
@@ -110,7 +110,7 @@ class Daemon:
 
     def start(self) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "daemon.cli", "daemon", "--config", str(self.config)],
+            [sys.executable, "-m", "loopcal.daemon.cli", "daemon", "--config", str(self.config)],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         )  # fmt: skip
         self.started += 1

@@ -1,6 +1,6 @@
 """Closed-loop calibration of the redundant shoulder joint: pure numpy/scipy, no I/O.
 
-from calibration import calibrate, PAPER7, NOMINAL, still_poses
+from loopcal.calibration import calibrate, PAPER7, NOMINAL, still_poses
 result = calibrate(still_poses(volts).volts, PAPER7, NOMINAL).identification
 print(result.table())
 """
@@ -35,7 +35,7 @@ _LAZY = {
 def __getattr__(name: str):
     module = _LAZY.get(name)
     if module is None:
-        raise AttributeError(f"module 'calibration' has no attribute {name!r}")
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     value = getattr(importlib.import_module(f".{module}", __name__), name)
     globals()[name] = value
     return value

@@ -2,9 +2,9 @@
 
 With four sensors for three degrees of freedom, every still pose tells whether the loops
 still close at the parameters in force. At parameters p, forward kinematics places the
-plate; what is left of the readings orthogonal to every rotation (:mod:`calibration.implicit`:
-the unit vector q_k orthogonal to the columns of the pose's whitened rotation Jacobian) is
-the pose's loop-closure error
+plate; what is left of the readings orthogonal to every rotation
+(:mod:`loopcal.calibration.implicit`: the unit vector q_k orthogonal to the columns of the pose's
+whitened rotation Jacobian) is the pose's loop-closure error
 
     e_k = q_k^T W_k (V_k - Vhat_k(R_k; p)),     W_k = diag(1 / sigma_ki),
 
@@ -67,7 +67,7 @@ class PoseModels:
     """What the parameters in force predict for each of m poses, independent of the noise:
     rotations R (m, 3, 3) from forward kinematics, usable (m,), and the model's readings
     vhat (m, 4) with their derivatives Jp (m, 4, 20) and Jr (m, 4, 3)
-    (:func:`calibration.implicit.model_jacobians`). A monitor testing a sliding window of
+    (:func:`loopcal.calibration.implicit.model_jacobians`). A monitor testing a sliding window of
     poses computes each pose's once (:func:`pose_models`) and stacks them
     (:meth:`stack`)."""
 

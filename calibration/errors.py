@@ -4,7 +4,7 @@ from __future__ import annotations
 
 
 class CalibrationError(Exception):
-    """Base class of every error raised by :mod:`calibration`."""
+    """Base class of every error raised by :mod:`loopcal.calibration`."""
 
 
 class InputError(CalibrationError, ValueError):

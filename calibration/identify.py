@@ -6,7 +6,7 @@ Each iteration solves the damped, column-scaled normal equations
     (G^T G + lambda diag(G^T G)) ds = -G^T f,   G = g H,   dx = H ds,
 
 with the analytic Jacobian g (implicit differentiation of the sphere equations) and
-``H = diag(sqrt(M) / ||g_j||)`` (see :mod:`calibration.observability`).
+``H = diag(sqrt(M) / ||g_j||)`` (see :mod:`loopcal.calibration.observability`).
 
 Covariance. The four residuals of a pose share that pose's four readings, so they are
 correlated, and to first order they are one scalar loop-closure error seen four times: their
@@ -182,7 +182,7 @@ def identify(
 
     volts: (m, 4) readings in V (quasi-static poses). start: full parameter vector (20,) to
     start from; fixed parameters keep its values. method: "ml", maximum likelihood by the
-    implicit loop method (:mod:`calibration.implicit`: every pose's rotation is estimated
+    implicit loop method (:mod:`loopcal.calibration.implicit`: every pose's rotation is estimated
     too, the readings are fitted directly, weighted by their noise), or "paper", the
     paper's closed-loop residuals (docs/model.md section 5). noise_volts: known per-channel
     noise of one scan (1 sigma, V) for the covariance; None estimates it from the residuals.
@@ -190,13 +190,13 @@ def identify(
     (ml weights the poses by it; the paper's method does not weigh poses).
     near_singular_mm (paper): poses whose mirror solutions come closer than this (at the
     estimate) are excluded and reported; ml excludes poses whose rotation the lengths do
-    not determine (:data:`calibration.implicit.MIN_POSE_SIGMA_MM`). max_change: a free
+    not determine (:data:`loopcal.calibration.implicit.MIN_POSE_SIGMA_MM`). max_change: a free
     parameter moving further than this from the start (in its unit) is divergence. xtol
     (paper): converged when no free parameter is estimated to be further than this (in its
     unit) from the limit, judged from the step and the observed convergence rate; ftol
     (paper): or when the relative decrease of f^T f falls below it near the Gauss-Newton
     regime (damping <= 1); ml stops when a step lowers the whitened misfit by less than
-    :data:`calibration.implicit.DECREMENT_TOL` of one residual's variance.
+    :data:`loopcal.calibration.implicit.DECREMENT_TOL` of one residual's variance.
 
     Raises InputError (bad readings, too few usable poses), UnobservableError (the free set is
     rank deficient on these poses), ConvergenceError (divergence).

@@ -12,7 +12,7 @@ estimate; the paper's squared-length loop residuals are not (they put the noise 
 squares, which biases the fit at O(sigma^2) and weighs the channels unequally).
 
 Rotations are updated by left increments ``R <- exp([w]x) R`` (w in rad, base frame), as in
-:func:`calibration.kinematics.forward_kinematics`. Per pose the whitened residual r_k (4,)
+:func:`loopcal.calibration.kinematics.forward_kinematics`. Per pose the whitened residual r_k (4,)
 has the Jacobians ``Jp_k`` (4, n) and ``Jr_k`` (4, 3). The Gauss-Newton normal equations are
 block-arrow sparse; eliminating each pose's 3x3 block (Schur complement)
 
@@ -31,7 +31,7 @@ selection on the rows a_k is a rank-one design problem.
 
 Implementation. Inside, arrays are component-major (the pose index last: residuals (4, m),
 rotation Jacobians (3, 4, m), rotations (3, 3, m)) and every 3x3 operation is in closed form
-(:mod:`calibration.smallmat`), so each one is a handful of elementwise operations over
+(:mod:`loopcal.calibration.smallmat`), so each one is a handful of elementwise operations over
 contiguous pose arrays. The parameter Jacobian is kept as its nonzero entries only: a
 parameter moves one leg (a base coordinate, a gain, an offset), two (k2, k3) or four (k1),
 so row i of ``Jp_k`` is ``sum_l g_lk T[param_l]`` over the pairs l = (param_l, leg_l = i)

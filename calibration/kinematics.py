@@ -72,7 +72,7 @@ def home_derivative(p: np.ndarray) -> np.ndarray:
     """dBh/dk of the plate points at home, shape (3, 2, 3): (k1, k2, k3) x (B1, B2) x xyz.
 
     B1h = k1 u1; B2h = a u1 + b w with ``a = (k1^2 + k2^2 - k3^2) / (2 k1)`` and
-    ``b = sqrt(k2^2 - a^2)`` (see :func:`calibration.kinematics.plate_home`).
+    ``b = sqrt(k2^2 - a^2)`` (see :func:`loopcal.calibration.kinematics.plate_home`).
     """
     k1, k2, k3 = p[I_K1], p[I_K2], p[I_K3]
     a = (k1 * k1 + k2 * k2 - k3 * k3) / (2 * k1)
@@ -212,7 +212,7 @@ def forward_kinematics(
     home = plate_home(p)
     m = d.shape[0]
     # component-major inside (pose index last): every operation runs over contiguous pose
-    # arrays, and the 3x3 algebra is in closed form (calibration.smallmat)
+    # arrays, and the 3x3 algebra is in closed form (loopcal.calibration.smallmat)
     dc = np.ascontiguousarray(d.T)  # (4, m)
     if start is None:
         up = np.array([[0.0], [0.0], [1.0]])
@@ -300,7 +300,7 @@ PLAUSIBLE_GAIN = 100.0
 def check_geometry(p: np.ndarray) -> np.ndarray:
     """Validate a full parameter vector as a description of this mechanism.
 
-    Beyond :func:`calibration.parameters.check_vector` (shape, finite, positive plate sizes
+    Beyond :func:`loopcal.calibration.parameters.check_vector` (shape, finite, positive plate sizes
     and gains, a plate triangle): every length within +-:data:`PLAUSIBLE_MM` mm, every gain
     at most :data:`PLAUSIBLE_GAIN` mm/V, and at the home pose (identity rotation) every
     actuator's length inside its sensor's range ``d0 +- 10 V * S``. A vector that fails

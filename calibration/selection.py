@@ -3,8 +3,8 @@
 
 Every pose k contributes ``A_k = G_k^T G_k`` to the information matrix ``M(S) = sum_{k in S} A_k``
 of a set S, where ``G_k`` (4, n) is the pose's block of the scaled Jacobian. One fixed column
-scaling ``H`` (that of the whole candidate pool, see :mod:`calibration.observability`) is used
-for every subset, so that subsets are compared on one scale. The singular values of a subset's
+scaling ``H`` (that of the whole candidate pool, see :mod:`loopcal.calibration.observability`) is
+used for every subset, so that subsets are compared on one scale. The singular values of a subset's
 scaled Jacobian are the square roots of the eigenvalues of ``M(S)``.
 
 Algorithm.
@@ -206,7 +206,7 @@ class Candidates:
     jacobian: (N, 4, n) loop-residual Jacobian with respect to the free parameters (the
     paper's design matrix); usable: (N,) not near-singular and consistent; information:
     (N, 1, n) each pose's noise-whitened information row ``u_k^T J_k / s_k`` (see
-    :func:`calibration.residuals.noise_sensitivity`): the pose's real information about the
+    :func:`loopcal.calibration.residuals.noise_sensitivity`): the pose's real information about the
     parameters per unit voltage noise. Rows of unusable poses are zero, so they are never
     chosen.
     """
@@ -246,7 +246,7 @@ def ml_candidates(
     """Prepare N candidate poses for the maximum-likelihood estimator at the estimate ``p``.
 
     Each pose's information about the free parameters once its rotation is eliminated is
-    rank one (:func:`calibration.implicit.weighted_information`); its row, per unit noise of
+    rank one (:func:`loopcal.calibration.implicit.weighted_information`); its row, per unit noise of
     one scan (weighted by sqrt(scans_per_pose)), is both the pose's Jacobian and its
     information, shape (N, 1, n). Poses whose rotation the lengths do not determine are
     unusable (rows of zeros).

@@ -1,15 +1,18 @@
 """The ``loopcal`` command line: parses the arguments and dispatches to the command's module
-in :mod:`daemon.commands`, importing only that one (``loopcal --help`` imports none)."""
+in :mod:`loopcal.daemon.commands`, importing only that one (``loopcal --help`` imports none)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 
-from calibration.errors import CalibrationError
+from loopcal.calibration.errors import CalibrationError
 
 from .commands import COMMANDS, load
 from .version import loopcal_version
+
+#: the docs the help texts name (docs/daemon.md, ...) are installed with loopcal
+DOCS_EPILOG = "docs/*.md, systemd/*: installed with loopcal; `loopcal files` says where."
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -18,6 +21,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="loopcal",
         description="Closed-loop field calibration of the redundant shoulder joint.",
+        epilog=DOCS_EPILOG,
     )
     parser.add_argument("--version", action="version", version=f"loopcal {loopcal_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -31,6 +35,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
             help=help_text,
             description=getattr(module, "DESCRIPTION", None) or module.__doc__,
             formatter_class=argparse.RawDescriptionHelpFormatter,
+            epilog=DOCS_EPILOG,
         )
         module.add_arguments(p)
         p.set_defaults(func=module.run)

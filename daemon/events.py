@@ -76,7 +76,7 @@ class Event:
             raise ValueError(f"unknown event kind {self.kind!r}")
 
     def to_json(self) -> dict[str, Any]:
-        """The ``loopcal.Event`` message (see :mod:`daemon.recording`)."""
+        """The ``loopcal.Event`` message (see :mod:`loopcal.daemon.recording`)."""
         sec, nsec = divmod(int(self.stamp_ns), 1_000_000_000)
         return {
             "timestamp": {"sec": sec, "nsec": nsec},

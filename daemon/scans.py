@@ -1,6 +1,6 @@
 """Scans as the daemon keeps them: one row of a numpy structured array per scan.
 
-The driver hands over :class:`drivers.Scan` records; the acquisition turns every batch of
+The driver hands over :class:`loopcal.drivers.Scan` records; the acquisition turns every batch of
 them into rows of :data:`SCAN_DTYPE` (adding the recorder's power-on epoch and UTC time
 stamps), the recorder writes those rows to MCAP unchanged, and the reader gives the same
 rows back. A row keeps everything the module said, losslessly: the raw 32-bit counter and
@@ -8,14 +8,14 @@ device time are the low 32 bits of ``counter64`` and ``time64_us``.
 
 The field order puts 8-byte fields first, so the numpy layout (``align=True``) has no
 padding between fields and is also the CDR layout of the ``loopcal_msgs/Scan`` message
-the recording stores (see :mod:`daemon.recording`).
+the recording stores (see :mod:`loopcal.daemon.recording`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from drivers import ldq412
+from loopcal.drivers import ldq412
 
 #: (name, numpy scalar type, count, meaning): the fields of a scan row, in layout order
 SCAN_FIELDS: tuple[tuple[str, str, int, str], ...] = (

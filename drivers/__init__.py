@@ -2,12 +2,12 @@
 
 Open a module by URL; the scheme picks the driver::
 
-    from drivers import open_daq
+    from loopcal.drivers import open_daq
     with open_daq("modbus-tcp://192.168.1.50:502?unit=1") as daq:
         scans = daq.read_scans()
 
 The driver classes (and pymodbus, pyserial behind them) are imported on first use: a program
-that needs only the datasheet's constants (``drivers.ldq412``) or the URL parser does not
+that needs only the datasheet's constants (``loopcal.drivers.ldq412``) or the URL parser does not
 pay for them.
 """
 
@@ -41,7 +41,7 @@ _LAZY = {"ModbusDAQ": "modbus", "ModbusTcpDAQ": "modbus_tcp", "ModbusRtuDAQ": "m
 def __getattr__(name: str):
     module = _LAZY.get(name)
     if module is None:
-        raise AttributeError(f"module 'drivers' has no attribute {name!r}")
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     value = getattr(importlib.import_module(f".{module}", __name__), name)
     globals()[name] = value
     return value

@@ -292,7 +292,7 @@ def register_scheme(scheme: str) -> Callable[[type[D]], type[D]]:
 
 
 #: the modules of the drivers that come with loopcal; each registers its scheme on import
-_BUILTIN = ("drivers.modbus_tcp", "drivers.modbus_rtu", "drivers.ascii")
+_BUILTIN = ("loopcal.drivers.modbus_tcp", "loopcal.drivers.modbus_rtu", "loopcal.drivers.ascii")
 
 
 def _load_builtin() -> None:

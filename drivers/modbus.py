@@ -17,7 +17,7 @@ FIFO overflow: the driver never writes holding register 2, since by the datashee
 clears the FIFO along with the overflow flag, and would throw away the scans that arrived
 while the driver was reading. The flag stays latched; an overflow shows as a counter gap
 in the FIFO (the oldest scans were dropped), told apart from a FIFO answer lost on the way
-(the driver knows which reads failed). See :class:`drivers.sequence.Sequencer`.
+(the driver knows which reads failed). See :class:`loopcal.drivers.sequence.Sequencer`.
 
 Modules differ where the datasheet is loose (docs/daq.md, "open points"): a FIFO answer
 with fewer scans than asked (a module that leaves the filler out, or truncates long

@@ -1,6 +1,6 @@
 """The emulated LDQ-412 DAQ module: device model, clocks, signal sources and wire servers.
 
-from simulator import Emulator, ManualClock
+from loopcal.simulator import Emulator, ManualClock
 with Emulator("modbus-tcp", clock=ManualClock()) as emu:
     ...  # open_daq(emu.url), emu.clock.advance(1.0), emu.faults.restart(), emu.truth
 """
@@ -9,7 +9,7 @@ import importlib
 from typing import TYPE_CHECKING
 
 # Loaded on first use, as calibration/ and drivers/ do: the pytest plugin
-# (simulator.pytest_plugin) is imported by every pytest run where loopcal is installed and
+# (loopcal.simulator.pytest_plugin) is imported by every pytest run where loopcal is installed and
 # must not pull in numpy and pymodbus for that.
 _LAZY = {
     "Clock": "clock", "ManualClock": "clock", "RealClock": "clock", "SimClock": "clock",
@@ -30,7 +30,7 @@ if TYPE_CHECKING:
 def __getattr__(name: str):
     module = _LAZY.get(name)
     if module is None:
-        raise AttributeError(f"module 'simulator' has no attribute {name!r}")
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     value = getattr(importlib.import_module(f".{module}", __name__), name)
     globals()[name] = value
     return value

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import string
 
-from drivers.ldq412 import MODEL_NAME, ascii_checksum
+from loopcal.drivers.ldq412 import MODEL_NAME, ascii_checksum
 
 from .device import LDQ412, DeviceError
 

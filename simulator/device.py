@@ -8,7 +8,7 @@ makes FIFO overflow exact. The owner serializes access (the model is not thread-
 
 Timing model
     Device time is microseconds since the current power-on, counted by the module's own
-    clock: ``clock_ppm`` (:mod:`simulator.open_points`) makes it run that much fast
+    clock: ``clock_ppm`` (:mod:`loopcal.simulator.open_points`) makes it run that much fast
     against the owner's clock. Scans happen at ``anchor_us + floor(j * 1e6 / rate)`` µs of
     device time for j = 0, 1, 2, ...: at power-on the anchor is ``scan_phase_us`` (0 by
     default: the first scan, counter 0, happens at once), and the module answers nothing
@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.ldq412 import (
+from loopcal.drivers.ldq412 import (
     CHANNEL_SKEW_S,
     CODE_MAX,
     FIFO_DEPTH,
@@ -101,7 +101,7 @@ _SATURATION_V = {"high": V_MAX + 1.0, "low": V_MIN - 1.0}
 
 def rail_bits(codes: list[int]) -> int:
     """The status word's rail bits of a scan's codes: bit ch for a channel at 0 or
-    :data:`~drivers.ldq412.CODE_MAX`."""
+    :data:`~loopcal.drivers.ldq412.CODE_MAX`."""
     return sum(1 << ch for ch, c in enumerate(codes) if c in (0, CODE_MAX))
 
 

@@ -10,7 +10,7 @@ them differently. Two shapes, both in device seconds since the module started:
   then held).
 
 Drifts are functions of time, not state switched by the fault loop, so the same schedule
-gives the same scans in the emulator and offline (:mod:`simulator.offline`).
+gives the same scans in the emulator and offline (:mod:`loopcal.simulator.offline`).
 """
 
 from __future__ import annotations

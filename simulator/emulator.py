@@ -17,7 +17,7 @@ Transports:
 
 Everything (servers, pty relay, a 10 ms housekeeping tick) runs on one asyncio loop in
 one thread, started by :meth:`Emulator.start` and stopped by :meth:`Emulator.close`.
-With a :class:`~simulator.clock.ManualClock`, the same scenario, seed and request sequence
+With a :class:`~loopcal.simulator.clock.ManualClock`, the same scenario, seed and request sequence
 put the same bytes on the wire.
 """
 
@@ -32,7 +32,12 @@ from typing import Any
 
 import numpy as np
 
-from drivers.ldq412 import ASCII_DEFAULT_ADDR, MODBUS_UNIT, SCAN_RATE_DEFAULT_HZ, SERIAL_BAUD
+from loopcal.drivers.ldq412 import (
+    ASCII_DEFAULT_ADDR,
+    MODBUS_UNIT,
+    SCAN_RATE_DEFAULT_HZ,
+    SERIAL_BAUD,
+)
 
 from .ascii_server import AsciiServer
 from .clock import Clock, RealClock
@@ -69,9 +74,9 @@ class Emulator:
     """An emulated LDQ-412 reachable at :attr:`url`; a context manager.
 
     transport: "modbus-tcp", "modbus-rtu" or "ascii".
-    source: the analog inputs; None: :class:`~simulator.source.TestSource` (seed).
+    source: the analog inputs; None: :class:`~loopcal.simulator.source.TestSource` (seed).
     scan_rate_hz, ascii_checksum: power-on values of holding registers 0 and 4.
-    clock: None: :class:`~simulator.clock.RealClock`.
+    clock: None: :class:`~loopcal.simulator.clock.RealClock`.
     seed: seeds the built-in source and the garbage bytes.
     serial_number, firmware: identity registers.
     unit: Modbus unit id (1..247). ascii_addr: ASCII module address (0..255).
@@ -80,10 +85,10 @@ class Emulator:
     host, port: TCP listening address (port 0: a free port, reported in ``url``).
     truth_limit: None keeps every scan in :attr:`truth`; N keeps at least the latest N
         (bounded memory for long real-time runs).
-    open_points: the choices the datasheet leaves open (:mod:`simulator.open_points`:
+    open_points: the choices the datasheet leaves open (:mod:`loopcal.simulator.open_points`:
         scan phase, clock error, answer latency, FIFO underrun, accepted reads); the
         default is the emulator as it always was.
-    device: a device model to serve instead of a new :class:`~simulator.device.LDQ412`
+    device: a device model to serve instead of a new :class:`~loopcal.simulator.device.LDQ412`
         (a replay's); source, scan_rate_hz, serial_number, firmware, ascii_checksum,
         initial_uptime_s, truth_limit and the open points other than the latency are then
         the device's own.

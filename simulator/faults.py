@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from drivers.ldq412 import POWER_CYCLE_S
+from loopcal.drivers.ldq412 import POWER_CYCLE_S
 
 from .handle import DeviceHandle
 from .open_points import Latency

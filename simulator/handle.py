@@ -31,7 +31,7 @@ class DeviceHandle:
 
     def note_request(self) -> None:
         """A server received a request: the first one sets :attr:`requested` and starts a
-        clock held until then (:class:`~simulator.clock.HeldClock`)."""
+        clock held until then (:class:`~loopcal.simulator.clock.HeldClock`)."""
         if not self.requested.is_set():
             if isinstance(self.clock, HeldClock):
                 self.clock.release()

@@ -12,9 +12,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from calibration.kinematics import inverse_kinematics, lengths_to_volts
-from calibration.parameters import NAMES, ParameterModel, check_vector, from_dict
-from calibration.simulate import NOISE_VOLTS, perturbed_truth
+from loopcal.calibration.kinematics import inverse_kinematics, lengths_to_volts
+from loopcal.calibration.parameters import NAMES, ParameterModel, check_vector, from_dict
+from loopcal.calibration.simulate import NOISE_VOLTS, perturbed_truth
 
 from .drift import OffsetDrift, offset_shift
 from .scenarios import Scenario
@@ -45,11 +45,11 @@ def true_parameters(
 
 
 class MechanismSource:
-    """:class:`~simulator.source.SignalSource` of a simulated mechanism.
+    """:class:`~loopcal.simulator.source.SignalSource` of a simulated mechanism.
 
     scenario: the plate's motion; truth: the mechanism's true parameters (20,);
     noise_volts: 1-sigma noise per conversion; seed: the noise stream; drifts: offset
-    drifts of the sensors (:mod:`simulator.drift`); more can be added later to
+    drifts of the sensors (:mod:`loopcal.simulator.drift`); more can be added later to
     :attr:`drifts` (they act from their own start times).
     """
 
@@ -84,12 +84,12 @@ class MechanismSource:
 
 
 class ReplaySource:
-    """:class:`~simulator.source.SignalSource` replaying a recording: each channel reads the
+    """:class:`~loopcal.simulator.source.SignalSource` replaying a recording: each channel reads the
     latest recorded value at or before its instant (sample and hold), the recording starting
     at source time 0; after the end it holds the last value, or starts over with ``loop``.
 
     times_s: (n,) increasing recording times, s; volts: (n, 4). Recorded codes replay
-    bit for bit when given as their mid-code volts (:func:`drivers.ldq412.code_to_volts`).
+    bit for bit when given as their mid-code volts (:func:`loopcal.drivers.ldq412.code_to_volts`).
     """
 
     def __init__(self, times_s: np.ndarray, volts: np.ndarray, *, loop: bool = False) -> None:
@@ -116,7 +116,7 @@ class ReplaySource:
         order; times from the scans' own source times)."""
         import json
 
-        from drivers.ldq412 import code_to_volts
+        from loopcal.drivers.ldq412 import code_to_volts
 
         times, codes = [], []
         with open(path, encoding="utf-8") as fh:

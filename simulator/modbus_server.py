@@ -9,7 +9,7 @@ through pymodbus' own extension points:
   returns its exception codes (02/03);
 - ``custom_pdu`` request classes: reads (03, 04) are answered by the device model itself,
   so that an answer may have fewer registers than asked (a truncated or short FIFO read,
-  :mod:`simulator.open_points`), and a FIFO-window read pops scans; reads of 0 or more
+  :mod:`loopcal.simulator.open_points`), and a FIFO-window read pops scans; reads of 0 or more
   than 125 registers answer 03 (the stock classes reject them while decoding, which
   pymodbus answers with 01), and every function the module does not implement (anything
   but 03, 04, 06, 16) answers 01 without reaching the datastore;
@@ -46,7 +46,14 @@ from pymodbus.pdu.register_message import (
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.ldq412 import HR_COUNT, IR_FIFO, IR_FIFO_END, IR_MODEL, IR_SNAPSHOT_LEN, SERIAL_BAUD
+from loopcal.drivers.ldq412 import (
+    HR_COUNT,
+    IR_FIFO,
+    IR_FIFO_END,
+    IR_MODEL,
+    IR_SNAPSHOT_LEN,
+    SERIAL_BAUD,
+)
 
 from .device import LDQ412, DeviceError, DeviceOffError
 from .handle import DeviceHandle

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.kinematics import inverse_kinematics, lengths_to_volts
-from calibration.parameters import check_vector
-from calibration.simulate import NOISE_VOLTS
-from drivers.ldq412 import CHANNEL_SKEW_S, N_CHANNELS, volts_to_code
+from loopcal.calibration.kinematics import inverse_kinematics, lengths_to_volts
+from loopcal.calibration.parameters import check_vector
+from loopcal.calibration.simulate import NOISE_VOLTS
+from loopcal.drivers.ldq412 import CHANNEL_SKEW_S, N_CHANNELS, volts_to_code
 
 from .drift import OffsetDrift, offset_shift
 from .scenarios import Scenario
@@ -34,9 +34,9 @@ def mechanism_scans(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The first ``n_scans`` scans after power-on: (time_us (n,) int64, codes (n, 4) int64).
 
-    The noise stream is the one :class:`simulator.mechanism.MechanismSource` draws with the
+    The noise stream is the one :class:`loopcal.simulator.mechanism.MechanismSource` draws with the
     same seed, so the codes equal the emulator's, scan for scan. drifts: sensor offset
-    drifts (:mod:`simulator.drift`).
+    drifts (:mod:`loopcal.simulator.drift`).
     """
     p = check_vector(truth)
     rng = np.random.default_rng(seed)

@@ -3,7 +3,7 @@
 Installing loopcal registers it (the ``pytest11`` entry point ``ldq412``); a project that
 talks to the module needs nothing else::
 
-    from drivers import open_daq
+    from loopcal.drivers import open_daq
 
     @pytest.mark.ldq412(scenario="static", seed=7)
     def test_reads(ldq412):
@@ -19,14 +19,14 @@ talks to the module needs nothing else::
 
 Fixtures:
 
-- ``ldq412``: an :class:`~simulator.testing.EmulatedLDQ412` started for the test and
+- ``ldq412``: an :class:`~loopcal.simulator.testing.EmulatedLDQ412` started for the test and
   closed after it. Its options, later ones winning: the defaults, ``--ldq412-transport``
   on the command line, the closest ``@pytest.mark.ldq412(**options)``, and an indirect
   parameter (a transport name or a dict of options).
 - ``ldq412_factory``: ``make(**options)`` builds as many modules as a test wants (marker
   options as defaults), all closed after it.
 
-Options are the fields of :class:`~simulator.testing.LDQ412Options`; an unknown one fails
+Options are the fields of :class:`~loopcal.simulator.testing.LDQ412Options`; an unknown one fails
 the test's setup with a message naming it. Importing this module costs nothing until a
 fixture is used (the emulator is imported then).
 """

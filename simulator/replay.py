@@ -16,7 +16,7 @@ the recording back):
   most the datasheet's 2 s); a power-on whose first recorded scan came long after it (the
   recorder missed its beginning) starts that long ago, so nobody waits for it.
 
-:class:`Player` drives the module's clock (a :class:`~simulator.clock.PlayClock`),
+:class:`Player` drives the module's clock (a :class:`~loopcal.simulator.clock.PlayClock`),
 ``speed`` times as fast as wall time, and holds it still at the first and the last scan
 of each power-on until a client has read them (the latest scan, and the FIFO empty if the
 client reads it): a client that polls (ASCII) gets every power-on's first scan however
@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.ldq412 import (
+from loopcal.drivers.ldq412 import (
     CODE_MAX,
     POWER_CYCLE_S,
     SCAN_RATE_MAX_HZ,

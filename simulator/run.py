@@ -36,9 +36,9 @@ from typing import TextIO
 
 import numpy as np
 
-from calibration.kinematics import euler_zyz
-from calibration.parameters import NAMES, to_dict
-from calibration.simulate import NOISE_VOLTS
+from loopcal.calibration.kinematics import euler_zyz
+from loopcal.calibration.parameters import NAMES, to_dict
+from loopcal.calibration.simulate import NOISE_VOLTS
 
 from .clock import Clock, HeldClock, clock_for
 from .drift import OffsetDrift

@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from calibration.kinematics import from_euler_zyz
-from calibration.parameters import NOMINAL
-from calibration.simulate import NEAR_SINGULAR_MM, reachable, sample_workspace
+from loopcal.calibration.kinematics import from_euler_zyz
+from loopcal.calibration.parameters import NOMINAL
+from loopcal.calibration.simulate import NEAR_SINGULAR_MM, reachable, sample_workspace
 
 
 class Scenario:

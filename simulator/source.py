@@ -16,7 +16,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from drivers.ldq412 import N_CHANNELS
+from loopcal.drivers.ldq412 import N_CHANNELS
 
 
 @runtime_checkable

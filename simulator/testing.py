@@ -1,9 +1,9 @@
 """An emulated LDQ-412 for other projects' integration tests: options, truth, fault injection.
 
-What the pytest plugin (:mod:`simulator.pytest_plugin`, fixtures ``ldq412`` and
+What the pytest plugin (:mod:`loopcal.simulator.pytest_plugin`, fixtures ``ldq412`` and
 ``ldq412_factory``) hands a test, usable without pytest as well::
 
-    from simulator.testing import EmulatedLDQ412
+    from loopcal.simulator.testing import EmulatedLDQ412
 
     with EmulatedLDQ412(transport="ascii", seed=3) as module:
         daq = open_daq(module.url)        # any driver or Modbus client
@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from calibration.parameters import to_dict
-from calibration.simulate import NOISE_VOLTS
-from drivers.ldq412 import POWER_CYCLE_S
+from loopcal.calibration.parameters import to_dict
+from loopcal.calibration.simulate import NOISE_VOLTS
+from loopcal.drivers.ldq412 import POWER_CYCLE_S
 
 from .clock import Clock, ManualClock, clock_for
 from .device import TruthScan
@@ -60,7 +60,7 @@ class LDQ412Options:
     noise_volts: 1-sigma noise per conversion, volts.
     offset_error_mm: the true offsets differ from the blueprint by up to this.
     truth: true parameters to set exactly, {name: value} in the config's units.
-    open_points: the choices the datasheet leaves open (:mod:`simulator.open_points`).
+    open_points: the choices the datasheet leaves open (:mod:`loopcal.simulator.open_points`).
     unit, ascii_addr, ascii_checksum: the Modbus unit id, the ASCII address, and the
         ASCII checksum mode at power-on.
     """
@@ -100,7 +100,7 @@ class LDQ412Options:
         if not 0 < lo <= hi:
             raise bad(f"pause_s={self.pause_s!r}: (min, max) seconds with 0 < min <= max")
         if not isinstance(self.open_points, OpenPoints):
-            raise bad("open_points: a simulator.open_points.OpenPoints")
+            raise bad("open_points: a loopcal.simulator.open_points.OpenPoints")
 
     @classmethod
     def from_mapping(cls, options: Mapping[str, Any]) -> LDQ412Options:
@@ -120,10 +120,10 @@ class Truth:
     """What the emulated mechanism really is, for a test to compare against.
 
     parameters: the 20 true parameters (20,) in the order of
-        :data:`calibration.parameters.NAMES` (mm and degrees, as in the config).
+        :data:`loopcal.calibration.parameters.NAMES` (mm and degrees, as in the config).
     scenario: the plate's motion, as ``loopcal simulate --truth-out`` describes it.
     noise_volts, seed: as built.
-    drifts: the offset drifts injected so far (:class:`~simulator.drift.OffsetDrift`,
+    drifts: the offset drifts injected so far (:class:`~loopcal.simulator.drift.OffsetDrift`,
         times in seconds since the module was first switched on).
     """
 
@@ -201,7 +201,7 @@ class EmulatedLDQ412:
     @property
     def faults(self) -> FaultInjector:
         """Every fault the emulator knows (garbage bytes, corrupt answers, stuck channels,
-        sensor faults, saturation, latency): :class:`~simulator.faults.FaultInjector`."""
+        sensor faults, saturation, latency): :class:`~loopcal.simulator.faults.FaultInjector`."""
         return self.emulator.faults
 
     @property

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import socket
 
-from simulator.source import ConstantSource
+from loopcal.simulator.source import ConstantSource
 
 SILENCE_S = 0.15  # well above the datasheet's 10 ms answer time
 GOLDEN_CODES = (2048, 1, 4095, 3000)  # the datasheet's ASCII example

@@ -19,12 +19,12 @@ from mcap.records import Chunk, DataEnd
 from mcap.stream_reader import StreamReader
 from numpy.lib.recfunctions import repack_fields
 
-from calibration.parameters import NOMINAL
-from calibration.simulate import simulate_poses
-from daemon import recording as rec
-from daemon import scans as S
-from daemon.events import Event, Level
-from drivers.ldq412 import volts_to_code
+from loopcal.calibration.parameters import NOMINAL
+from loopcal.calibration.simulate import simulate_poses
+from loopcal.daemon import recording as rec
+from loopcal.daemon import scans as S
+from loopcal.daemon.events import Event, Level
+from loopcal.drivers.ldq412 import volts_to_code
 
 T0 = 1_795_000_000_000_000_000  # ns, late 2026
 

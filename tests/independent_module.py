@@ -1,5 +1,5 @@
 """An LDQ-412 written from the datasheet alone, independently of simulator/: the tests'
-"module we did not build". It shares no code with the emulator (not even drivers.ldq412)
+"module we did not build". It shares no code with the emulator (not even loopcal.drivers.ldq412)
 and makes other choices wherever the datasheet leaves room:
 
 - its own scanning thread on its own clock: ``ppm`` fast against the host (default +150),

@@ -19,15 +19,15 @@ from pathlib import Path
 import numpy as np
 from prometheus_client.parser import text_string_to_metric_families
 
-from calibration.parameters import NOMINAL
-from simulator import Emulator
-from simulator.clock import Clock, HeldClock
-from simulator.drift import OffsetDrift
-from simulator.mechanism import MechanismSource
-from simulator.open_points import OpenPoints
-from simulator.scenarios import HandMoves
+from loopcal.calibration.parameters import NOMINAL
+from loopcal.simulator import Emulator
+from loopcal.simulator.clock import Clock, HeldClock
+from loopcal.simulator.drift import OffsetDrift
+from loopcal.simulator.mechanism import MechanismSource
+from loopcal.simulator.open_points import OpenPoints
+from loopcal.simulator.scenarios import HandMoves
 
-LOOPCAL = [sys.executable, "-m", "daemon.cli"]
+LOOPCAL = [sys.executable, "-m", "loopcal.daemon.cli"]
 
 
 def hand_emulator(

@@ -12,9 +12,9 @@ import numpy as np
 from fuzz_helpers import T0, write_rows
 from recorder_helpers import Proc, listening_url, record
 
-from daemon import recording as rec
-from daemon import scans as S
-from daemon.recording import read_recordings
+from loopcal.daemon import recording as rec
+from loopcal.daemon import scans as S
+from loopcal.daemon.recording import read_recordings
 
 U32 = 1 << 32
 
@@ -100,13 +100,13 @@ def replay_and_record(
 
 
 class PlayerThread:
-    """A :class:`simulator.replay.Player` in this process (for settings the command has no
+    """A :class:`loopcal.simulator.replay.Player` in this process (for settings the command has no
     options for), run in a thread like ``loopcal replay``: ``lines`` and ``wait`` as a
     :class:`Proc` has them, for :func:`finish`."""
 
     def __init__(self, rows: np.ndarray, transport: str, rate: int, speed: float, **kw) -> None:
-        from daemon.commands.replay import power_ons
-        from simulator.replay import Player
+        from loopcal.daemon.commands.replay import power_ons
+        from loopcal.simulator.replay import Player
 
         self.player = Player(power_ons(rows), transport=transport, rate_hz=rate, speed=speed,
                              **kw).start()  # fmt: skip

@@ -14,12 +14,12 @@ import numpy as np
 from fuzz_helpers import T0, write_rows
 from recorder_helpers import Proc, listening_url, record
 
-from calibration.parameters import PAPER7
-from calibration.simulate import perturbed_truth
-from daemon import recording as rec
-from daemon import scans as S
-from simulator.offline import mechanism_scans
-from simulator.scenarios import Scenario
+from loopcal.calibration.parameters import PAPER7
+from loopcal.calibration.simulate import perturbed_truth
+from loopcal.daemon import recording as rec
+from loopcal.daemon import scans as S
+from loopcal.simulator.offline import mechanism_scans
+from loopcal.simulator.scenarios import Scenario
 
 #: a technician pausing about a second between moves
 PAUSE_S = (0.8, 1.5)
@@ -68,7 +68,7 @@ def live_sessions(root: Path, seeds: list[int], *, minutes: float = 2.0, speed: 
 
 
 def _record_sessions(root: Path, seeds: list[int], wanted: int, speed: float) -> list[Session]:
-    from calibration.parameters import NAMES
+    from loopcal.calibration.parameters import NAMES
 
     sessions, sims, procs = [], [], []
     try:
@@ -158,8 +158,8 @@ def write_session(
     """Write an offline-simulated session as recording files in ``path``; returns scans.
 
     edit: called with the codes (n, 4) to change them (a stuck sensor, say). drifts:
-    :class:`simulator.drift.OffsetDrift` of the sensors' offsets. t0: the first scan's stamp,
-    ns since the Unix epoch."""
+    :class:`loopcal.simulator.drift.OffsetDrift` of the sensors' offsets. t0: the first scan's
+    stamp, ns since the Unix epoch."""
     n = round(seconds * rate)
     time_us, codes = mechanism_scans(scenario, truth, n, rate_hz=rate, noise_volts=0.04,
                                      seed=seed, drifts=drifts)  # fmt: skip
@@ -184,7 +184,7 @@ def loopcal(
     import os
 
     return subprocess.run(
-        [sys.executable, "-m", "daemon.cli", *map(str, args)],
+        [sys.executable, "-m", "loopcal.daemon.cli", *map(str, args)],
         capture_output=True,
         text=True,
         timeout=timeout,

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from recorder_helpers import record
 
-from daemon.recorder.acquisition import Acquisition, Batch
-from daemon.recording import read_recordings
-from simulator.clock import RealClock
-from simulator.emulator import Emulator
-from simulator.source import TestSource
+from loopcal.daemon.recorder.acquisition import Acquisition, Batch
+from loopcal.daemon.recording import read_recordings
+from loopcal.simulator.clock import RealClock
+from loopcal.simulator.emulator import Emulator
+from loopcal.simulator.source import TestSource
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -8,7 +8,7 @@ from fuzz_helpers import T0, make_rows, write_recording
 from recorder_helpers import taken_port
 from session_helpers import fresh_config, loopcal
 
-from daemon import recording as rec
+from loopcal.daemon import recording as rec
 
 pytestmark = pytest.mark.timeout(120)
 

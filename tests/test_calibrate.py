@@ -26,12 +26,12 @@ from session_helpers import (
     write_session,
 )
 
-from calibration.parameters import INDEX, NAMES, NOMINAL
-from daemon.config import durable
-from daemon.config.controller import load_controller_config
-from daemon.recording import read_recordings
-from daemon.worker.writeback import STEPS
-from simulator.scenarios import HandMoves, Static, Sweep
+from loopcal.calibration.parameters import INDEX, NAMES, NOMINAL
+from loopcal.daemon.config import durable
+from loopcal.daemon.config.controller import load_controller_config
+from loopcal.daemon.recording import read_recordings
+from loopcal.daemon.worker.writeback import STEPS
+from loopcal.simulator.scenarios import HandMoves, Static, Sweep
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -297,7 +297,7 @@ def test_the_worker_units_way_and_the_configs_free_set(offline, tmp_path):
 def test_a_cut_recording_with_faults_and_gaps(offline, tmp_path):
     """A file cut short by a crash, with a sensor fault and a gap in it: the scans around
     them are dropped and counted, and the rest still calibrates."""
-    from daemon import recording as rec_mod
+    from loopcal.daemon import recording as rec_mod
 
     rec_dir, _ = offline
     rows = read_recordings(rec_dir).scans.copy()
@@ -376,7 +376,7 @@ def test_a_symlinked_config_stays_a_link_and_its_target_is_written(offline, tmp_
 
 
 def test_backups_never_share_a_name(offline, tmp_path):
-    from daemon.worker.writeback import write_back
+    from loopcal.daemon.worker.writeback import write_back
 
     config = fresh_config(tmp_path / "controller.toml")
     written = []

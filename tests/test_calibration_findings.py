@@ -9,11 +9,15 @@ noise, not the design.
 import numpy as np
 import pytest
 
-from calibration.observability import analyse_identifiability, column_scales, observability_indices
-from calibration.parameters import NOMINAL, PAPER7, PAPER_TIES, PRESETS, ParameterModel
-from calibration.selection import candidate_jacobian, select_poses
-from calibration.sensitivity import orientation_error
-from calibration.simulate import sample_workspace, simulate_poses
+from loopcal.calibration.observability import (
+    analyse_identifiability,
+    column_scales,
+    observability_indices,
+)
+from loopcal.calibration.parameters import NOMINAL, PAPER7, PAPER_TIES, PRESETS, ParameterModel
+from loopcal.calibration.selection import candidate_jacobian, select_poses
+from loopcal.calibration.sensitivity import orientation_error
+from loopcal.calibration.simulate import sample_workspace, simulate_poses
 
 
 @pytest.fixture(scope="module")

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from calibration.errors import InputError, UnobservableError
-from calibration.identify import identify
-from calibration.parameters import NOMINAL, PAPER7, PRESETS, from_dict
-from calibration.selection import candidate_jacobian, select_poses
-from calibration.simulate import perturbed_truth, simulate_poses
+from loopcal.calibration.errors import InputError, UnobservableError
+from loopcal.calibration.identify import identify
+from loopcal.calibration.parameters import NOMINAL, PAPER7, PRESETS, from_dict
+from loopcal.calibration.selection import candidate_jacobian, select_poses
+from loopcal.calibration.simulate import perturbed_truth, simulate_poses
 
 
 @pytest.mark.parametrize("signs", [(1, 1, 1, 1), (1, -1, 1, -1), (-1, -1, 1, 1)])
@@ -90,8 +90,8 @@ def test_unobservable_free_set_is_refused_naming_the_combination():
     assert "cannot be identified" in str(err.value)
     assert err.value.combinations
     # the scale invariance itself: every loop stays closed at 1.1 times the true parameters
-    from calibration.kinematics import plate_points
-    from calibration.residuals import loop_residuals
+    from loopcal.calibration.kinematics import plate_points
+    from loopcal.calibration.residuals import loop_residuals
 
     ref = 1.1 * plate_points(ps.rotations, ps.truth)
     scaled = loop_residuals(1.1 * ps.truth, ps.volts, ref, jacobian=False)
@@ -127,7 +127,7 @@ def test_readings_that_do_not_fit_are_flagged():
 
 
 def test_calibrate_selects_then_identifies_in_rounds():
-    from calibration.pipeline import calibrate
+    from loopcal.calibration.pipeline import calibrate
 
     ps = simulate_poses(450, seed=21)
     cal = calibrate(ps.volts, PAPER7, NOMINAL, n_select=50)
@@ -141,8 +141,8 @@ def test_calibrate_selects_then_identifies_in_rounds():
 
 
 def test_still_poses_average_the_pauses():
-    from calibration.errors import InputError as _InputError
-    from calibration.poses import still_poses
+    from loopcal.calibration.errors import InputError as _InputError
+    from loopcal.calibration.poses import still_poses
 
     rng = np.random.default_rng(0)
     level = np.array([[1.0, -2.0, 0.5, 3.0], [2.0, 1.0, -1.0, 0.0]])
@@ -163,7 +163,7 @@ def test_still_poses_average_the_pauses():
 
 
 def test_divergence_is_an_error_not_a_result():
-    from calibration.errors import ConvergenceError
+    from loopcal.calibration.errors import ConvergenceError
 
     ps = simulate_poses(100, seed=4, noise_volts=0.0, quantize=False)
     start = ps.truth.copy()
@@ -174,7 +174,7 @@ def test_divergence_is_an_error_not_a_result():
 
 
 def test_observability_indices_follow_their_definitions():
-    from calibration.observability import observability_indices
+    from loopcal.calibration.observability import observability_indices
 
     s = np.array([4.0, 2.0, 0.5])
     J = np.zeros((8, 3))  # two poses, 4 rows each

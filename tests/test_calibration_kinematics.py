@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from calibration.errors import InputError, ParameterError
-from calibration.kinematics import (
+from loopcal.calibration.errors import InputError, ParameterError
+from loopcal.calibration.kinematics import (
     euler_zyz,
     forward_kinematics,
     from_euler_zyz,
@@ -14,9 +14,9 @@ from calibration.kinematics import (
     plate_points,
     tilt_swivel,
 )
-from calibration.parameters import NAMES, NOMINAL, PAPER7, ParameterModel, Tie, from_dict
-from calibration.residuals import loop_residuals, reference_points
-from calibration.simulate import quantize_volts, sample_workspace, simulate_poses
+from loopcal.calibration.parameters import NAMES, NOMINAL, PAPER7, ParameterModel, Tie, from_dict
+from loopcal.calibration.residuals import loop_residuals, reference_points
+from loopcal.calibration.simulate import quantize_volts, sample_workspace, simulate_poses
 
 
 def test_reference_geometry_home_lengths_and_right_angle():

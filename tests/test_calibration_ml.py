@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calibration import implicit
-from calibration.errors import InputError
-from calibration.identify import identify
-from calibration.kinematics import home_derivative, plate_home
-from calibration.parameters import NOMINAL, PAPER7, PRESETS, ParameterModel
-from calibration.pipeline import calibrate
-from calibration.selection import ml_candidates, select_poses
-from calibration.simulate import perturbed_truth, readings, sample_workspace, simulate_poses
+from loopcal.calibration import implicit
+from loopcal.calibration.errors import InputError
+from loopcal.calibration.identify import identify
+from loopcal.calibration.kinematics import home_derivative, plate_home
+from loopcal.calibration.parameters import NOMINAL, PAPER7, PRESETS, ParameterModel
+from loopcal.calibration.pipeline import calibrate
+from loopcal.calibration.selection import ml_candidates, select_poses
+from loopcal.calibration.simulate import perturbed_truth, readings, sample_workspace, simulate_poses
 
 
 def poses(n: int, rng: np.random.Generator, truth: np.ndarray) -> np.ndarray:

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from calibration.errors import InputError
-from calibration.observability import column_scales, observability_indices
-from calibration.parameters import NOMINAL, PAPER7
-from calibration.selection import candidate_jacobian, select_poses
-from calibration.simulate import simulate_poses
+from loopcal.calibration.errors import InputError
+from loopcal.calibration.observability import column_scales, observability_indices
+from loopcal.calibration.parameters import NOMINAL, PAPER7
+from loopcal.calibration.selection import candidate_jacobian, select_poses
+from loopcal.calibration.simulate import simulate_poses
 
 
 @pytest.fixture(scope="module")

@@ -13,9 +13,9 @@ and the same criterion value and certified bound to rounding.
 import numpy as np
 import pytest
 
-from calibration.observability import column_scales
-from calibration.parameters import NOMINAL, PAPER7
-from calibration.selection import (
+from loopcal.calibration.observability import column_scales
+from loopcal.calibration.parameters import NOMINAL, PAPER7
+from loopcal.calibration.selection import (
     _compress,
     _criterion_value,
     _Quadratic,
@@ -25,7 +25,7 @@ from calibration.selection import (
     relaxation_bound,
     select_poses,
 )
-from calibration.simulate import simulate_poses
+from loopcal.calibration.simulate import simulate_poses
 
 
 def reference_relaxation(F, k, iterations=300):

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calibration import implicit, smallmat
-from calibration.kinematics import forward_kinematics, inverse_kinematics
-from calibration.parameters import NOMINAL
-from calibration.simulate import sample_workspace
+from loopcal.calibration import implicit, smallmat
+from loopcal.calibration.kinematics import forward_kinematics, inverse_kinematics
+from loopcal.calibration.parameters import NOMINAL
+from loopcal.calibration.simulate import sample_workspace
 
 
 def sym_entries(A: np.ndarray):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from numpy.lib.stride_tricks import sliding_window_view
 
-from calibration.poses import (
+from loopcal.calibration.poses import (
     _BLOCK,
     _covered,
     _split,
@@ -15,7 +15,7 @@ from calibration.poses import (
     running_sums_at,
     still_poses,
 )
-from calibration.simulate import quantize_volts
+from loopcal.calibration.simulate import quantize_volts
 
 
 def reference_still_poses(V, *, window=10, band_volts=0.25, max_scans=None, valid=None):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from timeline_helpers import Module, datasheet_latency, run_stamps
 
-from daemon.recorder.clockmap import ClockMap
+from loopcal.daemon.recorder.clockmap import ClockMap
 
 
 @pytest.mark.parametrize("ppm", [200.0, -200.0])

@@ -18,8 +18,8 @@ from mcap.reader import make_reader
 from recorder_helpers import assert_matches_truth, hand_emulator, record
 from session_helpers import T0, loopcal
 
-from daemon import recording as rec
-from daemon.recording.compact import compact
+from loopcal.daemon import recording as rec
+from loopcal.daemon.recording.compact import compact
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -84,7 +84,8 @@ def test_a_file_deleted_while_compacted_stays_deleted(tmp_path):
     """The retention deleting a file during its compaction: the compacted copy must not
     bring it back."""
     path = _recording(tmp_path)
-    code = ("import sys; from pathlib import Path; from daemon.recording.compact import compact; "
+    code = ("import sys; from pathlib import Path; "
+            "from loopcal.daemon.recording.compact import compact; "
             "print(compact(Path(sys.argv[1])))")  # fmt: skip
     proc = subprocess.Popen([sys.executable, "-c", code, str(path)], stdout=subprocess.PIPE,
                             text=True, env={**os.environ,

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import tomlkit
 
-from calibration.errors import ParameterError
-from calibration.parameters import NAMES, NOMINAL, PRESETS, UNITS
-from daemon.config.controller import (
+from loopcal.calibration.errors import ParameterError
+from loopcal.calibration.parameters import NAMES, NOMINAL, PRESETS, UNITS
+from loopcal.daemon.config.controller import (
     ControllerConfig,
     ControllerConfigError,
     load_controller_config,

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from recorder_helpers import (
+    LOOPCAL,
     NotifySocket,
     Proc,
     assert_matches_truth,
@@ -28,8 +29,13 @@ from recorder_helpers import (
     write_config,
 )
 
-from daemon.recorder.settings import RecorderSettings, SettingsError, load_daemon_config, parse_size
-from daemon.recording import find_recordings, read_recordings
+from loopcal.daemon.recorder.settings import (
+    RecorderSettings,
+    SettingsError,
+    load_daemon_config,
+    parse_size,
+)
+from loopcal.daemon.recording import find_recordings, read_recordings
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -123,7 +129,7 @@ def test_sizes():
 
 def test_daemon_exits_2_naming_the_problem(tmp_path):
     cfg = write_config(tmp_path / "d.toml", "modbus-tcp://10.0.0.5", tmp_path, "colour = 1\n")
-    proc = subprocess.run([sys.executable, "-m", "daemon.cli", "daemon", "--config", str(cfg)],
+    proc = subprocess.run([*LOOPCAL, "daemon", "--config", str(cfg)],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert proc.returncode == 2
     assert "[recording].colour: unknown key" in proc.stderr
@@ -135,7 +141,7 @@ def test_daemon_exits_2_naming_the_problem(tmp_path):
 def test_daemon_speaks_the_notify_protocol_and_reloads_on_sighup(tmp_path):
     out = tmp_path / "rec"
     controller = tmp_path / "controller.toml"
-    init = subprocess.run([sys.executable, "-m", "daemon.cli", "init-config", str(controller)],
+    init = subprocess.run([*LOOPCAL, "init-config", str(controller)],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert init.returncode == 0, init.stderr
     with hand_emulator() as emu:

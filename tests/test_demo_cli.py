@@ -7,12 +7,12 @@ import sys
 
 import pytest
 
-from daemon.config.controller import load_controller_config
+from loopcal.daemon.config.controller import load_controller_config
 
 
 def run_demo(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "daemon.cli", "demo", *args],
+        [sys.executable, "-m", "loopcal.daemon.cli", "demo", *args],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
 
@@ -37,7 +37,7 @@ def test_demo_writes_offsets_close_to_the_truth(tmp_path):
 
 
 def written_index(name: str) -> int:
-    from calibration.parameters import INDEX
+    from loopcal.calibration.parameters import INDEX
 
     return INDEX[name]
 

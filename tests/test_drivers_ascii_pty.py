@@ -17,8 +17,8 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
-from drivers import ldq412, open_daq
-from drivers.errors import DAQIdentityError, DAQInvalidCommand, DAQProtocolError, DAQTimeout
+from loopcal.drivers import ldq412, open_daq
+from loopcal.drivers.errors import DAQIdentityError, DAQInvalidCommand, DAQProtocolError, DAQTimeout
 
 Reply = bytes | list[tuple[float, bytes]] | None
 Handler = Callable[[bytes], Reply]

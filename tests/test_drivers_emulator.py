@@ -14,18 +14,18 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from drivers import DAQ, Scan, ldq412, open_daq
-from drivers.errors import (
+from loopcal.drivers import DAQ, Scan, ldq412, open_daq
+from loopcal.drivers.errors import (
     DAQDisconnected,
     DAQError,
     DAQModbusException,
     DAQProtocolError,
     DAQTimeout,
 )
-from drivers.modbus import ModbusDAQ
-from simulator.clock import ManualClock, SimClock
-from simulator.device import TruthScan
-from simulator.emulator import Emulator
+from loopcal.drivers.modbus import ModbusDAQ
+from loopcal.simulator.clock import ManualClock, SimClock
+from loopcal.simulator.device import TruthScan
+from loopcal.simulator.emulator import Emulator
 
 TRANSPORTS = ["modbus-tcp", "modbus-rtu", "ascii"]
 MODBUS = ["modbus-tcp", "modbus-rtu"]

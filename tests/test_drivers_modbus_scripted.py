@@ -21,8 +21,8 @@ from pymodbus.pdu.register_message import (
     WriteSingleRegisterResponse,
 )
 
-from drivers import ldq412, open_daq
-from drivers.errors import DAQIdentityError, DAQProtocolError
+from loopcal.drivers import ldq412, open_daq
+from loopcal.drivers.errors import DAQIdentityError, DAQProtocolError
 
 Regs = Callable[[int, int], list[int]]
 

@@ -23,11 +23,11 @@ from test_drivers_emulator import (
     read_ok,
 )
 
-from drivers import ldq412, open_daq
-from drivers.modbus import ModbusDAQ
-from simulator.clock import ManualClock, RealClock
-from simulator.emulator import Emulator
-from simulator.open_points import Latency, OpenPoints
+from loopcal.drivers import ldq412, open_daq
+from loopcal.drivers.modbus import ModbusDAQ
+from loopcal.simulator.clock import ManualClock, RealClock
+from loopcal.simulator.emulator import Emulator
+from loopcal.simulator.open_points import Latency, OpenPoints
 
 OPEN_POINTS = {
     "scan-0-late": OpenPoints(scan_phase_us=1809),

@@ -9,13 +9,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers import ascii as asc
-from drivers import ldq412, open_daq, parse_url
-from drivers.base import Identity, Scan, registered_schemes
-from drivers.errors import DAQError, DAQInvalidCommand, DAQProtocolError, DAQTimeout
-from drivers.lvdt import LvdtCalibration, code_resolution_mm, codes_to_mm, volts_to_mm
-from drivers.modbus import format_firmware, parse_fifo, parse_snapshot
-from drivers.sequence import RawSnapshot, Sequencer, derived_status, period_ticks_us
+from loopcal.drivers import ascii as asc
+from loopcal.drivers import ldq412, open_daq, parse_url
+from loopcal.drivers.base import Identity, Scan, registered_schemes
+from loopcal.drivers.errors import DAQError, DAQInvalidCommand, DAQProtocolError, DAQTimeout
+from loopcal.drivers.lvdt import LvdtCalibration, code_resolution_mm, codes_to_mm, volts_to_mm
+from loopcal.drivers.modbus import format_firmware, parse_fifo, parse_snapshot
+from loopcal.drivers.sequence import RawSnapshot, Sequencer, derived_status, period_ticks_us
 
 U32 = ldq412.U32_MOD
 R = ldq412.STATUS_RESTART

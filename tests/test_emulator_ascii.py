@@ -9,10 +9,10 @@ import pytest
 import serial
 from emulator_helpers import SILENCE_S, golden_source
 
-from simulator.ascii_protocol import handle_frame
-from simulator.clock import ManualClock
-from simulator.device import LDQ412
-from simulator.emulator import Emulator
+from loopcal.simulator.ascii_protocol import handle_frame
+from loopcal.simulator.clock import ManualClock
+from loopcal.simulator.device import LDQ412
+from loopcal.simulator.emulator import Emulator
 
 GOLDEN_BODY = b">0000123400ABCDEF800001FFFBB80004"
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from emulator_helpers import mid_volts
 
-from drivers.ldq412 import (
+from loopcal.drivers.ldq412 import (
     CODE_MAX,
     FIFO_DEPTH,
     FIFO_FILLER,
@@ -18,8 +18,8 @@ from drivers.ldq412 import (
     U32_MOD,
     join_u32,
 )
-from simulator.clock import ManualClock, RealClock, SimClock
-from simulator.device import (
+from loopcal.simulator.clock import ManualClock, RealClock, SimClock
+from loopcal.simulator.device import (
     ILLEGAL_ADDRESS,
     ILLEGAL_VALUE,
     LDQ412,
@@ -27,7 +27,7 @@ from simulator.device import (
     DeviceOffError,
     scans_due,
 )
-from simulator.source import ConstantSource, TestSource
+from loopcal.simulator.source import ConstantSource, TestSource
 
 S = 1_000_000_000  # ns per second
 

@@ -11,8 +11,8 @@ import serial
 from emulator_helpers import SILENCE_S, golden_source, recv_exact
 from pymodbus.framer.rtu import FramerRTU
 
-from simulator.clock import ManualClock, SimClock
-from simulator.emulator import Emulator
+from loopcal.simulator.clock import ManualClock, SimClock
+from loopcal.simulator.emulator import Emulator
 
 
 def tcp_ask(sock: socket.socket, pdu_hex: str, tid: int = 0x0101) -> bytes:

@@ -12,9 +12,9 @@ from urllib.parse import urlsplit
 import pytest
 import serial
 
-from simulator.clock import ManualClock
-from simulator.emulator import Emulator
-from simulator.source import ConstantSource
+from loopcal.simulator.clock import ManualClock
+from loopcal.simulator.emulator import Emulator
+from loopcal.simulator.source import ConstantSource
 
 TRANSPORTS = ("modbus-tcp", "modbus-rtu", "ascii")
 

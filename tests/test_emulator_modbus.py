@@ -15,9 +15,9 @@ import serial
 from emulator_helpers import SILENCE_S, golden_source, recv_exact
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
-from drivers.ldq412 import FIFO_FILLER, join_u32
-from simulator.clock import ManualClock
-from simulator.emulator import Emulator
+from loopcal.drivers.ldq412 import FIFO_FILLER, join_u32
+from loopcal.simulator.clock import ManualClock
+from loopcal.simulator.emulator import Emulator
 
 
 def tcp_ask(sock: socket.socket, pdu_hex: str, unit: int = 1, tid: int = 0x0101) -> bytes:

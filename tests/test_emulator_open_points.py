@@ -14,11 +14,17 @@ from emulator_helpers import golden_source
 from pymodbus.client import ModbusTcpClient
 from session_helpers import loopcal
 
-from drivers.ldq412 import FIFO_FILLER, IR_FIFO, join_u32
-from simulator.clock import ManualClock
-from simulator.device import ILLEGAL_ADDRESS, ILLEGAL_VALUE, LDQ412, DeviceError, DeviceOffError
-from simulator.emulator import Emulator
-from simulator.open_points import DATASHEET_LINES, Latency, OpenPoints
+from loopcal.drivers.ldq412 import FIFO_FILLER, IR_FIFO, join_u32
+from loopcal.simulator.clock import ManualClock
+from loopcal.simulator.device import (
+    ILLEGAL_ADDRESS,
+    ILLEGAL_VALUE,
+    LDQ412,
+    DeviceError,
+    DeviceOffError,
+)
+from loopcal.simulator.emulator import Emulator
+from loopcal.simulator.open_points import DATASHEET_LINES, Latency, OpenPoints
 
 S = 1_000_000_000
 

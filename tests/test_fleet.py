@@ -7,9 +7,9 @@ import csv
 import pytest
 from session_helpers import PAUSE_S, T0, loopcal, truth_for, write_session
 
-from daemon.config.controller import write_initial_config
-from simulator.drift import OffsetDrift
-from simulator.scenarios import HandMoves
+from loopcal.daemon.config.controller import write_initial_config
+from loopcal.simulator.drift import OffsetDrift
+from loopcal.simulator.scenarios import HandMoves
 
 pytestmark = pytest.mark.timeout(240)
 DAY_NS = 86_400 * 10**9

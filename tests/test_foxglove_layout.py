@@ -11,7 +11,7 @@ from fuzz_helpers import T0, make_rows, write_recording
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from daemon import recording as rec
+from loopcal.daemon import recording as rec
 
 LAYOUT = Path(__file__).parent.parent / "docs" / "foxglove" / "loopcal-layout.json"
 _PATH = re.compile(r"^(?P<topic>/[\w/]+)(?P<fields>(?:\.\w+(?:\[\d+\])?)*)$")

@@ -10,13 +10,13 @@ import pytest
 from recorder_helpers import Proc, listening_url, record
 from session_helpers import PAUSE_S, calibrate_json, fresh_config, rows_from, truth_for
 
-from calibration.parameters import INDEX, NAMES, PAPER7
-from daemon.config.controller import nominal_config
-from daemon.live.guidance import Guidance
-from daemon.recording import read_recordings
-from daemon.worker.run import run_worker
-from simulator.offline import mechanism_scans
-from simulator.scenarios import HandMoves
+from loopcal.calibration.parameters import INDEX, NAMES, PAPER7
+from loopcal.daemon.config.controller import nominal_config
+from loopcal.daemon.live.guidance import Guidance
+from loopcal.daemon.recording import read_recordings
+from loopcal.daemon.worker.run import run_worker
+from loopcal.simulator.offline import mechanism_scans
+from loopcal.simulator.scenarios import HandMoves
 
 pytestmark = pytest.mark.timeout(180)
 

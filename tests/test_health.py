@@ -11,15 +11,15 @@ import pytest
 from recorder_helpers import NotifySocket, Proc, hand_emulator, record, write_config
 from session_helpers import PAUSE_S, rows_from, truth_for
 
-from calibration.closure import drift_test, loop_closure, threshold
-from daemon.config.controller import nominal_config
-from daemon.live.health import HealthMonitor
-from daemon.recorder.settings import SettingsError, load_daemon_config
-from daemon.recording import read_recordings
-from simulator.drift import OffsetDrift
-from simulator.offline import mechanism_scans
-from simulator.run import FaultEvent
-from simulator.scenarios import HandMoves
+from loopcal.calibration.closure import drift_test, loop_closure, threshold
+from loopcal.daemon.config.controller import nominal_config
+from loopcal.daemon.live.health import HealthMonitor
+from loopcal.daemon.recorder.settings import SettingsError, load_daemon_config
+from loopcal.daemon.recording import read_recordings
+from loopcal.simulator.drift import OffsetDrift
+from loopcal.simulator.offline import mechanism_scans
+from loopcal.simulator.run import FaultEvent
+from loopcal.simulator.scenarios import HandMoves
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -83,8 +83,8 @@ def test_the_threshold_holds_its_false_alarm_rate():
     """Pure noise at the truth: the largest of the four statistics over 30 poses exceeds
     the 1 % threshold about 1 % of the time (Bonferroni: at most)."""
     rng = np.random.default_rng(0)
-    from calibration.implicit import predicted_volts
-    from calibration.simulate import sample_workspace
+    from loopcal.calibration.implicit import predicted_volts
+    from loopcal.calibration.simulate import sample_workspace
 
     R = sample_workspace(3000, rng, TRUTH)
     clean = predicted_volts(R, TRUTH)
@@ -179,9 +179,9 @@ def test_windows_tested_together_equal_each_window_alone():
     """step_tests (what the monitor runs, a file's windows at once) gives drift_test's
     answer for every window: shifted and clean windows, with and without the config's
     covariance, with unusable poses, and a window too short to split."""
-    from calibration.closure import Closure, step_tests
-    from calibration.implicit import predicted_volts
-    from calibration.simulate import sample_workspace
+    from loopcal.calibration.closure import Closure, step_tests
+    from loopcal.calibration.implicit import predicted_volts
+    from loopcal.calibration.simulate import sample_workspace
 
     rng = np.random.default_rng(4)
     m, B = 30, 40

@@ -13,8 +13,8 @@ from independent_module import IndependentModule
 from recorder_helpers import record
 from replay_helpers import assert_same_scans, finish, read_scans, replay_and_record
 
-from drivers import open_daq
-from drivers.errors import DAQError
+from loopcal.drivers import open_daq
+from loopcal.drivers.errors import DAQError
 
 pytestmark = pytest.mark.timeout(180)
 

@@ -11,11 +11,11 @@ import pytest
 from fuzz_helpers import make_rows, tear_chunk, write_rows
 from session_helpers import PAUSE_S, T0, loopcal, truth_for, write_session
 
-from daemon import recording as rec
-from daemon.config.controller import write_initial_config
-from daemon.events import Event, Level
-from simulator.drift import OffsetDrift
-from simulator.scenarios import HandMoves
+from loopcal.daemon import recording as rec
+from loopcal.daemon.config.controller import write_initial_config
+from loopcal.daemon.events import Event, Level
+from loopcal.simulator.drift import OffsetDrift
+from loopcal.simulator.scenarios import HandMoves
 
 pytestmark = pytest.mark.timeout(180)
 

@@ -19,8 +19,8 @@ from recorder_helpers import (
 )
 from session_helpers import truth_for
 
-from daemon.config.controller import load_controller_config, write_initial_config
-from daemon.recording import read_recordings
+from loopcal.daemon.config.controller import load_controller_config, write_initial_config
+from loopcal.daemon.recording import read_recordings
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -19,14 +19,14 @@ from fuzz_helpers import ASCII_ANSWERS, DAEMON_TOML
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from daemon.config.controller import (
+from loopcal.daemon.config.controller import (
     ControllerConfigError,
     load_controller_config,
     render_initial_config,
 )
-from daemon.recorder.settings import SettingsError, load_daemon_config
-from drivers import DAQInvalidCommand, DAQProtocolError, driver_for_url
-from drivers import ascii as ascii_proto
+from loopcal.daemon.recorder.settings import SettingsError, load_daemon_config
+from loopcal.drivers import DAQInvalidCommand, DAQProtocolError, driver_for_url
+from loopcal.drivers import ascii as ascii_proto
 
 _FIXTURE = [HealthCheck.function_scoped_fixture]
 

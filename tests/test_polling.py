@@ -17,12 +17,12 @@ import pytest
 from recorder_helpers import record
 from timeline_helpers import Module, datasheet_latency, run_polls
 
-from daemon.recorder.polling import PhaseLock
-from daemon.recording import read_recordings
-from simulator.clock import RealClock
-from simulator.emulator import Emulator
-from simulator.open_points import Latency, OpenPoints
-from simulator.source import TestSource
+from loopcal.daemon.recorder.polling import PhaseLock
+from loopcal.daemon.recording import read_recordings
+from loopcal.simulator.clock import RealClock
+from loopcal.simulator.emulator import Emulator
+from loopcal.simulator.open_points import Latency, OpenPoints
+from loopcal.simulator.source import TestSource
 
 
 @pytest.mark.parametrize("ppm", [0.0, 200.0, -200.0, 1000.0, -1000.0])

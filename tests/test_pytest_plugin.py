@@ -144,8 +144,8 @@ def test_the_plugin_costs_no_emulator_import_until_used(pytester: pytest.Pyteste
         import sys
 
         def test_nothing_heavy_loaded():
-            assert "simulator.pytest_plugin" in sys.modules
-            assert "simulator.emulator" not in sys.modules
+            assert "loopcal.simulator.pytest_plugin" in sys.modules
+            assert "loopcal.simulator.emulator" not in sys.modules
             assert "pymodbus" not in sys.modules
         """
     )

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from recorder_helpers import assert_matches_truth, free_port, hand_emulator, record
 
-from daemon.recording import find_recordings, read_recordings
+from loopcal.daemon.recording import find_recordings, read_recordings
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -275,7 +275,7 @@ def _damaged(kind: str, data: bytes) -> bytes:
 def test_a_damaged_newest_recording_never_stops_the_recorder(tmp_path, kind):
     from fuzz_helpers import make_rows, write_recording
 
-    from daemon.recording import recording_name
+    from loopcal.daemon.recording import recording_name
 
     t0 = time.time_ns() - 3600 * 10**9
     rows = make_rows(400, t0=t0, epoch=2)
@@ -304,7 +304,7 @@ def test_the_daemon_too_starts_over_a_damaged_newest_recording(tmp_path):
     from fuzz_helpers import make_rows, write_recording
     from recorder_helpers import Proc, write_config
 
-    from daemon.recording import recording_name
+    from loopcal.daemon.recording import recording_name
 
     t0 = time.time_ns() - 3600 * 10**9
     rows = make_rows(400, t0=t0, epoch=2)

@@ -30,7 +30,7 @@ from hypothesis import strategies as st
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from daemon import recording as rec
+from loopcal.daemon import recording as rec
 
 N = 600  # scans in the fuzzed recording: 30 flushes of 20
 
@@ -262,7 +262,7 @@ def test_summary_crc_is_what_the_writer_computes(originals):
 def test_parameters_without_forward_kinematics_never_stop_the_raw_scans(tmp_path):
     """A1x = 1e300 passes the vector check but no forward kinematics: the views say so and
     every raw scan is written all the same."""
-    from calibration.parameters import NOMINAL
+    from loopcal.calibration.parameters import NOMINAL
 
     params = NOMINAL.copy()
     params[0] = 1e300

@@ -14,12 +14,12 @@ from mcap.writer import Writer
 from mcap_ros2.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
 
-from calibration.parameters import NOMINAL
-from calibration.simulate import simulate_poses
-from daemon import recording as rec
-from daemon import scans as S
-from daemon.events import Event, Level
-from drivers.ldq412 import volts_to_code
+from loopcal.calibration.parameters import NOMINAL
+from loopcal.calibration.simulate import simulate_poses
+from loopcal.daemon import recording as rec
+from loopcal.daemon import scans as S
+from loopcal.daemon.events import Event, Level
+from loopcal.drivers.ldq412 import volts_to_code
 
 
 def test_scan_rows_are_the_cdr_layout_of_the_scan_message():

@@ -15,12 +15,12 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_ros2.decoder import DecoderFactory
 
-from calibration.parameters import NOMINAL
-from calibration.simulate import simulate_poses
-from daemon import recording as rec
-from daemon import scans as S
-from daemon.events import Event, Level
-from drivers.ldq412 import volts_to_code
+from loopcal.calibration.parameters import NOMINAL
+from loopcal.calibration.simulate import simulate_poses
+from loopcal.daemon import recording as rec
+from loopcal.daemon import scans as S
+from loopcal.daemon.events import Event, Level
+from loopcal.drivers.ldq412 import volts_to_code
 
 N, PER = 300, 25  # scans, scans per write() (1.25 s: two blocks per flush)
 CUT_AFTER = 5  # the durable copy is taken after this many writes

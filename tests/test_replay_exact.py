@@ -19,10 +19,10 @@ from replay_helpers import (
     write_recording,
 )
 
-from daemon.commands.replay import power_ons
-from drivers.ldq412 import FIFO_DEPTH
-from simulator.open_points import Latency, OpenPoints
-from simulator.replay import FIRST_SCAN_LEAD_NS, RecordedModule, RecordedPowerOn
+from loopcal.daemon.commands.replay import power_ons
+from loopcal.drivers.ldq412 import FIFO_DEPTH
+from loopcal.simulator.open_points import Latency, OpenPoints
+from loopcal.simulator.replay import FIRST_SCAN_LEAD_NS, RecordedModule, RecordedPowerOn
 
 RATE = 50
 

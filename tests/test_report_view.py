@@ -12,7 +12,7 @@ import pytest
 from js_helpers import JS, npm_installed
 from session_helpers import PAUSE_S, fresh_config, loopcal, truth_for, write_session
 
-from simulator.scenarios import HandMoves
+from loopcal.simulator.scenarios import HandMoves
 
 pytestmark = pytest.mark.timeout(180)
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from daemon.recorder.sdnotify import Notifier
+from loopcal.daemon.recorder.sdnotify import Notifier
 
 ROOT = Path(__file__).parent.parent
 
@@ -75,7 +75,7 @@ def test_outside_systemd_every_call_is_a_no_op(monkeypatch):
 
 
 def test_a_relative_socket_path_is_refused_not_guessed(caplog):
-    with caplog.at_level(logging.WARNING, logger="daemon.recorder.sdnotify"):
+    with caplog.at_level(logging.WARNING, logger="loopcal.daemon.recorder.sdnotify"):
         n = Notifier(environ={"NOTIFY_SOCKET": "notify.sock"})
     assert not n.enabled and n.ready() is False
     assert "neither an absolute path nor @name" in caplog.text
@@ -84,9 +84,9 @@ def test_a_relative_socket_path_is_refused_not_guessed(caplog):
 def test_a_socket_that_is_gone_fails_quietly_and_warns_once(tmp_path, caplog):
     n = Notifier(environ={"NOTIFY_SOCKET": str(tmp_path / "nobody")})
     assert n.enabled
-    with caplog.at_level(logging.WARNING, logger="daemon.recorder.sdnotify"):
+    with caplog.at_level(logging.WARNING, logger="loopcal.daemon.recorder.sdnotify"):
         assert n.ready() is False and n.status("still fine") is False and n.watchdog() is False
-    warnings = [r for r in caplog.records if r.name == "daemon.recorder.sdnotify"]
+    warnings = [r for r in caplog.records if r.name == "loopcal.daemon.recorder.sdnotify"]
     assert len(warnings) == 1 and "nobody" in warnings[0].getMessage()
 
 
@@ -127,7 +127,7 @@ def test_watchdog_interval(env, interval):
 
 
 def test_a_malformed_watchdog_is_a_warning_not_an_error(caplog):
-    with caplog.at_level(logging.WARNING, logger="daemon.recorder.sdnotify"):
+    with caplog.at_level(logging.WARNING, logger="loopcal.daemon.recorder.sdnotify"):
         n = Notifier(environ={"NOTIFY_SOCKET": "/x", "WATCHDOG_USEC": "soon"})
     assert n.watchdog_interval is None and "WATCHDOG_USEC='soon'" in caplog.text
 
@@ -139,7 +139,7 @@ def test_no_watchdog_without_a_socket_to_feed_it():
 def test_a_child_process_notifies_from_its_environment(tmp_path):
     sock = bind(str(tmp_path / "notify"))
     code = (
-        "import sys; from daemon.recorder.sdnotify import Notifier; n = Notifier(); "
+        "import sys; from loopcal.daemon.recorder.sdnotify import Notifier; n = Notifier(); "
         "sys.exit(0 if n.ready('hello from the child') and n.watchdog_interval == 15.0 else 3)"
     )
     env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "30000000"}

@@ -9,9 +9,9 @@ import time
 import numpy as np
 import pytest
 
-from drivers import DAQTimeout, open_daq
+from loopcal.drivers import DAQTimeout, open_daq
 
-CMD = [sys.executable, "-m", "daemon.cli", "simulate"]
+CMD = [sys.executable, "-m", "loopcal.daemon.cli", "simulate"]
 
 
 def start(*args: str) -> tuple[subprocess.Popen, str]:

@@ -3,16 +3,16 @@
 import numpy as np
 import pytest
 
-from calibration.kinematics import inverse_kinematics, lengths_to_volts
-from calibration.parameters import NOMINAL, PAPER7
-from calibration.pipeline import calibrate
-from calibration.poses import still_poses
-from calibration.simulate import perturbed_truth, reachable
-from drivers import open_daq
-from drivers.ldq412 import at_rail, code_to_volts
-from simulator import Emulator, ManualClock
-from simulator.mechanism import MechanismSource
-from simulator.scenarios import HandMoves, Static, Sweep, min_jerk
+from loopcal.calibration.kinematics import inverse_kinematics, lengths_to_volts
+from loopcal.calibration.parameters import NOMINAL, PAPER7
+from loopcal.calibration.pipeline import calibrate
+from loopcal.calibration.poses import still_poses
+from loopcal.calibration.simulate import perturbed_truth, reachable
+from loopcal.drivers import open_daq
+from loopcal.drivers.ldq412 import at_rail, code_to_volts
+from loopcal.simulator import Emulator, ManualClock
+from loopcal.simulator.mechanism import MechanismSource
+from loopcal.simulator.scenarios import HandMoves, Static, Sweep, min_jerk
 
 
 def test_hand_moves_are_deterministic_in_any_query_order():
@@ -51,7 +51,7 @@ def test_source_is_the_inverse_kinematics_of_the_truth():
     truth = perturbed_truth(np.random.default_rng(3))
     src = MechanismSource(Static((30.0, 20.0, -10.0)), truth, noise_volts=0.0)
     t = np.array([1.0, 1.00025, 1.0005, 1.00075])
-    from calibration.kinematics import from_euler_zyz
+    from loopcal.calibration.kinematics import from_euler_zyz
 
     R = from_euler_zyz(np.radians([30.0, 20.0, -10.0]))
     expected = lengths_to_volts(inverse_kinematics(R, truth), truth)[0]
@@ -102,8 +102,8 @@ def test_calibration_from_wire_data_recovers_the_offsets():
 
 
 def test_replay_reproduces_a_recording_bit_for_bit(tmp_path):
-    from drivers.ldq412 import code_to_volts as c2v
-    from simulator.mechanism import ReplaySource
+    from loopcal.drivers.ldq412 import code_to_volts as c2v
+    from loopcal.simulator.mechanism import ReplaySource
 
     truth = perturbed_truth(np.random.default_rng(6))
     clock = ManualClock()

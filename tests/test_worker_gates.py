@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.special import chdtri
 
-from calibration.simulate import simulate_poses
-from daemon.worker import gates as G
+from loopcal.calibration.simulate import simulate_poses
+from loopcal.daemon.worker import gates as G
 
 
 @pytest.mark.parametrize("tail", [0.001, 0.01, 0.1, 1e-6])

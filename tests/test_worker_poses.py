@@ -6,11 +6,11 @@ gaps, restarts, a power cycle, rail and fault scans."""
 import numpy as np
 from session_helpers import PAUSE_S, rows_from, truth_for
 
-from calibration.poses import still_poses
-from daemon import scans as scan_rows
-from daemon.worker.poses import GAP_MARGIN_S, _near, poses_of_scans
-from simulator.offline import mechanism_scans
-from simulator.scenarios import HandMoves
+from loopcal.calibration.poses import still_poses
+from loopcal.daemon import scans as scan_rows
+from loopcal.daemon.worker.poses import GAP_MARGIN_S, _near, poses_of_scans
+from loopcal.simulator.offline import mechanism_scans
+from loopcal.simulator.scenarios import HandMoves
 
 
 def reference_noise(volts, ranges):

@@ -15,8 +15,8 @@ from functools import partial
 import numpy as np
 from fuzz_helpers import T0
 
-from daemon.recorder.polling import PhaseLock
-from simulator.open_points import Latency
+from loopcal.daemon.recorder.polling import PhaseLock
+from loopcal.simulator.open_points import Latency
 
 
 @dataclass
@@ -99,8 +99,9 @@ def run_polls(
 
 
 def datasheet_latency(rng: np.random.Generator, slow: float = 0.0) -> Callable[[], float]:
-    """The emulator's latency model over Modbus TCP (:class:`simulator.open_points.Latency`):
-    uniform(0.5, 10) ms, with ``slow`` of them 50-90 ms; s."""
+    """The emulator's latency model over Modbus TCP
+    (:class:`loopcal.simulator.open_points.Latency`): uniform(0.5, 10) ms, with ``slow`` of them
+    50-90 ms; s."""
     return partial(Latency(slow_fraction=slow).draw_s, rng, "modbus-tcp")
 
 
@@ -130,8 +131,8 @@ def run_stamps(
     of up to one scan period): a snapshot (the anchor, the latest scan, answered after a
     latency) and the scans since the last read, stamped as the acquisition does (one
     observation per read, of the anchor); ``clockmap`` is a fresh
-    :class:`daemon.recorder.clockmap.ClockMap` or anything with its two methods."""
-    from daemon.recorder.acquisition import READ_DITHER_STEP
+    :class:`loopcal.daemon.recorder.clockmap.ClockMap` or anything with its two methods."""
+    from loopcal.daemon.recorder.acquisition import READ_DITHER_STEP
 
     rng = rng or np.random.default_rng(0)
     n_reads = int(hours * 3600 / read_period_s)

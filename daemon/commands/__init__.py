@@ -3,12 +3,12 @@
 Each module has ``add_arguments(parser)``, ``run(args) -> int`` (the exit status) and a
 docstring (or ``DESCRIPTION``) for its ``--help``. :data:`COMMANDS` lists them with their
 one-line helps, so that
-``loopcal --help`` imports none of them; :func:`load` imports one. ``daemon.cli`` builds the
+``loopcal --help`` imports none of them; :func:`load` imports one. ``loopcal.daemon.cli`` builds the
 parser from these and dispatches.
 
 Imports: everything below it in daemon/ (the recorder, the worker, live analysis, the
 recording format, the config), and the simulator for the commands that serve an emulated
-module. Never ``daemon.cli``.
+module. Never ``loopcal.daemon.cli``.
 """
 
 from __future__ import annotations
@@ -34,6 +34,8 @@ COMMANDS: tuple[tuple[str, str], ...] = (
     ("replay", "serve a recording through the emulated DAQ, scan for scan"),
     ("simulate", "serve an emulated LDQ-412 driven by a simulated shoulder joint"),
     ("observability", "which of the chosen free parameters the workspace can identify"),
+    ("files", "the files loopcal ships: systemd units, Foxglove layouts, the docs; where they are"),
+    ("install-units", "put the systemd units, sysusers and tmpfiles entries in place under a root"),
 )  # fmt: skip
 
 

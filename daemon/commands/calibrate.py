@@ -19,9 +19,9 @@ import sys
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
-from calibration.errors import CalibrationError
-from calibration.identify import DEFAULT_METHOD, METHODS
-from calibration.parameters import ParameterModel
+from loopcal.calibration.errors import CalibrationError
+from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
+from loopcal.calibration.parameters import ParameterModel
 
 from ..config import durable
 from ..config.controller import ControllerConfigError, load_controller_config

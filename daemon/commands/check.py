@@ -1,7 +1,7 @@
 """``loopcal check REC|DIR ... --controller-config PATH [--json] [--plot FILE]``: did the loops
 close at this config, and if not, which sensor moved, when, and by how much.
 
-The daemon's loop-closure health (:mod:`daemon.live.health`: the same code, the same
+The daemon's loop-closure health (:mod:`loopcal.daemon.live.health`: the same code, the same
 false-alarm rate) run offline over archived recordings, file by file in time order (memory
 stays that of one file). For every change it finds: the sensor, when the change began (the
 first still pose it shifted; UTC and seconds into the recordings), when it was detected,

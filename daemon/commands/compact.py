@@ -1,5 +1,5 @@
 """``loopcal compact REC|DIR ...``: rewrite closed recordings with large chunks, for fast
-reading (:mod:`daemon.recording.compact`).
+reading (:mod:`loopcal.daemon.recording.compact`).
 
 The daemon compacts every file it closes by itself (``[recording].compact``); this command
 is for archives recorded before it did, or copied from elsewhere. Each file is verified scan

@@ -1,8 +1,8 @@
 """``loopcal daemon --config PATH``: the acquisition daemon, as systemd runs it.
 
 Reads the TOML config (every key is described in docs/daemon.md and in
-:mod:`daemon.recorder.settings`), records until SIGTERM, reloads the config and starts a new file on
-SIGHUP, and speaks the systemd notify protocol (READY, STATUS, WATCHDOG) when systemd
+:mod:`loopcal.daemon.recorder.settings`), records until SIGTERM, reloads the config and starts a new
+file on SIGHUP, and speaks the systemd notify protocol (READY, STATUS, WATCHDOG) when systemd
 gives it a socket.
 """
 

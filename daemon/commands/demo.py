@@ -20,13 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.identify import DEFAULT_METHOD, METHODS
-from calibration.parameters import INDEX, UNITS, ParameterModel
-from calibration.simulate import perturbed_truth
-from simulator import Emulator, SimClock
-from simulator.emulator import TRANSPORTS
-from simulator.mechanism import MechanismSource
-from simulator.scenarios import HandMoves
+from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
+from loopcal.calibration.parameters import INDEX, UNITS, ParameterModel
+from loopcal.calibration.simulate import perturbed_truth
+from loopcal.simulator import Emulator, SimClock
+from loopcal.simulator.emulator import TRANSPORTS
+from loopcal.simulator.mechanism import MechanismSource
+from loopcal.simulator.scenarios import HandMoves
 
 from ..config.controller import load_controller_config
 
@@ -154,5 +154,5 @@ def _loopcal(*argv: str, capture: bool = False) -> subprocess.CompletedProcess:
     """Run a ``loopcal`` command the way a technician's shell does: a process of its own,
     through the same entry point (its output goes straight to ours unless ``capture``)."""
     return subprocess.run(
-        [sys.executable, "-m", "daemon.cli", *argv], capture_output=capture, text=True
+        [sys.executable, "-m", "loopcal.daemon.cli", *argv], capture_output=capture, text=True
     )

@@ -1,6 +1,6 @@
 """``loopcal fleet info|check ROOT ... [--out TABLE.csv] [--scheduler ADDRESS] [--workers N]``:
 ``loopcal info`` and ``loopcal check`` over a fleet's archives, one task per robot and UTC
-day, on Dask (:mod:`daemon.inspect.fleet`; ``pip install loopcal[fleet]``).
+day, on Dask (:mod:`loopcal.daemon.inspect.fleet`; ``pip install loopcal[fleet]``).
 
 ROOT holds a directory per robot, each with its controller config (``controller.toml``) and
 its recordings (directly, or in ``recordings/``). The tasks run on a local cluster of

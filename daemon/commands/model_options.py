@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from calibration.parameters import ParameterModel
+from loopcal.calibration.parameters import ParameterModel
 
 
 def add_model_options(p: argparse.ArgumentParser, *, default: str | None = "paper7") -> None:

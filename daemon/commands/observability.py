@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import argparse
 
-from calibration.observability import analyse_identifiability
-from calibration.selection import candidate_jacobian
-from calibration.simulate import simulate_poses
+from loopcal.calibration.observability import analyse_identifiability
+from loopcal.calibration.selection import candidate_jacobian
+from loopcal.calibration.simulate import simulate_poses
 
 from .model_options import add_model_options, model_from_args
 

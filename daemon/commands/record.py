@@ -2,8 +2,8 @@
 test. The same engine as ``loopcal daemon``; stops after ``--duration`` or on SIGINT/SIGTERM
 with the file properly closed; SIGHUP re-reads the controller config and starts a new file.
 
-With ``--until-enough`` it guides the technician live (:mod:`daemon.live.guidance`): a display
-redrawn about once a second (plain lines when stdout is not a terminal, one JSON object per
+With ``--until-enough`` it guides the technician live (:mod:`loopcal.daemon.live.guidance`): a
+display redrawn about once a second (plain lines when stdout is not a terminal, one JSON object per
 update with ``--json``), and it stops by itself once every offset's predicted standard
 deviation is at or below ``--target-mm`` and the calibration's acceptance gates would pass.
 Exit status then: 0 enough, 1 stopped before it was enough.
@@ -17,7 +17,7 @@ import logging
 import sys
 from pathlib import Path
 
-from calibration.errors import ParameterError
+from loopcal.calibration.errors import ParameterError
 
 from ..config.controller import ControllerConfigError
 from ..events import Level
@@ -190,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     status = run_recorder(recorder)
     st = recorder.status
-    log = logging.getLogger("daemon.record")
+    log = logging.getLogger(__name__)
     log.info(
         "stopped (%s): %d scans in %d file(s) in %s",
         recorder.exit_reason, st.scans_written, st.files_written, settings.directory,

@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.ldq412 import POWER_CYCLE_S
-from simulator.emulator import TRANSPORTS
-from simulator.open_points import add_arguments as add_open_point_arguments
-from simulator.open_points import from_arguments as open_points_from_arguments
-from simulator.replay import Player, RecordedPowerOn
-from simulator.run import listen_host, tcp_port
+from loopcal.drivers.ldq412 import POWER_CYCLE_S
+from loopcal.simulator.emulator import TRANSPORTS
+from loopcal.simulator.open_points import add_arguments as add_open_point_arguments
+from loopcal.simulator.open_points import from_arguments as open_points_from_arguments
+from loopcal.simulator.replay import Player, RecordedPowerOn
+from loopcal.simulator.run import listen_host, tcp_port
 
 from ..recording import RecordingError, read_recordings
 from ..scans import scan_rate_hz

@@ -9,7 +9,7 @@ comments and layout when a value changes. Format::
     [parameters]
     # Base point A1, x coordinate (A1 lies on the x axis by construction), mm
     A1x = 68.7
-    ... all 20, named as in calibration.parameters.NAMES (A1x ... d04), mm or mm/V ...
+    ... all 20, named as in loopcal.calibration.parameters.NAMES (A1x ... d04), mm or mm/V ...
 
     [calibration]
     # what a calibration identifies unless told otherwise
@@ -37,9 +37,9 @@ from typing import Any
 import numpy as np
 import tomlkit
 
-from calibration.errors import ParameterError
-from calibration.kinematics import check_geometry
-from calibration.parameters import (
+from loopcal.calibration.errors import ParameterError
+from loopcal.calibration.kinematics import check_geometry
+from loopcal.calibration.parameters import (
     INDEX,
     NAMES,
     NOMINAL,
@@ -58,7 +58,7 @@ CALIBRATION_KEYS: tuple[str, ...] = ("free", "ties")
 #: ``[calibration].free`` when the file does not say
 DEFAULT_FREE = "paper7"
 
-#: what each parameter is (the unit follows from calibration.parameters.UNITS)
+#: what each parameter is (the unit follows from loopcal.calibration.parameters.UNITS)
 DESCRIPTIONS: dict[str, str] = {
     "A1x": "Base point A1, x coordinate (A1 lies on the x axis by construction)",
     "A2x": "Base point A2, x coordinate (A2 lies in the xy-plane by construction)",
@@ -137,7 +137,7 @@ class ControllerConfig:
 
 
 def nominal_config() -> ControllerConfig:
-    """The reference geometry (``calibration.parameters.NOMINAL``), for when no controller
+    """The reference geometry (``loopcal.calibration.parameters.NOMINAL``), for when no controller
     config is given; path None, free None (so the model is paper7), no ties."""
     return ControllerConfig(None, NOMINAL, None, (), "", "")
 
@@ -292,8 +292,8 @@ def write_initial_config(
     """Write a new controller config at ``params`` (default the reference geometry) to
     ``path``; returns the file written (``path``'s symlink target when it is a link).
 
-    Atomic (:func:`daemon.config.durable.replace`: a temporary file in the same directory, fsynced
-    and renamed over, then the directory fsynced), under the config's write lock. Refuses to
+    Atomic (:func:`loopcal.daemon.config.durable.replace`: a temporary file in the same directory,
+    fsynced and renamed over, then the directory fsynced), under the config's write lock. Refuses to
     replace an existing file unless ``force`` (a replaced file's permission bits are kept).
     A symlink stays a link: its target is written. Creates no directories. Raises
     ControllerConfigError for all of these.

@@ -1,5 +1,5 @@
 """Loop closure over archived recordings (``loopcal check``, ``loopcal fleet check``): the
-daemon's health monitor (:mod:`daemon.live.health`, the same code and false-alarm rate) fed
+daemon's health monitor (:mod:`loopcal.daemon.live.health`, the same code and false-alarm rate) fed
 file by file, and what it found: which sensor moved, from when, by how much; optionally a
 trace of every test, and its plot."""
 
@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.closure import DriftTest
+from loopcal.calibration.closure import DriftTest
 
 from ..config.controller import load_controller_config
 from ..live.health import HealthMonitor

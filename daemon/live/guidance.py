@@ -2,8 +2,8 @@
 collected, how well it identifies the parameters, what to do next, and when it is enough.
 
 About once a second the guidance runs the calibration worker itself
-(:func:`daemon.worker.run.run_worker`: still poses, held-out poses, selection, maximum-likelihood
-fit, acceptance gates) on every scan recorded so far, so its prediction is what
+(:func:`loopcal.daemon.worker.run.run_worker`: still poses, held-out poses, selection,
+maximum-likelihood fit, acceptance gates) on every scan recorded so far, so its prediction is what
 ``loopcal calibrate`` will report on the recording. Before there are enough poses for the
 worker, each free parameter's standard deviation is predicted from the poses'
 maximum-likelihood information at the controller config and the noise the poses show.
@@ -21,10 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from calibration import implicit
-from calibration.observability import ObservabilityIndices, observability_indices
-from calibration.parameters import INDEX, SL_OFFSET, UNITS, ParameterModel
-from calibration.poses import pose_noise_volts
+from loopcal.calibration import implicit
+from loopcal.calibration.observability import ObservabilityIndices, observability_indices
+from loopcal.calibration.parameters import INDEX, SL_OFFSET, UNITS, ParameterModel
+from loopcal.calibration.poses import pose_noise_volts
 
 from ..config.controller import ControllerConfig
 from ..worker import gates as G
@@ -114,8 +114,8 @@ class GuidanceUpdate:
 
 
 class Guidance:
-    """An observer of the recorder's scans (:mod:`daemon.recorder.observers`) that predicts the
-    calibration and says what to do next.
+    """An observer of the recorder's scans (:mod:`loopcal.daemon.recorder.observers`) that predicts
+    the calibration and says what to do next.
 
     controller: the config in force (the calibration's start). model: the free set.
     target_mm: every offset's standard deviation must reach this. on_update: called with

@@ -3,9 +3,9 @@ config in force, and names the sensor whose offset moved.
 
 Scans -> still poses -> loop closure -> drift test -> events. The recorder feeds every scan
 it receives (:meth:`HealthMonitor.feed`); still poses are found as the worker finds them
-(:func:`daemon.worker.poses.poses_of_scans`), each as soon as the plate moves on, and each new pose
-runs the likelihood-ratio test of :mod:`calibration.closure` over the last 30 poses:
-"sensor i's offset moved, and the latest k poses show it", for each sensor and every k (as a
+(:func:`loopcal.daemon.worker.poses.poses_of_scans`), each as soon as the plate moves on, and each
+new pose runs the likelihood-ratio test of :mod:`loopcal.calibration.closure` over the last 30
+poses: "sensor i's offset moved, and the latest k poses show it", for each sensor and every k (as a
 step, and as a creep growing over those poses), against the noise of the poses' own
 readings and the uncertainty of the config's calibration.
 
@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.closure import (
+from loopcal.calibration.closure import (
     Closure,
     DriftTest,
     PoseModels,
@@ -38,8 +38,8 @@ from calibration.closure import (
     step_tests,
     threshold,
 )
-from calibration.parameters import INDEX, SL_OFFSET
-from calibration.poses import pose_noise_volts
+from loopcal.calibration.parameters import INDEX, SL_OFFSET
+from loopcal.calibration.poses import pose_noise_volts
 
 from ..config.controller import ControllerConfig
 from ..events import Level
@@ -182,7 +182,7 @@ class HealthMonitor:
     def _add(self, fresh: _Poses) -> None:
         """Append a feed's new poses and test the window each of them completes: the last
         :data:`WINDOW` poses, from :data:`MIN_AFFECTED` on. The windows' tests run together
-        (:func:`calibration.closure.step_tests`); what they mean is judged in order."""
+        (:func:`loopcal.calibration.closure.step_tests`); what they mean is judged in order."""
         old = 0 if self._window is None else len(self._window)
         poses = fresh if self._window is None else self._window.join(fresh)
         ends = np.arange(old, len(poses)) + 1  # each new pose closes the window ending at it
@@ -264,7 +264,7 @@ class HealthMonitor:
     # ------------------------------------------------------------------ output
 
     def metrics(self) -> list:
-        """Prometheus metric families (:mod:`daemon.recorder.metrics`): per sensor the
+        """Prometheus metric families (:mod:`loopcal.daemon.recorder.metrics`): per sensor the
         latest test's statistic, estimated offset shift and its standard deviation, and
         whether an alarm stands; the threshold; the poses checked."""
         from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily

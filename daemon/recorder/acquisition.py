@@ -1,8 +1,8 @@
 """DAQ -> scans: the loop that reads the LDQ-412 and hands every scan on, with its events.
 
 :class:`Acquisition` runs in a thread of its own and never waits for the disk: it reads the
-module, turns the driver's :class:`drivers.Scan` records into rows of
-:data:`daemon.scans.SCAN_DTYPE` and gives each batch to a sink (the recorder's queue).
+module, turns the driver's :class:`loopcal.drivers.Scan` records into rows of
+:data:`loopcal.daemon.scans.SCAN_DTYPE` and gives each batch to a sink (the recorder's queue).
 
 What it adds to the driver's scans:
 
@@ -13,7 +13,8 @@ What it adds to the driver's scans:
   nobody read the module are counted on the first scan read (``missed``) and reported;
 - UTC time stamps: ``host_ns`` when the answer arrived, and ``stamp_ns``, the acquisition
   instant, from the module's own clock mapped to UTC by the lower envelope of
-  (arrival - device time), which follows the module's clock error (:mod:`daemon.recorder.clockmap`);
+  (arrival - device time), which follows the module's clock error
+  (:mod:`loopcal.daemon.recorder.clockmap`);
 - events: gaps, restarts, FIFO overflow, rail and sensor faults (onset at once, end after a
   second of clear scans, so a channel flickering at the rail does not flood the log),
   and the link going down and coming back.
@@ -24,7 +25,7 @@ backoff (0.1 s doubling to 2 s, or to a quarter of what the FIFO holds: far insi
 a short outage loses nothing over Modbus and little over ASCII. The FIFO is read every
 ``read_period`` (and again at once if it was more than half full); without a FIFO (ASCII,
 or Modbus with ``fifo=0``) the loop polls once per scan, phase-locked to the module's own
-clock (:mod:`daemon.recorder.polling`).
+clock (:mod:`loopcal.daemon.recorder.polling`).
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from drivers import DAQ, DAQError, Scan, ldq412, open_daq
+from loopcal.drivers import DAQ, DAQError, Scan, ldq412, open_daq
 
 from ..events import Event, Level
 from ..scans import SCAN_DTYPE
@@ -44,7 +45,7 @@ from .batches import AcquisitionStats, Batch, DeviceInfo, ResumePoint
 from .clockmap import ClockMap
 from .polling import PhaseLock
 
-log = logging.getLogger("daemon.recorder.acquisition")
+log = logging.getLogger(__name__)
 
 BACKOFF_FAST_S = 0.05  # retry period while a power-cycled module may be coming back
 RESTART_WINDOW_S = ldq412.POWER_CYCLE_S + 0.5  # the datasheet's 2 s, and some
@@ -68,7 +69,7 @@ class _Flag:
 class Acquisition:
     """Reads the module at ``url`` until stopped, giving every batch of scans to ``sink``.
 
-    url: driver URL (see :func:`drivers.open_daq`). timeout: s without an answer before a
+    url: driver URL (see :func:`loopcal.drivers.open_daq`). timeout: s without an answer before a
     call fails. read_period: s between FIFO reads. resume: the last scan already recorded.
     sink: called from the acquisition thread with each :class:`Batch`; must not block.
     """
@@ -200,7 +201,7 @@ class Acquisition:
         ratio steps): a read period that is a whole number of scan periods would otherwise
         find the latest scan at the same age read after read (for minutes, as the clocks
         drift by a few hundred ppm), and the device-to-UTC offset needs some reads just
-        after a scan (:mod:`daemon.recorder.clockmap`)."""
+        after a scan (:mod:`loopcal.daemon.recorder.clockmap`)."""
         return (self.stats.reads * READ_DITHER_STEP) % 1.0 / self._rate_hz
 
     def _next_backoff(self, now: float) -> float:
@@ -218,7 +219,8 @@ class Acquisition:
 
     def _next_poll(self, start: float, scans: list[Scan]) -> float:
         """Without a FIFO: when to poll next, phase-locked to the module's clock (one poll
-        per scan, at a safe point between two scans: :class:`daemon.recorder.polling.PhaseLock`)."""
+        per scan, at a safe point between two scans:
+        :class:`loopcal.daemon.recorder.polling.PhaseLock`)."""
         rate = self._rate_hz
         lock = self.poll_lock
         if lock is None or lock.rate_hz != rate:

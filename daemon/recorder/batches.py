@@ -1,4 +1,4 @@
-"""What acquisition hands on (:mod:`daemon.recorder.acquisition`): the module it talks to,
+"""What acquisition hands on (:mod:`loopcal.daemon.recorder.acquisition`): the module it talks to,
 batches of scan rows and events, the point a new recorder carries on from, and the counters
 the status line and the metrics read. Imports only the shared scans and events."""
 

@@ -1,4 +1,5 @@
-"""Compacting the recorder's closed files in the background (:mod:`daemon.recording.compact`).
+"""Compacting the recorder's closed files in the background
+(:mod:`loopcal.daemon.recording.compact`).
 
 The writer hands every file it closes (a rotation) to the :class:`Compactor`, which rewrites
 it with large chunks in a thread of its own at a low CPU priority, so that reading the
@@ -20,7 +21,7 @@ from pathlib import Path
 from ..recording import RecordingError, find_recordings
 from ..recording.compact import compact, remove_stale_temporaries
 
-log = logging.getLogger("daemon.recorder.compactor")
+log = logging.getLogger(__name__)
 
 NICE = 10  # the compaction thread's CPU priority (lower than the acquisition's)
 

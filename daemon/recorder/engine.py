@@ -2,15 +2,15 @@
 
 Three threads share the work so that a slow or full disk never delays reading the DAQ:
 
-- the acquisition thread (:class:`~daemon.recorder.acquisition.Acquisition`) reads the
-  module and puts batches on a :class:`~daemon.recorder.filewriter.ScanQueue` without ever
+- the acquisition thread (:class:`~loopcal.daemon.recorder.acquisition.Acquisition`) reads the
+  module and puts batches on a :class:`~loopcal.daemon.recorder.filewriter.ScanQueue` without ever
   waiting;
-- the writer thread (:class:`~daemon.recorder.filewriter.FileWriter`) takes them off and
+- the writer thread (:class:`~loopcal.daemon.recorder.filewriter.FileWriter`) takes them off and
   writes them to rotating files, riding out disk errors;
 - the calling thread (:meth:`Recorder.run`) waits for stop and reload requests (set by
   signal handlers) and keeps systemd informed: READY, STATUS, WATCHDOG.
 
-A fourth, the analysis thread (:mod:`~daemon.recorder.observers`), feeds every scan to the
+A fourth, the analysis thread (:mod:`~loopcal.daemon.recorder.observers`), feeds every scan to the
 observers the caller adds (live analysis: loop-closure health, guidance); they emit events
 through :meth:`Recorder.emit`.
 """
@@ -38,7 +38,7 @@ from .resume import last_scan
 from .sdnotify import Notifier
 from .settings import RecorderSettings
 
-log = logging.getLogger("daemon.recorder.engine")
+log = logging.getLogger(__name__)
 
 STATUS_PERIOD_S = 5.0
 FOLLOW_CONFIG_S = 2.0  # how often the controller config file is looked at for a new version
@@ -128,7 +128,7 @@ class Recorder:
     # ------------------------------------------------------------------ control
 
     def add_observer(self, observer: Observer) -> None:
-        """Feed the scans to ``observer`` too (:mod:`~daemon.recorder.observers`); before
+        """Feed the scans to ``observer`` too (:mod:`~loopcal.daemon.recorder.observers`); before
         :meth:`run`. On a reload it gets the new controller config."""
         self.analysis.observers.append(observer)
 

@@ -1,7 +1,7 @@
 """The recorder's writer thread: scans from the queue into rotating recording files.
 
 Every flush period it writes what waited to the current file
-(:class:`daemon.recording.RecordingWriter`) and fsyncs; it rotates files by age, size,
+(:class:`loopcal.daemon.recording.RecordingWriter`) and fsyncs; it rotates files by age, size,
 reload and device change, deletes the oldest recordings to stay under the disk budget, and
 rides out disk errors: the scans stay in memory (up to ``max_backlog_scans``), it retries
 every few seconds, and writes them all once the disk takes them again.
@@ -35,7 +35,7 @@ from .acquisition import Batch, DeviceInfo
 from .compactor import Compactor
 from .settings import RecorderSettings, SettingsError
 
-log = logging.getLogger("daemon.recorder.filewriter")
+log = logging.getLogger(__name__)
 
 DISK_RETRY_S = 5.0  # how often to try again while the disk refuses to write
 RETENTION_CHECK_S = 30.0

@@ -31,7 +31,7 @@ from .settings import RecorderSettings, SettingsError, parse_listen
 
 
 class Recorder(Protocol):
-    """What the metrics read of a recorder (:class:`daemon.recorder.engine.Recorder`)."""
+    """What the metrics read of a recorder (:class:`loopcal.daemon.recorder.engine.Recorder`)."""
 
     status: RecorderStatus
     analysis: AnalysisThread

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..config.controller import ControllerConfig
 
-log = logging.getLogger("daemon.recorder.observers")
+log = logging.getLogger(__name__)
 
 MAX_PENDING_BATCHES = 10_000  # beyond this (observers far behind) the oldest are dropped
 PERIOD_S = 0.25

@@ -16,7 +16,7 @@ import threading
 import time
 from collections.abc import Mapping
 
-log = logging.getLogger("daemon.recorder.sdnotify")
+log = logging.getLogger(__name__)
 
 MAX_STATUS = 1000  # characters of STATUS= kept; systemctl status shows one line anyway
 

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from drivers import driver_for_url, ldq412
+from loopcal.drivers import driver_for_url, ldq412
 
 _SIZE_RE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(B|KiB|MiB|GiB|TiB|kB|MB|GB|TB)?\s*$")
 _UNITS = {None: 1, "B": 1, "KiB": 1 << 10, "MiB": 1 << 20, "GiB": 1 << 30, "TiB": 1 << 40,
@@ -69,9 +69,9 @@ class RecorderSettings:
     duration_s: stop after this long (``loopcal record --duration``), or None.
     metrics_listen: "HOST:PORT" to serve Prometheus metrics on (None: off). compact: rewrite
     every closed (rotated) file with large chunks in the background
-    (:mod:`daemon.recording.compact`).
-    health: watch loop closure (:mod:`daemon.live.health`); health_false_alarm: its false-alarm
-    probability per still pose.
+    (:mod:`loopcal.daemon.recording.compact`).
+    health: watch loop closure (:mod:`loopcal.daemon.live.health`); health_false_alarm: its
+    false-alarm probability per still pose.
     """
 
     daq_url: str

@@ -25,19 +25,20 @@ Layout, chosen for crash safety and for fast reading: every flush (about once pe
 writes two chunks, first the raw block with any events, then the per-scan views, and fsyncs.
 A reader that only wants the scans skips the view chunks by the chunk index, and decodes each
 block with one ``numpy.frombuffer``: the block's CDR body is the rows of
-:data:`daemon.scans.SCAN_DTYPE` back to back. A file cut short by a crash or a power loss
+:data:`loopcal.daemon.scans.SCAN_DTYPE` back to back. A file cut short by a crash or a power loss
 still reads back up to its last complete chunk.
 
-The modules, bottom up: :mod:`~daemon.recording.schemas` (topics, channels, schemas),
-:mod:`~daemon.recording.cdr` (message layouts, scan blocks), :mod:`~daemon.recording.views`
-(per-scan poses for people), :mod:`~daemon.recording.names` (file names),
-:mod:`~daemon.recording.writer` (:class:`RecordingWriter`), :mod:`~daemon.recording.records`
-(MCAP records checked before they are trusted), :mod:`~daemon.recording.filereader` (one
-file, and what it lost) and :mod:`~daemon.recording.reader` (:func:`read_recordings`). Used
-by the recorder, the worker, replay and the inspection tools.
+The modules, bottom up: :mod:`~loopcal.daemon.recording.schemas` (topics, channels, schemas),
+:mod:`~loopcal.daemon.recording.cdr` (message layouts, scan blocks),
+:mod:`~loopcal.daemon.recording.views` (per-scan poses for people),
+:mod:`~loopcal.daemon.recording.names` (file names), :mod:`~loopcal.daemon.recording.writer`
+(:class:`RecordingWriter`), :mod:`~loopcal.daemon.recording.records` (MCAP records checked before
+they are trusted), :mod:`~loopcal.daemon.recording.filereader` (one file, and what it lost) and
+:mod:`~loopcal.daemon.recording.reader` (:func:`read_recordings`). Used by the recorder, the worker,
+replay and the inspection tools.
 
 Imports: calibration/ (kinematics for the views), mcap, numpy, and the base modules of
-:mod:`daemon` (scans, events, version). Nothing else of daemon/.
+:mod:`loopcal.daemon` (scans, events, version). Nothing else of daemon/.
 """
 
 from .cdr import (

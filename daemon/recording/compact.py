@@ -10,7 +10,7 @@ the same ids, the same metadata (the ``loopcal`` record gains ``compacted_utc``)
 reader reads it as before (ours, Python ``mcap``, Foxglove's).
 
 Nothing can be lost doing it: the new version goes to a temporary file beside the original
-(``.NAME.compact.tmp``), is read back with :func:`~daemon.recording.read_recordings` and
+(``.NAME.compact.tmp``), is read back with :func:`~loopcal.daemon.recording.read_recordings` and
 compared scan for scan, event for event, message count for message count with the original,
 fsynced, and only then renamed over it (atomic), and the directory fsynced. A file that is
 not closed, not intact, or already compact is left as it is (already compact is told from
@@ -38,7 +38,7 @@ from .errors import RecordingError
 from .reader import read_recordings
 from .schemas import FORMAT_VERSION, TOPIC_EVENTS, TOPIC_LOG, TOPIC_SCANS
 
-log = logging.getLogger("daemon.recording.compact")
+log = logging.getLogger(__name__)
 
 #: uncompressed bytes per chunk of a compacted file (a reader decompresses a chunk whole)
 CHUNK_BYTES = 4 << 20

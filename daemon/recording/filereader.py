@@ -1,6 +1,6 @@
 """Reading one recording file, trusting only what checks out, and saying what it lost.
 
-The records come from :mod:`~daemon.recording.records` (every length, offset and CRC
+The records come from :mod:`~loopcal.daemon.recording.records` (every length, offset and CRC
 checked); this module turns them into scan rows and events: each scan once (within a file a
 scan is its power-on epoch and counter), the counter gaps no recorded ``missed`` explains
 reported as lost scans, and every damaged part named (:class:`RecordingFile`).

@@ -1,5 +1,5 @@
 """What a recording holds: topics, channels, the schemas of their messages, and the format's
-version (the layout of each message is :mod:`~daemon.recording.cdr`'s)."""
+version (the layout of each message is :mod:`~loopcal.daemon.recording.cdr`'s)."""
 
 from __future__ import annotations
 

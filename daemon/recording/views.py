@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.kinematics import (
+from loopcal.calibration.kinematics import (
     base_points,
     euler_zyz,
     forward_kinematics,

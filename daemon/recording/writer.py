@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
-from calibration.parameters import check_vector
+from loopcal.calibration.parameters import check_vector
 
 from ..config.durable import fsync_dir
 from ..events import Event

@@ -30,17 +30,17 @@ from statistics import NormalDist
 
 import numpy as np
 
-from calibration.kinematics import (
+from loopcal.calibration.kinematics import (
     base_points,
     forward_kinematics,
     output_axis_angles,
     volts_to_lengths,
 )
-from calibration.observability import CONDITION_OK
-from calibration.parameters import GAIN_NOMINAL, INDEX, UNITS, ParameterModel
-from calibration.poses import pose_noise_volts
-from calibration.residuals import loop_residuals, noise_directions, reference_points
-from calibration.simulate import NEAR_SINGULAR_MM
+from loopcal.calibration.observability import CONDITION_OK
+from loopcal.calibration.parameters import GAIN_NOMINAL, INDEX, UNITS, ParameterModel
+from loopcal.calibration.poses import pose_noise_volts
+from loopcal.calibration.residuals import loop_residuals, noise_directions, reference_points
+from loopcal.calibration.simulate import NEAR_SINGULAR_MM
 
 MIN_POSES = 30
 MIN_CHANNEL_RANGE_V = 0.5  # a channel that moves less than this over all poses is stuck
@@ -224,7 +224,7 @@ def min_singular_gate(s_min: float, advice: Advice) -> Gate:
 
 def expected_noise(scan_noise: np.ndarray, counts: np.ndarray, *, per_scan: bool = False) -> float:
     """RMS noise of the poses' mean readings the poses themselves predict, V
-    (:func:`calibration.poses.pose_noise_volts`). per_scan: the same as the noise of one
+    (:func:`loopcal.calibration.poses.pose_noise_volts`). per_scan: the same as the noise of one
     scan (times the square root of the scans averaged), as the maximum-likelihood fit
     reports."""
     var = pose_noise_volts(scan_noise, counts) ** 2
@@ -264,7 +264,7 @@ def holdout_residuals(
 
     In volts of equivalent sensor noise (the residuals projected on their noise direction);
     or, given ``noise`` (m, 4), the standard deviation of each pose's mean reading per
-    channel (:func:`calibration.poses.pose_noise_volts`), in units of the error's own
+    channel (:func:`loopcal.calibration.poses.pose_noise_volts`), in units of the error's own
     predicted standard deviation, N(0, 1) each when the parameters are right. With the
     fit's ``model`` and ``covariance`` (of its free parameters), the prediction includes the
     parameters' own uncertainty (poses that were not in the fit: held out)."""

@@ -2,7 +2,7 @@
 
 While the plate moves, the four channels of a scan are converted 250 µs apart, so a scan of
 a moving plate is skewed; calibration poses therefore come from stretches where the plate is
-held still, averaged (:func:`calibration.poses.still_poses` finds them). Before that, scans
+held still, averaged (:func:`loopcal.calibration.poses.still_poses` finds them). Before that, scans
 that must not be in any pose are taken out:
 
 - a channel at the rail or with its sensor-fault bit (the datasheet's untrustworthy reading);
@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calibration.poses import pose_noise_volts, running_sums_at, still_poses
+from loopcal.calibration.poses import pose_noise_volts, running_sums_at, still_poses
 
 from .. import scans as scan_rows
 
@@ -52,8 +52,8 @@ class RecordedPoses:
     @property
     def noise_volts(self) -> np.ndarray:
         """(k, 4) standard deviation of each pose's mean, V
-        (:func:`calibration.poses.pose_noise_volts`: the scan noise averaged down, the 12-bit
-        rounding not)."""
+        (:func:`loopcal.calibration.poses.pose_noise_volts`: the scan noise averaged down, the
+        12-bit rounding not)."""
         return pose_noise_volts(self.scan_noise, self.counts)
 
 

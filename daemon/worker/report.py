@@ -19,14 +19,14 @@ matplotlib.use("Agg")  # files only, no screen
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from calibration.kinematics import (  # noqa: E402
+from loopcal.calibration.kinematics import (  # noqa: E402
     base_points,
     forward_kinematics,
     output_axis_angles,
     volts_to_lengths,
 )
-from calibration.parameters import INDEX, UNITS  # noqa: E402
-from calibration.selection import candidate_jacobian, select_poses  # noqa: E402
+from loopcal.calibration.parameters import INDEX, UNITS  # noqa: E402
+from loopcal.calibration.selection import candidate_jacobian, select_poses  # noqa: E402
 
 from .gates import holdout_residuals  # noqa: E402
 from .run import METHOD_NAMES, WorkerResult  # noqa: E402

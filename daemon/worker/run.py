@@ -1,12 +1,12 @@
 """The calibration worker: from recordings to parameters it can vouch for.
 
 MCAP -> poses -> fit -> gates: given the scans of the recordings (as
-:func:`daemon.recording.read_recordings` returns them), the worker takes their still poses
-(:func:`daemon.worker.poses.poses_of_scans`), keeps every fifth out of the fit to check it
+:func:`loopcal.daemon.recording.read_recordings` returns them), the worker takes their still poses
+(:func:`loopcal.daemon.worker.poses.poses_of_scans`), keeps every fifth out of the fit to check it
 against, selects the best of the others and identifies the free parameters from them
-(:func:`calibration.pipeline.calibrate`, started from the controller config), and runs the
-acceptance gates (:mod:`daemon.worker.gates`). Writing the result into the controller config is
-:mod:`daemon.worker.writeback`'s job, and only done when every gate passed.
+(:func:`loopcal.calibration.pipeline.calibrate`, started from the controller config), and runs the
+acceptance gates (:mod:`loopcal.daemon.worker.gates`). Writing the result into the controller config
+is :mod:`loopcal.daemon.worker.writeback`'s job, and only done when every gate passed.
 """
 
 from __future__ import annotations
@@ -20,10 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from calibration.errors import CalibrationError
-from calibration.identify import DEFAULT_METHOD
-from calibration.parameters import INDEX, NAMES, UNITS, ParameterModel
-from calibration.pipeline import Calibration, calibrate
+from loopcal.calibration.errors import CalibrationError
+from loopcal.calibration.identify import DEFAULT_METHOD
+from loopcal.calibration.parameters import INDEX, NAMES, UNITS, ParameterModel
+from loopcal.calibration.pipeline import Calibration, calibrate
 
 from ..config.controller import ControllerConfig
 from ..recording import RecordingFile
@@ -191,7 +191,7 @@ def run_worker(
     or many files, already loaded; ``files``, what they came from, for the provenance and
     the report).
 
-    method: the estimator (:func:`calibration.identify.identify`); "ml" weighs each pose by
+    method: the estimator (:func:`loopcal.calibration.identify.identify`); "ml" weighs each pose by
     the scans averaged into it."""
     t0 = time.perf_counter()
     start = np.array(controller.params, dtype=float)

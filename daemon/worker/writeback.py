@@ -2,7 +2,7 @@
 
 Only values change: the file is edited with tomlkit, so its comments and layout survive,
 and ``[provenance]`` records where the values came from. Nothing already configured can be
-lost or half written (the mechanics are :mod:`daemon.config.durable`'s):
+lost or half written (the mechanics are :mod:`loopcal.daemon.config.durable`'s):
 
 1. the config's real file is found through any symlinks (the link stays a link; its target
    is what is replaced, in the target's own directory, with the target's mode);
@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import tomlkit
 
-from calibration.parameters import NAMES
+from loopcal.calibration.parameters import NAMES
 
 from ..config import durable
 from ..config.controller import ControllerConfig, ControllerConfigError

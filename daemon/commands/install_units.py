@@ -1,0 +1,77 @@
+"""``loopcal install-units ROOT [--force] [--dry-run]``: put the systemd units and their
+sysusers and tmpfiles entries in place under ROOT (``/`` on the robot's controller; a
+staging folder for an image):
+
+    ROOT/etc/systemd/system/loopcal.service, loopcal-calibrate.service
+    ROOT/etc/sysusers.d/loopcal.conf
+    ROOT/etc/tmpfiles.d/loopcal.conf
+
+Each is written atomically (mode 0644); one already there with the same bytes is left as
+it is; one that differs (edited by hand) is not replaced without ``--force``. Then, on the
+controller: ``systemd-sysusers && systemd-tmpfiles --create && systemctl daemon-reload``
+(systemd/README.md, ``loopcal files systemd/README.md``). The units run
+``/opt/loopcal/bin/loopcal``: install loopcal into a venv there, or change ExecStart by a
+drop-in.
+
+Exit status 0 when every file is in place, 1 when a differing file was kept (nothing of it
+changed; named on stderr), 2 for a ROOT that is not a directory or a file that cannot be
+written."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from ..config.durable import replace
+from ..shipped import UNITS
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("root", type=Path, metavar="ROOT",
+                   help="the root to install under: / on the controller, or a staging folder")
+    p.add_argument("--force", action="store_true",
+                   help="replace files that differ from loopcal's (edited by hand)")
+    p.add_argument("--dry-run", action="store_true",
+                   help="say what would be written, write nothing")
+
+
+def run(args: argparse.Namespace) -> int:
+    root: Path = args.root
+    if not root.is_dir():
+        print(f"loopcal install-units: error: {str(root)!r} is not a directory", file=sys.stderr)
+        return 2
+    kept = []
+    for unit in UNITS:
+        assert unit.installs_to is not None
+        target = root / unit.installs_to
+        data = unit.path.read_bytes()
+        try:
+            current = target.read_bytes() if target.exists() else None
+        except OSError as exc:
+            print(f"loopcal install-units: error: cannot read {target}: {exc.strerror}",
+                  file=sys.stderr)  # fmt: skip
+            return 2
+        if current == data:
+            print(f"unchanged {target}")
+            continue
+        if current is not None and not args.force:
+            kept.append(target)
+            continue
+        verb = "would write" if args.dry_run else ("replaced" if current is not None else "wrote")
+        if not args.dry_run:
+            try:
+                target.parent.mkdir(parents=True, exist_ok=True)
+                replace(target, data, mode=0o644)
+            except OSError as exc:
+                print(f"loopcal install-units: error: cannot write {target}: "
+                      f"{exc.strerror or exc}", file=sys.stderr)  # fmt: skip
+                return 2
+        print(f"{verb} {target}")
+    for target in kept:
+        print(f"loopcal install-units: error: {target} differs from loopcal's and was kept "
+              "(--force replaces it)", file=sys.stderr)  # fmt: skip
+    if not args.dry_run and not kept and os.geteuid() == 0 and root.resolve() == Path("/"):
+        print("next: systemd-sysusers && systemd-tmpfiles --create && systemctl daemon-reload")
+    return 1 if kept else 0
