@@ -54,8 +54,8 @@ def shipped() -> list[Shipped]:
     files = [*UNITS, Shipped("systemd/README.md", None, "installing and watching the service")]
     docs = ROOT / "docs"
     layouts = sorted(p.name for p in (docs / "foxglove").glob("*.json"))
-    files += [Shipped(f"docs/foxglove/{name}", None, "a Foxglove layout (Layouts > Import from file)")
-              for name in layouts]  # fmt: skip
+    files += [Shipped(f"docs/foxglove/{name}", None,
+                      "a Foxglove layout (Layouts > Import from file)") for name in layouts]
     pages = sorted(p.name for p in docs.glob("*.md"))
     files += [Shipped(f"docs/{name}", None, _title((docs / name).read_text()))
               for name in pages]  # fmt: skip
