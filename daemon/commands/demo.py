@@ -12,11 +12,13 @@ take about twelve seconds.
 from __future__ import annotations
 
 import argparse
+import shlex
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -100,34 +102,26 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
     )
     recordings = work / "recordings"
+    session_s = args.minutes * 60
     with Emulator(
         args.transport, source, clock=SimClock(speed), seed=args.seed, truth_limit=10_000
     ) as emu:
-        print(f"\n$ loopcal record --daq {emu.url} --out {recordings}   (x{speed:g})", flush=True)
-        rec = _loopcal(
-            "record", "--daq", emu.url, "--out", str(recordings),
-            "--duration", f"{args.minutes * 60 / speed:g}", "--read-period", "0.05",
-            capture=True,
+        pace = "in real time" if speed == 1 else f"{speed:g} times as fast as wall time"
+        print(f"\nThe emulated LDQ-412 runs {pace}: recording takes {session_s / speed:g} s.")
+        status = _record(
+            ["record", "--daq", emu.url, "--out", str(recordings),
+             "--duration", f"{session_s / speed:g}", "--read-period", "0.05"],
         )  # fmt: skip
-    lines = rec.stderr.strip().splitlines()
-    print("\n".join(lines[-1:]))
-    if rec.returncode != 0:
-        print(rec.stderr, file=sys.stderr)
-        return rec.returncode
+    if status != 0:
+        return status
     config = work / "controller.toml"
-    print(f"\n$ loopcal init-config {config} --force")
-    made = _loopcal("init-config", str(config), "--force")
-    if made.returncode != 0:
-        return made.returncode
-    print(
-        f"\n$ loopcal calibrate {recordings} --controller-config {config} --free {args.free} "
-        f"--method {args.method} --write --report {work / 'report'}",
-        flush=True,
-    )
+    status = _loopcal(["init-config", str(config), "--force"])
+    if status != 0:
+        return status
     status = _loopcal(
-        "calibrate", str(recordings), "--controller-config", str(config), "--free", args.free,
-        "--method", args.method, "--write", "--report", str(work / "report"),
-    ).returncode  # fmt: skip
+        ["calibrate", str(recordings), "--controller-config", str(config), "--free", args.free,
+         "--method", args.method, "--write", "--report", str(work / "report")]
+    )  # fmt: skip
     if not config.exists():
         return status
     written = load_controller_config(config)
@@ -150,9 +144,29 @@ def run(args: argparse.Namespace) -> int:
     return status
 
 
-def _loopcal(*argv: str, capture: bool = False) -> subprocess.CompletedProcess:
-    """Run a ``loopcal`` command the way a technician's shell does: a process of its own,
-    through the same entry point (its output goes straight to ours unless ``capture``)."""
-    return subprocess.run(
-        [sys.executable, "-m", "loopcal.daemon.cli", *argv], capture_output=capture, text=True
-    )
+def _record(argv: list[str]) -> int:
+    """Run ``loopcal record``; its log is shown at the end (all of it if it failed)."""
+    print(f"\n{_command_line(argv)}", flush=True)
+    with tempfile.TemporaryFile("w+") as log:
+        status = _start(argv, stdout=log, stderr=subprocess.STDOUT).wait()
+        log.seek(0)
+        lines = log.read().strip().splitlines()
+    print("\n".join(lines if status != 0 else lines[-1:]), flush=True)
+    return status
+
+
+def _command_line(argv: list[str]) -> str:
+    """The command as a technician would type it: it pastes into a shell as it is."""
+    return "$ " + shlex.join(["loopcal", *argv])
+
+
+def _start(argv: list[str], **popen: Any) -> subprocess.Popen:
+    """Start a ``loopcal`` command the way a technician's shell does: a process of its own,
+    through the same entry point."""
+    return subprocess.Popen([sys.executable, "-m", "loopcal.daemon.cli", *argv], **popen)
+
+
+def _loopcal(argv: list[str]) -> int:
+    """Show and run a ``loopcal`` command, its output going straight to ours."""
+    print(f"\n{_command_line(argv)}", flush=True)
+    return _start(argv).wait()
