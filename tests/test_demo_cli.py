@@ -133,6 +133,30 @@ def test_demo_shows_the_commands_it_really_runs(tmp_path):
     assert record[record.index("--out") + 1] == str(tmp_path / "with space" / "recordings")
 
 
+def test_ascii_demo_shows_progress_while_it_records(tmp_path):
+    """Over ASCII the module runs in real time: the demo says how far it has come at least
+    every few seconds, in the session's own time: never more than has passed, nor beyond
+    the session's end."""
+    demo = run_demo("--transport", "ascii", "--minutes", "0.3", "--out", str(tmp_path))
+    assert demo.returncode == 1, demo.stdout + demo.stderr  # 18 s are too short to calibrate
+    assert demo.shown("record")[:3] == ["loopcal", "record", "--daq"]
+    start = next(i for i, (_, ln) in enumerate(demo.lines) if ln.startswith("$ loopcal record"))
+    stop = next(i for i, (_, ln) in enumerate(demo.lines) if "stopped (--duration" in ln)
+    during = demo.lines[start : stop + 1]
+    t_start = during[0][0]
+    assert during[-1][0] - t_start >= 18
+    assert max(b[0] - a[0] for a, b in zip(during, during[1:], strict=False)) < 8, during
+    waiting = "  recording: waiting for loopcal record to talk to the module\n"
+    seconds = []
+    for t, line in during[1:-1]:
+        m = re.fullmatch(r"  recording: (\d+):(\d\d) of 0:18\n", line)
+        assert m or line == waiting, line
+        if m:
+            seconds.append(60 * int(m.group(1)) + int(m.group(2)))
+            assert seconds[-1] <= min(18, t - t_start + 1), (t - t_start, line)
+    assert len(seconds) >= 2 and seconds == sorted(seconds) and seconds[-1] >= 5, during
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [(["--minutes", "0"], "--minutes must be positive"), (["--free", "Q7"], "unknown parameter")],

@@ -33,6 +33,7 @@ from loopcal.simulator.scenarios import HandMoves
 from ..config.controller import load_controller_config
 
 PAUSE_S = (0.8, 1.5)  # a technician pausing about a second at each position
+PROGRESS_S = 5.0  # wall seconds between progress lines while recording
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -103,12 +104,12 @@ def run(args: argparse.Namespace) -> int:
     )
     recordings = work / "recordings"
     session_s = args.minutes * 60
-    with Emulator(
-        args.transport, source, clock=SimClock(speed), seed=args.seed, truth_limit=10_000
-    ) as emu:
+    clock = SimClock(speed)
+    with Emulator(args.transport, source, clock=clock, seed=args.seed, truth_limit=10_000) as emu:
         pace = "in real time" if speed == 1 else f"{speed:g} times as fast as wall time"
         print(f"\nThe emulated LDQ-412 runs {pace}: recording takes {session_s / speed:g} s.")
         status = _record(
+            emu, clock, session_s,
             ["record", "--daq", emu.url, "--out", str(recordings),
              "--duration", f"{session_s / speed:g}", "--read-period", "0.05"],
         )  # fmt: skip
@@ -144,15 +145,37 @@ def run(args: argparse.Namespace) -> int:
     return status
 
 
-def _record(argv: list[str]) -> int:
-    """Run ``loopcal record``; its log is shown at the end (all of it if it failed)."""
+def _record(emu: Emulator, clock: SimClock, session_s: float, argv: list[str]) -> int:
+    """Run ``loopcal record``, saying every PROGRESS_S how much of the session it has
+    recorded (device time since the driver's first request); its log is shown at the end."""
     print(f"\n{_command_line(argv)}", flush=True)
     with tempfile.TemporaryFile("w+") as log:
-        status = _start(argv, stdout=log, stderr=subprocess.STDOUT).wait()
+        proc = _start(argv, stdout=log, stderr=subprocess.STDOUT)
+        talking_since: float | None = None
+        due = time.monotonic() + PROGRESS_S
+        while proc.poll() is None:
+            try:
+                proc.wait(timeout=0.2)
+            except subprocess.TimeoutExpired:
+                pass
+            if talking_since is None and emu.first_request.is_set():
+                talking_since = clock.now()
+            if time.monotonic() < due or proc.returncode is not None:
+                continue
+            due += PROGRESS_S
+            if talking_since is None:
+                print("  recording: waiting for loopcal record to talk to the module", flush=True)
+            else:
+                done = min(clock.now() - talking_since, session_s)
+                print(f"  recording: {_mmss(done)} of {_mmss(session_s)}", flush=True)
         log.seek(0)
         lines = log.read().strip().splitlines()
-    print("\n".join(lines if status != 0 else lines[-1:]), flush=True)
-    return status
+    print("\n".join(lines if proc.returncode != 0 else lines[-1:]), flush=True)
+    return proc.returncode
+
+
+def _mmss(seconds: float) -> str:
+    return f"{int(seconds // 60)}:{int(seconds % 60):02d}"
 
 
 def _command_line(argv: list[str]) -> str:
