@@ -1,6 +1,6 @@
 """The README's main command, `loopcal demo`, as a real subprocess: record a technician's
-session through the emulated DAQ, calibrate it, write the config, compare with the truth.
-The commands it shows are checked against the processes it really ran
+session through the emulated DAQ, calibrate it, write the config, compare with the truth,
+end with a verdict. The commands it shows are checked against the processes it really ran
 (their command lines in /proc while they run)."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from loopcal.calibration.parameters import INDEX
-from loopcal.daemon.config.controller import load_controller_config
+from loopcal.daemon.config.controller import load_controller_config, nominal_config
 
 ENTRY = [sys.executable, "-m", "loopcal.daemon.cli"]
 
@@ -114,6 +114,12 @@ def test_demo_writes_offsets_close_to_the_truth(tmp_path):
         assert abs(written.params[INDEX[name]] - value) < 1e-3
     assert (tmp_path / "a dir" / "report" / "index.html").exists()
     assert float(re.search(r"Done in ([\d.]+) s", out).group(1)) < 60
+    # the verdict is the last line, and its bound is the table's worst |err/std| rounded up
+    verdict = demo.lines[-1][1].rstrip("\n")
+    m = re.fullmatch(r"verdict: written, every parameter within ([\d.]+) std of the truth", verdict)
+    assert m, verdict
+    worst = max(abs(error / std) for _, _, error, std, _ in rows.values())
+    assert worst <= float(m.group(1)) < worst + 0.1 + 1e-9
 
 
 def test_demo_shows_the_commands_it_really_runs(tmp_path):
@@ -131,6 +137,29 @@ def test_demo_shows_the_commands_it_really_runs(tmp_path):
     assert "?unit=1" in record[record.index("--daq") + 1]
     assert record[record.index("--duration") + 1] == "3"  # 0.5 min at x10
     assert record[record.index("--out") + 1] == str(tmp_path / "with space" / "recordings")
+
+
+def test_demo_too_short_says_nothing_was_written(tmp_path):
+    demo = run_demo("--out", str(tmp_path), "--minutes", "1")
+    out = demo.stdout
+    assert demo.returncode == 1, out + demo.stderr
+    assert "against the truth" not in out and not re.search(r"\bnan\b", out) and not table(out)
+    m = re.search(r"^  \[FAIL\] poses: (\d+) \(limit >= (\d+)\)$", out, re.M)
+    assert m and int(m.group(1)) < int(m.group(2)), out
+    assert re.search(
+        r"^Nothing was written: loopcal calibrate refused the session \(poses: ", out, re.M
+    )
+    assert demo.lines[-1][1] == (
+        f"verdict: refused (poses: only {m.group(1)} still poses found in the recording), "
+        "nothing written\n"
+    )
+    # and indeed nothing was: the config is what init-config wrote, with no previous version
+    config = load_controller_config(tmp_path / "controller.toml")
+    assert config.provenance is None
+    assert list(config.params) == list(nominal_config().params)
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith("controller.toml")] == [
+        "controller.toml"
+    ]
 
 
 def test_ascii_demo_shows_progress_while_it_records(tmp_path):
@@ -155,6 +184,7 @@ def test_ascii_demo_shows_progress_while_it_records(tmp_path):
             seconds.append(60 * int(m.group(1)) + int(m.group(2)))
             assert seconds[-1] <= min(18, t - t_start + 1), (t - t_start, line)
     assert len(seconds) >= 2 and seconds == sorted(seconds) and seconds[-1] >= 5, during
+    assert demo.lines[-1][1].startswith("verdict: refused (poses: ")
 
 
 @pytest.mark.parametrize(

@@ -6,12 +6,17 @@ emulated LDQ-412 is recorded by ``loopcal record`` through a real driver over a 
 transport; ``loopcal calibrate --write`` turns the recording into new values in a fresh
 controller config (``loopcal init-config``); and what was written is compared with the truth.
 The emulated module runs ``--speed`` times as fast as wall time, so two minutes of session
-take about twelve seconds.
+take about twelve seconds (over ASCII, which polls, in real time: progress is shown).
+
+Each command is shown as it is run, quoted to paste into a shell. The last line is the
+verdict: written (and how close to the truth), or refused and why, nothing written.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
+import re
 import shlex
 import subprocess
 import sys
@@ -30,7 +35,7 @@ from loopcal.simulator.emulator import TRANSPORTS
 from loopcal.simulator.mechanism import MechanismSource
 from loopcal.simulator.scenarios import HandMoves
 
-from ..config.controller import load_controller_config
+from ..config.controller import ControllerConfig, load_controller_config
 
 PAUSE_S = (0.8, 1.5)  # a technician pausing about a second at each position
 PROGRESS_S = 5.0  # wall seconds between progress lines while recording
@@ -114,35 +119,19 @@ def run(args: argparse.Namespace) -> int:
              "--duration", f"{session_s / speed:g}", "--read-period", "0.05"],
         )  # fmt: skip
     if status != 0:
-        return status
+        return _end(t_start, status, f"failed (loopcal record exited with status {status})")
     config = work / "controller.toml"
     status = _loopcal(["init-config", str(config), "--force"])
     if status != 0:
-        return status
-    status = _loopcal(
+        return _end(t_start, status, f"failed (loopcal init-config exited with status {status})")
+    before = config.read_bytes()
+    status, out = _calibrate(
         ["calibrate", str(recordings), "--controller-config", str(config), "--free", args.free,
          "--method", args.method, "--write", "--report", str(work / "report")]
     )  # fmt: skip
-    if not config.exists():
-        return status
-    written = load_controller_config(config)
-    print("\nWhat was written, against the truth the simulation knows:")
-    print(
-        f"{'param':>6} {'unit':>5} {'written':>10} {'truth':>10} {'error':>8} {'std':>7} "
-        f"{'err/std':>7}"
-    )
-    std = (written.provenance or {}).get("std", {})
-    for name in model.free:
-        i = INDEX[name]
-        err = written.params[i] - truth[i]
-        s = std.get(name)
-        z = f"{err / s:+7.2f}" if s else "      -"
-        print(
-            f"{name:>6} {UNITS[name]:>5} {written.params[i]:10.4f} {truth[i]:10.4f} {err:+8.4f} "
-            f"{s if s else float('nan'):7.4f} {z}"
-        )
-    print(f"\nDone in {time.perf_counter() - t_start:.1f} s.")
-    return status
+    if config.read_bytes() == before:
+        return _end(t_start, status, _nothing_written(status, out, config))
+    return _end(t_start, status, _against_truth(load_controller_config(config), truth, model))
 
 
 def _record(emu: Emulator, clock: SimClock, session_s: float, argv: list[str]) -> int:
@@ -176,6 +165,75 @@ def _record(emu: Emulator, clock: SimClock, session_s: float, argv: list[str]) -
 
 def _mmss(seconds: float) -> str:
     return f"{int(seconds // 60)}:{int(seconds % 60):02d}"
+
+
+# A failed gate as loopcal calibrate prints it (Gate.line): its name, then "why:" below.
+_FAILED_GATE = re.compile(r"^\s*\[FAIL\] (\S+): .*\n\s*why: (.*)$", re.M)
+
+
+def _calibrate(argv: list[str]) -> tuple[int, str]:
+    """Run ``loopcal calibrate``, its output shown as it comes and kept for the verdict."""
+    print(f"\n{_command_line(argv)}", flush=True)
+    proc = _start(argv, stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    kept: list[str] = []
+    for line in proc.stdout:
+        print(line, end="", flush=True)
+        kept.append(line)
+    return proc.wait(), "".join(kept)
+
+
+def _nothing_written(status: int, calibrate_out: str, config: Path) -> str:
+    """Say plainly that the config was left as it was, and why; return the verdict."""
+    if status == 1:
+        failed = _FAILED_GATE.findall(calibrate_out)
+        reason = "; ".join(f"{name}: {why}" for name, why in failed) or "a gate failed"
+        print(
+            f"\nNothing was written: loopcal calibrate refused the session ({reason}); "
+            f"{config} is as loopcal init-config wrote it."
+        )
+        if any(name == "poses" for name, _ in failed):
+            print("In this demo a longer session (--minutes, default 2) gives more poses.")
+        return f"refused ({reason}), nothing written"
+    if status == 0:
+        print(f"\nNothing was written: {config} already held the values calibrated.")
+        return "accepted, nothing written (the config already held these values)"
+    print(f"\nNothing was written: loopcal calibrate failed (exit status {status}, see above).")
+    return f"failed (loopcal calibrate exited with status {status}), nothing written"
+
+
+def _against_truth(written: ControllerConfig, truth: np.ndarray, model: ParameterModel) -> str:
+    """Print what was written next to the truth; return the verdict."""
+    print("\nWhat was written, against the truth the simulation knows:")
+    print(
+        f"{'param':>6} {'unit':>5} {'written':>10} {'truth':>10} {'error':>8} {'std':>7} "
+        f"{'err/std':>7}"
+    )
+    std = (written.provenance or {}).get("std", {})
+    worst = 0.0
+    no_std: list[str] = []
+    for name in model.free:
+        i = INDEX[name]
+        err = written.params[i] - truth[i]
+        s = std.get(name)
+        if s:
+            worst = max(worst, abs(err / s))
+        else:
+            no_std.append(name)
+        print(
+            f"{name:>6} {UNITS[name]:>5} {written.params[i]:10.4f} {truth[i]:10.4f} {err:+8.4f} "
+            + (f"{s:7.4f} {err / s:+7.2f}" if s else f"{'-':>7} {'-':>7}")
+        )
+    if no_std:
+        return f"written, but no std recorded for {', '.join(no_std)}"
+    # rounded up, so that "within" holds for the printed number
+    return f"written, every parameter within {math.ceil(worst * 10) / 10:.1f} std of the truth"
+
+
+def _end(t_start: float, status: int, verdict: str) -> int:
+    print(f"\nDone in {time.perf_counter() - t_start:.1f} s.")
+    print(f"verdict: {verdict}", flush=True)
+    return status
 
 
 def _command_line(argv: list[str]) -> str:
