@@ -120,6 +120,8 @@ def test_demo_writes_offsets_close_to_the_truth(tmp_path):
     assert m, verdict
     worst = max(abs(error / std) for _, _, error, std, _ in rows.values())
     assert worst <= float(m.group(1)) < worst + 0.1 + 1e-9
+    # nothing from the emulated module's pymodbus server on the demo's stderr
+    assert "pymodbus" not in demo.stderr and "Cancel send" not in demo.stderr, demo.stderr
 
 
 def test_demo_shows_the_commands_it_really_runs(tmp_path):
@@ -127,6 +129,7 @@ def test_demo_shows_the_commands_it_really_runs(tmp_path):
     (the URL's `?`, a path with a space), they are the argv of the processes the demo ran."""
     demo = run_demo("--out", str(tmp_path / "with space"), "--minutes", "0.5")
     assert demo.returncode == 1, demo.stdout + demo.stderr  # too short: refused
+    assert demo.stderr == ""  # the commands' output is all on stdout, in order
     for command in ("record", "calibrate"):
         shown = demo.shown(command)
         assert shown[0] == "loopcal"
