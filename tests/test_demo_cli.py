@@ -1,45 +1,193 @@
 """The README's main command, `loopcal demo`, as a real subprocess: record a technician's
-session through the emulated DAQ, calibrate it, write the config, compare with the truth."""
+session through the emulated DAQ, calibrate it, write the config, compare with the truth,
+end with a verdict. The commands it shows are checked against the processes it really ran
+(their command lines in /proc while they run)."""
+
+from __future__ import annotations
 
 import re
+import shlex
 import subprocess
 import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import pytest
 
-from loopcal.daemon.config.controller import load_controller_config
+from loopcal.calibration.parameters import INDEX
+from loopcal.daemon.config.controller import load_controller_config, nominal_config
+
+ENTRY = [sys.executable, "-m", "loopcal.daemon.cli"]
 
 
-def run_demo(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "loopcal.daemon.cli", "demo", *args],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+@dataclass
+class Demo:
+    returncode: int
+    lines: list[tuple[float, str]]  # (seconds since start, line) as they came on stdout
+    stderr: str
+    children: list[list[str]] = field(default_factory=list)  # argv of each child seen
+
+    @property
+    def stdout(self) -> str:
+        return "".join(line for _, line in self.lines)
+
+    def shown(self, command: str) -> list[str]:
+        """The `$ loopcal COMMAND ...` line it printed, split as a shell splits it."""
+        (line,) = [ln for _, ln in self.lines if ln.startswith(f"$ loopcal {command} ")]
+        return shlex.split(line[2:])
+
+    def shown_through_bash(self, command: str) -> list[str]:
+        """The same line pasted into bash (failglob: an unquoted `?` would be a glob)."""
+        (line,) = [ln for _, ln in self.lines if ln.startswith(f"$ loopcal {command} ")]
+        words = subprocess.run(
+            ["bash", "-O", "failglob", "-c", "printf '%s\\0' " + line[2:]],
+            capture_output=True, text=True, check=True,
+        ).stdout  # fmt: skip
+        return words.split("\0")[:-1]
+
+    def ran(self, command: str) -> list[list[str]]:
+        """Every `loopcal COMMAND` process it started, as its argv (entry point dropped)."""
+        return [c[len(ENTRY) :] for c in self.children if c[: len(ENTRY) + 1] == [*ENTRY, command]]
+
+
+def _children(pid: int) -> list[list[str]]:
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            if int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) != pid:
+                continue
+            argv = (d / "cmdline").read_bytes().split(b"\0")[:-1]
+        except (OSError, IndexError, ValueError):
+            continue  # gone meanwhile
+        out.append([a.decode() for a in argv])
+    return out
+
+
+def run_demo(*args: str, timeout: float = 150) -> Demo:
+    proc = subprocess.Popen(
+        [*ENTRY, "demo", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    t0 = time.monotonic()
+    seen: list[list[str]] = []
+    err: list[str] = []
+
+    def watch() -> None:
+        while proc.poll() is None:
+            seen.extend(c for c in _children(proc.pid) if c not in seen)
+            time.sleep(0.05)
+
+    threads = [
+        threading.Thread(target=watch, daemon=True),
+        threading.Thread(target=lambda: err.append(proc.stderr.read()), daemon=True),
+    ]
+    for t in threads:
+        t.start()
+    timer = threading.Timer(timeout, proc.kill)
+    timer.start()
+    lines = [(time.monotonic() - t0, line) for line in proc.stdout]
+    proc.wait()
+    timer.cancel()
+    for t in threads:
+        t.join()
+    return Demo(proc.returncode, lines, "".join(err), seen)
+
+
+def table(out: str) -> dict[str, tuple[float, ...]]:
+    rows = re.findall(r"^\s+(d0\d|A1x|A2x|A2y)\s+mm\s+(\S+\s+\S+\s+\S+\s+\S+\s+\S+)$", out, re.M)
+    return {name: tuple(float(v) for v in cols.split()) for name, cols in rows}
 
 
 def test_demo_writes_offsets_close_to_the_truth(tmp_path):
-    proc = run_demo("--out", str(tmp_path), "--seed", "2")
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    out = proc.stdout
-    assert "$ loopcal record --daq modbus-tcp://127.0.0.1:" in out
+    demo = run_demo("--out", str(tmp_path / "a dir"), "--seed", "2")
+    out = demo.stdout
+    assert demo.returncode == 0, out + demo.stderr
     assert "Wrote 10 value(s)" in out
-    rows = dict(
-        re.findall(r"^\s+(d0\d|A1x|A2x|A2y)\s+mm\s+(\S+\s+\S+\s+\S+\s+\S+\s+\S+)$", out, re.M)
-    )
+    rows = table(out)
     assert set(rows) == {"d01", "d02", "d03", "d04", "A1x", "A2x", "A2y"}
-    written = load_controller_config(tmp_path / "controller.toml")
-    for name, cols in rows.items():
-        value, truth, error, std, z = (float(v) for v in cols.split())
+    written = load_controller_config(tmp_path / "a dir" / "controller.toml")
+    for name, (value, _truth, error, std, z) in rows.items():
         assert abs(z) < 3.5 and std < 0.25 and abs(error) < 0.5, name
-        assert abs(written.params[written_index(name)] - value) < 1e-3
-    assert (tmp_path / "report" / "index.html").exists()
+        assert abs(written.params[INDEX[name]] - value) < 1e-3
+    assert (tmp_path / "a dir" / "report" / "index.html").exists()
     assert float(re.search(r"Done in ([\d.]+) s", out).group(1)) < 60
+    # the verdict is the last line, and its bound is the table's worst |err/std| rounded up
+    verdict = demo.lines[-1][1].rstrip("\n")
+    m = re.fullmatch(r"verdict: written, every parameter within ([\d.]+) std of the truth", verdict)
+    assert m, verdict
+    worst = max(abs(error / std) for _, _, error, std, _ in rows.values())
+    assert worst <= float(m.group(1)) < worst + 0.1 + 1e-9
+    # nothing from the emulated module's pymodbus server on the demo's stderr
+    assert "pymodbus" not in demo.stderr and "Cancel send" not in demo.stderr, demo.stderr
 
 
-def written_index(name: str) -> int:
-    from loopcal.calibration.parameters import INDEX
+def test_demo_shows_the_commands_it_really_runs(tmp_path):
+    """The printed command lines paste into a shell as they are: split by shlex or by bash
+    (the URL's `?`, a path with a space), they are the argv of the processes the demo ran."""
+    demo = run_demo("--out", str(tmp_path / "with space"), "--minutes", "0.5")
+    assert demo.returncode == 1, demo.stdout + demo.stderr  # too short: refused
+    assert demo.stderr == ""  # the commands' output is all on stdout, in order
+    for command in ("record", "calibrate"):
+        shown = demo.shown(command)
+        assert shown[0] == "loopcal"
+        assert demo.ran(command) == [shown[1:]], (shown, demo.children)
+        assert demo.shown_through_bash(command) == shown
+    record = demo.shown("record")
+    assert record[record.index("--daq") + 1].startswith("modbus-tcp://127.0.0.1:")
+    assert "?unit=1" in record[record.index("--daq") + 1]
+    assert record[record.index("--duration") + 1] == "3"  # 0.5 min at x10
+    assert record[record.index("--out") + 1] == str(tmp_path / "with space" / "recordings")
 
-    return INDEX[name]
+
+def test_demo_too_short_says_nothing_was_written(tmp_path):
+    demo = run_demo("--out", str(tmp_path), "--minutes", "1")
+    out = demo.stdout
+    assert demo.returncode == 1, out + demo.stderr
+    assert "against the truth" not in out and not re.search(r"\bnan\b", out) and not table(out)
+    m = re.search(r"^  \[FAIL\] poses: (\d+) \(limit >= (\d+)\)$", out, re.M)
+    assert m and int(m.group(1)) < int(m.group(2)), out
+    assert re.search(
+        r"^Nothing was written: loopcal calibrate refused the session \(poses: ", out, re.M
+    )
+    assert demo.lines[-1][1] == (
+        f"verdict: refused (poses: only {m.group(1)} still poses found in the recording), "
+        "nothing written\n"
+    )
+    # and indeed nothing was: the config is what init-config wrote, with no previous version
+    config = load_controller_config(tmp_path / "controller.toml")
+    assert config.provenance is None
+    assert list(config.params) == list(nominal_config().params)
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith("controller.toml")] == [
+        "controller.toml"
+    ]
+
+
+def test_ascii_demo_shows_progress_while_it_records(tmp_path):
+    """Over ASCII the module runs in real time: the demo says how far it has come at least
+    every few seconds, in the session's own time: never more than has passed, nor beyond
+    the session's end."""
+    demo = run_demo("--transport", "ascii", "--minutes", "0.3", "--out", str(tmp_path))
+    assert demo.returncode == 1, demo.stdout + demo.stderr  # 18 s are too short to calibrate
+    assert demo.shown("record")[:3] == ["loopcal", "record", "--daq"]
+    start = next(i for i, (_, ln) in enumerate(demo.lines) if ln.startswith("$ loopcal record"))
+    stop = next(i for i, (_, ln) in enumerate(demo.lines) if "stopped (--duration" in ln)
+    during = demo.lines[start : stop + 1]
+    t_start = during[0][0]
+    assert during[-1][0] - t_start >= 18
+    assert max(b[0] - a[0] for a, b in zip(during, during[1:], strict=False)) < 8, during
+    waiting = "  recording: waiting for loopcal record to talk to the module\n"
+    seconds = []
+    for t, line in during[1:-1]:
+        m = re.fullmatch(r"  recording: (\d+):(\d\d) of 0:18\n", line)
+        assert m or line == waiting, line
+        if m:
+            seconds.append(60 * int(m.group(1)) + int(m.group(2)))
+            assert seconds[-1] <= min(18, t - t_start + 1), (t - t_start, line)
+    assert len(seconds) >= 2 and seconds == sorted(seconds) and seconds[-1] >= 5, during
+    assert demo.lines[-1][1].startswith("verdict: refused (poses: ")
 
 
 @pytest.mark.parametrize(
@@ -47,6 +195,6 @@ def written_index(name: str) -> int:
     [(["--minutes", "0"], "--minutes must be positive"), (["--free", "Q7"], "unknown parameter")],
 )
 def test_demo_bad_options(args, message):
-    proc = run_demo(*args)
+    proc = subprocess.run([*ENTRY, "demo", *args], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert message in proc.stderr

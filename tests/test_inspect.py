@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import json
 import shutil
+import time
 from datetime import UTC, datetime
 
 import numpy as np
 import pytest
 from fuzz_helpers import make_rows, tear_chunk, write_rows
+from recorder_helpers import hand_emulator, record
 from session_helpers import PAUSE_S, T0, loopcal, truth_for, write_session
 
 from loopcal.daemon import recording as rec
@@ -59,6 +61,7 @@ def test_info_counts_scans_gaps_restarts_events_and_damage(tmp_path):
     assert doc["scans"] == 1600 and len(doc["files"]) == 3
     assert doc["missed"] == 3 and doc["gaps"] == 1
     assert doc["restarts"] == 1 and doc["power_ons"] == 2
+    assert doc["powered_on_utc"] is None  # the first scan has no restart flag: powered on before
     assert doc["events"] == {"gap": 1, "restart": 1}
     assert doc["start_utc"] == datetime.fromtimestamp(T0 / 1e9, UTC).isoformat(
         timespec="milliseconds")
@@ -71,9 +74,40 @@ def test_info_counts_scans_gaps_restarts_events_and_damage(tmp_path):
     proc = loopcal("info", d)
     assert proc.returncode == 0
     assert "scan(s) missing" in proc.stdout and fb.name in proc.stdout
-    assert "restarts:   1" in proc.stdout and "gap" in proc.stdout
+    assert "restarts:   1 (power-ons seen: 2)" in proc.stdout and "gap" in proc.stdout
+    assert "powered on: before the first scan" in proc.stdout
     bad = loopcal("info", tmp_path / "nothing-here")
     assert bad.returncode == 2 and "no such file" in bad.stderr
+
+
+@pytest.mark.parametrize("power_cycle", [False, True], ids=["never-restarted", "power-cycled"])
+def test_info_names_the_power_on_and_counts_restarts_after_it(tmp_path, power_cycle):
+    """A real recording through ``loopcal record``: the module's first scan after power-on
+    carries the restart flag; info names that the power-on and counts only the restarts
+    after it, as many as the emulated module really had (its power cycles)."""
+    out = tmp_path / "rec"
+    with hand_emulator(speed=5.0) as emu:  # switched on by the recorder's first request
+        proc = record(emu.url, out)
+        try:
+            proc.wait_for(r"connect: LDQ412", 30)
+            time.sleep(1.0)
+            if power_cycle:
+                emu.faults.restart()
+                proc.wait_for(r"restart: module restarted", 30)
+                time.sleep(1.0)
+            assert proc.stop(30)[0] == 0, proc.text
+        finally:
+            proc.kill()
+        boots = {s.boot for s in emu.truth}
+    assert len(boots) == (2 if power_cycle else 1)
+    scans = rec.read_recordings(out).scans
+    assert scans["restarted"][0] and scans["counter64"][0] == 0  # recorded from power-on
+    doc = json.loads(loopcal("info", out, "--json").stdout)
+    assert doc["restarts"] == len(boots) - 1 and doc["power_ons"] == len(boots)
+    assert doc["powered_on_utc"] == doc["start_utc"] is not None
+    text = loopcal("info", out).stdout
+    assert f"powered on: {doc['start_utc'].replace('T', ' ').replace('+00:00', ' UTC')} " in text
+    assert f"restarts:   {len(boots) - 1} since (power-ons seen: {len(boots)})" in text
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 import pytest
 from recorder_helpers import (
     Proc,
@@ -47,7 +46,9 @@ def test_record_serves_prometheus_metrics(tmp_path):
     assert {lab["sensor"] for lab, _ in m["loopcal_offset_drift_alarm"]} == {"1", "2", "3", "4"}
     assert value(m, "loopcal_loop_closure_threshold") > 20
     assert value(m, "loopcal_controller_config_info", sha256="") == 1.0  # reference geometry
-    assert np.isnan(value(m, "loopcal_controller_config_calibration_age_seconds"))
+    # never calibrated: a state of its own, and no age (not a NaN an alert cannot compare)
+    assert value(m, "loopcal_controller_config_calibrated") == 0.0
+    assert "loopcal_controller_config_calibration_age_seconds" not in m
     with pytest.raises(OSError):  # closed with the recorder
         scrape(port)
 

@@ -6,17 +6,25 @@ emulated LDQ-412 is recorded by ``loopcal record`` through a real driver over a 
 transport; ``loopcal calibrate --write`` turns the recording into new values in a fresh
 controller config (``loopcal init-config``); and what was written is compared with the truth.
 The emulated module runs ``--speed`` times as fast as wall time, so two minutes of session
-take about twelve seconds.
+take about twelve seconds (over ASCII, which polls, in real time: progress is shown).
+
+Each command is shown as it is run, quoted to paste into a shell. The last line is the
+verdict: written (and how close to the truth), or refused and why, nothing written.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
+import math
+import re
+import shlex
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -28,9 +36,10 @@ from loopcal.simulator.emulator import TRANSPORTS
 from loopcal.simulator.mechanism import MechanismSource
 from loopcal.simulator.scenarios import HandMoves
 
-from ..config.controller import load_controller_config
+from ..config.controller import ControllerConfig, load_controller_config
 
 PAUSE_S = (0.8, 1.5)  # a technician pausing about a second at each position
+PROGRESS_S = 5.0  # wall seconds between progress lines while recording
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -100,59 +109,149 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
     )
     recordings = work / "recordings"
-    with Emulator(
-        args.transport, source, clock=SimClock(speed), seed=args.seed, truth_limit=10_000
-    ) as emu:
-        print(f"\n$ loopcal record --daq {emu.url} --out {recordings}   (x{speed:g})", flush=True)
-        rec = _loopcal(
-            "record", "--daq", emu.url, "--out", str(recordings),
-            "--duration", f"{args.minutes * 60 / speed:g}", "--read-period", "0.05",
-            capture=True,
+    session_s = args.minutes * 60
+    # The emulated module's server (pymodbus, in this process) logs an ERROR with a hex dump
+    # whenever the recorder hangs up before an answer goes out, as it does at --duration.
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL + 1)
+    clock = SimClock(speed)
+    with Emulator(args.transport, source, clock=clock, seed=args.seed, truth_limit=10_000) as emu:
+        pace = "in real time" if speed == 1 else f"{speed:g} times as fast as wall time"
+        print(f"\nThe emulated LDQ-412 runs {pace}: recording takes {session_s / speed:g} s.")
+        status = _record(
+            emu, clock, session_s,
+            ["record", "--daq", emu.url, "--out", str(recordings),
+             "--duration", f"{session_s / speed:g}", "--read-period", "0.05"],
         )  # fmt: skip
-    lines = rec.stderr.strip().splitlines()
-    print("\n".join(lines[-1:]))
-    if rec.returncode != 0:
-        print(rec.stderr, file=sys.stderr)
-        return rec.returncode
+    if status != 0:
+        return _end(t_start, status, f"failed (loopcal record exited with status {status})")
     config = work / "controller.toml"
-    print(f"\n$ loopcal init-config {config} --force")
-    made = _loopcal("init-config", str(config), "--force")
-    if made.returncode != 0:
-        return made.returncode
-    print(
-        f"\n$ loopcal calibrate {recordings} --controller-config {config} --free {args.free} "
-        f"--method {args.method} --write --report {work / 'report'}",
-        flush=True,
-    )
-    status = _loopcal(
-        "calibrate", str(recordings), "--controller-config", str(config), "--free", args.free,
-        "--method", args.method, "--write", "--report", str(work / "report"),
-    ).returncode  # fmt: skip
-    if not config.exists():
-        return status
-    written = load_controller_config(config)
+    status = _loopcal(["init-config", str(config), "--force"])
+    if status != 0:
+        return _end(t_start, status, f"failed (loopcal init-config exited with status {status})")
+    before = config.read_bytes()
+    status, out = _calibrate(
+        ["calibrate", str(recordings), "--controller-config", str(config), "--free", args.free,
+         "--method", args.method, "--write", "--report", str(work / "report")]
+    )  # fmt: skip
+    if config.read_bytes() == before:
+        return _end(t_start, status, _nothing_written(status, out, config))
+    return _end(t_start, status, _against_truth(load_controller_config(config), truth, model))
+
+
+def _record(emu: Emulator, clock: SimClock, session_s: float, argv: list[str]) -> int:
+    """Run ``loopcal record``, saying every PROGRESS_S how much of the session it has
+    recorded (device time since the driver's first request); its log is shown at the end."""
+    print(f"\n{_command_line(argv)}", flush=True)
+    with tempfile.TemporaryFile("w+") as log:
+        proc = _start(argv, stdout=log, stderr=subprocess.STDOUT)
+        talking_since: float | None = None
+        due = time.monotonic() + PROGRESS_S
+        while proc.poll() is None:
+            try:
+                proc.wait(timeout=0.2)
+            except subprocess.TimeoutExpired:
+                pass
+            if talking_since is None and emu.first_request.is_set():
+                talking_since = clock.now()
+            if time.monotonic() < due or proc.returncode is not None:
+                continue
+            due += PROGRESS_S
+            if talking_since is None:
+                print("  recording: waiting for loopcal record to talk to the module", flush=True)
+            else:
+                done = min(clock.now() - talking_since, session_s)
+                print(f"  recording: {_mmss(done)} of {_mmss(session_s)}", flush=True)
+        log.seek(0)
+        lines = log.read().strip().splitlines()
+    print("\n".join(lines if proc.returncode != 0 else lines[-1:]), flush=True)
+    return proc.returncode
+
+
+def _mmss(seconds: float) -> str:
+    return f"{int(seconds // 60)}:{int(seconds % 60):02d}"
+
+
+# A failed gate as loopcal calibrate prints it (Gate.line): its name, then "why:" below.
+_FAILED_GATE = re.compile(r"^\s*\[FAIL\] (\S+): .*\n\s*why: (.*)$", re.M)
+
+
+def _calibrate(argv: list[str]) -> tuple[int, str]:
+    """Run ``loopcal calibrate``, its output shown as it comes and kept for the verdict."""
+    print(f"\n{_command_line(argv)}", flush=True)
+    proc = _start(argv, stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    kept: list[str] = []
+    for line in proc.stdout:
+        print(line, end="", flush=True)
+        kept.append(line)
+    return proc.wait(), "".join(kept)
+
+
+def _nothing_written(status: int, calibrate_out: str, config: Path) -> str:
+    """Say plainly that the config was left as it was, and why; return the verdict."""
+    if status == 1:
+        failed = _FAILED_GATE.findall(calibrate_out)
+        reason = "; ".join(f"{name}: {why}" for name, why in failed) or "a gate failed"
+        print(
+            f"\nNothing was written: loopcal calibrate refused the session ({reason}); "
+            f"{config} is as loopcal init-config wrote it."
+        )
+        if any(name == "poses" for name, _ in failed):
+            print("In this demo a longer session (--minutes, default 2) gives more poses.")
+        return f"refused ({reason}), nothing written"
+    if status == 0:
+        print(f"\nNothing was written: {config} already held the values calibrated.")
+        return "accepted, nothing written (the config already held these values)"
+    print(f"\nNothing was written: loopcal calibrate failed (exit status {status}, see above).")
+    return f"failed (loopcal calibrate exited with status {status}), nothing written"
+
+
+def _against_truth(written: ControllerConfig, truth: np.ndarray, model: ParameterModel) -> str:
+    """Print what was written next to the truth; return the verdict."""
     print("\nWhat was written, against the truth the simulation knows:")
     print(
         f"{'param':>6} {'unit':>5} {'written':>10} {'truth':>10} {'error':>8} {'std':>7} "
         f"{'err/std':>7}"
     )
     std = (written.provenance or {}).get("std", {})
+    worst = 0.0
+    no_std: list[str] = []
     for name in model.free:
         i = INDEX[name]
         err = written.params[i] - truth[i]
         s = std.get(name)
-        z = f"{err / s:+7.2f}" if s else "      -"
+        if s:
+            worst = max(worst, abs(err / s))
+        else:
+            no_std.append(name)
         print(
             f"{name:>6} {UNITS[name]:>5} {written.params[i]:10.4f} {truth[i]:10.4f} {err:+8.4f} "
-            f"{s if s else float('nan'):7.4f} {z}"
+            + (f"{s:7.4f} {err / s:+7.2f}" if s else f"{'-':>7} {'-':>7}")
         )
+    if no_std:
+        return f"written, but no std recorded for {', '.join(no_std)}"
+    # rounded up, so that "within" holds for the printed number
+    return f"written, every parameter within {math.ceil(worst * 10) / 10:.1f} std of the truth"
+
+
+def _end(t_start: float, status: int, verdict: str) -> int:
     print(f"\nDone in {time.perf_counter() - t_start:.1f} s.")
+    print(f"verdict: {verdict}", flush=True)
     return status
 
 
-def _loopcal(*argv: str, capture: bool = False) -> subprocess.CompletedProcess:
-    """Run a ``loopcal`` command the way a technician's shell does: a process of its own,
-    through the same entry point (its output goes straight to ours unless ``capture``)."""
-    return subprocess.run(
-        [sys.executable, "-m", "loopcal.daemon.cli", *argv], capture_output=capture, text=True
-    )
+def _command_line(argv: list[str]) -> str:
+    """The command as a technician would type it: it pastes into a shell as it is."""
+    return "$ " + shlex.join(["loopcal", *argv])
+
+
+def _start(argv: list[str], **popen: Any) -> subprocess.Popen:
+    """Start a ``loopcal`` command the way a technician's shell does: a process of its own,
+    through the same entry point."""
+    return subprocess.Popen([sys.executable, "-m", "loopcal.daemon.cli", *argv], **popen)
+
+
+def _loopcal(argv: list[str]) -> int:
+    """Show and run a ``loopcal`` command, its output going straight to ours."""
+    print(f"\n{_command_line(argv)}", flush=True)
+    return _start(argv).wait()

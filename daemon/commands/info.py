@@ -1,10 +1,10 @@
 """``loopcal info REC|DIR ...``: what recordings hold, in the robot's own terms.
 
 What ``mcap info`` and ``ros2 bag info`` give, for the shoulder joint: the files, the time
-span (UTC), the scans and the scan rate, missed scans and gaps, restarts (power-ons),
-events by kind, the still poses a calibration would find, the controller config in force
-(path, sha256, when and how it was calibrated) and anything damaged. ``--json`` prints one
-object (docs/recording.md lists its keys).
+span (UTC), the scans and the scan rate, missed scans and gaps, when the module was powered
+on and its restarts since, events by kind, the still poses a calibration would find, the
+controller config in force (path, sha256, when and how it was calibrated) and anything
+damaged. ``--json`` prints one object (docs/tools.md lists its keys).
 
 Files are read one at a time (memory stays that of one file, whatever the span); a scan in
 two files (a copy, or a recorder that restarted) is counted once.

@@ -1,6 +1,11 @@
 """What recordings hold, summed up file by file (``loopcal info``, ``loopcal fleet info``):
-time span, scans counted once, rate, missed scans and gaps, restarts, events by kind, still
-poses, the controller configs in force, damage. Memory stays that of one file."""
+time span, scans counted once, rate, missed scans and gaps, the module's power-on and its
+restarts, events by kind, still poses, the controller configs in force, damage. Memory stays
+that of one file.
+
+A module's first scan after power-on carries the restart flag. On the recordings' first scan,
+in the first power-on the recorder saw (epoch 0), it says when the module was powered on, not
+that it restarted while recorded: restarts are counted after it."""
 
 from __future__ import annotations
 
@@ -35,6 +40,7 @@ class Summary:
     missed: int = 0
     gaps: int = 0
     restarts: int = 0
+    powered_on_ns: int | None = None  # the first scan, if it is the module's power-on
     power_ons: set[tuple[str, int]] = field(default_factory=set)
     rates: list[tuple[int, float]] = field(default_factory=list)  # (scans, Hz) per file
     events: Counter = field(default_factory=Counter)
@@ -91,13 +97,18 @@ class Summary:
             entry["files"] += 1
         if not len(rows):
             return
+        opening = self.scans == 0  # these are the recordings' first scans
         self.scans += len(rows)
         first, last = int(rows["stamp_ns"][0]), int(rows["stamp_ns"][-1])
         self.start_ns = first if self.start_ns is None else min(self.start_ns, first)
         self.end_ns = last if self.end_ns is None else max(self.end_ns, last)
         self.missed += int(rows["missed"].sum())
         self.gaps += int(np.count_nonzero((rows["missed"] > 0) & ~rows["restarted"]))
-        self.restarts += int(np.count_nonzero(rows["restarted"]))
+        restarted = rows["restarted"]
+        if opening and restarted[0] and rows["epoch"][0] == 0:
+            self.powered_on_ns = first
+            restarted = restarted[1:]
+        self.restarts += int(np.count_nonzero(restarted))
         serial = info.metadata.get("device", {}).get("serial", "")
         self.power_ons |= {(serial, int(e)) for e in np.unique(rows["epoch"])}
         self.rates.append((len(rows), scan_rate_hz(rows)))
@@ -124,6 +135,7 @@ class Summary:
             "scan_rate_hz": None if self.scan_rate_hz is None else round(self.scan_rate_hz, 4),
             "missed": self.missed,
             "gaps": self.gaps,
+            "powered_on_utc": utc_iso(self.powered_on_ns),
             "restarts": self.restarts,
             "power_ons": len(self.power_ons),
             "events": dict(sorted(self.events.items())),
@@ -172,6 +184,9 @@ def collect(paths: list[Path], *, poses: bool = True) -> Summary:
 def render(doc: dict[str, Any]) -> list[str]:
     """The summary for people."""
     hours, rem = divmod(int(doc["duration_s"]), 3600)
+    on = doc["powered_on_utc"]
+    powered_on = f"{_short(on)} (the first scan)" if on else "before the first scan"
+    since = " since" if on else ""
     lines = [
         f"files:      {len(doc['files'])} ({doc['bytes'] / 1e6:,.1f} MB)",
         f"time span:  {_short(doc['start_utc'])} to {_short(doc['end_utc'])} "
@@ -179,7 +194,8 @@ def render(doc: dict[str, Any]) -> list[str]:
         f"scans:      {doc['scans']:,}"
         + (f" at {doc['scan_rate_hz']:.3f} Hz" if doc["scan_rate_hz"] else ""),
         f"missed:     {doc['missed']:,} scans in {doc['gaps']} gap(s)",
-        f"restarts:   {doc['restarts']} (power-ons seen: {doc['power_ons']})",
+        f"powered on: {powered_on}",
+        f"restarts:   {doc['restarts']}{since} (power-ons seen: {doc['power_ons']})",
         "events:     " + (", ".join(f"{k} {n}" for k, n in doc["events"].items()) or "none"),
     ]
     if doc["poses"] is not None:

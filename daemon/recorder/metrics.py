@@ -111,9 +111,16 @@ class RecorderCollector(Collector):
         yield _gauge("loopcal_controller_config_info", "the controller config in force", 1,
                      path=str(cfg.path or ""), sha256=cfg.sha256,
                      method=str(prov.get("method", "")))  # fmt: skip
-        yield _gauge("loopcal_controller_config_calibration_age_seconds",
-                     "seconds since loopcal last calibrated the controller config in force "
-                     "(its provenance; NaN if never)", _age_s(prov.get("written_utc")))  # fmt: skip
+        # Never calibrated is a state of its own (0), not a NaN age: an alert rule compares
+        # the age, and NaN > x is never true. The age is there only when it is known.
+        age = _age_s(prov.get("written_utc"))
+        yield _gauge("loopcal_controller_config_calibrated",
+                     "1 if loopcal calibrated the controller config in force (its provenance "
+                     "says when), 0 if never", 0 if age is None else 1)  # fmt: skip
+        if age is not None:
+            yield _gauge("loopcal_controller_config_calibration_age_seconds",
+                         "seconds since loopcal last calibrated the controller config in force "
+                         "(its provenance; absent if never)", age)  # fmt: skip
         for o in list(rec.analysis.observers):
             metrics = getattr(o, "metrics", None)
             if metrics is not None:
@@ -143,17 +150,19 @@ def _gauge(name: str, doc: str, value: float, **labels: str) -> GaugeMetricFamil
     return fam
 
 
-def _age_s(written_utc: object) -> float:
+def _age_s(written_utc: object) -> float | None:
+    """Seconds since ``written_utc`` (the provenance's, a string or a TOML datetime), or
+    None if there is none or it is not a time."""
     from datetime import datetime
 
     if not isinstance(written_utc, str | datetime):
-        return math.nan
+        return None
     try:
         t = written_utc if isinstance(written_utc, datetime) else datetime.fromisoformat(
             written_utc)  # fmt: skip
         return max(0.0, time.time() - t.timestamp())
     except (ValueError, OverflowError):
-        return math.nan
+        return None
 
 
 class MetricsServer:
