@@ -21,20 +21,21 @@ from pathlib import Path
 import numpy as np
 
 from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
-from loopcal.calibration.parameters import INDEX, UNITS, ParameterModel
+from loopcal.calibration.parameters import INDEX, UNITS
 from loopcal.calibration.simulate import perturbed_truth
 from loopcal.simulator import Emulator, SimClock
-from loopcal.simulator.emulator import TRANSPORTS
 from loopcal.simulator.mechanism import MechanismSource
+from loopcal.simulator.run import add_transport_option
 from loopcal.simulator.scenarios import HandMoves
 
 from ..config.controller import load_controller_config
+from .model_options import add_model_options, model_from_args
 
 PAUSE_S = (0.8, 1.5)  # a technician pausing about a second at each position
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--transport", choices=TRANSPORTS, default="modbus-tcp")
+    add_transport_option(p, "the wire between the recorder and the emulated module")
     p.add_argument("--minutes", type=float, default=2.0, help="session length (2)")
     p.add_argument(
         "--speed",
@@ -50,7 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=3.0,
         help="how far the refitted sensors' offsets moved, mm (3)",
     )
-    p.add_argument("--free", default="paper7", help="what to identify (default paper7)")
+    add_model_options(p)
     p.add_argument(
         "--method",
         choices=METHODS,
@@ -61,6 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--out",
         type=Path,
         default=None,
+        metavar="DIR",
         help="keep the recording, config and report here (default: a temp dir)",
     )
 
@@ -73,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     speed = args.speed if args.speed is not None else (1.0 if args.transport == "ascii" else 10.0)
     if speed <= 0:
         raise ValueError("--speed must be positive")
-    model = ParameterModel.parse(args.free)
+    model = model_from_args(args)
     if args.out is None:
         work = Path(tempfile.mkdtemp(prefix="loopcal-demo-"))
     else:
