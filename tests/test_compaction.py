@@ -4,6 +4,7 @@ when killed, never touching the file being written."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -121,3 +122,20 @@ def test_the_recorder_compacts_the_files_it_closes(tmp_path):
     again = record("modbus-tcp://127.0.0.1:1", tmp_path, "--duration", "3")
     again.wait(30)
     assert "compacted " + out.files[-1].path.name in again.text
+
+
+def test_the_command_exits_1_when_a_file_fails_and_says_so_in_json(tmp_path):
+    good = _recording(tmp_path)
+    junk = tmp_path / rec.recording_name(T0 + 10**12)
+    junk.write_bytes(b"\x89MCAP0\r\n" + b"not a recording at all" * 10)
+    before = junk.read_bytes()
+    proc = loopcal("compact", tmp_path, "--json")
+    assert proc.returncode == 1, proc.stderr
+    doc = json.loads(proc.stdout)
+    by_path = {f["path"]: f for f in doc["files"]}
+    assert by_path[str(good)]["compacted"] and not by_path[str(good)]["failed"]
+    assert by_path[str(junk)]["failed"] and not by_path[str(junk)]["compacted"]
+    assert doc["failed"] == 1 and doc["bytes_before"] == by_path[str(good)]["bytes_before"]
+    assert junk.read_bytes() == before  # kept as it was
+    again = loopcal("compact", good)  # nothing failed: exit 0
+    assert again.returncode == 0 and "already compact" in again.stdout, again.stdout

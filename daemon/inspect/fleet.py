@@ -175,9 +175,14 @@ def run_here(tasks: list[RobotDay], fn: Callable[..., dict[str, Any]],
         yield fn(t, *args)
 
 
+def table_columns(rows: list[dict[str, Any]], columns: tuple[str, ...]) -> list[str]:
+    """The table's columns: ``columns``, then any other key of the rows, sorted."""
+    return list(columns) + sorted({k for r in rows for k in r} - set(columns))
+
+
 def write_table(rows: list[dict[str, Any]], columns: tuple[str, ...], path: Path) -> None:
     """The rows as CSV (``.csv``) or Parquet (``.parquet``, with pandas and pyarrow)."""
-    cols = list(columns) + sorted({k for r in rows for k in r} - set(columns))
+    cols = table_columns(rows, columns)
     if path.suffix == ".parquet":
         try:
             import pandas as pd

@@ -48,8 +48,9 @@ _RAW_TOPICS = (TOPIC_SCANS, TOPIC_EVENTS, TOPIC_LOG)
 
 @dataclass(frozen=True)
 class Compacted:
-    """What :func:`compact` did: ``done`` (the file was rewritten) or why not; the chunk
-    counts and sizes before and after."""
+    """What :func:`compact` did: ``done`` (the file was rewritten) or why not (``failed``:
+    because of something wrong with the file or its copy, not because it needs no
+    compaction); the chunk counts and sizes before and after."""
 
     path: Path
     done: bool
@@ -58,6 +59,7 @@ class Compacted:
     chunks_after: int = 0
     bytes_before: int = 0
     bytes_after: int = 0
+    failed: bool = False
 
 
 def _tmp_of(path: Path) -> Path:
@@ -84,10 +86,12 @@ def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compac
     try:
         original = read_recordings(path)
     except RecordingError as exc:
-        return Compacted(path, False, f"not readable: {exc}")
+        return Compacted(path, False, f"not readable: {exc}", failed=True)
     info = original.files[0]
-    if not info.complete or not info.intact:
-        return Compacted(path, False, "not closed, or damaged: left as it is")
+    if not info.intact:
+        return Compacted(path, False, "damaged: left as it is", failed=True)
+    if not info.complete:
+        return Compacted(path, False, "not closed: left as it is")
     if "compacted_utc" in info.metadata.get("loopcal", {}):
         return Compacted(path, False, "already compact")
     before = path.stat()
@@ -101,7 +105,7 @@ def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compac
         if problem:
             tmp.unlink(missing_ok=True)
             log.error("compacting %s: %s; the original is kept", path, problem)
-            return Compacted(path, False, f"verification failed: {problem}")
+            return Compacted(path, False, f"verification failed: {problem}", failed=True)
         durable.step("compact-verified")
         with replace_lock if replace_lock is not None else contextlib.nullcontext():
             try:
