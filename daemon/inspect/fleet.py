@@ -23,7 +23,7 @@ from __future__ import annotations
 import csv
 import math
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -166,13 +166,6 @@ def run_on_dask(
         if cluster is not None:
             cluster.close()
     return [r for r in rows if r is not None]
-
-
-def run_here(tasks: list[RobotDay], fn: Callable[..., dict[str, Any]],
-             *args: Any) -> Iterator[dict[str, Any]]:  # fmt: skip
-    """The same tasks in this process, one after the other (the baseline for the bench)."""
-    for t in tasks:
-        yield fn(t, *args)
 
 
 def table_columns(rows: list[dict[str, Any]], columns: tuple[str, ...]) -> list[str]:
