@@ -7,6 +7,7 @@ the settings' own."""
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import subprocess
 import sys
@@ -111,3 +112,21 @@ def test_bad_input_is_exit_2_with_one_error_line(argv: list[str]) -> None:
 
 def test_the_docs_table_of_keys_is_the_settings_own() -> None:
     assert markdown_table() in (ROOT / "docs" / "daemon.md").read_text()
+
+
+@pytest.mark.parametrize("command", ["info", "check", "compact", "calibrate"])
+def test_what_is_not_a_regular_file_is_refused_at_once(command: str, tmp_path: Path) -> None:
+    """A device never ends (/dev/zero), a FIFO blocks its reader, an empty path would be
+    the current directory: each is bad input, refused before anything is read."""
+    fifo = tmp_path / "x.mcap"
+    os.mkfifo(fifo)
+    config = tmp_path / "controller.toml"
+    assert _loopcal("init-config", str(config)).returncode == 0
+    extra = [] if command in ("info", "compact") else ["--controller-config", str(config)]
+    for target, words in (("/dev/zero", "not a regular file (a character device)"),
+                          (str(fifo), "not a regular file (a FIFO)"),
+                          ("", "an empty path")):  # fmt: skip
+        proc = _loopcal(command, target, *extra)
+        assert proc.returncode == 2, (target, proc.stderr)
+        assert f"loopcal {command}: error: " in proc.stderr and words in proc.stderr, proc.stderr
+        assert "Traceback" not in proc.stderr

@@ -23,9 +23,11 @@ from loopcal.calibration.errors import CalibrationError
 from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
 from loopcal.calibration.parameters import DEFAULT_FREE, ParameterModel
 
+from ..arguments import path_argument
 from ..config import durable
 from ..config.controller import ControllerConfigError, load_controller_config
 from ..recording import RecordingError, find_recordings, read_recordings
+from ..recording.names import recording_paths
 from ..worker.run import METHOD_NAMES, describe_files, run_worker
 from ..worker.writeback import Written, check_writable, write_back
 from .model_options import add_model_options, add_select_option
@@ -65,19 +67,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "recordings",
         nargs="*",
-        type=Path,
+        type=path_argument,
         metavar="REC.mcap",
         help="recording files or directories (default with --config: its directory)",
     )
     p.add_argument(
         "--controller-config",
-        type=Path,
+        type=path_argument,
         metavar="PATH",
         help="the controller config to start from (and to write with --write)",
     )
     p.add_argument(
         "--config",
-        type=Path,
+        type=path_argument,
         metavar="DAEMON.toml",
         help="take the recording directory and controller config from the daemon's "
         "config (what the systemd worker unit does)",
@@ -107,9 +109,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="write the new values into the controller config if every gate passes",
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
-    p.add_argument(
-        "--report", type=Path, metavar="DIR", help="write an HTML report with plots into DIR"
-    )
+    p.add_argument("--report", type=path_argument, metavar="DIR",
+                   help="write an HTML report with plots into DIR")  # fmt: skip
 
 
 class _Fail(Exception):
@@ -148,10 +149,11 @@ def _inputs(args: argparse.Namespace) -> tuple[list[Path], Path]:
             if not found:
                 raise _Fail(f"{f}: no recordings (loopcal-*.mcap) in this directory")
             out += found
-        elif f.exists():
-            out.append(f)
         else:
-            raise _Fail(f"{f}: no such file")
+            try:
+                out += recording_paths([f])  # a regular file, or why not
+            except RecordingError as exc:
+                raise _Fail(str(exc)) from None
     return out, controller
 
 

@@ -18,15 +18,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
+from ..arguments import path_argument
 from ..recording import RecordingError
 from ..recording.compact import Compacted, compact, remove_stale_temporaries
 from ..recording.names import recording_paths
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recordings", nargs="+", type=Path, metavar="REC.mcap|DIR",
+    p.add_argument("recordings", nargs="+", type=path_argument, metavar="REC.mcap|DIR",
                    help="recording files or directories of them")  # fmt: skip
     p.add_argument("--json", action="store_true",
                    help="one JSON object on stdout: what was done to each file")  # fmt: skip

@@ -28,6 +28,7 @@ from loopcal.simulator.mechanism import MechanismSource
 from loopcal.simulator.run import add_transport_option
 from loopcal.simulator.scenarios import HandMoves
 
+from ..arguments import path_argument
 from ..config.controller import load_controller_config
 from .model_options import add_model_options, model_from_args
 
@@ -60,7 +61,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--out",
-        type=Path,
+        type=path_argument,
         default=None,
         metavar="DIR",
         help="keep the recording, config and report here (default: a temp dir)",

@@ -19,6 +19,7 @@ import math
 import sys
 from pathlib import Path
 
+from ..arguments import path_argument
 from ..inspect.fleet import (
     CHECK_COLUMNS,
     CONFIG_NAME,
@@ -38,9 +39,9 @@ from .check import add_false_alarm_option, check_false_alarm
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("what", choices=("info", "check"), help="info: what the archives hold; "
                    "check: did each robot's loops close at its controller config")  # fmt: skip
-    p.add_argument("roots", nargs="+", type=Path, metavar="ROOT",
+    p.add_argument("roots", nargs="+", type=path_argument, metavar="ROOT",
                    help="fleet roots: a directory per robot")  # fmt: skip
-    p.add_argument("--table", type=Path, metavar="FILE",
+    p.add_argument("--table", type=path_argument, metavar="FILE",
                    help="write the table to FILE (.csv or .parquet; default: CSV on "
                         "stdout)")  # fmt: skip
     p.add_argument("--json", action="store_true",

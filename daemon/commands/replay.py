@@ -14,7 +14,6 @@ import argparse
 import signal
 import sys
 import threading
-from pathlib import Path
 
 import numpy as np
 
@@ -24,6 +23,7 @@ from loopcal.simulator.open_points import from_arguments as open_points_from_arg
 from loopcal.simulator.replay import Player, RecordedPowerOn
 from loopcal.simulator.run import add_transport_option, listen_host, tcp_port
 
+from ..arguments import path_argument
 from ..recording import RecordingError, read_recordings
 from ..scans import scan_rate_hz
 
@@ -34,7 +34,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "recordings",
         nargs="+",
-        type=Path,
+        type=path_argument,
         metavar="REC.mcap",
         help="recording files, or a directory of them",
     )

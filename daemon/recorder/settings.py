@@ -23,6 +23,8 @@ from typing import Any
 
 from loopcal.drivers import driver_for_url, ldq412
 
+from ..arguments import path_argument
+
 _SIZE_RE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(B|KiB|MiB|GiB|TiB|kB|MB|GB|TB)?\s*$")
 _UNITS = {None: 1, "B": 1, "KiB": 1 << 10, "MiB": 1 << 20, "GiB": 1 << 30, "TiB": 1 << 40,
           "kB": 10**3, "MB": 10**6, "GB": 10**9, "TB": 10**12}  # fmt: skip
@@ -333,7 +335,7 @@ def _size_option(text: str) -> int:
 
 
 _OPTION_TYPES: dict[str, Callable[[str], Any]] = {
-    "url": str, "listen": str, "path": Path, "seconds": float, "size": _size_option,
+    "url": str, "listen": str, "path": path_argument, "seconds": float, "size": _size_option,
     "count": int, "probability": float,
 }  # fmt: skip
 
