@@ -16,7 +16,7 @@ import pytest
 from fuzz_helpers import identities, make_rows, tear_chunk, write_recording
 from js_helpers import mcap_reader, read_ts
 from mcap.reader import make_reader
-from recorder_helpers import assert_matches_truth, hand_emulator, record
+from recorder_helpers import LOOPCAL, assert_matches_truth, hand_emulator, record
 from session_helpers import T0, loopcal
 
 from loopcal.daemon import recording as rec
@@ -139,3 +139,49 @@ def test_the_command_exits_1_when_a_file_fails_and_says_so_in_json(tmp_path):
     assert junk.read_bytes() == before  # kept as it was
     again = loopcal("compact", good)  # nothing failed: exit 0
     assert again.returncode == 0 and "already compact" in again.stdout, again.stdout
+
+
+def test_a_second_compaction_leaves_a_running_ones_file_alone(tmp_path):
+    """Two `loopcal compact` on one directory: the second neither deletes the first's
+    temporary file nor compacts its file; the first then finishes as if alone."""
+    path = _recording(tmp_path)
+    rows = rec.read_recordings(path).scans
+    first = subprocess.Popen([*LOOPCAL, "compact", str(path)], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True,
+                             env={**os.environ,
+                                  "LOOPCAL_PAUSE_AT": "compact-written:4"})  # fmt: skip
+    deadline = time.monotonic() + 30
+    while not list(tmp_path.glob(".*.compact.tmp")):
+        assert time.monotonic() < deadline and first.poll() is None
+        time.sleep(0.05)
+    (tmp,) = tmp_path.glob(".*.compact.tmp")
+    second = loopcal("compact", tmp_path)
+    assert second.returncode == 0, second.stderr
+    assert "being compacted by another process" in second.stdout, second.stdout
+    assert tmp.exists()  # the first one's work was not removed as stale
+    out, err = first.communicate(timeout=60)
+    assert first.returncode == 0, out + err
+    assert "chunks ->" in out
+    after = rec.read_recordings(path)
+    assert identities(after.scans) == identities(rows) and after.files[0].intact
+    assert "compacted_utc" in after.files[0].metadata["loopcal"]
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_two_compactions_at_once_never_crash(tmp_path):
+    originals = {}
+    for k in range(3):
+        path = tmp_path / rec.recording_name(T0 + k * 10**12)
+        write_recording(path, make_rows(1200), close=True)
+        originals[path] = identities(rec.read_recordings(path).scans)
+    for _ in range(4):
+        procs = [subprocess.Popen([*LOOPCAL, "compact", str(tmp_path)], text=True,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                 for _ in range(2)]  # fmt: skip
+        for p in procs:
+            out, err = p.communicate(timeout=120)
+            assert p.returncode == 0 and "Traceback" not in err, out + err
+    for path, ids in originals.items():
+        out = rec.read_recordings(path)
+        assert identities(out.scans) == ids and "compacted_utc" in out.files[0].metadata["loopcal"]
+    assert not list(tmp_path.glob(".*.tmp"))

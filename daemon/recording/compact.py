@@ -17,11 +17,19 @@ not closed, not intact, or already compact is left as it is (already compact is 
 its metadata record alone, without reading its chunks). Killed at any step, the
 original is there, whole, or the compacted copy is; a temporary file left behind is removed
 by the next compaction of the directory.
+
+Two compactions at once (two ``loopcal compact`` on one directory, or one beside the
+daemon's compactor) never touch each other's work: a compaction holds an advisory lock
+(``flock``) on the original from before its temporary file exists until it is renamed, a
+second one of the same file finds the lock taken and leaves the file to it, and a
+temporary file is removed as stale only while its original's lock can be had (its writer
+is gone).
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import logging
 import os
 import threading
@@ -66,11 +74,36 @@ def _tmp_of(path: Path) -> Path:
     return path.with_name(f".{path.name}.compact.tmp")
 
 
+@contextlib.contextmanager
+def _compacting(path: Path):
+    """Hold the compaction lock of ``path`` (``flock`` on the original); yields False, and
+    holds nothing, when another process holds it. A missing original yields True (its
+    temporary, if any, has no writer left)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except FileNotFoundError:
+        yield True
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            yield False
+            return
+        yield True
+    finally:
+        os.close(fd)  # releases the lock
+
+
 def remove_stale_temporaries(directory: Path) -> None:
     """Remove the temporary files (:func:`_tmp_of`) that killed compactions left in a
-    directory; call it before any compaction there."""
-    for stale in Path(directory).glob(".loopcal-*.mcap.compact.tmp"):
-        stale.unlink(missing_ok=True)
+    directory, never one whose compaction is still running; call it before any compaction
+    there."""
+    for tmp in Path(directory).glob(".loopcal-*.mcap.compact.tmp"):
+        original = tmp.with_name(tmp.name.removeprefix(".").removesuffix(".compact.tmp"))
+        with _compacting(original) as ours:
+            if ours:
+                tmp.unlink(missing_ok=True)
 
 
 def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compacted:
@@ -83,6 +116,13 @@ def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compac
     path = Path(path)
     if _says_compacted(path):
         return Compacted(path, False, "already compact")
+    with _compacting(path) as ours:
+        if not ours:
+            return Compacted(path, False, "being compacted by another process")
+        return _compact_locked(path, replace_lock)
+
+
+def _compact_locked(path: Path, replace_lock: threading.Lock | None) -> Compacted:
     try:
         original = read_recordings(path)
     except RecordingError as exc:
