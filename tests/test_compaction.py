@@ -13,7 +13,14 @@ import time
 
 import numpy as np
 import pytest
-from fuzz_helpers import identities, make_rows, tear_chunk, write_recording
+from fuzz_helpers import (
+    chunk_spans,
+    flip_bits,
+    identities,
+    make_rows,
+    tear_chunk,
+    write_recording,
+)
 from js_helpers import mcap_reader, read_ts
 from mcap.reader import make_reader
 from recorder_helpers import LOOPCAL, assert_matches_truth, hand_emulator, record
@@ -185,3 +192,35 @@ def test_two_compactions_at_once_never_crash(tmp_path):
         out = rec.read_recordings(path)
         assert identities(out.scans) == ids and "compacted_utc" in out.files[0].metadata["loopcal"]
     assert not list(tmp_path.glob(".*.tmp"))
+
+
+def _views_only_chunk(path) -> int:
+    """The file-order index of a chunk holding only view messages (no scan, no event)."""
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    raw = {cid for cid, c in summary.channels.items()
+           if c.topic in (rec.TOPIC_SCANS, rec.TOPIC_EVENTS, rec.TOPIC_LOG)}  # fmt: skip
+    ordered = sorted(summary.chunk_indexes, key=lambda ci: ci.chunk_start_offset)
+    return next(k for k, ci in enumerate(ordered)
+                if ci.message_index_offsets and not set(ci.message_index_offsets) & raw)
+
+
+@pytest.mark.parametrize("damage", ["zeroed", "one bit"])
+def test_damage_in_the_views_is_never_laundered(tmp_path, damage):
+    """A closed file whose damage is in a views-only chunk: the mcap library skips or
+    copies what does not check out; compaction must compare with the file's own statistics
+    and CRCs, and leave the file as it is, saying it is damaged."""
+    path = _recording(tmp_path)
+    k = _views_only_chunk(path)
+    if damage == "zeroed":
+        data = tear_chunk(path, k)
+    else:
+        off, length = chunk_spans(path.read_bytes())[k]
+        data = flip_bits(path.read_bytes(), [(off + length // 2) * 8 + 3])
+        path.write_bytes(data)
+    r = compact(path)
+    assert not r.done and r.failed and r.reason.startswith("damaged"), r
+    assert path.read_bytes() == data  # left exactly as it was
+    assert not list(tmp_path.glob(".*.tmp"))
+    proc = loopcal("compact", path)
+    assert proc.returncode == 1 and "damaged" in proc.stdout, proc.stdout + proc.stderr
