@@ -16,9 +16,9 @@ count with the original's own statistics record (every chunk's CRC checked as it
 the mcap library would skip a chunk it cannot read, or copy a corrupted one, without a word),
 fsynced, and only then renamed over it (atomic), and the directory fsynced. A file that is
 not closed, has any record that does not check out, or is already compact is left as it
-is (already compact is told from its metadata record alone, without reading its chunks). Killed at any step, the
-original is there, whole, or the compacted copy is; a temporary file left behind is removed
-by the next compaction of the directory.
+is (already compact is told from its metadata record alone, without reading its chunks).
+Killed at any step, the original is there, whole, or the compacted copy is; a temporary
+file left behind is removed by the next compaction of the directory.
 
 Two compactions at once (two ``loopcal compact`` on one directory, or one beside the
 daemon's compactor) never touch each other's work: a compaction holds an advisory lock
