@@ -37,7 +37,6 @@ from loopcal.daemon.inspect.fleet import (  # noqa: E402
     check_task,
     info_task,
     robot_days,
-    run_here,
     run_on_dask,
 )
 from loopcal.daemon.live.health import FALSE_ALARM  # noqa: E402
@@ -92,7 +91,7 @@ def main() -> int:
         for w, cluster in clusters.items():  # warm: the workers import numpy and loopcal once
             run_on_dask(tasks[:w], info_task, scheduler=cluster.scheduler_address)
         for name, fn, extra in (("check", check_task, (FALSE_ALARM,)), ("info", info_task, ())):
-            base, _ = median_time(lambda fn=fn, extra=extra: list(run_here(tasks, fn, *extra)),
+            base, _ = median_time(lambda fn=fn, extra=extra: [fn(t, *extra) for t in tasks],
                                   args.repeats)  # fmt: skip
             warm = {w: median_time(lambda fn=fn, extra=extra, c=c: run_on_dask(
                         tasks, fn, *extra, scheduler=c.scheduler_address), args.repeats)[0]

@@ -253,4 +253,6 @@ PRESETS: dict[str, ParameterModel] = {
 }
 for _i in range(1, 5):
     PRESETS[f"d0{_i}"] = ParameterModel((f"d0{_i}",))
-PAPER7 = PRESETS["paper7"]
+#: the free set a calibration identifies unless told otherwise: the paper's seven
+DEFAULT_FREE = "paper7"
+PAPER7 = PRESETS[DEFAULT_FREE]

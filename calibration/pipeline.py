@@ -31,12 +31,16 @@ class Calibration:
     rounds: int
 
 
+#: how many of the recorded poses a calibration selects unless told otherwise
+DEFAULT_N_SELECT = 50
+
+
 def calibrate(
     volts: np.ndarray,
     model: ParameterModel = PAPER7,
     start: np.ndarray = NOMINAL,
     *,
-    n_select: int = 50,
+    n_select: int = DEFAULT_N_SELECT,
     criterion: str = "min_singular",
     max_condition: float = CONDITION_OK,
     rounds: int = 2,

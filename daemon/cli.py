@@ -4,6 +4,7 @@ in :mod:`loopcal.daemon.commands`, importing only that one (``loopcal --help`` i
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 
 from loopcal.calibration.errors import CalibrationError
@@ -13,6 +14,16 @@ from .version import loopcal_version
 
 #: the docs the help texts name (docs/daemon.md, ...) are installed with loopcal
 DOCS_EPILOG = "docs/*.md, systemd/*: installed with loopcal; `loopcal files` says where."
+
+#: a reST cross-reference, :role:`target`, :role:`~a.b.target` or :role:`text <target>`
+_ROLE = re.compile(r":[a-z]+:`(~?)([^`<]*?)\s*(?:<[^>]*>)?`")
+
+
+def plain_text(doc: str) -> str:
+    """A docstring (reST, for the API reference) as ``--help`` shows it: ``x`` as x, a
+    cross-reference :mod:`a.b` as a.b, :mod:`~a.b` as b."""
+    text = _ROLE.sub(lambda m: m.group(2).rsplit(".", 1)[-1] if m.group(1) else m.group(2), doc)
+    return text.replace("``", "")
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -30,15 +41,16 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
             sub.add_parser(name, help=help_text, add_help=False)
             continue
         module = load(name)
+        description = getattr(module, "DESCRIPTION", None) or module.__doc__ or ""
         p = sub.add_parser(
             name,
             help=help_text,
-            description=getattr(module, "DESCRIPTION", None) or module.__doc__,
+            description=plain_text(description),
             formatter_class=argparse.RawDescriptionHelpFormatter,
             epilog=DOCS_EPILOG,
         )
         module.add_arguments(p)
-        p.set_defaults(func=module.run)
+        p.set_defaults(func=module.run, parser=p)
     return parser
 
 
@@ -48,11 +60,13 @@ def main(argv: list[str] | None = None) -> int:
     # that takes a value)
     names = {name for name, _ in COMMANDS}
     command = next((a for a in argv if not a.startswith("-")), None)
-    args = build_parser(command if command in names else None).parse_args(argv)
+    args, extra = build_parser(command if command in names else None).parse_known_args(argv)
+    if extra:  # said by the command's parser: "loopcal CMD: error: ...", exit 2
+        args.parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         return args.func(args)
     except (CalibrationError, ValueError) as exc:
-        print(f"loopcal: error: {exc}", file=sys.stderr)
+        print(f"loopcal {args.command}: error: {exc}", file=sys.stderr)
         return 2
 
 

@@ -39,22 +39,10 @@ SCAN_DTYPE = np.dtype(
     align=True,
 )
 
-U32 = 1 << 32
-
 
 def empty(n: int = 0) -> np.ndarray:
     """n zeroed scan rows."""
     return np.zeros(n, dtype=SCAN_DTYPE)
-
-
-def counter32(scans: np.ndarray) -> np.ndarray:
-    """The module's raw 32-bit scan counters, shape (n,)."""
-    return (scans["counter64"] % U32).astype(np.uint32)
-
-
-def time32_us(scans: np.ndarray) -> np.ndarray:
-    """The module's raw 32-bit device times, µs, shape (n,)."""
-    return (scans["time64_us"] % U32).astype(np.uint32)
 
 
 def volts(scans: np.ndarray) -> np.ndarray:

@@ -244,8 +244,15 @@ def listen_host(text: str) -> str:
     return text
 
 
+def add_transport_option(p: argparse.ArgumentParser, what: str) -> None:
+    """``--transport`` of the commands that serve an emulated module (simulate, replay,
+    demo): ``what`` says what goes over it."""
+    p.add_argument("--transport", choices=TRANSPORTS, default="modbus-tcp",
+                   help=f"{what}: {', '.join(TRANSPORTS)} (default modbus-tcp)")  # fmt: skip
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--transport", choices=TRANSPORTS, default="modbus-tcp")
+    add_transport_option(p, "the wire the emulated module answers on")
     p.add_argument(
         "--host", type=listen_host, default="127.0.0.1", help="TCP address (default 127.0.0.1)"
     )
@@ -264,15 +271,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="switch the module on at a client's first request (default: at once)",
     )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--scenario", choices=(*SCENARIOS, "replay"), default="hand")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the motion and the noise "
+                   "(default 0)")  # fmt: skip
+    p.add_argument("--scenario", choices=(*SCENARIOS, "replay"), default="hand",
+                   help="how the plate moves: hand (a technician, pausing), static, sweep, "
+                        "or replay (a --truth-out file; default hand)")  # fmt: skip
     p.add_argument(
         "--replay",
         type=Path,
         default=None,
         help="with --scenario replay: a --truth-out file to play back (loops)",
     )
-    p.add_argument("--noise-mv", type=float, default=1000 * NOISE_VOLTS)
+    p.add_argument("--noise-mv", type=float, default=1000 * NOISE_VOLTS, metavar="MV",
+                   help=f"sensor noise, mV rms (default {1000 * NOISE_VOLTS:g})")  # fmt: skip
     p.add_argument(
         "--pause",
         type=_pause,

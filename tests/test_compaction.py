@@ -4,6 +4,7 @@ when killed, never touching the file being written."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -12,10 +13,17 @@ import time
 
 import numpy as np
 import pytest
-from fuzz_helpers import identities, make_rows, tear_chunk, write_recording
+from fuzz_helpers import (
+    chunk_spans,
+    flip_bits,
+    identities,
+    make_rows,
+    tear_chunk,
+    write_recording,
+)
 from js_helpers import mcap_reader, read_ts
 from mcap.reader import make_reader
-from recorder_helpers import assert_matches_truth, hand_emulator, record
+from recorder_helpers import LOOPCAL, assert_matches_truth, hand_emulator, record
 from session_helpers import T0, loopcal
 
 from loopcal.daemon import recording as rec
@@ -121,3 +129,98 @@ def test_the_recorder_compacts_the_files_it_closes(tmp_path):
     again = record("modbus-tcp://127.0.0.1:1", tmp_path, "--duration", "3")
     again.wait(30)
     assert "compacted " + out.files[-1].path.name in again.text
+
+
+def test_the_command_exits_1_when_a_file_fails_and_says_so_in_json(tmp_path):
+    good = _recording(tmp_path)
+    junk = tmp_path / rec.recording_name(T0 + 10**12)
+    junk.write_bytes(b"\x89MCAP0\r\n" + b"not a recording at all" * 10)
+    before = junk.read_bytes()
+    proc = loopcal("compact", tmp_path, "--json")
+    assert proc.returncode == 1, proc.stderr
+    doc = json.loads(proc.stdout)
+    by_path = {f["path"]: f for f in doc["files"]}
+    assert by_path[str(good)]["compacted"] and not by_path[str(good)]["failed"]
+    assert by_path[str(junk)]["failed"] and not by_path[str(junk)]["compacted"]
+    assert doc["failed"] == 1 and doc["bytes_before"] == by_path[str(good)]["bytes_before"]
+    assert junk.read_bytes() == before  # kept as it was
+    again = loopcal("compact", good)  # nothing failed: exit 0
+    assert again.returncode == 0 and "already compact" in again.stdout, again.stdout
+
+
+def test_a_second_compaction_leaves_a_running_ones_file_alone(tmp_path):
+    """Two `loopcal compact` on one directory: the second neither deletes the first's
+    temporary file nor compacts its file; the first then finishes as if alone."""
+    path = _recording(tmp_path)
+    rows = rec.read_recordings(path).scans
+    first = subprocess.Popen([*LOOPCAL, "compact", str(path)], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True,
+                             env={**os.environ,
+                                  "LOOPCAL_PAUSE_AT": "compact-written:4"})  # fmt: skip
+    deadline = time.monotonic() + 30
+    while not list(tmp_path.glob(".*.compact.tmp")):
+        assert time.monotonic() < deadline and first.poll() is None
+        time.sleep(0.05)
+    (tmp,) = tmp_path.glob(".*.compact.tmp")
+    second = loopcal("compact", tmp_path)
+    assert second.returncode == 0, second.stderr
+    assert "being compacted by another process" in second.stdout, second.stdout
+    assert tmp.exists()  # the first one's work was not removed as stale
+    out, err = first.communicate(timeout=60)
+    assert first.returncode == 0, out + err
+    assert "chunks ->" in out
+    after = rec.read_recordings(path)
+    assert identities(after.scans) == identities(rows) and after.files[0].intact
+    assert "compacted_utc" in after.files[0].metadata["loopcal"]
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_two_compactions_at_once_never_crash(tmp_path):
+    originals = {}
+    for k in range(3):
+        path = tmp_path / rec.recording_name(T0 + k * 10**12)
+        write_recording(path, make_rows(1200), close=True)
+        originals[path] = identities(rec.read_recordings(path).scans)
+    for _ in range(4):
+        procs = [subprocess.Popen([*LOOPCAL, "compact", str(tmp_path)], text=True,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                 for _ in range(2)]  # fmt: skip
+        for p in procs:
+            out, err = p.communicate(timeout=120)
+            assert p.returncode == 0 and "Traceback" not in err, out + err
+    for path, ids in originals.items():
+        out = rec.read_recordings(path)
+        assert identities(out.scans) == ids and "compacted_utc" in out.files[0].metadata["loopcal"]
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def _views_only_chunk(path) -> int:
+    """The file-order index of a chunk holding only view messages (no scan, no event)."""
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    raw = {cid for cid, c in summary.channels.items()
+           if c.topic in (rec.TOPIC_SCANS, rec.TOPIC_EVENTS, rec.TOPIC_LOG)}  # fmt: skip
+    ordered = sorted(summary.chunk_indexes, key=lambda ci: ci.chunk_start_offset)
+    return next(k for k, ci in enumerate(ordered)
+                if ci.message_index_offsets and not set(ci.message_index_offsets) & raw)
+
+
+@pytest.mark.parametrize("damage", ["zeroed", "one bit"])
+def test_damage_in_the_views_is_never_laundered(tmp_path, damage):
+    """A closed file whose damage is in a views-only chunk: the mcap library skips or
+    copies what does not check out; compaction must compare with the file's own statistics
+    and CRCs, and leave the file as it is, saying it is damaged."""
+    path = _recording(tmp_path)
+    k = _views_only_chunk(path)
+    if damage == "zeroed":
+        data = tear_chunk(path, k)
+    else:
+        off, length = chunk_spans(path.read_bytes())[k]
+        data = flip_bits(path.read_bytes(), [(off + length // 2) * 8 + 3])
+        path.write_bytes(data)
+    r = compact(path)
+    assert not r.done and r.failed and r.reason.startswith("damaged"), r
+    assert path.read_bytes() == data  # left exactly as it was
+    assert not list(tmp_path.glob(".*.tmp"))
+    proc = loopcal("compact", path)
+    assert proc.returncode == 1 and "damaged" in proc.stdout, proc.stdout + proc.stderr

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 
 import pytest
 from session_helpers import PAUSE_S, T0, loopcal, truth_for, write_session
@@ -41,7 +42,7 @@ def table(path) -> list[dict[str, str]]:
 
 def test_fleet_info_is_one_row_per_robot_day(fleet, tmp_path):
     out = tmp_path / "info.csv"
-    proc = loopcal("fleet", "info", fleet, "--out", out, "--workers", "2")
+    proc = loopcal("fleet", "info", fleet, "--table", out, "--workers", "2")
     assert proc.returncode == 0, proc.stderr
     rows = table(out)
     assert [(r["robot"], r["day"]) for r in rows] == [
@@ -52,11 +53,16 @@ def test_fleet_info_is_one_row_per_robot_day(fleet, tmp_path):
     assert all(int(r["missed"]) == 0 and int(r["poses"]) > 100 for r in rows)
     assert "6 robot-days of 3 robot(s) on a local cluster of 2 worker(s)" in proc.stderr
     assert "6/6 robot-days done" in proc.stderr
+    as_json = loopcal("fleet", "info", fleet, "--json", "--workers", "2")
+    assert as_json.returncode == 0, as_json.stderr
+    doc = json.loads(as_json.stdout)
+    assert doc["columns"] == list(rows[0])
+    assert [{k: "" if v is None else str(v) for k, v in r.items()} for r in doc["rows"]] == rows
 
 
 def test_fleet_check_finds_the_robot_and_day_whose_sensor_moved(fleet, tmp_path):
     out = tmp_path / "check.csv"
-    proc = loopcal("fleet", "check", fleet, "--out", out, "--workers", "2")
+    proc = loopcal("fleet", "check", fleet, "--table", out, "--workers", "2")
     assert proc.returncode == 1, proc.stderr  # a change was found
     rows = {(r["robot"], r["day"]): r for r in table(out)}
     moved = rows["robot-c", "2026-11-19"]

@@ -3,6 +3,7 @@ through each transport, and nothing lost to stops, kills, restarts and link faul
 
 from __future__ import annotations
 
+import json
 import signal
 import time
 
@@ -27,11 +28,14 @@ def test_a_recording_holds_exactly_the_modules_scans(tmp_path, transport):
     # process) 97 ms to answer instead of 47.
     rate = 10 if transport == "ascii" else 20
     with hand_emulator(transport, rate=rate) as emu:
-        rec = record(emu.url, tmp_path, "--duration", "4")
+        rec = record(emu.url, tmp_path, "--duration", "4", "--json")
         assert rec.wait(30) == 0, rec.text
         made = len(emu.truth)
     out = read_recordings(tmp_path)
     rows = out.scans
+    summary = _summary(rec)  # what it says it wrote is what the file holds
+    assert summary["scans_written"] == len(rows) and summary["files_written"] == 1
+    assert summary["exit_status"] == 0 and summary["problem"] is None
     assert len(out.files) == 1 and out.files[0].complete, out.files
     assert_matches_truth(rows, emu)
     assert consecutive(rows) and rows["missed"].sum() == 0, rec.text
@@ -251,11 +255,22 @@ def test_rotation_by_size(tmp_path):
     assert out.scans["counter64"][0] == 0
 
 
+def _summary(rec) -> dict:
+    """The last line of ``loopcal record --json``: its summary object."""
+    docs = [json.loads(line) for line in rec.lines if line.startswith("{")]
+    assert docs and docs[-1]["summary"] is True and rec.lines[-1].startswith("{"), rec.text
+    return docs[-1]
+
+
 def test_a_daq_that_never_answers(tmp_path):
-    rec = record(f"modbus-tcp://127.0.0.1:{free_port()}?unit=1", tmp_path, "--duration", "2")
+    rec = record(f"modbus-tcp://127.0.0.1:{free_port()}?unit=1", tmp_path, "--duration", "2",
+                 "--json")  # fmt: skip
     assert rec.wait(30) == 1
     assert "disconnect: DAQDisconnected" in rec.text
     assert "nothing was recorded" in rec.text
+    summary = _summary(rec)
+    assert summary["exit_status"] == 1 and summary["scans_written"] == 0
+    assert summary["problem"].startswith("nothing was recorded")
     assert find_recordings(tmp_path) == []
 
 

@@ -21,13 +21,16 @@ from pathlib import Path
 
 from loopcal.calibration.errors import CalibrationError
 from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
-from loopcal.calibration.parameters import ParameterModel
+from loopcal.calibration.parameters import DEFAULT_FREE, ParameterModel
 
+from ..arguments import path_argument
 from ..config import durable
 from ..config.controller import ControllerConfigError, load_controller_config
 from ..recording import RecordingError, find_recordings, read_recordings
+from ..recording.names import recording_paths
 from ..worker.run import METHOD_NAMES, describe_files, run_worker
 from ..worker.writeback import Written, check_writable, write_back
+from .model_options import add_model_options, add_select_option
 
 _DURATION = re.compile(r"^(\d+(?:\.\d+)?)\s*(s|m|min|h|d)$")
 
@@ -64,32 +67,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "recordings",
         nargs="*",
-        type=Path,
+        type=path_argument,
         metavar="REC.mcap",
         help="recording files or directories (default with --config: its directory)",
     )
     p.add_argument(
         "--controller-config",
-        type=Path,
+        type=path_argument,
         metavar="PATH",
         help="the controller config to start from (and to write with --write)",
     )
     p.add_argument(
         "--config",
-        type=Path,
+        type=path_argument,
         metavar="DAEMON.toml",
         help="take the recording directory and controller config from the daemon's "
         "config (what the systemd worker unit does)",
     )
-    p.add_argument(
-        "--free",
-        nargs="+",
-        metavar="NAME",
-        help="free parameters: a preset (paper7, offsets, all) or names, e.g. "
-        "--free d03 (default: the controller config's [calibration].free, "
-        "else paper7)",
-    )
-    p.add_argument("--ties", default=None, help="ties for a custom free set, e.g. 'A4x=-A1x'")
+    add_model_options(p, default=None,
+                      default_text=f"the controller config's [calibration].free, else "
+                                   f"{DEFAULT_FREE}")  # fmt: skip
     p.add_argument("--since", type=parse_time, metavar="TIME", help="only scans from TIME on")
     p.add_argument("--until", type=parse_time, metavar="TIME", help="only scans before TIME")
     p.add_argument(
@@ -98,7 +95,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="DURATION",
         help="only the last DURATION of the recordings (e.g. 15m)",
     )
-    p.add_argument("--select", type=int, default=50, metavar="N", help="poses selected (50)")
+    add_select_option(p)
     p.add_argument(
         "--method",
         choices=METHODS,
@@ -112,9 +109,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="write the new values into the controller config if every gate passes",
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
-    p.add_argument(
-        "--report", type=Path, metavar="DIR", help="write an HTML report with plots into DIR"
-    )
+    p.add_argument("--report", type=path_argument, metavar="DIR",
+                   help="write an HTML report with plots into DIR")  # fmt: skip
 
 
 class _Fail(Exception):
@@ -153,10 +149,11 @@ def _inputs(args: argparse.Namespace) -> tuple[list[Path], Path]:
             if not found:
                 raise _Fail(f"{f}: no recordings (loopcal-*.mcap) in this directory")
             out += found
-        elif f.exists():
-            out.append(f)
         else:
-            raise _Fail(f"{f}: no such file")
+            try:
+                out += recording_paths([f])  # a regular file, or why not
+            except RecordingError as exc:
+                raise _Fail(str(exc)) from None
     return out, controller
 
 
@@ -194,7 +191,7 @@ def run(args: argparse.Namespace) -> int:
         config = load_controller_config(controller_path)
         if args.write:
             check_writable(config)
-        free = ",".join(args.free) if args.free else (config.free or "paper7")
+        free = args.free or config.free or DEFAULT_FREE
         ties = args.ties if args.free else (",".join(config.ties) or None)
         model = ParameterModel.parse(free, ties or ())
         since, until = args.since, args.until

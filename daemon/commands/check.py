@@ -17,8 +17,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
+from ..arguments import path_argument
 from ..config.controller import ControllerConfigError
 from ..inspect.loops import check, plot
 from ..live.health import FALSE_ALARM
@@ -27,13 +27,13 @@ from ..recording.names import recording_paths
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recordings", nargs="+", type=Path, metavar="REC.mcap|DIR",
+    p.add_argument("recordings", nargs="+", type=path_argument, metavar="REC.mcap|DIR",
                    help="recording files or directories of them")  # fmt: skip
-    p.add_argument("--controller-config", type=Path, required=True, metavar="PATH",
+    p.add_argument("--controller-config", type=path_argument, required=True, metavar="PATH",
                    help="the controller config to check the loops against")  # fmt: skip
     add_false_alarm_option(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.add_argument("--plot", type=Path, metavar="FILE.png",
+    p.add_argument("--plot", type=path_argument, metavar="FILE.png",
                    help="draw each sensor's estimated shift and statistic over time")  # fmt: skip
 
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
+from ..arguments import path_argument
 from ..config.controller import ControllerConfigError
 from ..live.health import watch_health
 from ..recorder.engine import Recorder
@@ -23,7 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--config",
         required=True,
-        type=Path,
+        type=path_argument,
         metavar="PATH",
         help="the daemon's TOML config, e.g. /etc/loopcal/daemon.toml",
     )

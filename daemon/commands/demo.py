@@ -15,6 +15,8 @@ verdict: written (and how close to the truth), or refused and why, nothing writt
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
 import logging
 import math
 import re
@@ -32,18 +34,20 @@ from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
 from loopcal.calibration.parameters import INDEX, UNITS, ParameterModel
 from loopcal.calibration.simulate import perturbed_truth
 from loopcal.simulator import Emulator, SimClock
-from loopcal.simulator.emulator import TRANSPORTS
 from loopcal.simulator.mechanism import MechanismSource
+from loopcal.simulator.run import add_transport_option
 from loopcal.simulator.scenarios import HandMoves
 
+from ..arguments import path_argument
 from ..config.controller import ControllerConfig, load_controller_config
+from .model_options import add_model_options, model_from_args
 
 PAUSE_S = (0.8, 1.5)  # a technician pausing about a second at each position
 PROGRESS_S = 5.0  # wall seconds between progress lines while recording
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--transport", choices=TRANSPORTS, default="modbus-tcp")
+    add_transport_option(p, "the wire between the recorder and the emulated module")
     p.add_argument("--minutes", type=float, default=2.0, help="session length (2)")
     p.add_argument(
         "--speed",
@@ -59,7 +63,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=3.0,
         help="how far the refitted sensors' offsets moved, mm (3)",
     )
-    p.add_argument("--free", default="paper7", help="what to identify (default paper7)")
+    add_model_options(p)
     p.add_argument(
         "--method",
         choices=METHODS,
@@ -68,13 +72,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--out",
-        type=Path,
+        type=path_argument,
         default=None,
+        metavar="DIR",
         help="keep the recording, config and report here (default: a temp dir)",
     )
+    p.add_argument("--json", action="store_true",
+                   help="one JSON object on stdout at the end (verdict, what was written "
+                        "against the truth); the session's output goes to stderr")  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
+    if not args.json:
+        return _run(args, {})
+    report: dict[str, Any] = {}
+    with contextlib.redirect_stdout(sys.stderr):  # the commands' output too (_start)
+        status = _run(args, report)
+    print(json.dumps({"exit_status": status, **report}, indent=1))
+    return status
+
+
+def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
+    """The demo; ``report`` gets what --json prints: verdict, written, work, parameters."""
     if args.minutes <= 0:
         raise ValueError("--minutes must be positive")
     if args.noise_mv < 0:
@@ -82,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     speed = args.speed if args.speed is not None else (1.0 if args.transport == "ascii" else 10.0)
     if speed <= 0:
         raise ValueError("--speed must be positive")
-    model = ParameterModel.parse(args.free)
+    model = model_from_args(args)
     if args.out is None:
         work = Path(tempfile.mkdtemp(prefix="loopcal-demo-"))
     else:
@@ -93,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
             work.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise ValueError(f"--out {work}: cannot create it: {exc.strerror or exc}") from None
+    report.update(work=str(work), written=False, parameters={})
     t_start = time.perf_counter()
     truth = perturbed_truth(
         np.random.default_rng(args.seed), offsets_mm=args.offset_error, model=model
@@ -123,19 +143,24 @@ def run(args: argparse.Namespace) -> int:
              "--duration", f"{session_s / speed:g}", "--read-period", "0.05"],
         )  # fmt: skip
     if status != 0:
-        return _end(t_start, status, f"failed (loopcal record exited with status {status})")
+        return _end(t_start, status, f"failed (loopcal record exited with status {status})",
+                    report)  # fmt: skip
     config = work / "controller.toml"
     status = _loopcal(["init-config", str(config), "--force"])
     if status != 0:
-        return _end(t_start, status, f"failed (loopcal init-config exited with status {status})")
+        return _end(t_start, status, f"failed (loopcal init-config exited with status {status})",
+                    report)  # fmt: skip
     before = config.read_bytes()
+    ties = ["--ties", args.ties] if args.ties else []
     status, out = _calibrate(
         ["calibrate", str(recordings), "--controller-config", str(config), "--free", args.free,
-         "--method", args.method, "--write", "--report", str(work / "report")]
+         *ties, "--method", args.method, "--write", "--report", str(work / "report")]
     )  # fmt: skip
     if config.read_bytes() == before:
-        return _end(t_start, status, _nothing_written(status, out, config))
-    return _end(t_start, status, _against_truth(load_controller_config(config), truth, model))
+        return _end(t_start, status, _nothing_written(status, out, config), report)
+    report["written"] = True
+    verdict = _against_truth(load_controller_config(config), truth, model, report["parameters"])
+    return _end(t_start, status, verdict, report)
 
 
 def _record(emu: Emulator, clock: SimClock, session_s: float, argv: list[str]) -> int:
@@ -206,8 +231,10 @@ def _nothing_written(status: int, calibrate_out: str, config: Path) -> str:
     return f"failed (loopcal calibrate exited with status {status}), nothing written"
 
 
-def _against_truth(written: ControllerConfig, truth: np.ndarray, model: ParameterModel) -> str:
-    """Print what was written next to the truth; return the verdict."""
+def _against_truth(written: ControllerConfig, truth: np.ndarray, model: ParameterModel,
+                   table: dict[str, dict[str, float | None]]) -> str:  # fmt: skip
+    """Print what was written next to the truth (and put it in ``table``: name -> written,
+    truth, error, std); return the verdict."""
     print("\nWhat was written, against the truth the simulation knows:")
     print(
         f"{'param':>6} {'unit':>5} {'written':>10} {'truth':>10} {'error':>8} {'std':>7} "
@@ -220,6 +247,8 @@ def _against_truth(written: ControllerConfig, truth: np.ndarray, model: Paramete
         i = INDEX[name]
         err = written.params[i] - truth[i]
         s = std.get(name)
+        table[name] = {"unit": UNITS[name], "written": float(written.params[i]),
+                       "truth": float(truth[i]), "error": float(err), "std": s}  # fmt: skip
         if s:
             worst = max(worst, abs(err / s))
         else:
@@ -234,9 +263,11 @@ def _against_truth(written: ControllerConfig, truth: np.ndarray, model: Paramete
     return f"written, every parameter within {math.ceil(worst * 10) / 10:.1f} std of the truth"
 
 
-def _end(t_start: float, status: int, verdict: str) -> int:
-    print(f"\nDone in {time.perf_counter() - t_start:.1f} s.")
+def _end(t_start: float, status: int, verdict: str, report: dict[str, Any]) -> int:
+    seconds = time.perf_counter() - t_start
+    print(f"\nDone in {seconds:.1f} s.")
     print(f"verdict: {verdict}", flush=True)
+    report.update(verdict=verdict, seconds=round(seconds, 1))
     return status
 
 
@@ -247,7 +278,9 @@ def _command_line(argv: list[str]) -> str:
 
 def _start(argv: list[str], **popen: Any) -> subprocess.Popen:
     """Start a ``loopcal`` command the way a technician's shell does: a process of its own,
-    through the same entry point."""
+    through the same entry point, its output to ours (stderr with --json)."""
+    sys.stdout.flush()
+    popen.setdefault("stdout", sys.stdout)
     return subprocess.Popen([sys.executable, "-m", "loopcal.daemon.cli", *argv], **popen)
 
 

@@ -1,4 +1,4 @@
-"""``loopcal fleet info|check ROOT ... [--out TABLE.csv] [--scheduler ADDRESS] [--workers N]``:
+"""``loopcal fleet info|check ROOT ... [--table FILE] [--json] [--scheduler ADDRESS]``:
 ``loopcal info`` and ``loopcal check`` over a fleet's archives, one task per robot and UTC
 day, on Dask (:mod:`loopcal.daemon.inspect.fleet`; ``pip install loopcal[fleet]``).
 
@@ -6,16 +6,20 @@ ROOT holds a directory per robot, each with its controller config (``controller.
 its recordings (directly, or in ``recordings/``). The tasks run on a local cluster of
 ``--workers`` processes, or on a running Dask scheduler (``--scheduler tcp://host:8786``:
 the workers must see the same paths). Progress goes to stderr; the table (one row per
-robot-day) to ``--out`` (CSV, or Parquet for a ``.parquet`` name) or stdout as CSV.
+robot-day) to ``--table`` (CSV, or Parquet for a ``.parquet`` name), or to stdout as CSV, or
+with ``--json`` as one JSON object ``{"columns": [...], "rows": [{column: value}, ...]}``.
 Exit status: 0, 1 if ``fleet check`` found a change, 2 for bad input.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import sys
 from pathlib import Path
 
+from ..arguments import path_argument
 from ..inspect.fleet import (
     CHECK_COLUMNS,
     CONFIG_NAME,
@@ -25,6 +29,7 @@ from ..inspect.fleet import (
     info_task,
     robot_days,
     run_on_dask,
+    table_columns,
     write_table,
 )
 from ..recording import RecordingError
@@ -34,11 +39,14 @@ from .check import add_false_alarm_option, check_false_alarm
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("what", choices=("info", "check"), help="info: what the archives hold; "
                    "check: did each robot's loops close at its controller config")  # fmt: skip
-    p.add_argument("roots", nargs="+", type=Path, metavar="ROOT",
+    p.add_argument("roots", nargs="+", type=path_argument, metavar="ROOT",
                    help="fleet roots: a directory per robot")  # fmt: skip
-    p.add_argument("--out", type=Path, metavar="TABLE",
-                   help="write the table here (.csv or .parquet; default: CSV on "
+    p.add_argument("--table", type=path_argument, metavar="FILE",
+                   help="write the table to FILE (.csv or .parquet; default: CSV on "
                         "stdout)")  # fmt: skip
+    p.add_argument("--json", action="store_true",
+                   help='the table as one JSON object on stdout: {"columns": [...], "rows": '
+                        "[...]}")  # fmt: skip
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (default: a local "
                         "cluster)")  # fmt: skip
@@ -60,8 +68,11 @@ def run(args: argparse.Namespace) -> int:
         if args.workers < 1:
             raise FleetError(f"--workers {args.workers}: at least 1")
         check_false_alarm(args.false_alarm)
-        if args.out is not None and not args.out.parent.is_dir():
-            raise FleetError(f"--out {args.out}: directory {args.out.parent} does not exist")
+        if args.table is not None and args.json:
+            raise FleetError("give --table or --json, not both")
+        if args.table is not None and not args.table.parent.is_dir():
+            raise FleetError(f"--table {args.table}: directory {args.table.parent} does not "
+                             "exist")  # fmt: skip
         tasks = [t for root in args.roots for t in robot_days(root, args.config_name)]
     except (ValueError, RecordingError, OSError) as exc:  # FleetError is a ValueError
         print(f"loopcal fleet: error: {exc}", file=sys.stderr)
@@ -91,12 +102,26 @@ def run(args: argparse.Namespace) -> int:
         columns = CHECK_COLUMNS
     if tty:
         print(file=sys.stderr)
-    out = args.out if args.out is not None else Path("/dev/stdout")
+    if args.json:
+        clean = [{k: _jsonable(v) for k, v in r.items()} for r in rows]
+        print(json.dumps({"columns": table_columns(rows, columns), "rows": clean}))
+        return _status(args, rows)
+    out = args.table if args.table is not None else Path("/dev/stdout")
     try:
         write_table(rows, columns, out)
     except (FleetError, OSError) as exc:
         print(f"loopcal fleet: error: {exc}", file=sys.stderr)
         return 2
-    if args.out is not None:
-        print(f"{len(rows)} rows: {args.out}", file=sys.stderr)
+    if args.table is not None:
+        print(f"{len(rows)} rows: {args.table}", file=sys.stderr)
+    return _status(args, rows)
+
+
+def _status(args: argparse.Namespace, rows: list[dict]) -> int:
     return 1 if args.what == "check" and any(r.get("changes") for r in rows) else 0
+
+
+def _jsonable(value):
+    """numpy scalars as Python numbers; NaN (no value) as null."""
+    value = value.item() if hasattr(value, "item") else value
+    return None if isinstance(value, float) and not math.isfinite(value) else value

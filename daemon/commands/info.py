@@ -15,14 +15,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
+from ..arguments import path_argument
 from ..inspect.summary import collect, render
 from ..recording import RecordingError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recordings", nargs="+", type=Path, metavar="REC.mcap|DIR",
+    p.add_argument("recordings", nargs="+", type=path_argument, metavar="REC.mcap|DIR",
                    help="recording files or directories of them")  # fmt: skip
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--no-poses", action="store_true",

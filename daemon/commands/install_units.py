@@ -24,12 +24,13 @@ import os
 import sys
 from pathlib import Path
 
+from ..arguments import path_argument
 from ..config.durable import replace
 from ..shipped import UNITS
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("root", type=Path, metavar="ROOT",
+    p.add_argument("root", type=path_argument, metavar="ROOT",
                    help="the root to install under: / on the controller, or a staging folder")
     p.add_argument("--force", action="store_true",
                    help="replace files that differ from loopcal's (edited by hand)")

@@ -1,11 +1,16 @@
 """``loopcal observability``: which parameters a pose set can identify (the paper's steps
-a-c), on simulated poses spread over the workspace."""
+a-c), on simulated poses spread over the workspace.
+
+Exit status: 0 every chosen parameter is observable, 1 some are not (the weak directions
+and a free set that reaches the condition limit are shown), 2 bad input."""
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 
-from loopcal.calibration.observability import analyse_identifiability
+from loopcal.calibration.observability import CONDITION_OK, analyse_identifiability
 from loopcal.calibration.selection import candidate_jacobian
 from loopcal.calibration.simulate import simulate_poses
 
@@ -14,17 +19,44 @@ from .model_options import add_model_options, model_from_args
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_model_options(p)
-    p.add_argument("--poses", type=int, default=450)
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--condition-limit", type=float, default=1000.0)
+    p.add_argument("--poses", type=int, default=450, metavar="N",
+                   help="simulated poses spread over the workspace (default 450)")  # fmt: skip
+    p.add_argument("--seed", type=int, default=1, help="random seed of the poses (default 1)")
+    p.add_argument("--condition-limit", type=float, default=CONDITION_OK, metavar="C",
+                   help="the largest condition number a free set may have "
+                        f"(default {CONDITION_OK:g})")  # fmt: skip
+    p.add_argument("--json", action="store_true",
+                   help="one JSON object on stdout: indices, status and relative std per "
+                        "parameter, weak directions, the suggested free set")  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.poses < 1:
+        raise ValueError(f"--poses {args.poses}: at least 1")
     model = model_from_args(args)
     ps = simulate_poses(args.poses, seed=args.seed, noise_volts=0.0, quantize=False)
     cand = candidate_jacobian(ps.volts, model, ps.truth)
     report = analyse_identifiability(
         cand.jacobian[cand.usable], model, condition_limit=args.condition_limit
     )
-    print(report.summary())
-    return 0
+    if args.json:
+        def num(x: float) -> float | None:
+            return float(x) if math.isfinite(x) else None
+
+        print(json.dumps({
+            "free": list(model.free),
+            "ties": [{"follower": t.follower, "leader": t.leader, "ratio": t.ratio}
+                     for t in model.ties],
+            "poses": report.indices.n_poses,
+            "indices": {k: num(v) for k, v in report.indices.as_dict().items()},
+            "status": report.status,
+            "relative_std": {k: num(v) for k, v in report.relative_std.items()},
+            "weak_directions": [
+                {"weights": c.weights, "singular_value": num(c.singular_value),
+                 "condition": num(c.condition)} for c in report.combinations],
+            "suggested_free": list(report.suggestion.free) if report.suggestion else None,
+            "observable": report.observable,
+        }, indent=1))  # fmt: skip
+    else:
+        print(report.summary())
+    return 0 if report.observable else 1

@@ -14,17 +14,16 @@ import argparse
 import signal
 import sys
 import threading
-from pathlib import Path
 
 import numpy as np
 
 from loopcal.drivers.ldq412 import POWER_CYCLE_S
-from loopcal.simulator.emulator import TRANSPORTS
 from loopcal.simulator.open_points import add_arguments as add_open_point_arguments
 from loopcal.simulator.open_points import from_arguments as open_points_from_arguments
 from loopcal.simulator.replay import Player, RecordedPowerOn
-from loopcal.simulator.run import listen_host, tcp_port
+from loopcal.simulator.run import add_transport_option, listen_host, tcp_port
 
+from ..arguments import path_argument
 from ..recording import RecordingError, read_recordings
 from ..scans import scan_rate_hz
 
@@ -35,11 +34,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "recordings",
         nargs="+",
-        type=Path,
+        type=path_argument,
         metavar="REC.mcap",
         help="recording files, or a directory of them",
     )
-    p.add_argument("--transport", choices=TRANSPORTS, default="modbus-tcp")
+    add_transport_option(p, "the wire the replayed module answers on")
     p.add_argument(
         "--speed", type=float, default=1.0, help="device seconds per real second (default 1)"
     )

@@ -40,6 +40,7 @@ import tomlkit
 from loopcal.calibration.errors import ParameterError
 from loopcal.calibration.kinematics import check_geometry
 from loopcal.calibration.parameters import (
+    DEFAULT_FREE,
     INDEX,
     NAMES,
     NOMINAL,
@@ -56,7 +57,6 @@ TABLES: tuple[str, ...] = ("parameters", "calibration", "provenance")
 #: the keys of ``[calibration]``
 CALIBRATION_KEYS: tuple[str, ...] = ("free", "ties")
 #: ``[calibration].free`` when the file does not say
-DEFAULT_FREE = "paper7"
 
 #: what each parameter is (the unit follows from loopcal.calibration.parameters.UNITS)
 DESCRIPTIONS: dict[str, str] = {

@@ -23,7 +23,7 @@ from __future__ import annotations
 import csv
 import math
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -168,16 +168,14 @@ def run_on_dask(
     return [r for r in rows if r is not None]
 
 
-def run_here(tasks: list[RobotDay], fn: Callable[..., dict[str, Any]],
-             *args: Any) -> Iterator[dict[str, Any]]:  # fmt: skip
-    """The same tasks in this process, one after the other (the baseline for the bench)."""
-    for t in tasks:
-        yield fn(t, *args)
+def table_columns(rows: list[dict[str, Any]], columns: tuple[str, ...]) -> list[str]:
+    """The table's columns: ``columns``, then any other key of the rows, sorted."""
+    return list(columns) + sorted({k for r in rows for k in r} - set(columns))
 
 
 def write_table(rows: list[dict[str, Any]], columns: tuple[str, ...], path: Path) -> None:
     """The rows as CSV (``.csv``) or Parquet (``.parquet``, with pandas and pyarrow)."""
-    cols = list(columns) + sorted({k for r in rows for k in r} - set(columns))
+    cols = table_columns(rows, columns)
     if path.suffix == ".parquet":
         try:
             import pandas as pd

@@ -32,6 +32,8 @@ from ..worker.poses import RecordedPoses, poses_of_scans
 from ..worker.run import run_worker
 
 PERIOD_S = 1.0
+#: the default target: every offset's predicted standard deviation, mm
+TARGET_MM = 0.1
 OFFSETS = tuple(n for n in INDEX if SL_OFFSET.start <= INDEX[n] < SL_OFFSET.stop)
 #: in the last RECENT_S seconds, less than this share of scans in still poses means the
 #: technician is not holding the positions long enough
@@ -129,7 +131,7 @@ class Guidance:
         controller: ControllerConfig,
         model: ParameterModel,
         *,
-        target_mm: float = 0.1,
+        target_mm: float = TARGET_MM,
         on_update: Callable[[GuidanceUpdate], None] = lambda _: None,
         on_enough: Callable[[GuidanceUpdate], None] = lambda _: None,
         period_s: float = PERIOD_S,

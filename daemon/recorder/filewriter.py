@@ -60,7 +60,7 @@ def prepare_directory(directory: Path) -> None:
 
     def refuse(what: str, exc: OSError | None = None) -> SettingsError:
         why = f": {exc.strerror or exc}" if exc is not None else ""
-        return SettingsError(f"[recording].directory: {directory}: {what}{why}")
+        return SettingsError(f"{directory}: {what}{why}", "directory")
 
     try:
         directory.mkdir(parents=True, exist_ok=True)

@@ -178,7 +178,7 @@ class MetricsServer:
             self._server, self._thread = start_http_server(port, host, registry=self.registry)
         except OSError as exc:
             raise SettingsError(
-                f"[metrics].listen: cannot serve metrics on {listen}: {exc.strerror or exc}"
+                f"cannot serve metrics on {listen}: {exc.strerror or exc}", "metrics_listen"
             ) from None
         self.url = f"http://{listen}/metrics"
 

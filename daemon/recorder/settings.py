@@ -1,46 +1,29 @@
-"""The recorder's settings: from ``loopcal record``'s options or ``loopcal daemon``'s TOML.
+"""The recorder's settings, declared once: every setting's TOML key, ``loopcal record``
+option, default, help and checks come from :class:`RecorderSettings`' fields.
 
-The daemon's config file (every key; docs/daemon.md says the same)::
-
-    [daq]
-    url = "modbus-tcp://192.168.1.50:502?unit=1"   # required: the driver URL
-    timeout = 0.1            # s without an answer before a read fails (datasheet: 0.1)
-    read_period = 0.2        # s between FIFO reads (Modbus); without a FIFO it polls each scan
-
-    [recording]
-    directory = "/var/lib/loopcal/recordings"      # required: where recordings go
-    flush_period = 1.0       # s between flushes to the disk (0.05 .. 1)
-    rotate_seconds = 3600    # start a new file after this long (>= 1)
-    rotate_size = "256 MiB"  # ... or once a file is this big (bytes, or "N KiB|MiB|GiB")
-    disk_budget = "20 GiB"   # delete the oldest recordings to stay under this; 0: keep all
-    max_backlog_scans = 500000  # scans kept in memory while the disk refuses them
-    compact = true           # rewrite closed files with large chunks for fast reading
-
-    [controller]
-    config = "/etc/loopcal/controller/controller.toml"        # the controller config the poses use
-
-    [health]
-    enabled = true           # watch loop closure and raise offset_drift events
-    false_alarm = 1e-8       # probability per still pose of an alarm when nothing moved
-
-    [metrics]
-    listen = "127.0.0.1:9464"  # serve Prometheus metrics on http://HOST:PORT/metrics (off
-                               # unless given)
-
-Unknown tables or keys and bad values are refused with a message naming the key.
+:func:`load_daemon_config` reads ``loopcal daemon``'s TOML config; :func:`add_options` and
+:func:`settings_from_args` are ``loopcal record``'s options for the same settings;
+:func:`markdown_table` is docs/daemon.md's table of keys (a test keeps the two the same).
+Unknown tables or keys and bad values are refused with a message naming the key as the
+user wrote it (``[recording].rotate_size`` in a config, ``--rotate-size`` on the command
+line).
 """
 
 from __future__ import annotations
 
+import argparse
 import math
 import os
 import re
 import tomllib
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 from loopcal.drivers import driver_for_url, ldq412
+
+from ..arguments import path_argument
 
 _SIZE_RE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(B|KiB|MiB|GiB|TiB|kB|MB|GB|TB)?\s*$")
 _UNITS = {None: 1, "B": 1, "KiB": 1 << 10, "MiB": 1 << 20, "GiB": 1 << 30, "TiB": 1 << 40,
@@ -51,60 +34,134 @@ _MAX_SIZE = float(1 << 62)
 #: the most scans the backlog may hold in memory (about 560 MB)
 MAX_BACKLOG_SCANS = 10_000_000
 
-
 class SettingsError(ValueError):
-    """A bad setting; the message names the file (if any) and the key."""
+    """A bad setting. ``field`` is the :class:`RecorderSettings` field at fault (None when
+    no one key is), ``detail`` what is wrong, ``where`` the config file (if any); the
+    message names the key as a config writes it (:meth:`named` names it otherwise)."""
+
+    def __init__(self, detail: str, field: str | None = None, where: str = "") -> None:
+        self.detail, self.field, self.where = detail, field, where
+        super().__init__(self.named(config_key))
+
+    def named(self, name: Callable[[str], str]) -> str:
+        """The message, with the key named by ``name(field)`` (:func:`config_key`,
+        :func:`option_name`)."""
+        prefix = f"{self.where}: " if self.where else ""
+        key = f"{name(self.field)}: " if self.field else ""
+        return prefix + key + self.detail
+
+
+@dataclass(frozen=True)
+class Setting:
+    """How a setting is written and checked.
+
+    kind: url, path, seconds, size, count, switch, probability or listen. help: what it
+    means (the option's help and the docs' table). key: ``[table].key`` in the daemon's
+    config (None: command line only). option: ``loopcal record``'s option (None: config
+    only; for a switch, the option that turns it off). shown_default: the default as the
+    docs write it, if not the value itself. lo, hi: bounds of a number of seconds (lo None:
+    > 0). metavar: the option's placeholder."""
+
+    kind: str
+    help: str
+    key: str | None = None
+    option: str | None = None
+    shown_default: str | None = None
+    lo: float | None = None
+    hi: float = math.inf
+    metavar: str | None = None
+
+
+def _setting(default: Any = MISSING, **spec: Any) -> Any:
+    return field(default=default, metadata={"setting": Setting(**spec)})
 
 
 @dataclass(frozen=True)
 class RecorderSettings:
-    """Everything the recorder needs.
+    """Everything the recorder needs; each field's :class:`Setting` says how it is written
+    (docs/daemon.md's table is :func:`markdown_table`). Units: s, bytes, scans."""
 
-    daq_url: driver URL. timeout_s: answer timeout. read_period_s: s between FIFO reads.
-    directory: where recordings go. flush_period_s: s between flushes (at most 1, so a
-    crash loses at most that much). rotate_seconds, rotate_bytes: start a new file after
-    this long or this big. disk_budget_bytes: delete the oldest recordings to stay under it
-    (0: keep all). max_backlog_scans: scans kept in memory while the disk refuses them.
-    controller_config: the controller config file, or None for the reference geometry.
-    duration_s: stop after this long (``loopcal record --duration``), or None.
-    metrics_listen: "HOST:PORT" to serve Prometheus metrics on (None: off). compact: rewrite
-    every closed (rotated) file with large chunks in the background
-    (:mod:`loopcal.daemon.recording.compact`).
-    health: watch loop closure (:mod:`loopcal.daemon.live.health`); health_false_alarm: its
-    false-alarm probability per still pose.
-    """
-
-    daq_url: str
-    directory: Path
-    timeout_s: float = ldq412.HOST_TIMEOUT_S
-    read_period_s: float = 0.2
-    flush_period_s: float = 1.0
-    rotate_seconds: float = 3600.0
-    rotate_bytes: int = 256 << 20
-    disk_budget_bytes: int = 0
-    max_backlog_scans: int = 500_000
-    controller_config: Path | None = None
-    duration_s: float | None = None
-    health: bool = True
-    health_false_alarm: float = 1e-8
-    compact: bool = True
-    metrics_listen: str | None = None
+    daq_url: str = _setting(
+        kind="url", key="[daq].url", option="--daq", metavar="URL",
+        help="driver URL, e.g. modbus-tcp://192.168.1.50:502?unit=1, "
+             "modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1 or "
+             "ascii:///dev/ttyS0?baud=115200&addr=01&checksum=0 (docs/daq.md lists every "
+             "parameter)")  # fmt: skip
+    directory: Path = _setting(
+        kind="path", key="[recording].directory", option="--out", metavar="DIR",
+        help="where recordings go; created if missing; in a config, a relative path is "
+             "relative to the config file")  # fmt: skip
+    timeout_s: float = _setting(
+        ldq412.HOST_TIMEOUT_S, kind="seconds", key="[daq].timeout", option="--timeout", hi=10.0,
+        help="seconds without an answer before a read fails (the datasheet's 100 ms); at "
+             "most 10")  # fmt: skip
+    read_period_s: float = _setting(
+        0.2, kind="seconds", key="[daq].read_period", option="--read-period", hi=5.0,
+        help="seconds between FIFO reads; at most 5 (the FIFO holds 12.8 s at 20 Hz); "
+             "without a FIFO the module is polled once a scan")  # fmt: skip
+    flush_period_s: float = _setting(
+        1.0, kind="seconds", key="[recording].flush_period", option="--flush-period",
+        lo=0.05, hi=1.0,
+        help="seconds between flushes to disk, 0.05 to 1: what a crash can lose at "
+             "most")  # fmt: skip
+    rotate_seconds: float = _setting(
+        3600.0, kind="seconds", key="[recording].rotate_seconds", option="--rotate-seconds",
+        lo=1.0, help="a new file after this many seconds (at least 1)")  # fmt: skip
+    rotate_bytes: int = _setting(
+        256 << 20, kind="size", key="[recording].rotate_size", option="--rotate-size",
+        shown_default="256 MiB",
+        help='a new file once this big: bytes, or a text such as "64 MiB", "2 GB" (at least '
+             "64 KiB)")  # fmt: skip
+    disk_budget_bytes: int = _setting(
+        0, kind="size", key="[recording].disk_budget", option="--disk-budget",
+        shown_default="0: keep all",
+        help="delete the oldest recordings to stay under this; at least two files' "
+             "worth")  # fmt: skip
+    max_backlog_scans: int = _setting(
+        500_000, kind="count", key="[recording].max_backlog_scans",
+        option="--max-backlog-scans",
+        help="scans kept in memory while the disk refuses writes (about 7 hours at 20 Hz, "
+             "30 MB); the oldest are dropped beyond, with an event")  # fmt: skip
+    compact: bool = _setting(
+        True, kind="switch", key="[recording].compact", option="--no-compact",
+        help="rewrite each closed file with large chunks, for fast reading (off: the "
+             "one-second chunks stay as written)")  # fmt: skip
+    controller_config: Path | None = _setting(
+        None, kind="path", key="[controller].config", option="--controller-config",
+        shown_default="none",
+        help="the controller config for the recorded poses and loop-closure health "
+             "(loopcal init-config writes one); without it, the reference geometry")  # fmt: skip
+    duration_s: float | None = _setting(
+        None, kind="seconds", option="--duration", shown_default="until SIGINT/SIGTERM",
+        help="stop after this many seconds")  # fmt: skip
+    health: bool = _setting(
+        True, kind="switch", key="[health].enabled", option="--no-health",
+        help="watch loop closure and raise offset_drift events")  # fmt: skip
+    health_false_alarm: float = _setting(
+        1e-8, kind="probability", key="[health].false_alarm", shown_default="1e-8",
+        help="probability per still pose of an alarm when nothing moved, below 0.01")  # fmt: skip
+    metrics_listen: str | None = _setting(
+        None, kind="listen", key="[metrics].listen", option="--metrics",
+        metavar="HOST:PORT", shown_default="off",
+        help="serve Prometheus metrics on http://HOST:PORT/metrics, e.g. "
+             "127.0.0.1:9464")  # fmt: skip
 
     def checked(self, where: str = "") -> RecorderSettings:
         """Validate every value; raises SettingsError naming the key."""
-        prefix = f"{where}: " if where else ""
 
         def bad(key: str, why: str) -> SettingsError:
-            return SettingsError(f"{prefix}{_KEY_NAMES.get(key, key)}: {why}")
+            return SettingsError(why, key, where)
 
         try:
             driver_for_url(self.daq_url)
         except ValueError as exc:
             raise bad("daq_url", str(exc)) from None
-        _positive(self.timeout_s, "timeout_s", bad, hi=10.0)
-        _positive(self.read_period_s, "read_period_s", bad, hi=5.0)
-        _positive(self.flush_period_s, "flush_period_s", bad, lo=0.05, hi=1.0)
-        _positive(self.rotate_seconds, "rotate_seconds", bad, lo=1.0)
+        for name, spec in SETTINGS.items():
+            value = getattr(self, name)
+            if spec.kind == "seconds" and value is not None:
+                _seconds(value, name, bad, lo=spec.lo, hi=spec.hi)
+            elif spec.kind == "switch" and not isinstance(value, bool):
+                raise bad(name, f"must be true or false, got {value!r}")
         if not isinstance(self.rotate_bytes, int) or self.rotate_bytes < 64 << 10:
             raise bad("rotate_bytes", f"must be at least 64 KiB, got {self.rotate_bytes!r}")
         if not isinstance(self.disk_budget_bytes, int) or self.disk_budget_bytes < 0:
@@ -119,14 +176,8 @@ class RecorderSettings:
                 or not 1000 <= self.max_backlog_scans <= MAX_BACKLOG_SCANS):  # fmt: skip
             raise bad("max_backlog_scans", f"must be an integer in 1000..{MAX_BACKLOG_SCANS}, "
                       f"got {self.max_backlog_scans!r}")  # fmt: skip
-        if self.duration_s is not None:
-            _positive(self.duration_s, "duration_s", bad)
         if str(self.directory) == "":
             raise bad("directory", "is empty")
-        if not isinstance(self.health, bool):
-            raise bad("health", f"must be true or false, got {self.health!r}")
-        if not isinstance(self.compact, bool):
-            raise bad("compact", f"must be true or false, got {self.compact!r}")
         fa = self.health_false_alarm
         if isinstance(fa, bool) or not isinstance(fa, (int, float)) or not 0 < fa < 1e-2:
             raise bad("health_false_alarm", f"must be a probability in (0, 0.01), got {fa!r}")
@@ -138,26 +189,29 @@ class RecorderSettings:
         return self
 
 
-_KEY_NAMES = {
-    "daq_url": "[daq].url",
-    "timeout_s": "[daq].timeout",
-    "read_period_s": "[daq].read_period",
-    "directory": "[recording].directory",
-    "flush_period_s": "[recording].flush_period",
-    "rotate_seconds": "[recording].rotate_seconds",
-    "rotate_bytes": "[recording].rotate_size",
-    "disk_budget_bytes": "[recording].disk_budget",
-    "max_backlog_scans": "[recording].max_backlog_scans",
-    "compact": "[recording].compact",
-    "controller_config": "[controller].config",
-    "duration_s": "--duration",
-    "health": "[health].enabled",
-    "health_false_alarm": "[health].false_alarm",
-    "metrics_listen": "[metrics].listen",
+#: field name -> its Setting, in declaration order
+SETTINGS: dict[str, Setting] = {f.name: f.metadata["setting"] for f in fields(RecorderSettings)}
+#: field name -> its default (fields with none are required)
+DEFAULTS: dict[str, Any] = {
+    f.name: f.default for f in fields(RecorderSettings) if f.default is not MISSING
 }
 
 
-def _positive(value: Any, key: str, bad, *, lo: float | None = None, hi: float = math.inf) -> None:
+def config_key(name: str) -> str:
+    """How a daemon config names field ``name`` (``[recording].rotate_size``), or the
+    option for a command-line-only setting."""
+    spec = SETTINGS[name]
+    return spec.key or spec.option or name
+
+
+def option_name(name: str) -> str:
+    """How ``loopcal record`` names field ``name`` (``--rotate-size``), or the config key
+    for a config-only setting."""
+    spec = SETTINGS[name]
+    return spec.option or spec.key or name
+
+
+def _seconds(value: Any, key: str, bad, *, lo: float | None = None, hi: float = math.inf) -> None:
     """A number of seconds, > 0 (or >= lo if given) and <= hi."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise bad(key, f"must be a number of seconds, got {value!r}")
@@ -185,93 +239,155 @@ def parse_size(value: Any) -> int:
     raise ValueError(f'{value!r} is not a size (bytes, or e.g. "256 MiB", "20 GiB")')
 
 
-#: [table] -> {key: (field, converter)}
-_SCHEMA: dict[str, dict[str, str]] = {
-    "daq": {"url": "daq_url", "timeout": "timeout_s", "read_period": "read_period_s"},
-    "recording": {
-        "directory": "directory",
-        "flush_period": "flush_period_s",
-        "rotate_seconds": "rotate_seconds",
-        "rotate_size": "rotate_bytes",
-        "disk_budget": "disk_budget_bytes",
-        "max_backlog_scans": "max_backlog_scans",
-        "compact": "compact",
-    },
-    "controller": {"config": "controller_config"},
-    "health": {"enabled": "health", "false_alarm": "health_false_alarm"},
-    "metrics": {"listen": "metrics_listen"},
-}
-_REQUIRED = {("daq", "url"), ("recording", "directory")}
+def _tables() -> dict[str, dict[str, str]]:
+    """[table] -> {key: field}, from the settings' keys."""
+    tables: dict[str, dict[str, str]] = {}
+    for name, spec in SETTINGS.items():
+        if spec.key is not None:
+            table, key = spec.key[1:].split("].")
+            tables.setdefault(table, {})[key] = name
+    return tables
 
 
 def load_daemon_config(path: str | os.PathLike) -> RecorderSettings:
-    """Read and validate ``loopcal daemon``'s TOML config (see the module docstring)."""
+    """Read and validate ``loopcal daemon``'s TOML config (keys: :data:`SETTINGS`)."""
     p = Path(path)
     try:
         raw = p.read_bytes()
     except OSError as exc:
-        raise SettingsError(f"{p}: cannot read the config: {exc.strerror or exc}") from None
+        raise SettingsError(f"cannot read the config: {exc.strerror or exc}", where=str(p)) \
+            from None  # fmt: skip
     try:
         doc = tomllib.loads(raw.decode("utf-8"))
     except UnicodeDecodeError:
-        raise SettingsError(f"{p}: not UTF-8 text") from None
+        raise SettingsError("not UTF-8 text", where=str(p)) from None
     except tomllib.TOMLDecodeError as exc:
-        raise SettingsError(f"{p}: not valid TOML: {exc}") from None
-    fields: dict[str, Any] = {}
+        raise SettingsError(f"not valid TOML: {exc}", where=str(p)) from None
+    schema = _tables()
+    values: dict[str, Any] = {}
     for table, value in doc.items():
-        if table not in _SCHEMA:
+        if table not in schema:
             raise SettingsError(
-                f"{p}: unknown table or key {table!r} (known tables: "
-                f"{', '.join(f'[{t}]' for t in _SCHEMA)})"
-            )
+                f"unknown table or key {table!r} (known tables: "
+                f"{', '.join(f'[{t}]' for t in schema)})", where=str(p)
+            )  # fmt: skip
         if not isinstance(value, dict):
-            raise SettingsError(f"{p}: {table!r} must be a table [{table}]")
+            raise SettingsError(f"{table!r} must be a table [{table}]", where=str(p))
         for key, v in value.items():
-            if key not in _SCHEMA[table]:
+            if key not in schema[table]:
                 raise SettingsError(
-                    f"{p}: [{table}].{key}: unknown key (known: {', '.join(_SCHEMA[table])})"
+                    f"[{table}].{key}: unknown key (known: {', '.join(schema[table])})",
+                    where=str(p),
                 )
-            field = _SCHEMA[table][key]
-            fields[field] = _convert(p, table, key, field, v)
-    for table, key in sorted(_REQUIRED):
-        if _SCHEMA[table][key] not in fields:
-            raise SettingsError(f"{p}: [{table}].{key} is required")
-    return RecorderSettings(**fields).checked(str(p))
+            name = schema[table][key]
+            values[name] = _convert(p, name, v)
+    for name in SETTINGS:
+        if name not in DEFAULTS and name not in values:
+            raise SettingsError(f"{config_key(name)} is required", where=str(p))
+    return RecorderSettings(**values).checked(str(p))
 
 
-def _convert(p: Path, table: str, key: str, field: str, v: Any) -> Any:
-    where = f"{p}: [{table}].{key}"
-    if field in ("daq_url", "metrics_listen"):
+def _convert(p: Path, name: str, v: Any) -> Any:
+    """A TOML value as field ``name`` holds it (type errors here; ranges in checked())."""
+    kind = SETTINGS[name].kind
+
+    def bad(why: str) -> SettingsError:
+        return SettingsError(why, name, str(p))
+
+    if kind in ("url", "listen"):
         if not isinstance(v, str):
-            raise SettingsError(f"{where}: must be a string, got {v!r}")
+            raise bad(f"must be a string, got {v!r}")
         return v
-    if field in ("directory", "controller_config"):
+    if kind == "path":
         if not isinstance(v, str) or not v or "\0" in v:
-            raise SettingsError(f"{where}: must be a path (a non-empty string), got {v!r}")
+            raise bad(f"must be a path (a non-empty string), got {v!r}")
         path = Path(v)
         if not path.is_absolute():
             path = (p.parent / path).resolve()  # relative to the config file
         return path
-    if field in ("rotate_bytes", "disk_budget_bytes"):
+    if kind == "size":
         try:
             return parse_size(v)
         except ValueError as exc:
-            raise SettingsError(f"{where}: {exc}") from None
-    if field in ("health", "compact"):
+            raise bad(str(exc)) from None
+    if kind == "switch":
         if not isinstance(v, bool):
-            raise SettingsError(f"{where}: must be true or false, got {v!r}")
+            raise bad(f"must be true or false, got {v!r}")
         return v
-    if field == "health_false_alarm":
+    if kind == "probability":
         if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise SettingsError(f"{where}: must be a probability, got {v!r}")
+            raise bad(f"must be a probability, got {v!r}")
         return float(v)
-    if field == "max_backlog_scans":
+    if kind == "count":
         if isinstance(v, bool) or not isinstance(v, int):
-            raise SettingsError(f"{where}: must be an integer, got {v!r}")
+            raise bad(f"must be an integer, got {v!r}")
         return v
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise SettingsError(f"{where}: must be a number of seconds, got {v!r}")
+        raise bad(f"must be a number of seconds, got {v!r}")
     return float(v)
+
+
+def _size_option(text: str) -> int:
+    try:
+        return parse_size(int(text) if text.isdigit() else text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+_OPTION_TYPES: dict[str, Callable[[str], Any]] = {
+    "url": str, "listen": str, "path": path_argument, "seconds": float, "size": _size_option,
+    "count": int, "probability": float,
+}  # fmt: skip
+
+
+def add_options(p: argparse.ArgumentParser) -> None:
+    """``loopcal record``'s options for every setting that has one (dest: the field)."""
+    for name, spec in SETTINGS.items():
+        if spec.option is None:
+            continue
+        if spec.kind == "switch":
+            p.add_argument(spec.option, dest=name, action="store_false",
+                           help=f"switch off the default: {spec.help}")  # fmt: skip
+            continue
+        required = name not in DEFAULTS
+        shown = "" if required else f" (default {shown_default(name)})"
+        p.add_argument(spec.option, dest=name, required=required, type=_OPTION_TYPES[spec.kind],
+                       default=DEFAULTS.get(name), metavar=spec.metavar or _metavar(spec.kind),
+                       help=spec.help + shown)  # fmt: skip
+
+
+def _metavar(kind: str) -> str:
+    return {"seconds": "S", "size": "SIZE", "count": "N", "path": "PATH"}.get(kind, "VALUE")
+
+
+def settings_from_args(args: argparse.Namespace) -> RecorderSettings:
+    """The settings :func:`add_options` parsed (checked; a SettingsError names the field)."""
+    return RecorderSettings(
+        **{name: getattr(args, name) for name, spec in SETTINGS.items() if spec.option}
+    ).checked()
+
+
+def shown_default(name: str) -> str:
+    """Field ``name``'s default as the docs and the help write it."""
+    spec = SETTINGS[name]
+    if name not in DEFAULTS:
+        return "required"
+    if spec.shown_default is not None:
+        return spec.shown_default
+    value = DEFAULTS[name]
+    return str(value).lower() if isinstance(value, bool) else f"{value:g}" \
+        if isinstance(value, float) else str(value)  # fmt: skip
+
+
+def markdown_table() -> str:
+    """docs/daemon.md's table of the daemon config's keys (and loopcal record's options)."""
+    rows = ["| key | `loopcal record` | default | meaning |", "|---|---|---|---|"]
+    for name, spec in SETTINGS.items():
+        if spec.key is None:
+            continue
+        option = f"`{spec.option}`" if spec.option else "-"
+        rows.append(f"| `{spec.key}` | {option} | {shown_default(name)} | {spec.help} |")
+    return "\n".join(rows) + "\n"
 
 
 _LISTEN_RE = re.compile(

@@ -11,17 +11,27 @@ reader reads it as before (ours, Python ``mcap``, Foxglove's).
 
 Nothing can be lost doing it: the new version goes to a temporary file beside the original
 (``.NAME.compact.tmp``), is read back with :func:`~loopcal.daemon.recording.read_recordings` and
-compared scan for scan, event for event, message count for message count with the original,
+compared scan for scan and event for event with the original, and message count for message
+count with the original's own statistics record (every chunk's CRC checked as it is copied:
+the mcap library would skip a chunk it cannot read, or copy a corrupted one, without a word),
 fsynced, and only then renamed over it (atomic), and the directory fsynced. A file that is
-not closed, not intact, or already compact is left as it is (already compact is told from
-its metadata record alone, without reading its chunks). Killed at any step, the
-original is there, whole, or the compacted copy is; a temporary file left behind is removed
-by the next compaction of the directory.
+not closed, has any record that does not check out, or is already compact is left as it
+is (already compact is told from its metadata record alone, without reading its chunks).
+Killed at any step, the original is there, whole, or the compacted copy is; a temporary
+file left behind is removed by the next compaction of the directory.
+
+Two compactions at once (two ``loopcal compact`` on one directory, or one beside the
+daemon's compactor) never touch each other's work: a compaction holds an advisory lock
+(``flock``) on the original from before its temporary file exists until it is renamed, a
+second one of the same file finds the lock taken and leaves the file to it, and a
+temporary file is removed as stale only while its original's lock can be had (its writer
+is gone).
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import logging
 import os
 import threading
@@ -48,8 +58,9 @@ _RAW_TOPICS = (TOPIC_SCANS, TOPIC_EVENTS, TOPIC_LOG)
 
 @dataclass(frozen=True)
 class Compacted:
-    """What :func:`compact` did: ``done`` (the file was rewritten) or why not; the chunk
-    counts and sizes before and after."""
+    """What :func:`compact` did: ``done`` (the file was rewritten) or why not (``failed``:
+    because of something wrong with the file or its copy, not because it needs no
+    compaction); the chunk counts and sizes before and after."""
 
     path: Path
     done: bool
@@ -58,17 +69,43 @@ class Compacted:
     chunks_after: int = 0
     bytes_before: int = 0
     bytes_after: int = 0
+    failed: bool = False
 
 
 def _tmp_of(path: Path) -> Path:
     return path.with_name(f".{path.name}.compact.tmp")
 
 
+@contextlib.contextmanager
+def _compacting(path: Path):
+    """Hold the compaction lock of ``path`` (``flock`` on the original); yields False, and
+    holds nothing, when another process holds it. A missing original yields True (its
+    temporary, if any, has no writer left)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except FileNotFoundError:
+        yield True
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            yield False
+            return
+        yield True
+    finally:
+        os.close(fd)  # releases the lock
+
+
 def remove_stale_temporaries(directory: Path) -> None:
     """Remove the temporary files (:func:`_tmp_of`) that killed compactions left in a
-    directory; call it before any compaction there."""
-    for stale in Path(directory).glob(".loopcal-*.mcap.compact.tmp"):
-        stale.unlink(missing_ok=True)
+    directory, never one whose compaction is still running; call it before any compaction
+    there."""
+    for tmp in Path(directory).glob(".loopcal-*.mcap.compact.tmp"):
+        original = tmp.with_name(tmp.name.removeprefix(".").removesuffix(".compact.tmp"))
+        with _compacting(original) as ours:
+            if ours:
+                tmp.unlink(missing_ok=True)
 
 
 def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compacted:
@@ -81,13 +118,22 @@ def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compac
     path = Path(path)
     if _says_compacted(path):
         return Compacted(path, False, "already compact")
+    with _compacting(path) as ours:
+        if not ours:
+            return Compacted(path, False, "being compacted by another process")
+        return _compact_locked(path, replace_lock)
+
+
+def _compact_locked(path: Path, replace_lock: threading.Lock | None) -> Compacted:
     try:
         original = read_recordings(path)
     except RecordingError as exc:
-        return Compacted(path, False, f"not readable: {exc}")
+        return Compacted(path, False, f"not readable: {exc}", failed=True)
     info = original.files[0]
-    if not info.complete or not info.intact:
-        return Compacted(path, False, "not closed, or damaged: left as it is")
+    if not info.intact:
+        return Compacted(path, False, "damaged: left as it is", failed=True)
+    if not info.complete:
+        return Compacted(path, False, "not closed: left as it is")
     if "compacted_utc" in info.metadata.get("loopcal", {}):
         return Compacted(path, False, "already compact")
     before = path.stat()
@@ -95,13 +141,18 @@ def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compac
     tmp = _tmp_of(path)
     tmp.unlink(missing_ok=True)
     try:
-        chunks_before, counts = _rewrite(path, tmp)
+        try:
+            chunks_before, counts = _rewrite(path, tmp)
+        except _Damaged as exc:
+            tmp.unlink(missing_ok=True)
+            log.error("not compacting %s: damaged: %s; left as it is", path, exc)
+            return Compacted(path, False, f"damaged: {exc}: left as it is", failed=True)
         durable.step("compact-written")
         chunks_after, problem = _verify(tmp, original, counts)
         if problem:
             tmp.unlink(missing_ok=True)
             log.error("compacting %s: %s; the original is kept", path, problem)
-            return Compacted(path, False, f"verification failed: {problem}")
+            return Compacted(path, False, f"verification failed: {problem}", failed=True)
         durable.step("compact-verified")
         with replace_lock if replace_lock is not None else contextlib.nullcontext():
             try:
@@ -141,14 +192,24 @@ def _says_compacted(path: Path) -> bool:
     return "compacted_utc" in record and record.get("format", FORMAT_VERSION) == FORMAT_VERSION
 
 
+class _Damaged(Exception):
+    """The original holds a record that does not check out (a chunk's CRC, a message the
+    library could not read, fewer messages than its statistics record)."""
+
+
 def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
     """Write the compacted copy; returns the original's chunk count and its message count
-    per channel id."""
+    per channel id as its own statistics record them. Raises :class:`_Damaged` when the
+    original's messages do not all read back (checked against those statistics, every
+    chunk's CRC validated: the library skips what it cannot read without a word)."""
     with open(path, "rb") as src:
-        reader = make_reader(src)
+        reader = make_reader(src, validate_crcs=True)
         header = reader.get_header()
         summary = reader.get_summary()
         assert summary is not None  # a closed, intact file (checked by the caller)
+        if summary.statistics is None:
+            raise _Damaged("no statistics record to check its messages against")
+        recorded = {k: v for k, v in summary.statistics.channel_message_counts.items() if v}
         metadata = [(m.name, dict(m.metadata)) for m in reader.iter_metadata()]
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC,
                      os.stat(path).st_mode & 0o7777)  # fmt: skip
@@ -175,15 +236,26 @@ def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
             views = {c.topic for c in summary.channels.values()} - set(_RAW_TOPICS)
             for topics in (_RAW_TOPICS, views):  # the scans' chunks first, then the views' own
                 # topics: the chunks holding none of them are skipped, not decompressed
-                for _, channel, message in reader.iter_messages(topics, log_time_order=False):
-                    counts[channel.id] = counts.get(channel.id, 0) + 1
-                    w.add_message(channel.id, message.log_time, message.data,
-                                  message.publish_time, message.sequence)  # fmt: skip
+                try:
+                    for _, channel, message in reader.iter_messages(topics,
+                                                                    log_time_order=False):
+                        counts[channel.id] = counts.get(channel.id, 0) + 1
+                        w.add_message(channel.id, message.log_time, message.data,
+                                      message.publish_time, message.sequence)  # fmt: skip
+                except OSError:
+                    raise
+                except Exception as exc:  # noqa: BLE001 - any record that does not check out
+                    raise _Damaged(f"{type(exc).__name__}: {exc}") from None
                 w.flush()
+            if counts != recorded:
+                lost = {summary.channels[c].topic: recorded[c] - counts.get(c, 0)
+                        for c in recorded if counts.get(c, 0) != recorded[c]}  # fmt: skip
+                raise _Damaged("messages its statistics record do not read back: " + ", ".join(
+                    f"{topic} {n:+d}" for topic, n in lost.items()))  # fmt: skip
             w.finish()
             out.flush()
             os.fsync(out.fileno())
-    return len(summary.chunk_indexes), counts
+    return len(summary.chunk_indexes), recorded
 
 
 def _verify(tmp: Path, original, counts: dict[int, int]) -> tuple[int, str]:
@@ -200,9 +272,8 @@ def _verify(tmp: Path, original, counts: dict[int, int]) -> tuple[int, str]:
     with open(tmp, "rb") as fh:
         summary = make_reader(fh).get_summary()
     got = dict(summary.statistics.channel_message_counts) if summary.statistics else {}
-    want = {k: v for k, v in counts.items() if v}
-    if {k: v for k, v in got.items() if v} != want:
-        return 0, f"message counts differ: {got} against {want}"
+    if {k: v for k, v in got.items() if v} != counts:  # against the original's statistics
+        return 0, f"message counts differ: {got} against the original's {counts}"
     return len(summary.chunk_indexes), ""
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import re
+import stat
 from collections.abc import Iterable
 from datetime import UTC, datetime
 from pathlib import Path
@@ -43,13 +44,36 @@ def find_recordings(directory: str | os.PathLike) -> list[Path]:
 
 def recording_paths(paths: Iterable[str | os.PathLike]) -> list[Path]:
     """The recording files that files and directories name: a directory's recordings (by
-    their names, oldest first), a file as named; each once, in the order named. Raises
-    :class:`RecordingError` for a file that does not exist."""
+    their names, oldest first), a file as named; each once, in the order named.
+
+    Raises
+    ------
+    RecordingError
+        For an empty path, a file that does not exist, or one that is not a regular file
+        (a FIFO would block a reader, a device such as /dev/zero never ends)."""
     files: list[Path] = []
-    for p in map(Path, paths):
+    for raw in paths:
+        if os.fspath(raw) == "":
+            raise RecordingError("an empty path names no recording")
+        p = Path(raw)
         files += find_recordings(p) if p.is_dir() else [p]
     files = list(dict.fromkeys(files))  # a file named twice is read once
     for f in files:
-        if not f.exists():
-            raise RecordingError(f"{f}: no such file")
+        try:
+            mode = f.stat().st_mode
+        except FileNotFoundError:
+            raise RecordingError(f"{f}: no such file") from None
+        except OSError as exc:
+            raise RecordingError(f"{f}: cannot read: {exc.strerror or exc}") from None
+        if not stat.S_ISREG(mode):
+            raise RecordingError(f"{f}: not a regular file ({_file_kind(mode)}): a recording "
+                                 "is a file")  # fmt: skip
     return files
+
+
+def _file_kind(mode: int) -> str:
+    for test, kind in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket")):  # fmt: skip
+        if test(mode):
+            return kind
+    return "not a file"

@@ -53,11 +53,6 @@ class Recording:
         return scan_rows.volts(self.scans)
 
     @property
-    def stamp_s(self) -> np.ndarray:
-        """(n,) acquisition times, s since the Unix epoch."""
-        return self.scans["stamp_ns"] * 1e-9
-
-    @property
     def warnings(self) -> list[str]:
         """One line per damaged or partly read file, naming it and what was lost."""
         return [f.warning for f in self.files if f.warning]

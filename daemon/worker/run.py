@@ -23,7 +23,7 @@ import numpy as np
 from loopcal.calibration.errors import CalibrationError
 from loopcal.calibration.identify import DEFAULT_METHOD
 from loopcal.calibration.parameters import INDEX, NAMES, UNITS, ParameterModel
-from loopcal.calibration.pipeline import Calibration, calibrate
+from loopcal.calibration.pipeline import DEFAULT_N_SELECT, Calibration, calibrate
 
 from ..config.controller import ControllerConfig
 from ..recording import RecordingFile
@@ -31,7 +31,6 @@ from ..version import loopcal_version
 from . import gates as G
 from .poses import RecordedPoses, poses_of_scans
 
-N_SELECT = 50
 METHOD_NAMES = {"ml": "maximum likelihood", "paper": "the paper's closed-loop residuals"}
 
 
@@ -183,7 +182,7 @@ def run_worker(
     model: ParameterModel,
     *,
     files: Sequence[RecordingFile] = (),
-    n_select: int = N_SELECT,
+    n_select: int = DEFAULT_N_SELECT,
     method: str = DEFAULT_METHOD,
     progress: Callable[[str], None] = lambda _: None,
 ) -> WorkerResult:
