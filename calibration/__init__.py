@@ -1,8 +1,12 @@
 """Closed-loop calibration of the redundant shoulder joint: pure numpy/scipy, no I/O.
 
-from loopcal.calibration import calibrate, PAPER7, NOMINAL, still_poses
-result = calibrate(still_poses(volts).volts, PAPER7, NOMINAL).identification
-print(result.table())
+From a stream of scans ``volts``, shape (n, 4) in V::
+
+    from loopcal.calibration import calibrate, PAPER7, NOMINAL, still_poses
+    result = calibrate(still_poses(volts).volts, PAPER7, NOMINAL).identification
+    print(result.table())
+
+The names listed in ``__all__`` are importable from here; each is documented in its module.
 """
 
 import importlib

@@ -4,7 +4,7 @@ With four sensors for three degrees of freedom, every still pose tells whether t
 still close at the parameters in force. At parameters p, forward kinematics places the
 plate; what is left of the readings orthogonal to every rotation
 (:mod:`loopcal.calibration.implicit`: the unit vector q_k orthogonal to the columns of the pose's
-whitened rotation Jacobian) is the pose's loop-closure error
+whitened rotation Jacobian) is the pose's loop-closure error::
 
     e_k = q_k^T W_k (V_k - Vhat_k(R_k; p)),     W_k = diag(1 / sigma_ki),
 
@@ -17,7 +17,7 @@ attributes a shift to one sensor.
 The parameters in force are themselves uncertain (a calibration has standard deviations):
 an error ``dp`` adds ``a_k^T dp`` to e_k (a_k the pose's information row). Over a window of
 poses the errors are therefore correlated, with covariance ``Sigma = I + A C A^T`` (C the
-parameters' covariance), and the generalised likelihood-ratio test of "sensor i moved" is
+parameters' covariance), and the generalised likelihood-ratio test of "sensor i moved" is::
 
     z_i = h_i^T Sigma^-1 e,   F_i = h_i^T Sigma^-1 h_i,   delta_i = z_i / F_i,
     T_i = z_i^2 / F_i ~ chi^2(1) when nothing moved,
@@ -44,13 +44,18 @@ from .residuals import check_volts
 
 @dataclass(frozen=True)
 class Closure:
-    """Loop closure of m poses at the parameters in force.
+    """Loop closure of m poses at the parameters in force (result of :func:`loop_closure`).
 
-    error: (m,) whitened loop-closure errors e_k (N(0, 1) if nothing moved).
-    offset_pattern: (m, 4) h_ki, the change of e_k per mm of shift of sensor i's offset.
-    information: (m, 20) a_k, the change of e_k per unit change of each parameter.
-    usable: (m,) False for poses whose rotation the lengths do not determine (their rows
-    are zero).
+    Attributes
+    ----------
+    error : ndarray, shape (m,)
+        Whitened loop-closure errors e_k (N(0, 1) if nothing moved).
+    offset_pattern : ndarray, shape (m, 4)
+        h_ki, the change of e_k per mm of shift of sensor i's offset, 1/mm.
+    information : ndarray, shape (m, 20)
+        a_k, the change of e_k per unit change of each parameter (per mm, per mm/V).
+    usable : ndarray of bool, shape (m,)
+        False for poses whose rotation the lengths do not determine (their rows are zero).
     """
 
     error: np.ndarray
@@ -64,12 +69,27 @@ class Closure:
 
 @dataclass(frozen=True)
 class PoseModels:
-    """What the parameters in force predict for each of m poses, independent of the noise:
-    rotations R (m, 3, 3) from forward kinematics, usable (m,), and the model's readings
-    vhat (m, 4) with their derivatives Jp (m, 4, 20) and Jr (m, 4, 3)
-    (:func:`loopcal.calibration.implicit.model_jacobians`). A monitor testing a sliding window of
-    poses computes each pose's once (:func:`pose_models`) and stacks them
-    (:meth:`stack`)."""
+    """What the parameters in force predict for each of m poses, independent of the noise.
+
+    A monitor testing a sliding window of poses computes each pose's once
+    (:func:`pose_models`) and stacks them (:meth:`stack`); indexing with an int, a slice or
+    an index array gives the models of those poses.
+
+    Attributes
+    ----------
+    R : ndarray, shape (m, 3, 3)
+        Plate rotations from forward kinematics.
+    usable : ndarray of bool, shape (m,)
+        Whether forward kinematics determines each pose's rotation
+        (:func:`loopcal.calibration.implicit.start_rotations`).
+    vhat : ndarray, shape (m, 4)
+        The model's readings, V.
+    Jp : ndarray, shape (m, 4, 20)
+        Their derivatives with respect to the parameters.
+    Jr : ndarray, shape (m, 4, 3)
+        Their derivatives with respect to the rotation, V/rad
+        (:func:`loopcal.calibration.implicit.model_jacobians`).
+    """
 
     R: np.ndarray
     usable: np.ndarray
@@ -79,6 +99,17 @@ class PoseModels:
 
     @staticmethod
     def stack(models: list[PoseModels]) -> PoseModels:
+        """Concatenate the models of several pose sets, in order.
+
+        Parameters
+        ----------
+        models : list of PoseModels
+            At least one.
+
+        Returns
+        -------
+        PoseModels
+        """
         return PoseModels(*(np.concatenate(x) for x in zip(
             *((m.R, m.usable, m.vhat, m.Jp, m.Jr) for m in models), strict=True)))  # fmt: skip
 
@@ -89,7 +120,24 @@ class PoseModels:
 
 
 def pose_models(volts: np.ndarray, p: np.ndarray) -> PoseModels:
-    """:class:`PoseModels` of poses with mean readings ``volts`` (m, 4) at parameters p."""
+    """What the parameters p predict for poses with the given mean readings.
+
+    Parameters
+    ----------
+    volts : array_like, shape (m, 4)
+        Mean readings, V.
+    p : array_like, shape (20,)
+        Parameters in force (mm, mm/V).
+
+    Returns
+    -------
+    PoseModels
+
+    Raises
+    ------
+    InputError, ParameterError
+        Bad readings or parameters.
+    """
     V = check_volts(volts)
     p = check_vector(p)
     R, ok = implicit.start_rotations(V, p)
@@ -106,10 +154,31 @@ def loop_closure(
 ) -> Closure:
     """The loop-closure errors of still poses.
 
-    volts: (m, 4) mean readings, V; p: (20,) parameters in force; sigma_volts: (m, 4) or (4,)
-    standard deviation of each mean reading, V (one scan's noise over the square root of
-    the scans averaged, with the converter's rounding). models: the poses'
-    :func:`pose_models` at ``p``, if already known (they do not depend on the noise).
+    Parameters
+    ----------
+    volts : array_like, shape (m, 4)
+        Mean readings, V.
+    p : array_like, shape (20,)
+        Parameters in force (mm, mm/V).
+    sigma_volts : array_like, shape (m, 4) or (4,)
+        Standard deviation of each mean reading, V (one scan's noise over the square root
+        of the scans averaged, with the converter's rounding:
+        :func:`~loopcal.calibration.poses.pose_noise_volts`).
+    models : PoseModels, optional
+        The poses' :func:`pose_models` at ``p``, if already known (they do not depend on
+        the noise).
+
+    Returns
+    -------
+    Closure
+        Errors, offset patterns and information rows; zero for unusable poses.
+
+    Raises
+    ------
+    InputError
+        Bad readings, or a ``sigma_volts`` not positive and finite.
+    ParameterError
+        If ``p`` fails :func:`~loopcal.calibration.parameters.check_vector`.
     """
     V = check_volts(volts)
     p = check_vector(p)
@@ -132,15 +201,29 @@ def loop_closure(
 class DriftTest:
     """The likelihood-ratio test of "sensor i's offset moved" over a window of poses.
 
-    shift_mm: (4,) estimated shift of each sensor's offset, mm; std_mm: (4,) their standard
-    errors; statistic: (4,) T_i, chi^2(1) when nothing moved; all three at the change point
-    that explains the loops best, if several were tried; affected: how many of the latest
-    poses that change point leaves shifted; shape: "step" (the same shift on each of
-    them) or "creep" (growing linearly from the change point; shift_mm is then the shift at
-    the latest pose); poses: poses in the window; chi2_rms: RMS of the whitened errors
-    (about 1 when nothing moved). margin: the best sensor's statistic minus the best any
-    other sensor reaches under any hypothesis (2 ln of their likelihood ratio: how clearly
-    the pattern points at it).
+    ``shift_mm``, ``std_mm`` and ``statistic`` are those at the change point that explains
+    the loops best, if several were tried.
+
+    Attributes
+    ----------
+    shift_mm : ndarray, shape (4,)
+        Estimated shift of each sensor's offset, mm.
+    std_mm : ndarray, shape (4,)
+        Their standard errors, mm.
+    statistic : ndarray, shape (4,)
+        T_i, chi^2(1) when nothing moved.
+    affected : int
+        How many of the latest poses that change point leaves shifted.
+    shape : str
+        ``"step"`` (the same shift on each of them) or ``"creep"`` (growing linearly from
+        the change point; ``shift_mm`` is then the shift at the latest pose).
+    margin : float
+        The best sensor's statistic minus the best any other sensor reaches under any
+        hypothesis (2 ln of their likelihood ratio: how clearly the pattern points at it).
+    poses : int
+        Usable poses in the window.
+    chi2_rms : float
+        RMS of the whitened errors (about 1 when nothing moved).
     """
 
     shift_mm: np.ndarray
@@ -167,13 +250,36 @@ def drift_test(
 ) -> DriftTest:
     """Test every sensor for an offset shift over the poses of ``closure`` (oldest first).
 
-    covariance: (20, 20) covariance of the parameters in force (None: taken as exact).
-    change_points: False tests a shift of all the poses; True tests a shift of the latest
-    k poses for every k (a change that began within the window: the poses before it are the
-    reference), and reports the change point with the largest statistic (m hypotheses per
-    sensor). creep: with change points, also test a shift growing linearly over the latest
-    k poses (2 m hypotheses per sensor; it fits a step almost as well, so it blurs which
-    sensor moved).
+    Parameters
+    ----------
+    closure : Closure
+        The window's loop closure; unusable poses are left out.
+    covariance : array_like, shape (20, 20), optional
+        Covariance of the parameters in force (mm, mm/V squared); None takes them as exact.
+    change_points : bool, default False
+        False tests a shift of all the poses; True tests a shift of the latest k poses for
+        every k (a change that began within the window: the poses before it are the
+        reference), and reports the change point with the largest statistic (m hypotheses
+        per sensor).
+    creep : bool, default False
+        With change points, also test a shift growing linearly over the latest k poses
+        (2 m hypotheses per sensor; it fits a step almost as well, so it blurs which sensor
+        moved).
+
+    Returns
+    -------
+    DriftTest
+        With NaN shifts and zero statistics if no pose is usable.
+
+    Raises
+    ------
+    InputError
+        If ``covariance`` is not (20, 20).
+
+    Notes
+    -----
+    The statistic is the generalised likelihood-ratio test of the module docstring,
+    ``T_i = z_i^2 / F_i`` with the errors whitened by ``Sigma = I + A C A^T``.
     """
     use = closure.usable
     e = closure.error[use]
@@ -221,9 +327,26 @@ def drift_test(
 
 
 def threshold(false_alarm: float, tests: int = 4) -> float:
-    """The statistic an alarm needs so that, when nothing moved, the largest of ``tests``
-    chi^2(1) statistics (four sensors, times the change points tried) exceeds it with
-    probability at most ``false_alarm`` (Bonferroni)."""
+    """The statistic an alarm needs for a given false-alarm probability (Bonferroni).
+
+    Parameters
+    ----------
+    false_alarm : float
+        Probability, in (0, 1), that the largest of ``tests`` chi^2(1) statistics exceeds
+        the threshold when nothing moved.
+    tests : int, default 4
+        Statistics compared: four sensors, times the change points tried.
+
+    Returns
+    -------
+    float
+        The chi^2(1) quantile of upper tail ``false_alarm / tests``.
+
+    Raises
+    ------
+    InputError
+        If ``false_alarm`` is not in (0, 1).
+    """
     if not 0 < false_alarm < 1:
         raise InputError(f"false_alarm must lie in (0, 1), got {false_alarm}")
     return float(chdtri(1, false_alarm / tests))  # the chi-square(1) quantile
@@ -239,10 +362,28 @@ def step_tests(
     """:func:`drift_test` with ``change_points=True`` (steps only) over B windows of m poses
     at once, vectorised over the windows (a monitor replaying a day tests 30,000 windows).
 
-    error: (B, m), offset_pattern: (B, m, 4), information: (B, m, 20), usable: (B, m): each
-    window's :class:`Closure` arrays stacked, oldest pose first. covariance: (20, 20) or None.
-    Returns B :class:`DriftTest`, equal to ``drift_test`` of each window to rounding.
+    Parameters
+    ----------
+    error : array_like, shape (B, m)
+    offset_pattern : array_like, shape (B, m, 4)
+    information : array_like, shape (B, m, 20)
+    usable : array_like of bool, shape (B, m)
+        Each window's :class:`Closure` arrays stacked, oldest pose first.
+    covariance : array_like, shape (20, 20), optional
+        Covariance of the parameters in force; None takes them as exact.
 
+    Returns
+    -------
+    list of DriftTest
+        B tests, equal to ``drift_test`` of each window to rounding.
+
+    Raises
+    ------
+    InputError
+        If the shapes do not match, or ``covariance`` is not (20, 20).
+
+    Notes
+    -----
     Instead of one triangular solve per hypothesis, with ``S = Sigma^-1`` and ``u = S e``:
     ``z_oi = sum_{k>=o} H_ki u_k`` is a suffix sum, and ``F_oi = sum_{k,l>=o} H_ki S_kl H_li``
     grows from the latest pose back by ``G_oo + 2 sum_{l>o} G_ol`` (``G = H_i S H_i``,

@@ -1,7 +1,7 @@
 """Closed-loop identification by Levenberg-Marquardt with column scaling (docs/model.md section 5).
 
 Minimises ``f^T f`` over the free parameters, f the stacked loop residuals (mm^2) of m poses.
-Each iteration solves the damped, column-scaled normal equations
+Each iteration solves the damped, column-scaled normal equations::
 
     (G^T G + lambda diag(G^T G)) ds = -G^T f,   G = g H,   dx = H ds,
 
@@ -11,7 +11,7 @@ with the analytic Jacobian g (implicit differentiation of the sphere equations) 
 Covariance. The four residuals of a pose share that pose's four readings, so they are
 correlated, and to first order they are one scalar loop-closure error seen four times: their
 noise is ``D_k e_k`` with ``D_k = df_k/dV_k`` (4 x 4, nearly rank one) and ``e_k`` the voltage
-noise. The least-squares estimate then has the sandwich covariance
+noise. The least-squares estimate then has the sandwich covariance::
 
     C = (g^T g)^-1 (sum_k g_k^T D_k Sigma_V D_k^T g_k) (g^T g)^-1,
 
@@ -59,15 +59,47 @@ MAX_PASSES = 6
 class Identification:
     """Result of :func:`identify`.
 
-    params: (20,) full estimate; start: (20,) the start; model: the free/tied/fixed split.
-    std: (n,) predicted standard deviations of the free parameters (mm or mm/V);
-    covariance: (n, n). sigma_volts: the per-channel voltage noise of one scan used for them
-    (given, or estimated). rms_residual: RMS of the residuals at the solution: the loop
-    residuals f in mm^2 (paper), the readings' misfit in V (ml, as if every pose were one
-    scan). iterations; converged; message. used: (m,) poses used; excluded: indices of
-    near-singular or inconsistent poses left out. indices: observability indices of the used
-    poses at the solution (ml: of the information rows, one per pose). method: "ml" or
-    "paper". rotations: (m_used, 3, 3) the estimated plate rotations of the used poses (ml).
+    Attributes
+    ----------
+    model : ParameterModel
+        The free/tied/fixed split identified.
+    params : ndarray, shape (20,)
+        The full estimate (mm, mm/V); fixed parameters as in ``start``.
+    start : ndarray, shape (20,)
+        The start.
+    std : ndarray, shape (n,)
+        Predicted standard deviations of the free parameters, in the order of
+        ``model.free`` (mm or mm/V).
+    covariance : ndarray, shape (n, n)
+        Their covariance.
+    sigma_volts : float
+        The per-channel voltage noise of one scan (1 sigma, V) the covariance assumes:
+        given, or estimated from the residuals.
+    sigma_estimated : bool
+        True if ``sigma_volts`` was estimated, False if it was given.
+    rms_residual : float
+        RMS of the residuals at the solution: the loop residuals f in mm^2 (paper), the
+        readings' misfit in V (ml, as if every pose were one scan).
+    iterations : int
+        Iterations of all passes together.
+    converged : bool
+        Whether the last pass converged.
+    message : str
+        How the last pass ended.
+    used : ndarray of bool, shape (m,)
+        The poses used.
+    excluded : ndarray of int
+        Indices of the near-singular or inconsistent poses left out.
+    indices : ObservabilityIndices
+        Observability indices of the used poses at the solution (ml: of the information
+        rows, one per pose).
+    history : list of float
+        The objective after each accepted step (``f^T f`` in mm^4 for paper, the whitened
+        misfit for ml), every pass's start included.
+    method : str
+        ``"ml"`` or ``"paper"``.
+    rotations : ndarray, shape (m_used, 3, 3), or None
+        The estimated plate rotations of the used poses (ml; None for paper).
     """
 
     model: ParameterModel
@@ -90,6 +122,7 @@ class Identification:
 
     @property
     def free_values(self) -> np.ndarray:
+        """The estimated free parameters, shape (n,), in the order of ``model.free``."""
         return self.model.free_values(self.params)
 
     def problems(
@@ -99,9 +132,25 @@ class Identification:
         max_excluded: float = 0.2,
         max_condition: float = CONDITION_OK,
     ) -> list[str]:
-        """Reasons not to trust the result (empty if none): no convergence, residuals far above
-        the sensors' noise (a wrong model, a swapped or dead channel, a moving plate), many
-        poses unusable, or an ill-conditioned pose set."""
+        """Reasons not to trust the result.
+
+        Parameters
+        ----------
+        max_noise_volts : float, default MAX_NOISE_VOLTS
+            Largest believable ``sigma_volts``, V (0.2, five times the paper's 40 mV);
+            beyond it the residuals are not sensor noise (a wrong model, a swapped or dead
+            channel, a moving plate).
+        max_excluded : float, default 0.2
+            Largest fraction of the poses that may be excluded.
+        max_condition : float, default CONDITION_OK
+            Largest acceptable condition number of the used poses (1000).
+
+        Returns
+        -------
+        list of str
+            One sentence per problem (no convergence, too much noise, too many poses
+            excluded, ill-conditioned); empty if none.
+        """
         out = []
         if not self.converged:
             out.append(f"did not converge ({self.message})")
@@ -118,7 +167,20 @@ class Identification:
         return out
 
     def table(self, truth: np.ndarray | None = None) -> str:
-        """A readable table of the free parameters: start, estimate, std (and truth, error)."""
+        """A readable table of the free parameters: start, estimate, std (and truth, error).
+
+        Parameters
+        ----------
+        truth : array_like, shape (20,), optional
+            The true parameters (simulations): adds the columns truth, error and
+            error / std.
+
+        Returns
+        -------
+        str
+            One line per free parameter and a last line with the iterations, the poses
+            used, the residual, the noise and the indices.
+        """
         head = f"{'param':>6} {'unit':>5} {'start':>10} {'estimate':>11} {'std':>8}"
         if truth is not None:
             head += f" {'truth':>10} {'error':>9} {'err/std':>7}"
@@ -146,8 +208,23 @@ class Identification:
 
 
 def check_stroke(volts: np.ndarray, stroke_volts: float = STROKE_VOLTS) -> None:
-    """Raise :class:`InputError` if a reading lies outside the LVDT's +-10 V span, which the
-    design matches to the actuator's +-37.5 mm stroke (docs/model.md section 10)."""
+    """Raise :class:`InputError` if a reading lies outside the LVDT's +-10 V span.
+
+    The design matches the span to the actuator's +-37.5 mm stroke (docs/model.md section
+    10).
+
+    Parameters
+    ----------
+    volts : ndarray, shape (m, 4)
+        LVDT readings, V.
+    stroke_volts : float, default STROKE_VOLTS
+        Half the span, V (10).
+
+    Raises
+    ------
+    InputError
+        If any ``|volts|`` exceeds ``stroke_volts`` (the message names the first).
+    """
     bad = np.abs(volts) > stroke_volts
     if bad.any():
         k, i = np.argwhere(bad)[0]
@@ -180,26 +257,69 @@ def identify(
 ) -> Identification:
     """Identify the free parameters of ``model`` from m poses of sensor readings.
 
-    volts: (m, 4) readings in V (quasi-static poses). start: full parameter vector (20,) to
-    start from; fixed parameters keep its values. method: "ml", maximum likelihood by the
-    implicit loop method (:mod:`loopcal.calibration.implicit`: every pose's rotation is estimated
-    too, the readings are fitted directly, weighted by their noise), or "paper", the
-    paper's closed-loop residuals (docs/model.md section 5). noise_volts: known per-channel
-    noise of one scan (1 sigma, V) for the covariance; None estimates it from the residuals.
-    scans_per_pose: (m,) scans averaged into each pose, whose noise is then noise / sqrt(n)
-    (ml weights the poses by it; the paper's method does not weigh poses).
-    near_singular_mm (paper): poses whose mirror solutions come closer than this (at the
-    estimate) are excluded and reported; ml excludes poses whose rotation the lengths do
-    not determine (:data:`loopcal.calibration.implicit.MIN_POSE_SIGMA_MM`). max_change: a free
-    parameter moving further than this from the start (in its unit) is divergence. xtol
-    (paper): converged when no free parameter is estimated to be further than this (in its
-    unit) from the limit, judged from the step and the observed convergence rate; ftol
-    (paper): or when the relative decrease of f^T f falls below it near the Gauss-Newton
-    regime (damping <= 1); ml stops when a step lowers the whitened misfit by less than
-    :data:`loopcal.calibration.implicit.DECREMENT_TOL` of one residual's variance.
+    Parameters
+    ----------
+    volts : array_like, shape (m, 4)
+        LVDT readings of quasi-static poses, V (for example
+        :func:`~loopcal.calibration.poses.still_poses`), each within +-10 V.
+    model : ParameterModel, default PAPER7
+        Which parameters are free, tied and fixed.
+    start : array_like, shape (20,), default NOMINAL
+        Full parameter vector to start from (mm, mm/V); fixed parameters keep its values.
+    method : {"ml", "paper"}, default "ml"
+        ``"ml"``: maximum likelihood by the implicit loop method
+        (:mod:`loopcal.calibration.implicit`: every pose's rotation is estimated too, the
+        readings are fitted directly, weighted by their noise). ``"paper"``: the paper's
+        closed-loop residuals (docs/model.md section 5).
+    noise_volts : float, optional
+        Known per-channel noise of one scan (1 sigma, V) for the covariance (ml also takes
+        one per channel, shape (4,)); None estimates it from the residuals.
+    scans_per_pose : array_like, shape (m,), optional
+        Scans averaged into each pose, whose noise is then noise / sqrt(n). ml weights the
+        poses by it; the paper's method ignores it.
+    max_iter : int, default 100
+        Iterations at most, per pass.
+    xtol : float, default 1e-8
+        (paper) Converged when no free parameter is estimated to be further than this (in
+        its unit) from the limit, judged from the step and the observed convergence rate.
+    ftol : float, default 1e-12
+        (paper) Or when the relative decrease of ``f^T f`` falls below it near the
+        Gauss-Newton regime (damping <= 1). ml ignores xtol and ftol: it stops when a step
+        lowers the whitened misfit by less than
+        :data:`loopcal.calibration.implicit.DECREMENT_TOL` of one residual's variance.
+    near_singular_mm : float, default NEAR_SINGULAR_MM
+        (paper) Poses whose mirror solutions come closer than this, mm (at the estimate),
+        are excluded and reported. ml excludes the poses whose rotation the lengths do not
+        determine (:data:`loopcal.calibration.implicit.MIN_POSE_SIGMA_MM`) instead.
+    max_change : float, default 50.0
+        A free parameter moving further than this from the start (in its unit) is
+        divergence.
 
-    Raises InputError (bad readings, too few usable poses), UnobservableError (the free set is
-    rank deficient on these poses), ConvergenceError (divergence).
+    Returns
+    -------
+    Identification
+        The estimate with its covariance, residuals, the poses used and their indices.
+
+    Raises
+    ------
+    InputError
+        Bad readings (shape, NaN, outside +-10 V), an unknown method, fewer poses (or
+        usable poses) than free parameters, or (ml) bad ``noise_volts`` or
+        ``scans_per_pose``.
+    ParameterError
+        If ``start`` fails :func:`~loopcal.calibration.parameters.check_vector`.
+    UnobservableError
+        The free set is rank deficient on these poses.
+    ConvergenceError
+        Divergence: a free parameter reached ``max_change``.
+
+    Notes
+    -----
+    The paper's method minimises ``f^T f`` by Levenberg-Marquardt on the column-scaled
+    Jacobian ``g H``, ``H = diag(sqrt(M) / ||g_j||)`` (module docstring), in passes: the
+    first keeps only the poses far from singular at the start (if enough are), later ones
+    every pose usable at the estimate, until the set settles. The covariance is the
+    sandwich estimate of the module docstring.
     """
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
@@ -404,9 +524,41 @@ def fit_fixed(
     ftol: float = 1e-12,
     max_change: float = 50.0,
 ) -> tuple[np.ndarray, int, bool, str]:
-    """The bare solver of :func:`identify`: LM on fixed poses with fixed branch references
-    (m, 2, 3), no pose screening, no covariance. Returns (params, iterations, converged,
-    message). For benchmarks and for callers that manage poses themselves."""
+    """The bare solver of :func:`identify` (paper's method): Levenberg-Marquardt on fixed
+    poses with fixed branch references, no pose screening, no covariance.
+
+    For benchmarks and for callers that manage poses themselves.
+
+    Parameters
+    ----------
+    volts : array_like, shape (m, 4)
+        LVDT readings, V.
+    ref : array_like, shape (m, 2, 3)
+        Branch references, mm (:func:`~loopcal.calibration.residuals.reference_points`).
+    model : ParameterModel, default PAPER7
+        The free/tied/fixed split.
+    start : array_like, shape (20,), default NOMINAL
+        Start, and the values of the fixed parameters.
+    max_iter, xtol, ftol, max_change
+        As for :func:`identify`; a step beyond ``max_change`` is refused, but reaching it
+        raises nothing here.
+
+    Returns
+    -------
+    params : ndarray, shape (20,)
+        The estimate.
+    iterations : int
+    converged : bool
+    message : str
+        How the iteration ended.
+
+    Raises
+    ------
+    InputError, ParameterError
+        Bad readings or start.
+    UnobservableError
+        The free set is rank deficient on these poses at the start.
+    """
     V = check_volts(volts)
     p0 = check_vector(start)
     p, _, _, it, converged, message = _levenberg_marquardt(

@@ -1,7 +1,7 @@
 """Maximum-likelihood calibration by the implicit loop method (docs/model.md section 9).
 
 Each pose k has an unknown plate rotation ``R_k`` besides the free parameters x. The model
-predicts every reading from inverse kinematics,
+predicts every reading from inverse kinematics::
 
     Vhat_ki = (|R_k Bh_i - A_i| - d0_i) / S_i          (V; Bh_i the plate point of leg i),
 
@@ -14,7 +14,7 @@ squares, which biases the fit at O(sigma^2) and weighs the channels unequally).
 Rotations are updated by left increments ``R <- exp([w]x) R`` (w in rad, base frame), as in
 :func:`loopcal.calibration.kinematics.forward_kinematics`. Per pose the whitened residual r_k (4,)
 has the Jacobians ``Jp_k`` (4, n) and ``Jr_k`` (4, 3). The Gauss-Newton normal equations are
-block-arrow sparse; eliminating each pose's 3x3 block (Schur complement)
+block-arrow sparse; eliminating each pose's 3x3 block (Schur complement)::
 
     (U - sum_k W_k V_k^-1 W_k^T) dx = -(g_p - sum_k W_k V_k^-1 g_k),
     dw_k = -V_k^-1 (g_k + W_k^T dx),
@@ -83,7 +83,27 @@ EXACT_FIT = 1e-20
 
 
 def predicted_volts(R: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Readings (m, 4) in V that rotations R (m, 3, 3) produce with parameters p (20,)."""
+    """The readings that plate rotations produce with given parameters (no noise).
+
+    Parameters
+    ----------
+    R : array_like, shape (m, 3, 3)
+        Plate rotations.
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V).
+
+    Returns
+    -------
+    ndarray, shape (m, 4)
+        ``Vhat = (|R Bh_i - A_i| - d0_i) / S_i``, V (not quantised, not clipped).
+
+    Raises
+    ------
+    InputError
+        If ``R`` fails :func:`~loopcal.calibration.kinematics.check_rotations`.
+    ParameterError
+        If ``p`` fails :func:`~loopcal.calibration.parameters.check_vector`.
+    """
     R = check_rotations(R)
     p = check_vector(p)
     B = np.einsum("mij,bj->mbi", R, plate_home(p))[:, LEG_POINT]
@@ -189,10 +209,24 @@ def model_jacobians(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Predicted readings and their derivatives.
 
-    R: (m, 3, 3) rotations; p: (20,); directions: (20, q) parameter directions (default the
-    identity; a model's tie matrix gives derivatives with respect to its free values).
-    Returns Vhat (m, 4) in V, dVhat/dp along ``directions`` (m, 4, q) and dVhat/dw (m, 4, 3)
-    for left rotation increments w in rad.
+    Parameters
+    ----------
+    R : ndarray, shape (m, 3, 3)
+        Plate rotations; not validated.
+    p : ndarray, shape (20,)
+        Full parameter vector (mm, mm/V); not validated.
+    directions : array_like, shape (20, q), optional
+        Parameter directions; default the identity. A model's tie matrix gives derivatives
+        with respect to its free values.
+
+    Returns
+    -------
+    vhat : ndarray, shape (m, 4)
+        Predicted readings, V.
+    Jp : ndarray, shape (m, 4, q)
+        dVhat/dp along ``directions``, V per unit of each direction.
+    Jr : ndarray, shape (m, 4, 3)
+        dVhat/dw for left rotation increments ``R <- exp([w]x) R``, V/rad.
     """
     pairs = _Pairs(directions)
     vhat, Jr, G = _derivatives(_cm(R), p, pairs, 1.0 / p[SL_GAIN][:, None])
@@ -211,23 +245,51 @@ def _loop_direction(Jr: np.ndarray) -> np.ndarray:
 
 
 def loop_direction(Jr: np.ndarray) -> np.ndarray:
-    """q (m, 4): for each pose the unit vector orthogonal to the columns of its (whitened)
-    rotation Jacobian Jr (m, 4, 3): the part of its readings no rotation explains. Its sign
-    is arbitrary.
+    """For each pose, the unit vector orthogonal to the columns of its rotation Jacobian:
+    the part of its readings no rotation explains.
 
+    Parameters
+    ----------
+    Jr : array_like, shape (m, 4, 3)
+        (Whitened) rotation Jacobians, one per pose.
+
+    Returns
+    -------
+    ndarray, shape (m, 4)
+        q, unit vectors; the sign is arbitrary.
+
+    Notes
+    -----
     In closed form, the generalised cross product of the three columns (the left singular
     vector of Jr_k for its zero singular value, without an SVD per pose); where the columns
-    are linearly dependent (no unique direction) it falls back to the SVD's choice."""
+    are linearly dependent (no unique direction) it falls back to the SVD's choice.
+    """
     return _loop_direction(np.moveaxis(np.asarray(Jr, dtype=float), 0, -1).transpose(1, 0, 2)).T
 
 
 def weighted_information(
     R: np.ndarray, p: np.ndarray, directions: np.ndarray, weights: np.ndarray
 ) -> np.ndarray:
-    """The information rows a_k (m, n) of poses at rotations R (m, 3, 3) and parameters p
-    (module docstring: pose k's information about the parameters once its rotation is
-    eliminated is ``a_k a_k^T``), along ``directions`` (20, n), with the readings whitened
-    by ``weights`` (m, 4), 1/sigma."""
+    """The information rows a_k of poses: pose k's information about the parameters once
+    its rotation is eliminated is ``a_k a_k^T`` (module docstring).
+
+    Parameters
+    ----------
+    R : ndarray, shape (m, 3, 3)
+        Plate rotations.
+    p : ndarray, shape (20,)
+        Full parameter vector (mm, mm/V).
+    directions : array_like, shape (20, n)
+        Free directions (a model's ``tie_matrix``).
+    weights : array_like, shape (m, 4)
+        Whitening of the readings, 1/sigma in 1/V (:func:`pose_weights`).
+
+    Returns
+    -------
+    ndarray, shape (m, n)
+        ``a_k = Jp_k^T q_k`` (whitened: per unit noise), with q_k from
+        :func:`loop_direction` (its sign arbitrary).
+    """
     pairs = _Pairs(directions)
     f = np.asarray(weights, dtype=float).T / p[SL_GAIN][:, None]
     _, Jr, G = _derivatives(_cm(R), p, pairs, f)
@@ -237,7 +299,29 @@ def weighted_information(
 def pose_weights(
     m: int, noise_volts: float | np.ndarray | None, scans_per_pose: np.ndarray | None
 ) -> np.ndarray:
-    """Whitening weights 1/sigma_ki, (m, 4): ``sqrt(n_k) / sigma_i`` (sigma 1 V if None)."""
+    """Whitening weights 1/sigma_ki of m poses: ``sqrt(n_k) / sigma_i``.
+
+    Parameters
+    ----------
+    m : int
+        Number of poses.
+    noise_volts : float or array_like, shape (4,), or None
+        Per-channel noise of one scan sigma_i, V; None takes 1 V (unit weights, the noise
+        then estimated from the misfit).
+    scans_per_pose : array_like, shape (m,), or None
+        Scans n_k averaged into each pose; None takes 1.
+
+    Returns
+    -------
+    ndarray, shape (m, 4)
+        Weights, 1/V.
+
+    Raises
+    ------
+    InputError
+        If a noise is not positive and finite, or ``scans_per_pose`` is not m positive
+        finite counts.
+    """
     sigma = (
         np.ones(4)
         if noise_volts is None
@@ -259,12 +343,36 @@ def cramer_rao(
     noise_volts: float | np.ndarray,
     scans_per_pose: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The Cramér-Rao lower bound on the covariance of the free parameters (n, n).
+    """The Cramér-Rao lower bound on the covariance of the free parameters.
 
-    R: (m, 3, 3) the true rotations of the poses; p: (20,) the true parameters; directions:
-    (20, n) the free directions (a model's ``tie_matrix``); noise_volts: per-channel noise of
-    one scan (V, scalar or (4,)); scans_per_pose: (m,) scans averaged into each pose.
     No unbiased estimator from these readings can have a smaller covariance.
+
+    Parameters
+    ----------
+    R : array_like, shape (m, 3, 3)
+        The true rotations of the poses.
+    p : array_like, shape (20,)
+        The true parameters (mm, mm/V).
+    directions : array_like, shape (20, n)
+        The free directions (a model's ``tie_matrix``).
+    noise_volts : float or array_like, shape (4,)
+        Per-channel noise of one scan, 1 sigma, V.
+    scans_per_pose : array_like, shape (m,), optional
+        Scans averaged into each pose; default one each.
+
+    Returns
+    -------
+    ndarray, shape (n, n)
+        ``(sum_k a_k a_k^T)^-1``, in the free parameters' units squared.
+
+    Raises
+    ------
+    InputError
+        Bad rotations, noise or scan counts.
+    ParameterError
+        If ``p`` fails :func:`~loopcal.calibration.parameters.check_vector`.
+    numpy.linalg.LinAlgError
+        If the information matrix is singular (the free set is not observable).
     """
     R = check_rotations(R)
     p = check_vector(p)
@@ -275,11 +383,32 @@ def cramer_rao(
 def start_rotations(
     volts: np.ndarray, p: np.ndarray, *, start: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Rotations (m, 3, 3) from forward kinematics of the readings (m, 4) at p, and (m,)
-    whether each pose is usable (converged, away from singularities). start: (m, 3, 3)
-    rotations near the answer to start forward kinematics from (for example the fitted
-    ones, when judging the poses again at the estimate); by default it starts from the
-    sphere intersections."""
+    """Plate rotations from forward kinematics of the readings, and which poses are usable.
+
+    Parameters
+    ----------
+    volts : array_like, shape (m, 4)
+        LVDT readings, V.
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V).
+    start : array_like, shape (m, 3, 3), optional
+        Rotations near the answer to start forward kinematics from (for example the fitted
+        ones, when judging the poses again at the estimate); by default it starts from the
+        sphere intersections.
+
+    Returns
+    -------
+    rotations : ndarray, shape (m, 3, 3)
+        From :func:`~loopcal.calibration.kinematics.forward_kinematics`.
+    usable : ndarray of bool, shape (m,)
+        Converged, finite, and with ``sigma_min`` at least :data:`MIN_POSE_SIGMA_MM`
+        (away from singularities).
+
+    Raises
+    ------
+    InputError, ParameterError, numpy.linalg.LinAlgError
+        As :func:`~loopcal.calibration.kinematics.forward_kinematics`.
+    """
     fk = forward_kinematics(volts_to_lengths(volts, p), p, start=start)
     ok = fk.converged & (fk.sigma_min >= MIN_POSE_SIGMA_MM) & np.isfinite(fk.rms_mm)
     return fk.rotations, ok
@@ -290,8 +419,18 @@ class Linearised:
     """The whitened residuals of m poses and their derivatives at one point (p, R),
     component-major (pose index last).
 
-    r: (4, m) whitened residuals ``(V - Vhat) * weights``; Jr: (3, 4, m) dr/dw (w in rad,
-    left increments); G: (K, m) the nonzero entries of dr/dp (``pairs``); cost: ``sum r^2``.
+    Attributes
+    ----------
+    r : ndarray, shape (4, m)
+        Whitened residuals ``(V - Vhat) * weights``.
+    Jr : ndarray, shape (3, 4, m)
+        dr/dw, w in rad (left increments).
+    G : ndarray, shape (K, m)
+        The nonzero entries of dr/dp, one row per (parameter, leg) pair of ``pairs``.
+    pairs : _Pairs
+        Which parameter and leg each row of G belongs to, and the free directions.
+    cost : float
+        ``sum r^2``, the whitened misfit.
     """
 
     r: np.ndarray
@@ -301,7 +440,12 @@ class Linearised:
     cost: float
 
     def information(self) -> np.ndarray:
-        """The information rows a_k (m, n) at this point (:func:`weighted_information`)."""
+        """The information rows a_k at this point (as :func:`weighted_information`).
+
+        Returns
+        -------
+        ndarray, shape (m, n)
+        """
         return self.pairs.contract(self.G, _loop_direction(self.Jr)).T
 
 
@@ -318,8 +462,25 @@ def _evaluate(
 def linearise(
     volts: np.ndarray, weights: np.ndarray, R: np.ndarray, p: np.ndarray, directions: np.ndarray
 ) -> Linearised:
-    """:class:`Linearised` of readings (m, 4) whitened by weights (m, 4) at rotations
-    R (m, 3, 3) and parameters p (20,), along directions (20, n)."""
+    """The whitened problem linearised at rotations R and parameters p.
+
+    Parameters
+    ----------
+    volts : array_like, shape (m, 4)
+        LVDT readings, V.
+    weights : array_like, shape (m, 4)
+        1/sigma of each reading, 1/V (:func:`pose_weights`).
+    R : ndarray, shape (m, 3, 3)
+        Plate rotations.
+    p : ndarray, shape (20,)
+        Full parameter vector (mm, mm/V); not validated.
+    directions : array_like, shape (20, n)
+        Free directions (a model's ``tie_matrix``).
+
+    Returns
+    -------
+    Linearised
+    """
     Vc = np.ascontiguousarray(np.asarray(volts, dtype=float).T)
     wc = np.ascontiguousarray(np.asarray(weights, dtype=float).T)
     return _evaluate(_cm(R), p, Vc, wc, _Pairs(directions))
@@ -339,12 +500,41 @@ def fit_linearised(
 ) -> tuple[np.ndarray, np.ndarray, int, bool, str, Linearised]:
     """Levenberg-Marquardt on parameters and rotations with the pose blocks eliminated.
 
-    volts: (m, 4); weights: (m, 4) 1/sigma; R0: (m, 3, 3) start rotations; directions:
-    (20, n) free directions; p_start: (20,) start (fixed parameters keep its values);
-    at_start: the problem linearised at (p_start, R0) if already at hand (for example from
-    an observability check before the fit). Returns (params, rotations, iterations,
-    converged, message, the :class:`Linearised` problem at the solution (for the
-    covariance)).
+    Parameters
+    ----------
+    volts : array_like, shape (m, 4)
+        LVDT readings, V.
+    weights : array_like, shape (m, 4)
+        1/sigma of each reading, 1/V.
+    R0 : ndarray, shape (m, 3, 3)
+        Start rotations.
+    directions : ndarray, shape (20, n)
+        Free directions (a model's ``tie_matrix``).
+    p_start : ndarray, shape (20,)
+        Start (fixed parameters keep its values); not validated.
+    max_iter : int, default 100
+        Iterations at most.
+    max_change : float, default 50.0
+        Steps that move any parameter further than this from ``p_start`` (in its unit) are
+        refused; reaching it raises nothing here.
+    history : list of float, optional
+        Appended with the whitened misfit at the start and after each accepted step.
+    at_start : Linearised, optional
+        The problem linearised at (p_start, R0) if already at hand (for example from an
+        observability check before the fit).
+
+    Returns
+    -------
+    params : ndarray, shape (20,)
+        The estimate.
+    rotations : ndarray, shape (m, 3, 3)
+        The fitted rotations.
+    iterations : int
+    converged : bool
+    message : str
+        How the iteration ended.
+    linearised : Linearised
+        The problem at the solution (for the covariance).
     """
     history = [] if history is None else history
     Vc = np.ascontiguousarray(np.asarray(volts, dtype=float).T)  # (4, m)

@@ -33,7 +33,7 @@ from .parameters import (
 from .smallmat import cross3, eigmin_sym3, gram3, matmul3, matvec3, rotvec_to_matrix, solve_sym3
 from .spheres import solve as solve_spheres
 
-LEG_POINT = (0, 0, 1, 1)  # actuator i ends at B1 (0) or B2 (1)
+LEG_POINT = (0, 0, 1, 1)  #: actuator i ends at B1 (0) or B2 (1)
 
 
 def _unit(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
@@ -48,7 +48,20 @@ _W /= np.linalg.norm(_W)
 
 
 def base_points(p: np.ndarray) -> np.ndarray:
-    """A1..A4 from a full parameter vector, shape (4, 3) in mm."""
+    """A1..A4, the base ends of the actuators, from a full parameter vector.
+
+    Parameters
+    ----------
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V), in the order of
+        :data:`~loopcal.calibration.parameters.NAMES`. Not validated.
+
+    Returns
+    -------
+    ndarray, shape (4, 3)
+        A1..A4 in the base frame, mm; the coordinates the frame fixes (A1y, A1z, A2z) are
+        zero.
+    """
     A = np.zeros((4, 3))
     for (pt, ax), ip in BASE_COORDS.items():
         A[pt, ax] = p[ip]
@@ -56,11 +69,23 @@ def base_points(p: np.ndarray) -> np.ndarray:
 
 
 def plate_home(p: np.ndarray) -> np.ndarray:
-    """B1 and B2 at the identity rotation, shape (2, 3) in mm.
+    """B1 and B2, the plate ends of the actuators, at the identity rotation.
 
     B1 lies at azimuth 57.4 deg, elevation 45 deg, radius k1; B2 at radius k2 in the plane of
     B1 and the reference B2 direction (azimuth 237.4 deg, elevation 45 deg), at the angle that
     makes ``|B1 B2| = k3`` (90 deg for the reference design).
+
+    Parameters
+    ----------
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V), in the order of
+        :data:`~loopcal.calibration.parameters.NAMES`. Only k1, k2, k3 are used; not validated.
+
+    Returns
+    -------
+    ndarray, shape (2, 3)
+        B1 and B2 (home positions ``Bh``) in the plate frame, which is the base frame at the
+        identity rotation, mm.
     """
     k1, k2, k3 = p[I_K1], p[I_K2], p[I_K3]
     cos_phi = (k1 * k1 + k2 * k2 - k3 * k3) / (2 * k1 * k2)
@@ -69,10 +94,22 @@ def plate_home(p: np.ndarray) -> np.ndarray:
 
 
 def home_derivative(p: np.ndarray) -> np.ndarray:
-    """dBh/dk of the plate points at home, shape (3, 2, 3): (k1, k2, k3) x (B1, B2) x xyz.
+    """dBh/dk: the derivatives of the plate points at home with respect to k1, k2, k3.
 
-    B1h = k1 u1; B2h = a u1 + b w with ``a = (k1^2 + k2^2 - k3^2) / (2 k1)`` and
+    ``B1h = k1 u1``; ``B2h = a u1 + b w`` with ``a = (k1^2 + k2^2 - k3^2) / (2 k1)`` and
     ``b = sqrt(k2^2 - a^2)`` (see :func:`loopcal.calibration.kinematics.plate_home`).
+
+    Parameters
+    ----------
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V), in the order of
+        :data:`~loopcal.calibration.parameters.NAMES`. Only k1, k2, k3 are used; not validated.
+
+    Returns
+    -------
+    ndarray, shape (3, 2, 3)
+        ``out[k, b]`` the derivative of point b (B1, B2) with respect to k1, k2 or k3 (k),
+        mm per mm. B1 depends on k1 only.
     """
     k1, k2, k3 = p[I_K1], p[I_K2], p[I_K3]
     a = (k1 * k1 + k2 * k2 - k3 * k3) / (2 * k1)
@@ -86,17 +123,65 @@ def home_derivative(p: np.ndarray) -> np.ndarray:
 
 
 def lengths_to_volts(lengths: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Sensor voltages ``V = (d - d0) / S`` for lengths (m, 4) in mm."""
+    """Sensor voltages ``V = (d - d0) / S`` of actuator lengths.
+
+    Parameters
+    ----------
+    lengths : array_like, shape (m, 4)
+        Actuator lengths d, mm, actuators 1..4 (any shape ending in 4 broadcasts).
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V), in the order of
+        :data:`~loopcal.calibration.parameters.NAMES`. Only the gains S and offsets d0 are
+        used; not validated.
+
+    Returns
+    -------
+    ndarray, shape (m, 4)
+        Voltages, V. Lengths outside the stroke give voltages beyond +-10 V: nothing is
+        clipped.
+    """
     return (np.asarray(lengths, dtype=float) - p[SL_OFFSET]) / p[SL_GAIN]
 
 
 def volts_to_lengths(volts: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Actuator lengths ``d = S V + d0`` in mm for voltages (m, 4) in V."""
+    """Actuator lengths ``d = S V + d0`` of sensor voltages.
+
+    Parameters
+    ----------
+    volts : array_like, shape (m, 4)
+        LVDT readings V, V, sensors 1..4 (any shape ending in 4 broadcasts).
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V), in the order of
+        :data:`~loopcal.calibration.parameters.NAMES`. Only the gains S and offsets d0 are
+        used; not validated.
+
+    Returns
+    -------
+    ndarray, shape (m, 4)
+        Actuator lengths, mm.
+    """
     return np.asarray(volts, dtype=float) * p[SL_GAIN] + p[SL_OFFSET]
 
 
 def check_rotations(R: np.ndarray) -> np.ndarray:
-    """Validate rotations: shape (m, 3, 3) (or (3, 3), promoted), finite, orthonormal."""
+    """Validate rotations: shape (m, 3, 3) (or (3, 3), promoted), finite, orthonormal.
+
+    Parameters
+    ----------
+    R : array_like, shape (m, 3, 3) or (3, 3)
+        Rotation matrices.
+
+    Returns
+    -------
+    ndarray, shape (m, 3, 3)
+        ``R`` as a float array, one (3, 3) promoted to shape (1, 3, 3).
+
+    Raises
+    ------
+    InputError
+        If the shape is wrong, an entry is not finite, or ``max |R R^T - I|`` exceeds 1e-6.
+        (A reflection, determinant -1, passes.)
+    """
     R = np.asarray(R, dtype=float)
     if R.shape == (3, 3):
         R = R[None]
@@ -111,16 +196,47 @@ def check_rotations(R: np.ndarray) -> np.ndarray:
 
 
 def plate_points(R: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """B1 and B2 for each rotation, shape (m, 2, 3) in mm."""
+    """B1 and B2 in the base frame for each rotation.
+
+    Parameters
+    ----------
+    R : ndarray, shape (m, 3, 3)
+        Plate rotations; not validated.
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V), in the order of
+        :data:`~loopcal.calibration.parameters.NAMES`.
+
+    Returns
+    -------
+    ndarray, shape (m, 2, 3)
+        ``R @ Bh`` for B1 and B2 (:func:`plate_home`), mm.
+    """
     return np.einsum("mij,bj->mbi", R, plate_home(p))
 
 
 def inverse_kinematics(R: np.ndarray, p: np.ndarray) -> np.ndarray:
     """Actuator lengths for plate rotations.
 
-    R: (m, 3, 3) rotations (or one (3, 3)); p: full parameter vector (20,).
-    Returns lengths (m, 4) in mm: ``d1 = |R B1h - A1|``, ``d2 = |R B1h - A2|``,
-    ``d3 = |R B2h - A3|``, ``d4 = |R B2h - A4|``.
+    Parameters
+    ----------
+    R : array_like, shape (m, 3, 3) or (3, 3)
+        Plate rotations (plate home frame to base frame).
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V), in the order of
+        :data:`~loopcal.calibration.parameters.NAMES`.
+
+    Returns
+    -------
+    ndarray, shape (m, 4)
+        Lengths, mm: ``d1 = |R B1h - A1|``, ``d2 = |R B1h - A2|``, ``d3 = |R B2h - A3|``,
+        ``d4 = |R B2h - A4|``. Not checked against the stroke (:func:`in_stroke`).
+
+    Raises
+    ------
+    InputError
+        If ``R`` fails :func:`check_rotations`.
+    ParameterError
+        If ``p`` fails :func:`~loopcal.calibration.parameters.check_vector`.
     """
     R = check_rotations(R)
     p = check_vector(p)
@@ -129,9 +245,26 @@ def inverse_kinematics(R: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 def euler_zyz(R: np.ndarray) -> np.ndarray:
-    """Intrinsic Z-Y-Z Euler angles (alpha, beta, gamma) of rotations (m, 3, 3), radians (m, 3).
+    """Intrinsic Z-Y-Z Euler angles (alpha, beta, gamma) of rotations.
 
-    At zero tilt only alpha + gamma is defined; gamma is then reported as zero."""
+    ``R = Rz(alpha) @ Ry(beta) @ Rz(gamma)`` (scipy's ``as_euler("ZYZ")``).
+
+    Parameters
+    ----------
+    R : array_like, shape (m, 3, 3) or (3, 3)
+        Rotations.
+
+    Returns
+    -------
+    ndarray, shape (m, 3)
+        (alpha, beta, gamma), rad. At zero tilt only alpha + gamma is defined; gamma is
+        then reported as zero (scipy's gimbal-lock warning is silenced).
+
+    Raises
+    ------
+    InputError
+        If ``R`` fails :func:`check_rotations`.
+    """
     from scipy.spatial.transform import Rotation  # scipy.spatial costs 0.1 s to import
 
     with warnings.catch_warnings():
@@ -140,16 +273,42 @@ def euler_zyz(R: np.ndarray) -> np.ndarray:
 
 
 def from_euler_zyz(angles: np.ndarray) -> np.ndarray:
-    """Rotations (m, 3, 3) from intrinsic Z-Y-Z Euler angles (m, 3) in radians."""
+    """Rotations from intrinsic Z-Y-Z Euler angles, the inverse of :func:`euler_zyz`.
+
+    Parameters
+    ----------
+    angles : array_like, shape (m, 3) or (3,)
+        (alpha, beta, gamma), rad.
+
+    Returns
+    -------
+    ndarray, shape (m, 3, 3)
+        ``Rz(alpha) @ Ry(beta) @ Rz(gamma)``; one angle triple gives shape (1, 3, 3).
+    """
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_euler("ZYZ", np.atleast_2d(angles)).as_matrix()
 
 
 def tilt_swivel(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Tilt of the output axis from +z and swivel about it (alpha + gamma), radians, (m,) each.
+    """Tilt of the output axis from +z and swivel about it (alpha + gamma).
 
-    Swivel is wrapped to (-pi, pi].
+    Parameters
+    ----------
+    R : array_like, shape (m, 3, 3) or (3, 3)
+        Rotations.
+
+    Returns
+    -------
+    tilt : ndarray, shape (m,)
+        beta of :func:`euler_zyz`, rad, in [0, pi].
+    swivel : ndarray, shape (m,)
+        alpha + gamma, rad, wrapped to (-pi, pi].
+
+    Raises
+    ------
+    InputError
+        If ``R`` fails :func:`check_rotations`.
     """
     a, b, g = euler_zyz(R).T
     swivel = np.angle(np.exp(1j * (a + g)))
@@ -157,8 +316,20 @@ def tilt_swivel(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def output_axis_angles(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The plate's output axis (its +z) for each rotation: tilt from the base's +z and
-    azimuth of the direction it leans, radians, (m,) each (azimuth from +x towards +y)."""
+    """The plate's output axis (its +z) for each rotation: how far and which way it leans.
+
+    Parameters
+    ----------
+    R : array_like, shape (m, 3, 3)
+        Rotations; not validated.
+
+    Returns
+    -------
+    tilt : ndarray, shape (m,)
+        Angle of the output axis from the base's +z, rad, in [0, pi].
+    azimuth : ndarray, shape (m,)
+        Direction it leans, rad, from +x towards +y, in [-pi, pi].
+    """
     axis = np.asarray(R)[:, :, 2]
     tilt = np.arccos(np.clip(axis[:, 2], -1.0, 1.0))
     return tilt, np.arctan2(axis[:, 1], axis[:, 0])
@@ -168,11 +339,18 @@ def output_axis_angles(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class ForwardSolution:
     """Result of :func:`forward_kinematics`.
 
-    rotations: (m, 3, 3) plate rotations fitting the four lengths in the least-squares sense.
-    rms_mm: (m,) RMS length misfit (the loop-closure inconsistency of the reading).
-    sigma_min: (m,) smallest singular value of the 4x3 length-to-rotation Jacobian, in mm/rad
-        (near zero: the orientation is poorly determined by the lengths).
-    converged: (m,) bool.
+    Attributes
+    ----------
+    rotations : ndarray, shape (m, 3, 3)
+        Plate rotations fitting the four lengths in the least-squares sense (for a pose
+        that did not converge, the last iterate).
+    rms_mm : ndarray, shape (m,)
+        RMS length misfit, mm (the loop-closure inconsistency of the reading).
+    sigma_min : ndarray, shape (m,)
+        Smallest singular value of the 4x3 length-to-rotation Jacobian, mm/rad (near zero:
+        the orientation is poorly determined by the lengths).
+    converged : ndarray of bool, shape (m,)
+        Whether Gauss-Newton's step fell below ``sqrt(tol)`` within ``max_iter``.
     """
 
     rotations: np.ndarray
@@ -191,16 +369,45 @@ def forward_kinematics(
 ) -> ForwardSolution:
     """Plate rotations from four actuator lengths (numerical forward kinematics).
 
-    The start comes from two three-sphere intersections, B1 from (O, k1), (A1, d1), (A2, d2) and
-    B2 from (O, k2), (A3, d3), (A4, d4), each on the assembly branch above the base (z > 0),
-    by the rotation that carries the home frame of (B1, B2) onto theirs. Gauss-Newton on the
-    rotation (left increments ``R <- exp([w]x) R``) then fits all four lengths in the
-    least-squares sense; a pose stops once its step is below ``sqrt(tol)`` rad.
+    Parameters
+    ----------
+    lengths : array_like, shape (m, 4) or (4,)
+        Actuator lengths, mm (for example :func:`volts_to_lengths` of the readings).
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V), in the order of
+        :data:`~loopcal.calibration.parameters.NAMES`.
+    max_iter : int, default 30
+        Gauss-Newton iterations at most.
+    tol : float, default 1e-12
+        A pose has converged once its rotation step is below ``sqrt(tol)`` rad.
+    start : array_like, shape (m, 3, 3), optional
+        Rotations to start Gauss-Newton from instead of the sphere intersections, for
+        example the solution at nearby parameters (it then needs two or three steps instead
+        of five to seven).
 
-    lengths: (m, 4) in mm; p: full parameter vector (20,). start: (m, 3, 3) rotations to
-    start Gauss-Newton from instead of the intersections, for example the solution at nearby
-    parameters (it then needs two or three steps instead of five to seven). Raises
-    numpy.linalg.LinAlgError where the result is not finite (parameters such as A1x = 1e300).
+    Returns
+    -------
+    ForwardSolution
+        Rotations, misfit, conditioning and convergence of each pose.
+
+    Raises
+    ------
+    InputError
+        If ``lengths`` is not (m, 4) or not finite, or ``start`` fails
+        :func:`check_rotations` or does not hold m rotations.
+    ParameterError
+        If ``p`` fails :func:`~loopcal.calibration.parameters.check_vector`.
+    numpy.linalg.LinAlgError
+        Where the result is not finite (parameters such as A1x = 1e300, which describe no
+        mechanism).
+
+    Notes
+    -----
+    The start comes from two three-sphere intersections, B1 from (O, k1), (A1, d1), (A2, d2)
+    and B2 from (O, k2), (A3, d3), (A4, d4), each on the assembly branch above the base
+    (z > 0), by the rotation that carries the home frame of (B1, B2) onto theirs.
+    Gauss-Newton on the rotation (left increments ``R <- exp([w]x) R``) then fits all four
+    lengths in the least-squares sense.
     """
     d = np.atleast_2d(np.asarray(lengths, dtype=float))
     if d.ndim != 2 or d.shape[1] != 4:
@@ -265,12 +472,25 @@ def _frame(b1: np.ndarray, b2: np.ndarray) -> np.ndarray:
 
 
 def leg_vectors(Rc: np.ndarray, home: np.ndarray, A: np.ndarray):
-    """The legs of m poses, component-major.
+    """The legs of m poses, component-major (the pose index last).
 
-    Rc: (3, 3, m) rotations (``Rc[i, j]`` the (m,) entries of row i, column j); home: (2, 3)
-    the plate points at home (:func:`plate_home`); A: (4, 3) the base points. Returns the
-    plate end of each leg B (3, 4, m), mm, the unit vectors u (3, 4, m) from A_i to it and
-    the leg lengths (4, m), mm.
+    Parameters
+    ----------
+    Rc : ndarray, shape (3, 3, m)
+        Rotations, ``Rc[i, j]`` the (m,) entries of row i, column j.
+    home : ndarray, shape (2, 3)
+        The plate points at home, mm (:func:`plate_home`).
+    A : ndarray, shape (4, 3)
+        The base points, mm (:func:`base_points`).
+
+    Returns
+    -------
+    B : ndarray, shape (3, 4, m)
+        The plate end of each leg, mm.
+    u : ndarray, shape (3, 4, m)
+        Unit vectors from A_i to it.
+    dist : ndarray, shape (4, m)
+        Leg lengths, mm.
     """
     Bp = [matvec3(Rc, h) for h in home]  # (3, m) each
     B = np.stack([Bp[b] for b in LEG_POINT], axis=1)
@@ -287,25 +507,56 @@ def _length_jacobian(Rc: np.ndarray, home: np.ndarray, A: np.ndarray):
 
 
 def in_stroke(lengths: np.ndarray, p: np.ndarray, stroke_mm: float = STROKE_MM) -> np.ndarray:
-    """(m, 4) bool: each length within ``d0_i +- stroke_mm``."""
+    """Whether each length is within ``d0_i +- stroke_mm``.
+
+    Parameters
+    ----------
+    lengths : array_like, shape (m, 4)
+        Actuator lengths, mm.
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V), in the order of
+        :data:`~loopcal.calibration.parameters.NAMES`. Only the offsets d0 are used.
+    stroke_mm : float, default STROKE_MM
+        Half the stroke, mm (37.5).
+
+    Returns
+    -------
+    ndarray of bool, shape (m, 4)
+    """
     return np.abs(np.asarray(lengths) - p[SL_OFFSET]) <= stroke_mm
 
 
-#: the largest |value| a parameter of this mechanism can plausibly have: ten times the
-#: reference design's size (its plate radius is 100 mm, its gains 3.75 mm/V)
+#: the largest ``|value|`` a length parameter of this mechanism can plausibly have, mm: ten
+#: times the reference design's size (its plate radius is 100 mm)
 PLAUSIBLE_MM = 1000.0
+#: the largest plausible gain, mm/V (the reference design's are 3.75 mm/V)
 PLAUSIBLE_GAIN = 100.0
 
 
 def check_geometry(p: np.ndarray) -> np.ndarray:
     """Validate a full parameter vector as a description of this mechanism.
 
-    Beyond :func:`loopcal.calibration.parameters.check_vector` (shape, finite, positive plate sizes
-    and gains, a plate triangle): every length within +-:data:`PLAUSIBLE_MM` mm, every gain
-    at most :data:`PLAUSIBLE_GAIN` mm/V, and at the home pose (identity rotation) every
+    Beyond :func:`loopcal.calibration.parameters.check_vector` (shape, finite, positive plate
+    sizes and gains, a plate triangle): every length within +-:data:`PLAUSIBLE_MM` mm, every
+    gain at most :data:`PLAUSIBLE_GAIN` mm/V, and at the home pose (identity rotation) every
     actuator's length inside its sensor's range ``d0 +- 10 V * S``. A vector that fails
-    would make forward kinematics meaningless (or fail outright); the ParameterError names
-    the parameters to look at. Returns the vector as a float array.
+    would make forward kinematics meaningless (or fail outright).
+
+    Parameters
+    ----------
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V), in the order of
+        :data:`~loopcal.calibration.parameters.NAMES`.
+
+    Returns
+    -------
+    ndarray, shape (20,)
+        The vector as a float array.
+
+    Raises
+    ------
+    ParameterError
+        If any check fails; the message names the parameters to look at.
     """
     p = check_vector(p)
     for name, value in zip(NAMES, p, strict=True):

@@ -19,14 +19,33 @@ import numpy as np
 from .errors import InputError, UnobservableError
 from .parameters import ParameterModel
 
-# Relative singular value below which a direction counts as not identifiable at all.
+#: relative singular value (s / s_1) at or below which a direction counts as not
+#: identifiable at all
 UNOBSERVABLE_RTOL = 1e-8
-# The paper's acceptable condition number (docs/model.md section 11).
+#: the paper's acceptable condition number (docs/model.md section 11)
 CONDITION_OK = 1000.0
 
 
 def as_rows(J: np.ndarray) -> tuple[np.ndarray, int]:
-    """A Jacobian as 2-D rows and its pose count: (m, 4, n) -> (4 m, n), m."""
+    """A Jacobian as 2-D rows and its pose count.
+
+    Parameters
+    ----------
+    J : array_like, shape (m, r, n) or (4 m, n)
+        Per-pose blocks (r rows each: 4 loop residuals, or 1 information row), or the
+        paper's stacked residual rows, pose-major.
+
+    Returns
+    -------
+    rows : ndarray, shape (m r, n)
+    m : int
+        Number of poses.
+
+    Raises
+    ------
+    InputError
+        For any other shape.
+    """
     J = np.asarray(J, dtype=float)
     if J.ndim == 3:  # (m, r, n) blocks, one per pose
         return J.reshape(-1, J.shape[-1]), J.shape[0]
@@ -36,10 +55,32 @@ def as_rows(J: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def column_scales(J: np.ndarray, names: tuple[str, ...] | None = None) -> np.ndarray:
-    """``diag(H)``: sqrt(M) / ||g_j|| for each column of J ((m, 4, n) or (4m, n)).
+    """``diag(H)``: ``sqrt(M) / ||g_j||`` for each column of J.
 
-    A column of zeros means a parameter with no effect at all on the residuals: it raises
-    :class:`UnobservableError` naming it.
+    Parameters
+    ----------
+    J : array_like, shape (m, r, n) or (4 m, n)
+        The identification Jacobian (see :func:`as_rows`), M = m poses.
+    names : tuple of str, optional
+        The columns' parameter names, for the error message; default ``#0``, ``#1``, ...
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        The scale of each column, in the parameter's unit per unit of the residual.
+
+    Raises
+    ------
+    UnobservableError
+        If a column is zero (or NaN): a parameter with no effect at all on the
+        residuals; the error names it.
+    InputError
+        If J has neither shape.
+
+    Notes
+    -----
+    The scaled Jacobian ``g H`` has every column of RMS one per pose; see the module
+    docstring for why ``sqrt(M)`` rather than unit columns.
     """
     rows, m = as_rows(J)
     norms = np.linalg.norm(rows, axis=0)
@@ -57,11 +98,12 @@ def column_scales(J: np.ndarray, names: tuple[str, ...] | None = None) -> np.nda
 class ObservabilityIndices:
     """The indices of docs/model.md section 7 from the scaled singular values.
 
-    singular_values: (L,) descending. min_singular: s_L (larger is better). condition:
-    s_1 / s_L (smaller is better). volume: (s_1 ... s_L)^(1/L) / sqrt(M) with M poses (Borm and
-    Menq). noise_amplification: s_L^2 / s_1 (Nahvi and Hollerbach; larger is better).
-    a_optimality: trace of the scaled parameter covariance per unit residual variance,
-    sum of 1 / s_i^2 (Sun and Hollerbach; smaller is better).
+    Attributes
+    ----------
+    singular_values : ndarray, shape (L,)
+        Singular values of the scaled Jacobian ``g H``, descending.
+    n_poses : int
+        M, the number of poses.
     """
 
     singular_values: np.ndarray
@@ -69,31 +111,45 @@ class ObservabilityIndices:
 
     @property
     def min_singular(self) -> float:
+        """s_L, the smallest singular value (larger is better)."""
         return float(self.singular_values[-1])
 
     @property
     def condition(self) -> float:
+        """s_1 / s_L, the condition number (smaller is better; inf if s_L is 0)."""
         s = self.singular_values
         return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
     @property
     def volume(self) -> float:
+        """(s_1 ... s_L)^(1/L) / sqrt(M) (Borm and Menq; larger is better)."""
         s = self.singular_values
         with np.errstate(divide="ignore"):
             return float(np.exp(np.mean(np.log(s))) / np.sqrt(self.n_poses))
 
     @property
     def noise_amplification(self) -> float:
+        """s_L^2 / s_1 (Nahvi and Hollerbach; larger is better)."""
         s = self.singular_values
         return float(s[-1] ** 2 / s[0])
 
     @property
     def a_optimality(self) -> float:
+        """Sum of 1 / s_i^2 (Sun and Hollerbach; smaller is better): the trace of the scaled
+        parameter covariance per unit residual variance."""
         s = self.singular_values
         with np.errstate(divide="ignore"):
             return float(np.sum(1.0 / s**2))
 
     def as_dict(self) -> dict[str, float]:
+        """The five indices by name.
+
+        Returns
+        -------
+        dict of str to float
+            ``min_singular``, ``condition``, ``volume``, ``noise_amplification``,
+            ``a_optimality``.
+        """
         return {
             "min_singular": self.min_singular,
             "condition": self.condition,
@@ -104,10 +160,27 @@ class ObservabilityIndices:
 
 
 def observability_indices(J: np.ndarray, scales: np.ndarray | None = None) -> ObservabilityIndices:
-    """Indices of a pose set from its Jacobian J ((m, 4, n) or (4m, n)).
+    """Indices of a pose set from its Jacobian.
 
-    scales: ``diag(H)`` to use; default :func:`column_scales` of J itself. Pass a fixed H (for
-    example that of a candidate pool) to compare subsets on one scale.
+    Parameters
+    ----------
+    J : array_like, shape (m, r, n) or (4 m, n)
+        The identification Jacobian of m poses (see :func:`as_rows`).
+    scales : array_like, shape (n,), optional
+        ``diag(H)`` to use; default :func:`column_scales` of J itself. Pass a fixed H (for
+        example that of a candidate pool) to compare subsets on one scale.
+
+    Returns
+    -------
+    ObservabilityIndices
+        From the singular values of ``J H``.
+
+    Raises
+    ------
+    InputError
+        If J has neither shape.
+    UnobservableError
+        If ``scales`` is not given and a column of J is zero.
     """
     rows, m = as_rows(J)
     h = column_scales(J) if scales is None else np.asarray(scales, dtype=float)
@@ -117,15 +190,35 @@ def observability_indices(J: np.ndarray, scales: np.ndarray | None = None) -> Ob
 
 @dataclass(frozen=True)
 class Combination:
-    """A direction in parameter space the data see weakly: ``weights`` over scaled parameters
-    (unit norm; the parameter's change times its scale), its singular value and the ratio
-    ``s_1 / s``."""
+    """A direction in parameter space the data see weakly.
+
+    Attributes
+    ----------
+    weights : dict of str to float
+        The direction over the scaled parameters (unit norm; a parameter's change divided
+        by its column scale), by name.
+    singular_value : float
+        Its singular value s.
+    condition : float
+        ``s_1 / s``.
+    """
 
     weights: dict[str, float]
     singular_value: float
     condition: float
 
     def describe(self, threshold: float = 0.1) -> str:
+        """The direction in words, e.g. ``"+0.71*d01 -0.70*A1x  (s = 0.01, s1/s = 2e+03)"``.
+
+        Parameters
+        ----------
+        threshold : float, default 0.1
+            Weights smaller than this in magnitude are left out.
+
+        Returns
+        -------
+        str
+        """
         terms = sorted(self.weights.items(), key=lambda kv: -abs(kv[1]))
         text = " ".join(f"{w:+.2f}*{n}" for n, w in terms if abs(w) >= threshold)
         return f"{text}  (s = {self.singular_value:.3g}, s1/s = {self.condition:.3g})"
@@ -135,13 +228,29 @@ class Combination:
 class IdentifiabilityReport:
     """Which free parameters the pose set can identify (the paper's steps a-c, automated).
 
-    status: name -> "ok" | "weak" | "unobservable": a parameter taking part, with at least
-    ``share`` of its squared weight over the singular directions, in a direction below the
-    numerical rank is unobservable (its value cannot be told apart from that combination),
-    in one beyond the condition limit weak. combinations: those directions,
-    weakest first. suggestion: a free set reaching the condition limit by dropping, one at a
-    time, the parameter that dominates the weakest direction (followers of a dropped leader
-    are dropped with it).
+    Result of :func:`analyse_identifiability`.
+
+    Attributes
+    ----------
+    model : ParameterModel
+        The free set analysed.
+    indices : ObservabilityIndices
+        Of the scaled Jacobian.
+    status : dict of str to str
+        Free name -> ``"ok"``, ``"weak"`` or ``"unobservable"``: a parameter taking part,
+        with at least ``share`` of its squared weight over the singular directions, in a
+        direction below the numerical rank is unobservable (its value cannot be told apart
+        from that combination), in one beyond the condition limit weak.
+    combinations : list of Combination
+        The directions beyond the condition limit, weakest first.
+    suggestion : ParameterModel or None
+        A free set within the condition limit, found by dropping one parameter at a time,
+        each time the one whose removal leaves the best-conditioned set (followers of a
+        dropped leader are dropped with it): the model itself if it is within the limit
+        already, None if no such set was found.
+    relative_std : dict of str to float
+        Free name -> standard deviation of the scaled parameter per unit residual noise
+        (inf where unobservable).
     """
 
     model: ParameterModel
@@ -153,9 +262,17 @@ class IdentifiabilityReport:
 
     @property
     def observable(self) -> bool:
+        """True if no free parameter is unobservable (weak ones are allowed)."""
         return all(v != "unobservable" for v in self.status.values())
 
     def summary(self) -> str:
+        """A readable report: the indices, each parameter's status, the weak directions and
+        the suggestion.
+
+        Returns
+        -------
+        str
+        """
         ix = self.indices
         lines = [
             f"{self.model.describe()}",
@@ -212,11 +329,34 @@ def analyse_identifiability(
     share: float = 0.05,
     jacobian_of=None,
 ) -> IdentifiabilityReport:
-    """Classify the free parameters of ``model`` from the scaled SVD of J ((m, 4, n)).
+    """Classify the free parameters of ``model`` from the scaled SVD of J.
 
-    jacobian_of: optional callable ``model -> J`` used to evaluate candidate reduced sets for
-    the suggestion; without it the suggestion drops columns of J (the same thing when no ties
-    change, which is the usual case).
+    Parameters
+    ----------
+    J : array_like, shape (m, r, n) or (4 m, n)
+        The identification Jacobian of m poses with respect to the free values.
+    model : ParameterModel
+        The free set, n = ``model.n_free`` columns.
+    condition_limit : float, default CONDITION_OK
+        Directions with ``s < s_1 / condition_limit`` are weak (1000).
+    share : float, default 0.05
+        A parameter with at least this share of its squared weight in weak (or
+        unobservable) directions is weak (or unobservable).
+    jacobian_of : callable, optional
+        ``model -> J``, used to evaluate candidate reduced sets for the suggestion; without
+        it the suggestion drops columns of J (the same thing when no ties change, which is
+        the usual case).
+
+    Returns
+    -------
+    IdentifiabilityReport
+
+    Raises
+    ------
+    InputError
+        If J's columns do not match the free parameters, or J has neither shape.
+    UnobservableError
+        If a column of J is zero (a parameter with no effect at all).
     """
     rows, m = as_rows(J)
     names = model.free
@@ -254,7 +394,26 @@ def analyse_identifiability(
 
 
 def require_observable(J: np.ndarray, model: ParameterModel) -> ObservabilityIndices:
-    """Raise :class:`UnobservableError` naming the blind combinations if J is rank deficient."""
+    """Raise :class:`UnobservableError` naming the blind combinations if J is rank deficient.
+
+    Parameters
+    ----------
+    J : array_like, shape (m, r, n) or (4 m, n)
+        The identification Jacobian with respect to the free values.
+    model : ParameterModel
+        Names the columns.
+
+    Returns
+    -------
+    ObservabilityIndices
+        Of the scaled Jacobian, when it has full rank.
+
+    Raises
+    ------
+    UnobservableError
+        If a scaled singular value is at most :data:`UNOBSERVABLE_RTOL` times the largest
+        (or a column is zero); ``combinations`` holds the blind directions.
+    """
     rows, m = as_rows(J)
     h = column_scales(J, model.free)
     _, s, Vt = np.linalg.svd(rows * h, full_matrices=False)

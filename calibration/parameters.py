@@ -8,7 +8,10 @@ rotation O, x along O->A1, A2 in the xy-plane, z out of the base towards the pla
 A :class:`ParameterModel` says which parameters are identified (free), which follow another
 one by construction (tied) and which are held (fixed). Ties act on changes: a follower moves
 by ``ratio`` times its leader's change, so ``A4x`` tied to ``A1x`` with ratio -1 keeps
-``A4x = -A1x`` whenever the start satisfies it (docs/model.md section 3).
+``A4x = -A1x`` whenever the start satisfies it (docs/model.md section 3). ``PRESETS`` holds
+the named models (``"paper7"``, ``"offsets"``, ``"all"``, ``"d01"`` .. ``"d04"``);
+``PAPER7`` is the paper's: d01..d04, A1x, A2x, A2y free, with A3x = -A2x, A3y = -A2y and
+A4x = -A1x tied.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import numpy as np
 
 from .errors import ParameterError
 
+#: the 20 parameter names, in the order of a full vector
 NAMES: tuple[str, ...] = (
     "A1x", "A2x", "A2y",
     "A3x", "A3y", "A3z",
@@ -29,7 +33,9 @@ NAMES: tuple[str, ...] = (
     "d01", "d02", "d03", "d04",
 )  # fmt: skip
 N_PARAMS = len(NAMES)
+#: name -> position in a full vector
 INDEX: dict[str, int] = {name: i for i, name in enumerate(NAMES)}
+#: name -> unit: "mm/V" for the gains S1..S4, "mm" for the rest
 UNITS: dict[str, str] = {n: ("mm/V" if n.startswith("S") else "mm") for n in NAMES}
 GROUPS: dict[str, tuple[str, ...]] = {
     "base": NAMES[0:9],
@@ -51,13 +57,15 @@ BASE_COORDS: dict[tuple[int, int], int] = {
 }  # fmt: skip
 
 # Reference design (docs/model.md section 10).
+#: mm: each actuator moves +-37.5 mm about its home length
 STROKE_MM = 37.5
-GAIN_NOMINAL = 3.75  # mm/V: +-10 V spans the +-37.5 mm stroke
-STROKE_VOLTS = STROKE_MM / GAIN_NOMINAL  # 10 V, the LVDT conditioner's span
-OFFSET_NOMINAL = 97.4  # mm: actuator length at home, where V = 0
+GAIN_NOMINAL = 3.75  #: mm/V: +-10 V spans the +-37.5 mm stroke
+STROKE_VOLTS = STROKE_MM / GAIN_NOMINAL  #: 10 V, the LVDT conditioner's span
+OFFSET_NOMINAL = 97.4  #: mm: actuator length at home, where V = 0
 PLATE_RADIUS = 100.0
 B1_AZIMUTH_DEG, B2_AZIMUTH_DEG, B_ELEVATION_DEG = 57.4, 237.4, 45.0
 
+#: the reference design as a full vector, shape (20,), read-only (a copy: :func:`nominal`)
 NOMINAL: np.ndarray = np.array(
     [
         68.7, -28.8, 62.4,
@@ -72,12 +80,35 @@ NOMINAL.setflags(write=False)
 
 
 def nominal() -> np.ndarray:
-    """A writable copy of the reference parameter vector, shape (20,)."""
+    """A writable copy of the reference parameter vector.
+
+    Returns
+    -------
+    ndarray, shape (20,)
+        :data:`NOMINAL` (the reference design, docs/model.md section 10), in the order of
+        :data:`NAMES`: mm, and mm/V for the gains S1..S4.
+    """
     return NOMINAL.copy()
 
 
 def index_of(name: str) -> int:
-    """Position of a parameter in the full vector; raises :class:`ParameterError` if unknown."""
+    """Position of a parameter in the full vector.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`NAMES`, e.g. ``"d01"``.
+
+    Returns
+    -------
+    int
+        Its index, 0..19.
+
+    Raises
+    ------
+    ParameterError
+        If the name is not a parameter (the message lists the known ones).
+    """
     try:
         return INDEX[name]
     except KeyError:
@@ -87,13 +118,48 @@ def index_of(name: str) -> int:
 
 
 def to_dict(p: np.ndarray) -> dict[str, float]:
-    """A full vector as ``{name: value}``."""
+    """A full vector as ``{name: value}``.
+
+    Parameters
+    ----------
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V).
+
+    Returns
+    -------
+    dict of str to float
+        Every parameter by name, in the order of :data:`NAMES`.
+
+    Raises
+    ------
+    ParameterError
+        If ``p`` fails :func:`check_vector`.
+    """
     p = check_vector(p)
     return {name: float(v) for name, v in zip(NAMES, p, strict=True)}
 
 
 def from_dict(values: Mapping[str, float], base: np.ndarray | None = None) -> np.ndarray:
-    """A full vector from ``{name: value}``; names not given keep ``base`` (default nominal)."""
+    """A full vector from ``{name: value}``.
+
+    Parameters
+    ----------
+    values : mapping of str to float
+        Values by parameter name, in the parameter's unit (mm, or mm/V for S1..S4).
+    base : array_like, shape (20,), optional
+        Values of the parameters not named; default :data:`NOMINAL`.
+
+    Returns
+    -------
+    ndarray, shape (20,)
+        A new vector. It is not checked as a whole (:func:`check_vector` does that).
+
+    Raises
+    ------
+    ParameterError
+        If a name is unknown, a value is not finite, or ``base`` fails
+        :func:`check_vector`.
+    """
     p = nominal() if base is None else check_vector(base).copy()
     for name, value in values.items():
         v = float(value)
@@ -104,7 +170,24 @@ def from_dict(values: Mapping[str, float], base: np.ndarray | None = None) -> np
 
 
 def check_vector(p: np.ndarray) -> np.ndarray:
-    """Validate a full parameter vector: shape (20,), finite, positive plate sizes and gains."""
+    """Validate a full parameter vector.
+
+    Parameters
+    ----------
+    p : array_like, shape (20,)
+        Full parameter vector in the order of :data:`NAMES` (mm, mm/V).
+
+    Returns
+    -------
+    ndarray, shape (20,)
+        ``p`` as a float array (not a copy if it already was one).
+
+    Raises
+    ------
+    ParameterError
+        If the shape is not (20,), a value is not finite, a plate size k1..k3 or a gain
+        S1..S4 is not positive, or k1, k2, k3 do not form a triangle.
+    """
     p = np.asarray(p, dtype=float)
     if p.shape != (N_PARAMS,):
         raise ParameterError(f"a parameter vector has shape ({N_PARAMS},), got {p.shape}")
@@ -122,7 +205,20 @@ def check_vector(p: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Tie:
-    """``follower`` changes by ``ratio`` times the change of ``leader``."""
+    """``follower`` changes by ``ratio`` times the change of ``leader``.
+
+    Names are checked when a :class:`ParameterModel` is built from the tie.
+
+    Parameters
+    ----------
+    follower : str
+        The tied parameter (not free).
+    leader : str
+        The free parameter it follows.
+    ratio : float, default 1.0
+        Change of the follower per unit change of the leader; -1 keeps
+        ``follower = -leader`` when the start satisfies it.
+    """
 
     follower: str
     leader: str
@@ -133,8 +229,28 @@ class Tie:
 class ParameterModel:
     """A split of the 20 parameters into free, tied and fixed.
 
-    free: names of the identified parameters, in the order of the free vector ``x``.
-    ties: followers that move with a free leader. Every other parameter is fixed.
+    Parameters
+    ----------
+    free : sequence of str
+        Names of the identified parameters, in the order of the free vector ``x``.
+    ties : sequence of Tie, optional
+        Followers that move with a free leader. Every other parameter is fixed.
+
+    Raises
+    ------
+    ParameterError
+        If no parameter is free, a name is unknown or listed twice as free, a follower is
+        also free or tied twice, a leader is not free, or a ratio is not finite.
+
+    See Also
+    --------
+    PRESETS : named models; PAPER7, the paper's seven free parameters and three ties.
+
+    Notes
+    -----
+    A step ``dx`` of the free values moves the full vector by ``dp = T @ dx``
+    (:attr:`tie_matrix`): column j of ``T`` has a 1 at free parameter j and the ratio of
+    each of its followers.
     """
 
     free: tuple[str, ...]
@@ -177,36 +293,77 @@ class ParameterModel:
 
     @property
     def n_free(self) -> int:
+        """Number of free parameters, n."""
         return len(self.free)
 
     @property
     def tied(self) -> tuple[str, ...]:
+        """Names of the followers, in the order of the ties."""
         return tuple(t.follower for t in self.ties)
 
     @property
     def fixed(self) -> tuple[str, ...]:
+        """Names of the parameters neither free nor tied, in the order of :data:`NAMES`."""
         moving = set(self.free) | set(self.tied)
         return tuple(n for n in NAMES if n not in moving)
 
     @property
     def free_index(self) -> np.ndarray:
+        """Positions of the free parameters in the full vector, int array of shape (n,)."""
         return np.array([INDEX[n] for n in self.free], dtype=int)
 
     @property
     def tie_matrix(self) -> np.ndarray:
-        """``T``, shape (20, n_free): ``dp = T @ dx``. Maps a free step to a full step."""
+        """``T``, shape (20, n_free): ``dp = T @ dx``. Maps a free step to a full step.
+
+        Read-only. Passed as ``directions`` to the Jacobians, it gives derivatives with
+        respect to the free values.
+        """
         return self._T
 
     def free_values(self, p: np.ndarray) -> np.ndarray:
-        """The free vector ``x`` of a full vector ``p``, shape (n_free,)."""
+        """The free vector ``x`` of a full vector.
+
+        Parameters
+        ----------
+        p : array_like, shape (20,)
+            Full parameter vector.
+
+        Returns
+        -------
+        ndarray, shape (n_free,)
+            Its free parameters, in the order of :attr:`free` (mm, mm/V).
+        """
         return np.asarray(p, dtype=float)[self.free_index]
 
     def expand(self, x: np.ndarray, base: np.ndarray) -> np.ndarray:
-        """Full vector for free values ``x``: ``base`` moved by ``T @ (x - x_base)``."""
+        """Full vector for free values ``x``: ``base`` moved by ``T @ (x - x_base)``.
+
+        Parameters
+        ----------
+        x : array_like, shape (n_free,)
+            Free values, in the order of :attr:`free`.
+        base : array_like, shape (20,)
+            The full vector whose fixed parameters are kept and whose free values
+            ``x_base`` the step is measured from.
+
+        Returns
+        -------
+        ndarray, shape (20,)
+            The free parameters set to ``x``, each follower moved by its ratio times its
+            leader's change, the fixed parameters as in ``base``. Not validated.
+        """
         base = np.asarray(base, dtype=float)
         return base + self._T @ (np.asarray(x, dtype=float) - self.free_values(base))
 
     def describe(self) -> str:
+        """The split in words, e.g. ``"free: d01, A1x; tied: A4x = -A1x"``.
+
+        Returns
+        -------
+        str
+            The free names and, if any, each tie as ``follower = [ratio*]leader``.
+        """
         ties = ", ".join(
             f"{t.follower} = {'-' if t.ratio == -1 else '' if t.ratio == 1 else f'{t.ratio:g}*'}"
             f"{t.leader}"
@@ -218,7 +375,23 @@ class ParameterModel:
     def parse(cls, free: str | Iterable[str], ties: str | Iterable[str] = ()) -> ParameterModel:
         """Build from text: ``free="d01,d02,A1x"`` (or a preset name), ``ties="A3x=-A2x,A4x=-A1x"``.
 
-        A tie reads ``follower=leader``, ``follower=-leader`` or ``follower=0.5*leader``.
+        Parameters
+        ----------
+        free : str or iterable of str
+            Comma-separated names, or one string per name. A string that is a key of
+            :data:`PRESETS` (with no ``ties``) returns that preset.
+        ties : str or iterable of str, optional
+            Comma-separated ties, or one string per tie, each ``follower=leader``,
+            ``follower=-leader`` or ``follower=0.5*leader``.
+
+        Returns
+        -------
+        ParameterModel
+
+        Raises
+        ------
+        ParameterError
+            If a tie lacks ``=``, a ratio is not a number, or the model is invalid.
         """
         if isinstance(free, str):
             key = free.strip()

@@ -23,8 +23,17 @@ CANDIDATE_MARGIN, CANDIDATE_MARGIN_MANY = 1.5, 3.0
 
 @dataclass(frozen=True)
 class Calibration:
-    """identification: the final estimate (from the selected poses); selection: the chosen
-    poses, indices into the recording; rounds: how many select-and-identify rounds ran."""
+    """Result of :func:`calibrate`.
+
+    Attributes
+    ----------
+    identification : Identification
+        The final estimate, from the selected poses (its ``start`` is the caller's start).
+    selection : Selection
+        The chosen poses; ``selection.indices`` index the recording's poses.
+    rounds : int
+        How many select-and-identify rounds ran.
+    """
 
     identification: Identification
     selection: Selection
@@ -48,17 +57,57 @@ def calibrate(
     method: str = DEFAULT_METHOD,
     scans_per_pose: np.ndarray | None = None,
 ) -> Calibration:
-    """Choose ``n_select`` of the recorded poses (readings (N, 4) in V) and identify.
+    """Choose ``n_select`` of the recorded poses and identify the parameters from them.
 
-    method: the estimator, "ml" (default) or "paper" (see :func:`identify`); the poses are
-    selected on that estimator's information. scans_per_pose: (N,) scans averaged into each
-    pose (ml weighs the poses by them, in the selection and the fit).
+    Parameters
+    ----------
+    volts : array_like, shape (N, 4)
+        LVDT readings of the recorded quasi-static poses, V (for example
+        :func:`~loopcal.calibration.poses.still_poses`).
+    model : ParameterModel, default PAPER7
+        Which parameters are free, tied and fixed.
+    start : array_like, shape (20,), default NOMINAL
+        Full parameter vector to start from (mm, mm/V).
+    n_select : int
+        Poses to select (at least ``model.n_free`` are).
+    criterion : str, default "min_singular"
+        Selection criterion, one of :data:`~loopcal.calibration.selection.CRITERIA`.
+    max_condition : float, default CONDITION_OK
+        Bound on the condition number of the selected set.
+    rounds : int, default 2
+        Select-and-identify rounds at most (at least one runs).
+    noise_volts : float, optional
+        Known per-channel noise of one scan, 1 sigma, V; None estimates it (see
+        :func:`identify`).
+    method : {"ml", "paper"}, default "ml"
+        The estimator (see :func:`identify`); the poses are selected on that estimator's
+        information.
+    scans_per_pose : array_like, shape (N,), optional
+        Scans averaged into each pose (ml weighs the poses by them, in the selection and
+        the fit).
 
+    Returns
+    -------
+    Calibration
+        The identification from the selected poses, the selection and the rounds run.
+
+    Raises
+    ------
+    InputError
+        An unknown method, bad readings, ``scans_per_pose`` not one count per pose, or
+        too few usable poses.
+    ParameterError, UnobservableError, ConvergenceError
+        From :func:`identify` on the selected poses.
+
+    Notes
+    -----
     The first round designs the selection at ``start``; each further round designs it again
     at the previous estimate, where the Jacobian (and which poses are near-singular) is
-    closer to the truth, and identifies again. With N <= n_select every pose is used. With
+    closer to the truth, and identifies again; a round that selects the same poses as the
+    one before ends the rounds. With N <= n_select every usable pose is selected. With
     more than PRESTART_FACTOR x n_select candidates, the first round designs at an estimate
-    from PRESTART_POSES poses spread evenly over the recording instead of at ``start``.
+    from PRESTART_POSES poses spread evenly over the recording instead of at ``start``
+    (unless that estimate fails).
     """
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")

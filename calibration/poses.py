@@ -21,12 +21,23 @@ READING_LSB_VOLTS = 20.0 / 4096
 
 
 def pose_noise_volts(scan_noise: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """(k, 4) standard deviation of each pose's mean reading, V.
+    """Standard deviation of each pose's mean reading.
 
-    scan_noise: (k, 4) or (4,) the noise of one reading (V); counts: (k,) scans averaged
-    into each pose. The noise averages down as 1/sqrt(count); the 12-bit rounding of a
-    still reading does not (every scan rounds the same way), so it stays:
+    The noise averages down as 1/sqrt(count); the 12-bit rounding of a still reading does
+    not (every scan rounds the same way), so it stays:
     ``sqrt(scan_noise^2 / count + LSB^2 / 12)``.
+
+    Parameters
+    ----------
+    scan_noise : array_like, shape (k, 4) or (4,)
+        The noise of one reading, 1 sigma, V.
+    counts : array_like, shape (k,)
+        Scans averaged into each pose.
+
+    Returns
+    -------
+    ndarray, shape (k, 4)
+        V.
     """
     counts = np.asarray(counts, dtype=float)
     return np.sqrt(np.square(scan_noise) / counts[:, None] + READING_LSB_VOLTS**2 / 12)
@@ -83,13 +94,29 @@ def _covered(starts: np.ndarray, window: int) -> np.ndarray:
 
 
 def running_sums_at(rows, n: int, at: np.ndarray) -> np.ndarray:
-    """The running sums ``S[j] = X[0] + ... + X[j - 1]`` (S[0] = 0) of n rows X, at the
-    indices ``at`` (m,): (m, c).
+    """The running sums ``S[j] = X[0] + ... + X[j - 1]`` (S[0] = 0) of n rows X, at given
+    indices, without an (n, c) array of X.
 
-    rows(a, b): the rows X[a:b] (b - a, c) as a new array (it is summed in place). The sums
-    are accumulated in order, a block of :data:`_BLOCK` rows at a time, each block's first
-    row added to the sum before it: bit for bit ``np.cumsum(X, axis=0)`` (which adds in
-    order too), without an (n, c) array; blocks past the last index asked are not read.
+    Parameters
+    ----------
+    rows : callable
+        ``rows(a, b)`` returns the rows ``X[a:b]``, shape (b - a, c), as a new array (it is
+        summed in place).
+    n : int
+        Number of rows of X.
+    at : array_like of int, shape (m,)
+        Indices j into S, ``0 <= j <= n``, in any order.
+
+    Returns
+    -------
+    ndarray, shape (m, c)
+        ``S[at]``.
+
+    Notes
+    -----
+    The sums are accumulated in order, 16384 rows at a time, each block's first row added
+    to the sum before it: bit for bit ``np.cumsum(X, axis=0)`` (which adds in order too);
+    blocks past the last index asked are not read.
     """
     at = np.asarray(at, dtype=np.int64)
     order = np.argsort(at, kind="stable")
@@ -130,9 +157,18 @@ def _split(ranges: np.ndarray, max_scans: int, window: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class StillPoses:
-    """volts: (k, 4) mean readings of the still stretches, V; spread: (k, 4) standard
-    deviation of the readings within each stretch, V; ranges: (k, 2) first and one-past-last
-    scan index of each stretch; counts: (k,) scans averaged."""
+    """Still stretches of a scan stream, each averaged into one pose (result of
+    :func:`still_poses`).
+
+    Attributes
+    ----------
+    volts : ndarray, shape (k, 4)
+        Mean readings of the still stretches, V.
+    spread : ndarray, shape (k, 4)
+        Standard deviation of the readings within each stretch, V.
+    ranges : ndarray of int, shape (k, 2)
+        First and one-past-last scan index of each stretch.
+    """
 
     volts: np.ndarray
     spread: np.ndarray
@@ -140,6 +176,7 @@ class StillPoses:
 
     @property
     def counts(self) -> np.ndarray:
+        """Scans averaged into each pose, shape (k,)."""
         return self.ranges[:, 1] - self.ranges[:, 0]
 
     def __len__(self) -> int:
@@ -156,12 +193,37 @@ def still_poses(
 ) -> StillPoses:
     """Find still stretches in a scan stream and average each into one pose.
 
-    volts: (n, 4) readings in scan order, V. window: scans a stretch must at least span
-    (0.5 s at 20 Hz). band_volts: largest peak-to-peak change of any channel within a window
-    that still counts as still (40 mV noise gives about 0.2 V peak-to-peak over 10 scans).
-    max_scans: split longer stretches into pieces of at most this many scans (None: keep
-    whole). valid: (n,) bool, False for scans that must not be used (rail, faults, gaps);
-    a stretch never spans an invalid scan.
+    A scan is still if it lies in at least one window of ``window`` valid scans in which
+    every channel stays within ``band_volts`` peak to peak; a stretch is a run of still
+    scans.
+
+    Parameters
+    ----------
+    volts : array_like, shape (n, 4)
+        Readings in scan order, V.
+    window : int, default 10
+        Scans a stretch must at least span (0.5 s at 20 Hz), at least 2.
+    band_volts : float, default 0.25
+        Largest peak-to-peak change of any channel within a window that still counts as
+        still, V (40 mV noise gives about 0.2 V peak-to-peak over 10 scans).
+    max_scans : int, optional
+        Split longer stretches into pieces of at most this many scans (a last piece shorter
+        than ``window`` is dropped); None keeps them whole.
+    valid : array_like of bool, shape (n,), optional
+        False for scans that must not be used (rail, faults, gaps); a stretch never spans
+        an invalid scan.
+
+    Returns
+    -------
+    StillPoses
+        One pose per stretch, in scan order; empty if there are none (or fewer than
+        ``window`` scans).
+
+    Raises
+    ------
+    InputError
+        Bad readings, ``window`` below 2, ``valid`` of the wrong shape, or ``max_scans``
+        below ``window``.
     """
     V = check_volts(volts)
     n = len(V)

@@ -31,10 +31,21 @@ _E = np.eye(N_PARAMS)
 
 @dataclass(frozen=True)
 class LoopResiduals:
-    """residuals: (m, 4) in mm^2; jacobian: (m, 4, 20) derivative with respect to the full
-    parameter vector, or None; separation: (m, 4) the smaller branch separation of the two
-    intersections in each loop, mm; feasible: (m, 4) False where a sphere triple has no real
-    intersection (inconsistent readings)."""
+    """Closed-loop residuals of m poses (result of :func:`loop_residuals`).
+
+    Attributes
+    ----------
+    residuals : ndarray, shape (m, 4)
+        ``f_i(k)``, mm^2 (see :func:`loop_residuals`).
+    jacobian : ndarray, shape (m, 4, q), or None
+        Derivative with respect to the parameters along the ``directions`` asked for
+        (q = 20, the full vector, by default); None if not asked for.
+    separation : ndarray, shape (m, 4)
+        The smaller branch separation of the two intersections in each loop, mm (small:
+        near a singular configuration).
+    feasible : ndarray of bool, shape (m, 4)
+        False where a sphere triple has no real intersection (inconsistent readings).
+    """
 
     residuals: np.ndarray
     jacobian: np.ndarray | None
@@ -43,15 +54,46 @@ class LoopResiduals:
     _state: tuple | None = field(default=None, repr=False, compare=False)
 
     def derivative(self, directions: np.ndarray | None = None) -> np.ndarray:
-        """The Jacobian (m, 4, q) along ``directions`` (20, q) (default: all parameters),
-        from the intersections already solved for the residuals: only the reverse sweep
-        runs, so an accepted trial step costs no second forward solve."""
+        """The Jacobian along ``directions``, from the intersections already solved.
+
+        Only the reverse sweep runs, so an accepted trial step costs no second forward
+        solve. Needs a result of :func:`loop_residuals` (it keeps the intersections).
+
+        Parameters
+        ----------
+        directions : array_like, shape (20, q), optional
+            Parameter directions to differentiate along; default the identity (all 20
+            parameters). A model's ``tie_matrix`` gives derivatives with respect to its
+            free values.
+
+        Returns
+        -------
+        ndarray, shape (m, 4, q)
+            ``df/dp @ directions``, mm^2 per unit of each direction.
+        """
         W = _E if directions is None else np.asarray(directions, dtype=float)
         return _jacobian(self._state, W)
 
 
 def check_volts(volts: np.ndarray) -> np.ndarray:
-    """Validate sensor voltages: shape (m, 4), finite. Returns a float array."""
+    """Validate sensor voltages: shape (m, 4), finite.
+
+    Parameters
+    ----------
+    volts : array_like, shape (m, 4) or (4,)
+        LVDT readings, V.
+
+    Returns
+    -------
+    ndarray, shape (m, 4)
+        ``volts`` as a float array, one reading of shape (4,) promoted to (1, 4). The range
+        is not checked (:func:`loopcal.calibration.identify.check_stroke` does).
+
+    Raises
+    ------
+    InputError
+        If the shape is wrong or a value is NaN or infinite (the message names the first).
+    """
     V = np.asarray(volts, dtype=float)
     if V.ndim == 1 and V.shape == (4,):
         V = V[None]
@@ -68,9 +110,33 @@ def check_volts(volts: np.ndarray) -> np.ndarray:
 
 
 def reference_points(volts: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Plate points B1, B2 (m, 2, 3) from forward kinematics with parameters ``p``.
+    """Plate points B1, B2 from forward kinematics with parameters ``p``.
 
-    They select the assembly branch of each intersection in :func:`loop_residuals`.
+    They select the assembly branch of each intersection in :func:`loop_residuals`. Four
+    Gauss-Newton steps place the plate to well under a millimetre, far inside the separation
+    of the branches.
+
+    Parameters
+    ----------
+    volts : array_like, shape (m, 4)
+        LVDT readings, V.
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V).
+
+    Returns
+    -------
+    ndarray, shape (m, 2, 3)
+        B1 and B2 in the base frame, mm.
+
+    Raises
+    ------
+    InputError
+        If ``volts`` fails :func:`check_volts`.
+    ParameterError
+        If ``p`` fails :func:`~loopcal.calibration.parameters.check_vector`.
+    numpy.linalg.LinAlgError
+        If forward kinematics is not finite (see
+        :func:`~loopcal.calibration.kinematics.forward_kinematics`).
     """
     V = check_volts(volts)
     # a few Gauss-Newton steps place the plate to well under a millimetre, far inside the
@@ -89,10 +155,48 @@ def loop_residuals(
 ) -> LoopResiduals:
     """Closed-loop residuals of m poses, optionally with their analytic Jacobian.
 
-    p: full parameter vector (20,); volts: (m, 4) sensor voltages in V; ref: (m, 2, 3) reference
-    plate points (see :func:`reference_points`) that pick the branch of every intersection.
-    directions: (20, q) parameter directions to differentiate along (default: the identity,
-    giving ``df/dp``); pass a model's tie matrix to get ``df/dx`` at a fraction of the cost.
+    Parameters
+    ----------
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V).
+    volts : array_like, shape (m, 4)
+        LVDT readings, V.
+    ref : array_like, shape (m, 2, 3)
+        Reference plate points B1, B2, mm (:func:`reference_points`), that pick the branch
+        of every intersection.
+    jacobian : bool, default True
+        Also compute the Jacobian.
+    directions : array_like, shape (20, q), optional
+        Parameter directions to differentiate along; default the identity, giving
+        ``df/dp``. Pass a model's tie matrix to get ``df/dx`` at a fraction of the cost.
+
+    Returns
+    -------
+    LoopResiduals
+        Residuals (m, 4) in mm^2, the Jacobian (m, 4, q) or None, branch separations and
+        feasibility.
+
+    Raises
+    ------
+    ParameterError
+        If ``p`` fails :func:`~loopcal.calibration.parameters.check_vector`.
+    InputError
+        If ``volts`` fails :func:`check_volts`.
+
+    Notes
+    -----
+    Loop i leaves sensor i out. With lengths ``d = S V + d0``, the plate point shared by the
+    other two sensors' actuators comes from one three-sphere intersection (B2 from (O, k2),
+    (A3, d3), (A4, d4) for loops 1 and 2; B1 from (O, k1), (A1, d1), (A2, d2) for loops 3
+    and 4), the other plate point from a second one through the remaining sensor and
+    ``|B1 B2| = k3``; the residual compares the predicted and the measured squared length
+    of the sensor left out::
+
+        f_i(k) = |B(k) - A_i|^2 - d_i(k)^2        (mm^2)
+
+    The derivatives come from implicit differentiation of the sphere equations, in reverse
+    mode (:func:`loopcal.calibration.spheres.adjoint`). Where a sphere triple does not meet,
+    the closest approach keeps the residual continuous and ``feasible`` is False.
     """
     p = check_vector(p)
     V = check_volts(volts)
@@ -168,8 +272,28 @@ def noise_sensitivity(
     """How each pose's residuals respond to noise on its own readings.
 
     ``D_k = df_k / dV_k`` (4 x 4, mm^2/V) is nearly rank one: the four residuals of a pose
-    measure one loop-closure error. Returns its leading singular pair, u (m, 4) and s (m,) in
-    mm^2/V, so that voltage noise e_k moves the residuals by about ``u_k s_k (v_k . e_k)``.
+    measure one loop-closure error. Voltage noise e_k moves the residuals by about
+    ``u_k s_k (v_k . e_k)``.
+
+    Parameters
+    ----------
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V).
+    volts : array_like, shape (m, 4)
+        LVDT readings, V.
+    ref : array_like, shape (m, 2, 3)
+        Reference plate points (:func:`reference_points`), mm.
+
+    Returns
+    -------
+    u : ndarray, shape (m, 4)
+        Leading left singular vector of each ``D_k`` (sign arbitrary).
+    s : ndarray, shape (m,)
+        Its singular value, mm^2/V.
+
+    See Also
+    --------
+    noise_directions : the same with the right singular vector v.
     """
     u, s, _ = noise_directions(p, volts, ref)
     return u, s
@@ -178,10 +302,30 @@ def noise_sensitivity(
 def noise_directions(
     p: np.ndarray, volts: np.ndarray, ref: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The leading singular triple of ``D_k = df_k / dV_k`` for each pose: u (m, 4), s (m,)
-    in mm^2/V and v (m, 4), the mix of the four channels' noise that opens the loop (a
-    pose's whitened loop-closure error ``u_k . f_k / s_k`` has variance
-    ``sum_i v_ki^2 sigma_i^2`` for channel noises sigma_i)."""
+    """The leading singular triple of ``D_k = df_k / dV_k`` for each pose.
+
+    A pose's whitened loop-closure error ``u_k . f_k / s_k`` has variance
+    ``sum_i v_ki^2 sigma_i^2`` for channel noises sigma_i.
+
+    Parameters
+    ----------
+    p : array_like, shape (20,)
+        Full parameter vector (mm, mm/V).
+    volts : array_like, shape (m, 4)
+        LVDT readings, V.
+    ref : array_like, shape (m, 2, 3)
+        Reference plate points (:func:`reference_points`), mm.
+
+    Returns
+    -------
+    u : ndarray, shape (m, 4)
+        Leading left singular vectors.
+    s : ndarray, shape (m,)
+        Leading singular values, mm^2/V.
+    v : ndarray, shape (m, 4)
+        Leading right singular vectors: the mix of the four channels' noise that opens the
+        loop.
+    """
     offsets = np.eye(N_PARAMS)[:, SL_OFFSET]  # d f / d d0 = d f / d d(k) of each pose
     D = loop_residuals(p, volts, ref, directions=offsets).jacobian * p[SL_GAIN]
     U, sv, Vt = np.linalg.svd(D)

@@ -7,7 +7,8 @@ scaling ``H`` (that of the whole candidate pool, see :mod:`loopcal.calibration.o
 used for every subset, so that subsets are compared on one scale. The singular values of a subset's
 scaled Jacobian are the square roots of the eigenvalues of ``M(S)``.
 
-Algorithm.
+Algorithm:
+
 1. Convex relaxation: maximise ``lambda_min(sum_k w_k A_k)`` over ``0 <= w_k <= 1``,
    ``sum w = K``, by Frank-Wolfe on a soft-min smoothing of lambda_min.
 2. The K largest relaxed weights start a Fedorov exchange: repeatedly remove one chosen pose
@@ -38,6 +39,8 @@ from .parameters import ParameterModel
 from .residuals import check_volts, loop_residuals, noise_sensitivity, reference_points
 from .simulate import NEAR_SINGULAR_MM
 
+#: the criteria :func:`select_poses` can maximise (the indices of
+#: :class:`~loopcal.calibration.observability.ObservabilityIndices`)
 CRITERIA = ("min_singular", "condition", "volume", "noise_amplification", "a_optimality")
 
 
@@ -68,14 +71,32 @@ def _condition(lam: np.ndarray) -> np.ndarray:
 class Selection:
     """Result of :func:`select_poses`.
 
-    indices: (K,) chosen candidate indices, ascending. criterion and value: the maximised
-    criterion on the pool's scale (``condition`` and ``a_optimality`` are reported as
-    positive numbers, smaller better). upper_bound: certified upper bound on the minimum
-    singular value of any K-subset (pool scale), or None. condition: of the chosen set (pool
-    scale); meets_condition: whether it is within the requested bound (the exchange first
-    lowers the condition until it is, and reports honestly if it cannot).
-    indices_own: observability indices of the chosen set with its own scaling, as the
-    paper reports them. swaps: exchanges made; passes: exchange passes.
+    Attributes
+    ----------
+    indices : ndarray of int, shape (K,)
+        Chosen candidate indices, ascending.
+    criterion : str
+        The criterion maximised, one of :data:`CRITERIA`.
+    value : float
+        Its value for the chosen set on the pool's scale (``condition`` and
+        ``a_optimality`` are reported as positive numbers, smaller better).
+    min_singular : float
+        Smallest singular value of the chosen set (pool scale).
+    condition : float
+        Condition number of the chosen set (pool scale).
+    upper_bound : float or None
+        Certified upper bound on the minimum singular value of any K-subset (pool scale);
+        None without ``certify``.
+    meets_condition : bool
+        Whether ``condition`` is within the requested bound (the exchange first lowers the
+        condition until it is, and reports honestly if it cannot).
+    indices_own : ObservabilityIndices
+        Observability indices of the chosen set with its own scaling, as the paper reports
+        them.
+    swaps : int
+        Exchanges made.
+    passes : int
+        Exchange passes.
     """
 
     indices: np.ndarray
@@ -91,7 +112,8 @@ class Selection:
 
     @property
     def bound_ratio(self) -> float | None:
-        """Chosen minimum singular value as a fraction of the certified bound."""
+        """Chosen minimum singular value as a fraction of the certified bound (1 proves the
+        set optimal); None without a positive bound."""
         if self.upper_bound is None or self.upper_bound <= 0:
             return None
         return self.min_singular / self.upper_bound
@@ -160,9 +182,30 @@ def _top(x: np.ndarray, k: int) -> np.ndarray:
 def relaxation_bound(
     F: np.ndarray, k: int, *, iterations: int = 300, w0: np.ndarray | None = None
 ) -> tuple[float, np.ndarray]:
-    """Frank-Wolfe on the relaxed E-optimal design; returns (bound on lambda_min, weights).
+    """Frank-Wolfe on the relaxed E-optimal design.
 
-    F: (N, r, n) information factors; the bound holds for the exact matrices they build.
+    Parameters
+    ----------
+    F : ndarray, shape (N, r, n)
+        Information factors of N candidates, ``A_k = F_k^T F_k`` (scaled).
+    k : int
+        Poses to choose.
+    iterations : int, default 300
+        Frank-Wolfe iterations at most (it stops early once the bound meets the relaxed
+        value to 1e-9).
+    w0 : ndarray, shape (N,), optional
+        Start weights; default ``k / N`` each.
+
+    Returns
+    -------
+    bound : float
+        Upper bound on ``lambda_min(M(S))`` of every k-subset S; it holds for the exact
+        matrices F builds.
+    weights : ndarray, shape (N,)
+        The relaxed weights, in [0, 1], summing to k.
+
+    Notes
+    -----
     The information matrix follows the weights' update (a step moves it toward the k
     chosen factors' sum), so an iteration touches every candidate once: for ``<Z, A_k>``.
     """
@@ -203,12 +246,20 @@ def _relax(F: np.ndarray, quad: _Quadratic, k: int, iterations: int, w0: np.ndar
 class Candidates:
     """Candidate poses prepared for selection.
 
-    jacobian: (N, 4, n) loop-residual Jacobian with respect to the free parameters (the
-    paper's design matrix); usable: (N,) not near-singular and consistent; information:
-    (N, 1, n) each pose's noise-whitened information row ``u_k^T J_k / s_k`` (see
-    :func:`loopcal.calibration.residuals.noise_sensitivity`): the pose's real information about the
-    parameters per unit voltage noise. Rows of unusable poses are zero, so they are never
-    chosen.
+    Rows of unusable poses are zero, so they are never chosen.
+
+    Attributes
+    ----------
+    jacobian : ndarray, shape (N, 4, n) or (N, 1, n)
+        The design matrix: the loop-residual Jacobian with respect to the free parameters,
+        mm^2 per unit (:func:`candidate_jacobian`), or the information rows
+        (:func:`ml_candidates`).
+    usable : ndarray of bool, shape (N,)
+        Not near-singular, and consistent.
+    information : ndarray, shape (N, 1, n)
+        Each pose's noise-whitened information row: ``u_k^T J_k / s_k`` for the paper's
+        residuals (see :func:`loopcal.calibration.residuals.noise_sensitivity`), the pose's
+        real information about the parameters per unit voltage noise.
     """
 
     jacobian: np.ndarray
@@ -223,7 +274,30 @@ def candidate_jacobian(
     *,
     near_singular_mm: float = NEAR_SINGULAR_MM,
 ) -> Candidates:
-    """Prepare N candidate poses (readings (N, 4) in V) at the parameter estimate ``p``."""
+    """Prepare N candidate poses for the paper's estimator at the parameter estimate ``p``.
+
+    Parameters
+    ----------
+    volts : array_like, shape (N, 4)
+        LVDT readings of the candidate poses, V.
+    model : ParameterModel
+        The free set.
+    p : array_like, shape (20,)
+        Parameter estimate (mm, mm/V).
+    near_singular_mm : float, default NEAR_SINGULAR_MM
+        Poses whose mirror solutions come closer than this, mm, in any loop, are
+        unusable.
+
+    Returns
+    -------
+    Candidates
+        The (N, 4, n) loop-residual Jacobians and the (N, 1, n) whitened information rows.
+
+    Raises
+    ------
+    InputError, ParameterError
+        Bad readings or parameters.
+    """
     V = check_volts(volts)
     ref = reference_points(V, p)
     r = loop_residuals(p, V, ref, directions=model.tie_matrix)
@@ -246,10 +320,31 @@ def ml_candidates(
     """Prepare N candidate poses for the maximum-likelihood estimator at the estimate ``p``.
 
     Each pose's information about the free parameters once its rotation is eliminated is
-    rank one (:func:`loopcal.calibration.implicit.weighted_information`); its row, per unit noise of
-    one scan (weighted by sqrt(scans_per_pose)), is both the pose's Jacobian and its
-    information, shape (N, 1, n). Poses whose rotation the lengths do not determine are
-    unusable (rows of zeros).
+    rank one (:func:`loopcal.calibration.implicit.weighted_information`); its row, per unit
+    noise of one scan (weighted by sqrt(scans_per_pose)), is both the pose's Jacobian and
+    its information.
+
+    Parameters
+    ----------
+    volts : array_like, shape (N, 4)
+        LVDT readings of the candidate poses, V.
+    model : ParameterModel
+        The free set.
+    p : array_like, shape (20,)
+        Parameter estimate (mm, mm/V).
+    scans_per_pose : array_like, shape (N,), optional
+        Scans averaged into each pose; default one each.
+
+    Returns
+    -------
+    Candidates
+        ``jacobian`` and ``information`` both the (N, 1, n) information rows. Poses whose
+        rotation the lengths do not determine are unusable (rows of zeros).
+
+    Raises
+    ------
+    InputError, ParameterError
+        Bad readings, scan counts or parameters.
     """
     V = check_volts(volts)
     w = implicit.pose_weights(len(V), None, scans_per_pose)
@@ -272,18 +367,46 @@ def select_poses(
     max_passes: int = 20,
     information: np.ndarray | None = None,
 ) -> Selection:
-    """Choose k of the N candidate poses whose Jacobian is J ((N, r, n) or (4N, n)): the
-    paper's (N, 4, n) loop-residual Jacobian, or the (N, 1, n) information rows of the
-    maximum-likelihood model (:func:`ml_candidates`).
+    """Choose k of N candidate poses that best identify the free parameters.
 
-    criterion: one of :data:`CRITERIA` (maximise min_singular, volume, noise_amplification;
-    minimise condition, a_optimality). max_condition: bound on the condition number of the
-    chosen set (pool scaling). scales: ``diag(H)``; default the pool's own column scaling.
-    certify: compute the certified upper bound (also seeds the exchange).
-    information: (N, r, n) per-pose information factors to design on instead of J's own
-    blocks, typically :attr:`Candidates.information` (noise-whitened), which keeps the
-    choice away from near-singular poses whose large Jacobian rows are mostly amplified
-    noise. The paper's indices of the chosen set (``indices_own``) always come from J.
+    Parameters
+    ----------
+    J : array_like, shape (N, r, n) or (4 N, n)
+        The candidates' Jacobian: the paper's (N, 4, n) loop-residual Jacobian, or the
+        (N, 1, n) information rows of the maximum-likelihood model (:func:`ml_candidates`).
+    k : int
+        Poses to choose, ``n <= k <= N``.
+    criterion : str, default "min_singular"
+        One of :data:`CRITERIA` (maximise min_singular, volume, noise_amplification;
+        minimise condition, a_optimality).
+    max_condition : float, default CONDITION_OK
+        Bound on the condition number of the chosen set (pool scaling).
+    scales : array_like, shape (n,), optional
+        ``diag(H)``; default the pool's own column scaling (of ``information`` if given).
+    certify : bool, default True
+        Compute the certified upper bound (300 relaxation iterations instead of 60; they
+        also seed the exchange).
+    shortlist : int, default 48
+        Candidates evaluated exactly per exchange position, ranked by first-order gain.
+    max_passes : int, default 20
+        Exchange passes at most.
+    information : array_like, shape (N, r, n), optional
+        Per-pose information factors to design on instead of J's own blocks, typically
+        :attr:`Candidates.information` (noise-whitened), which keeps the choice away from
+        near-singular poses whose large Jacobian rows are mostly amplified noise. The
+        paper's indices of the chosen set (``indices_own``) always come from J.
+
+    Returns
+    -------
+    Selection
+
+    Raises
+    ------
+    InputError
+        An unknown criterion, k outside ``n..N``, a non-finite J, or ``information`` of
+        the wrong shape.
+    UnobservableError
+        If a column of the pool is zero (and ``scales`` is not given).
     """
     rows, N = as_rows(J)
     n = rows.shape[1]

@@ -22,9 +22,21 @@ from .parameters import check_vector, index_of
 
 @dataclass(frozen=True)
 class OrientationError:
-    """euler_deg: (m, 3) change of the Z-Y-Z angles (alpha, beta, gamma), degrees, wrapped to
-    (-180, 180]; angle_deg: (m,) angle of the relative rotation, degrees (free of the Euler
-    singularity at zero tilt, where alpha and gamma alone are ill-defined)."""
+    """The orientation error one parameter error causes (result of
+    :func:`orientation_error`).
+
+    Attributes
+    ----------
+    parameter : str
+        The parameter believed wrong.
+    delta : float
+        By how much, in its unit (mm or mm/V).
+    euler_deg : ndarray, shape (m, 3)
+        Change of the Z-Y-Z angles (alpha, beta, gamma), degrees, wrapped to [-180, 180).
+    angle_deg : ndarray, shape (m,)
+        Angle of the relative rotation, degrees (free of the Euler singularity at zero
+        tilt, where alpha and gamma alone are ill-defined).
+    """
 
     parameter: str
     delta: float
@@ -33,8 +45,33 @@ class OrientationError:
 
 
 def orientation_error(R: np.ndarray, p: np.ndarray, name: str, delta: float = 1.0):
-    """Orientation error at true rotations R (m, 3, 3) when parameter ``name`` is believed
-    ``delta`` (its unit) off its true value in ``p``."""
+    """Orientation error at true rotations when one parameter is believed off its true value.
+
+    The readings are those of the true mechanism ``p`` at rotations R; forward kinematics
+    with ``p`` changed by ``delta`` in parameter ``name`` gives the orientation the
+    controller would compute.
+
+    Parameters
+    ----------
+    R : array_like, shape (m, 3, 3)
+        True plate rotations.
+    p : array_like, shape (20,)
+        True parameters (mm, mm/V).
+    name : str
+        The parameter believed wrong, one of
+        :data:`~loopcal.calibration.parameters.NAMES`.
+    delta : float, default 1.0
+        How far it is believed off, in its unit.
+
+    Returns
+    -------
+    OrientationError
+
+    Raises
+    ------
+    InputError, ParameterError
+        Bad rotations, parameters or name.
+    """
     R = check_rotations(R)
     p = check_vector(p)
     V = lengths_to_volts(inverse_kinematics(R, p), p)

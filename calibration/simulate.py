@@ -31,17 +31,38 @@ from .parameters import (
 )
 from .residuals import loop_residuals
 
+#: largest tilt of the output axis sampled, deg
 MAX_TILT_DEG = 45.0
+#: largest swivel (alpha + gamma) sampled either way, deg
 MAX_SWIVEL_DEG = 90.0
+#: the sensors' noise, 1 sigma, V (the paper's 40 mV)
 NOISE_VOLTS = 0.040
-# Poses whose mirror plate positions come closer than this, in any loop, are near-singular.
+#: mm: poses whose mirror plate positions come closer than this, in any loop, are
+#: near-singular
 NEAR_SINGULAR_MM = 10.0
 
 
 def quantize_volts(
     volts: np.ndarray, *, bits: int = 12, v_min: float = -10.0, v_max: float = 10.0
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Ideal floor-type ADC: returns (codes as int64, mid-code reconstruction in V)."""
+    """Ideal floor-type ADC: ``code = clamp(floor((V - v_min) * 2^bits / span), 0, 2^bits - 1)``.
+
+    Parameters
+    ----------
+    volts : array_like
+        Voltages, V, any shape.
+    bits : int, default 12
+        Converter resolution.
+    v_min, v_max : float, default -10.0, 10.0
+        The converter's span, V; readings beyond it saturate.
+
+    Returns
+    -------
+    codes : ndarray of int64
+        Converter codes, the shape of ``volts``.
+    volts : ndarray
+        The mid-code reconstruction ``(code + 0.5) * span / 2^bits + v_min``, V.
+    """
     levels = 1 << bits
     span = v_max - v_min
     codes = np.clip(np.floor((np.asarray(volts) - v_min) * levels / span), 0, levels - 1)
@@ -55,8 +76,24 @@ def sample_rotations(
     max_tilt_deg: float = MAX_TILT_DEG,
     max_swivel_deg: float = MAX_SWIVEL_DEG,
 ) -> np.ndarray:
-    """n rotations with the output axis uniform over the cap ``tilt <= max_tilt_deg`` and the
-    swivel (alpha + gamma) uniform in ``+-max_swivel_deg``. Returns (n, 3, 3)."""
+    """n random rotations: the output axis uniform over a spherical cap, the swivel uniform.
+
+    Parameters
+    ----------
+    n : int
+        Number of rotations.
+    rng : numpy.random.Generator
+        Source of randomness.
+    max_tilt_deg : float, default MAX_TILT_DEG
+        The cap ``tilt <= max_tilt_deg``, deg.
+    max_swivel_deg : float, default MAX_SWIVEL_DEG
+        The swivel (alpha + gamma) is uniform in ``+-max_swivel_deg``, deg.
+
+    Returns
+    -------
+    ndarray, shape (n, 3, 3)
+        Rotations; not checked against the workspace (:func:`sample_workspace` is).
+    """
     alpha = rng.uniform(-np.pi, np.pi, n)
     beta = np.arccos(rng.uniform(np.cos(np.radians(max_tilt_deg)), 1.0, n))
     swivel = rng.uniform(-np.radians(max_swivel_deg), np.radians(max_swivel_deg), n)
@@ -66,8 +103,26 @@ def sample_rotations(
 def reachable(
     R: np.ndarray, p: np.ndarray, *, margin_mm: float = NEAR_SINGULAR_MM, stroke_mm=STROKE_MM
 ) -> np.ndarray:
-    """(m,) bool: all four lengths inside the stroke and every loop at least ``margin_mm``
-    from a branch merge (near-singular configurations are outside the usable workspace)."""
+    """Which rotations lie in the usable workspace of the mechanism.
+
+    Parameters
+    ----------
+    R : array_like, shape (m, 3, 3)
+        Plate rotations.
+    p : array_like, shape (20,)
+        The mechanism's parameters (mm, mm/V).
+    margin_mm : float, default NEAR_SINGULAR_MM
+        Smallest branch separation of every loop, mm (near-singular configurations are
+        outside the usable workspace).
+    stroke_mm : float, default STROKE_MM
+        Half the stroke, mm.
+
+    Returns
+    -------
+    ndarray of bool, shape (m,)
+        All four lengths inside ``d0 +- stroke_mm``, every loop feasible and at least
+        ``margin_mm`` from a branch merge.
+    """
     d = inverse_kinematics(R, p)
     ok = in_stroke(d, p, stroke_mm).all(axis=1)
     res = loop_residuals(p, lengths_to_volts(d, p), plate_points(R, p), jacobian=False)
@@ -77,8 +132,32 @@ def reachable(
 def sample_workspace(
     n: int, rng: np.random.Generator, p: np.ndarray = NOMINAL, **limits: float
 ) -> np.ndarray:
-    """n rotations drawn uniformly (as in :func:`sample_rotations`) from the reachable
-    workspace of the mechanism with parameters ``p``. Returns (n, 3, 3)."""
+    """n rotations drawn uniformly from the reachable workspace of a mechanism.
+
+    Draws as :func:`sample_rotations` does and keeps the :func:`reachable` ones until it
+    has n.
+
+    Parameters
+    ----------
+    n : int
+        Number of rotations.
+    rng : numpy.random.Generator
+        Source of randomness.
+    p : array_like, shape (20,), default NOMINAL
+        The mechanism's parameters (mm, mm/V).
+    **limits : float
+        ``max_tilt_deg``, ``max_swivel_deg`` for :func:`sample_rotations`, and
+        ``margin_mm`` for :func:`reachable`.
+
+    Returns
+    -------
+    ndarray, shape (n, 3, 3)
+
+    Raises
+    ------
+    InputError
+        If n is negative.
+    """
     if n < 0:
         raise InputError(f"number of poses must be non-negative, got {n}")
     margin = limits.pop("margin_mm", NEAR_SINGULAR_MM)
@@ -96,9 +175,18 @@ def sample_workspace(
 class PoseSet:
     """Simulated readings with their ground truth.
 
-    volts: (m, 4) readings in V as the calibration sees them (noisy, quantised if asked);
-    codes: (m, 4) converter codes, or None without quantisation; rotations: (m, 3, 3) true
-    plate rotations; lengths: (m, 4) true actuator lengths, mm; truth: (20,) true parameters.
+    Attributes
+    ----------
+    volts : ndarray, shape (m, 4)
+        Readings as the calibration sees them (noisy, quantised if asked), V.
+    codes : ndarray of int64, shape (m, 4), or None
+        Converter codes; None without quantisation.
+    rotations : ndarray, shape (m, 3, 3)
+        True plate rotations.
+    lengths : ndarray, shape (m, 4)
+        True actuator lengths, mm.
+    truth : ndarray, shape (20,)
+        True parameters (mm, mm/V).
     """
 
     volts: np.ndarray
@@ -111,6 +199,16 @@ class PoseSet:
         return len(self.volts)
 
     def subset(self, idx: np.ndarray) -> PoseSet:
+        """The poses ``idx`` (indices or a boolean mask), with the same truth.
+
+        Parameters
+        ----------
+        idx : array_like of int or bool
+
+        Returns
+        -------
+        PoseSet
+        """
         idx = np.asarray(idx)
         codes = None if self.codes is None else self.codes[idx]
         return PoseSet(self.volts[idx], codes, self.rotations[idx], self.lengths[idx], self.truth)
@@ -124,7 +222,32 @@ def readings(
     noise_volts: float = NOISE_VOLTS,
     quantize: bool = True,
 ) -> PoseSet:
-    """Sensor readings of the mechanism ``truth`` at rotations R, with noise and quantisation."""
+    """Sensor readings of the mechanism ``truth`` at rotations R, with noise and quantisation.
+
+    Parameters
+    ----------
+    R : array_like, shape (m, 3, 3)
+        True plate rotations.
+    truth : array_like, shape (20,)
+        True parameters (mm, mm/V).
+    rng : numpy.random.Generator
+        Source of the noise.
+    noise_volts : float, default NOISE_VOLTS
+        Gaussian noise per channel, 1 sigma, V, added before quantisation.
+    quantize : bool, default True
+        Quantise with the 12-bit converter (:func:`quantize_volts`).
+
+    Returns
+    -------
+    PoseSet
+
+    Raises
+    ------
+    InputError
+        Bad rotations, or a noise that is negative or not finite.
+    ParameterError
+        If ``truth`` fails :func:`~loopcal.calibration.parameters.check_vector`.
+    """
     truth = check_vector(truth)
     if noise_volts < 0 or not np.isfinite(noise_volts):
         raise InputError(f"noise must be a non-negative number of volts, got {noise_volts}")
@@ -149,8 +272,30 @@ def simulate_poses(
 ) -> PoseSet:
     """n random poses of the reachable workspace read through noisy, quantised sensors.
 
-    truth defaults to :func:`perturbed_truth` of the same seed; noise_volts is the 1-sigma
-    noise per channel before quantisation; limits go to :func:`sample_workspace`.
+    Parameters
+    ----------
+    n : int
+        Number of poses.
+    truth : array_like, shape (20,), optional
+        The mechanism; default :func:`perturbed_truth` drawn from the same generator.
+    seed : int or numpy.random.Generator, default 0
+        Seed of a new generator, or a generator to draw from.
+    noise_volts : float, default NOISE_VOLTS
+        The 1-sigma noise per channel before quantisation, V.
+    quantize : bool, default True
+        Quantise with the 12-bit converter.
+    **limits : float
+        For :func:`sample_workspace`.
+
+    Returns
+    -------
+    PoseSet
+
+    Examples
+    --------
+    >>> from loopcal.calibration import simulate_poses, identify
+    >>> ps = simulate_poses(100, seed=1)
+    >>> result = identify(ps.volts)
     """
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     truth = perturbed_truth(rng) if truth is None else check_vector(truth)
@@ -168,9 +313,30 @@ def perturbed_truth(
     model: ParameterModel | None = None,
     base: np.ndarray = NOMINAL,
 ) -> np.ndarray:
-    """A plausible real mechanism: offsets moved uniformly within ``+-offsets_mm`` (a refitted
-    LVDT), and the non-offset free parameters of ``model`` (default: the paper's set) within
-    ``+-geometry_mm``, ties respected. Everything else stays at ``base``."""
+    """A plausible real mechanism: the free parameters of a model moved at random.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        Source of randomness.
+    offsets_mm : float, default 3.0
+        Free offsets move uniformly within ``+-offsets_mm`` (a refitted LVDT).
+    geometry_mm : float, default 0.5
+        The other free parameters move uniformly within ``+-geometry_mm`` (in their unit).
+    model : ParameterModel, optional
+        Which parameters move; default the paper's set, ties respected.
+    base : array_like, shape (20,), default NOMINAL
+        Everything else stays at ``base``.
+
+    Returns
+    -------
+    ndarray, shape (20,)
+
+    Raises
+    ------
+    ParameterError
+        If the result fails :func:`~loopcal.calibration.parameters.check_vector`.
+    """
     model = model or PAPER7
     p = np.array(base, dtype=float)
     x = model.free_values(p)

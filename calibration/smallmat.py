@@ -23,9 +23,20 @@ _SMALL_ANGLE = 1e-3
 
 
 def rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``exp([w]x)`` (3, 3, m) of rotation vectors w (3, m) in rad
-    (Rodrigues: ``cos(t) I + sin(t)/t [w]x + (1 - cos(t))/t^2 w w^T``, t = |w|); the same
-    as ``Rotation.from_rotvec(w.T).as_matrix()`` moved to component-major."""
+    """Rotation matrices ``exp([w]x)`` of rotation vectors (Rodrigues' formula).
+
+    Parameters
+    ----------
+    w : array_like, shape (3, m)
+        Rotation vectors, rad.
+
+    Returns
+    -------
+    ndarray, shape (3, 3, m)
+        ``cos(t) I + sin(t)/t [w]x + (1 - cos(t))/t^2 w w^T`` with ``t = |w|``: the same as
+        ``Rotation.from_rotvec(w.T).as_matrix()`` moved to component-major. Below 1e-3 rad
+        the coefficients come from their Taylor series.
+    """
     w = np.asarray(w, dtype=float)
     t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
     # the Taylor series everywhere (a solver's late steps are all small), the trigonometric
@@ -51,8 +62,17 @@ def rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
 
 
 def matmul3(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Products ``A_k B_k`` of 3x3 matrices, (3, 3, m) each (either may be (3, 3, 1));
-    returns (3, 3, m)."""
+    """Products ``A_k B_k`` of 3x3 matrices.
+
+    Parameters
+    ----------
+    A, B : ndarray, shape (3, 3, m) or (3, 3, 1)
+        Matrices, component-major.
+
+    Returns
+    -------
+    ndarray, shape (3, 3, m)
+    """
     out = np.empty(np.broadcast_shapes(A.shape, B.shape))
     for i in range(3):
         np.multiply(A[i, 0], B[0], out=out[i])
@@ -62,13 +82,35 @@ def matmul3(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 
 def matvec3(A: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Products ``A_k x_k``: A (3, 3, m) (or (3, 3, 1)), x (3, m) (or (3, 1), or (3,): one
-    vector for every k); returns (3, m)."""
+    """Products ``A_k x_k`` of 3x3 matrices and vectors.
+
+    Parameters
+    ----------
+    A : ndarray, shape (3, 3, m) or (3, 3, 1)
+        Matrices, component-major.
+    x : ndarray, shape (3, m), (3, 1) or (3,)
+        Vectors; (3,) is one vector for every k.
+
+    Returns
+    -------
+    ndarray, shape (3, m)
+    """
     return A[:, 0] * x[0] + A[:, 1] * x[1] + A[:, 2] * x[2]
 
 
 def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross products over the first axis: a, b (3, ...) broadcasting; returns (3, ...)."""
+    """Cross products over the first axis.
+
+    Parameters
+    ----------
+    a, b : ndarray, shape (3, ...)
+        Vectors, broadcasting against each other after the first axis.
+
+    Returns
+    -------
+    ndarray, shape (3, ...)
+        ``a x b``.
+    """
     out = np.empty(np.broadcast_shapes(a.shape, b.shape))
     out[0] = a[1] * b[2] - a[2] * b[1]
     out[1] = a[2] * b[0] - a[0] * b[2]
@@ -77,8 +119,19 @@ def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def gram3(J: np.ndarray):
-    """The six distinct entries ``(n00, n11, n22, n01, n02, n12)`` of ``J^T J`` for matrices
-    J with three columns, (3, r, m) component-major (``J[a, i]`` row i, column a); each (m,)."""
+    """The six distinct entries of ``J^T J`` for matrices J with three columns.
+
+    Parameters
+    ----------
+    J : ndarray, shape (3, r, m)
+        Matrices of r rows, component-major, column first: ``J[a, i]`` the (m,) entries of
+        row i, column a.
+
+    Returns
+    -------
+    tuple of ndarray
+        ``(n00, n11, n22, n01, n02, n12)``, each (m,).
+    """
     pairs = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
     return tuple(np.einsum("im,im->m", J[a], J[b]) for a, b in pairs)
 
@@ -86,8 +139,16 @@ def gram3(J: np.ndarray):
 def cholesky3(a00, a11, a22, a01, a02, a12):
     """Cholesky factor of symmetric positive definite 3x3 matrices, ``A = L L^T``.
 
-    Takes the six distinct entries of A, each (m,); returns ``(l00, l10, l11, l20, l21,
-    l22)``, the lower triangle of L, each (m,). NaN where A is not positive definite.
+    Parameters
+    ----------
+    a00, a11, a22, a01, a02, a12 : ndarray, shape (m,)
+        The six distinct entries of A.
+
+    Returns
+    -------
+    tuple of ndarray
+        ``(l00, l10, l11, l20, l21, l22)``, the lower triangle of L, each (m,). NaN where A
+        is not positive definite.
     """
     with np.errstate(invalid="ignore", divide="ignore"):
         l00 = np.sqrt(a00)
@@ -100,10 +161,22 @@ def cholesky3(a00, a11, a22, a01, a02, a12):
 
 
 def solve_sym3(a00, a11, a22, a01, a02, a12, b: np.ndarray) -> np.ndarray:
-    """Solutions x (3, m) of ``A x = b`` for symmetric 3x3 A (six entries, each (m,)) and
-    right-hand sides b (3, m), by the adjugate (Cramer's rule): the same as
-    ``np.linalg.solve`` on (m, 3, 3) to rounding while A is well conditioned; inf or NaN
-    where A is exactly singular (where ``np.linalg.solve`` raises)."""
+    """Solutions of ``A x = b`` for symmetric 3x3 A, by the adjugate (Cramer's rule).
+
+    Parameters
+    ----------
+    a00, a11, a22, a01, a02, a12 : ndarray, shape (m,)
+        The six distinct entries of A.
+    b : ndarray, shape (3, m)
+        Right-hand sides.
+
+    Returns
+    -------
+    ndarray, shape (3, m)
+        x: the same as ``np.linalg.solve`` on (m, 3, 3) to rounding while A is well
+        conditioned; inf or NaN where A is exactly singular (where ``np.linalg.solve``
+        raises).
+    """
     c00 = a11 * a22 - a12 * a12
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
@@ -123,8 +196,19 @@ def solve_sym3(a00, a11, a22, a01, a02, a12, b: np.ndarray) -> np.ndarray:
 
 
 def eigmin_sym3(a00, a11, a22, a01, a02, a12) -> np.ndarray:
-    """The smallest eigenvalue (m,) of symmetric 3x3 matrices (six entries, each (m,)).
+    """The smallest eigenvalue of symmetric 3x3 matrices.
 
+    Parameters
+    ----------
+    a00, a11, a22, a01, a02, a12 : ndarray, shape (m,)
+        The six distinct entries of A.
+
+    Returns
+    -------
+    ndarray, shape (m,)
+
+    Notes
+    -----
     The trigonometric solution of the characteristic cubic (Smith, 1961), polished by one
     Newton step on ``det(A - lambda I)``, which restores the digits the trigonometric form
     loses when the two largest eigenvalues (nearly) coincide. Agrees with
@@ -159,13 +243,20 @@ def eigmin_sym3(a00, a11, a22, a01, a02, a12) -> np.ndarray:
 
 
 def null_vector_4x3(J: np.ndarray) -> np.ndarray:
-    """Unit vectors q (4, m) orthogonal to the three columns of 4x3 matrices.
+    """Unit vectors orthogonal to the three columns of 4x3 matrices.
 
-    J: (3, 4, m), ``J[a, i]`` the (m,) entries of row i, column a (component-major: column
-    first). q is the generalised cross product of the columns, ``q_i = (-1)^i det(J without
-    row i)``, normalised: the left singular vector of J for its zero singular value, as
-    ``np.linalg.svd`` gives it, up to sign. NaN where the columns are linearly dependent
-    (no unique direction).
+    Parameters
+    ----------
+    J : ndarray, shape (3, 4, m)
+        ``J[a, i]`` the (m,) entries of row i, column a (component-major: column first).
+
+    Returns
+    -------
+    ndarray, shape (4, m)
+        q, the generalised cross product of the columns, ``q_i = (-1)^i det(J without row
+        i)``, normalised: the left singular vector of J for its zero singular value, as
+        ``np.linalg.svd`` gives it, up to sign. NaN where the columns are linearly dependent
+        (no unique direction).
     """
     c0, c1, c2 = J[0], J[1], J[2]  # (4, m) each: the columns
     # the 2x2 minors of the last two columns, rows (j, k); each 3x3 minor expands along c0

@@ -7,7 +7,7 @@ first sphere fixes ``g = +-h / |n|`` with ``h^2 = r0^2 - |a P1 + b P2|^2``. The 
 solutions lie ``2 h`` apart; as h goes to zero they merge (a singular configuration) and the
 derivatives grow like ``1 / h``.
 
-Derivatives come from implicit differentiation of the sphere equations,
+Derivatives come from implicit differentiation of the sphere equations::
 
     M dx = rhs,  M = [x; x - P1; x - P2],
     rhs = [r0 dr0; (x - P1).dP1 + r1 dr1; (x - P2).dP2 + r2 dr2].
@@ -31,6 +31,18 @@ import numpy as np
 
 
 def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dot products over the first axis, component-major.
+
+    Parameters
+    ----------
+    a, b : ndarray, shape (3, ...)
+        Vectors, broadcasting against each other after the first axis.
+
+    Returns
+    -------
+    ndarray, shape (...)
+        ``a[0] b[0] + a[1] b[1] + a[2] b[2]``.
+    """
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
@@ -42,11 +54,26 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Solved:
-    """One batch of intersections, component-major.
+    """One batch of intersections, component-major (the pose index last), with what
+    :func:`adjoint` needs to differentiate them.
 
-    x: (3, m) the chosen solution; separation: (m,) distance between the two mirror
-    solutions (0 where there is none), mm; feasible: (m,) the spheres meet; the rest is kept
-    for :func:`adjoint`.
+    Attributes
+    ----------
+    x : ndarray, shape (3, m)
+        The chosen solution, mm (where the spheres miss, the closest approach in the plane
+        of the three centres).
+    separation : ndarray, shape (m,)
+        Distance between the two mirror solutions, mm (0 where there is none).
+    feasible : ndarray of bool, shape (m,)
+        The spheres meet (and the centres are not collinear with the origin).
+    r0, r1, r2 : float or ndarray, shape (m,)
+        The radii solved for, as given, mm.
+    P1, P2 : ndarray, shape (3, m) or (3, 1)
+        The centres solved for, as given, mm.
+    miss : ndarray of bool, shape (m,)
+        No separation between the branches (``h`` is zero: the spheres miss or touch).
+    n : ndarray, shape (3, m)
+        ``P1 x P2``, the normal of the plane (O, P1, P2).
     """
 
     x: np.ndarray
@@ -64,9 +91,27 @@ class Solved:
 def solve(r0, P1, r1, P2, r2, ref: np.ndarray) -> Solved:
     """Intersect sphere(O, r0), sphere(P1, r1), sphere(P2, r2) for m poses at once.
 
-    Centres P1, P2 and ``ref``: (3, m) or (3, 1); radii: scalars or (m,), mm. ``ref`` picks
-    the branch: the solution on the same side of the plane (O, P1, P2) as ``ref``, which is
-    the one nearer to it.
+    Parameters
+    ----------
+    r0 : float or ndarray, shape (m,)
+        Radius of the sphere about the origin, mm.
+    P1 : ndarray, shape (3, m) or (3, 1)
+        Centre of the second sphere, mm.
+    r1 : float or ndarray, shape (m,)
+        Its radius, mm.
+    P2 : ndarray, shape (3, m) or (3, 1)
+        Centre of the third sphere, mm.
+    r2 : float or ndarray, shape (m,)
+        Its radius, mm.
+    ref : ndarray, shape (3, m) or (3, 1)
+        Picks the branch: the solution on the same side of the plane (O, P1, P2) as
+        ``ref``, which is the one nearer to it.
+
+    Returns
+    -------
+    Solved
+        The solutions, with what :func:`adjoint` needs. Nothing raises: where the spheres
+        miss, the point is the closest approach in the plane (``feasible`` False).
     """
     n = _cross(P1, P2)
     nn = dot3(n, n)
@@ -88,10 +133,27 @@ def solve(r0, P1, r1, P2, r2, ref: np.ndarray) -> Solved:
 
 
 def adjoint(s: Solved, g: np.ndarray):
-    """Coefficients of ``g . dx`` for row vectors g (3, m).
+    """Coefficients of ``g . dx`` for row vectors g: the reverse-mode derivative.
 
-    Returns (a0, a1, a2, b1, b2) with ``g . dx = a0 dr0 + a1 dr1 + a2 dr2 + b1 . dP1 +
-    b2 . dP2`` per pose: a's (m,), b's (3, m). NaN where the configuration is degenerate.
+    Parameters
+    ----------
+    s : Solved
+        Intersections from :func:`solve`.
+    g : ndarray, shape (3, m)
+        One row vector per pose (for the residuals, the gradient of a residual with
+        respect to the solution x).
+
+    Returns
+    -------
+    a0, a1, a2 : ndarray, shape (m,)
+        Coefficients of dr0, dr1, dr2.
+    b1, b2 : ndarray, shape (3, m)
+        Coefficients of dP1, dP2.
+
+    Notes
+    -----
+    Per pose, ``g . dx = a0 dr0 + a1 dr1 + a2 dr2 + b1 . dP1 + b2 . dP2``, from
+    ``lam = M^-T g`` (module docstring). NaN where the configuration is degenerate.
     """
     e1, e2 = s.x - s.P1, s.x - s.P2
     rows = (s.x, e1, e2)
@@ -119,9 +181,18 @@ def adjoint(s: Solved, g: np.ndarray):
 
 @dataclass(frozen=True)
 class SphereIntersection:
-    """point: (m, 3); separation: (m,) distance between the two mirror solutions, mm;
-    feasible: (m,) False where the spheres do not meet (the point is then the closest
-    approach in the plane of the three centres)."""
+    """Intersections of three spheres, pose-major (result of :func:`intersect_three_spheres`).
+
+    Attributes
+    ----------
+    point : ndarray, shape (m, 3)
+        The chosen solution, mm.
+    separation : ndarray, shape (m,)
+        Distance between the two mirror solutions, mm.
+    feasible : ndarray of bool, shape (m,)
+        False where the spheres do not meet (the point is then the closest approach in the
+        plane of the three centres).
+    """
 
     point: np.ndarray
     separation: np.ndarray
@@ -129,7 +200,21 @@ class SphereIntersection:
 
 
 def intersect_three_spheres(r0, P1, r1, P2, r2, ref: np.ndarray) -> SphereIntersection:
-    """Pose-major :func:`solve`: centres (3,) or (m, 3), radii scalars or (m,), ref (m, 3)."""
+    """Pose-major :func:`solve`.
+
+    Parameters
+    ----------
+    r0, r1, r2 : float or array_like, shape (m,)
+        Radii of the spheres about the origin, P1 and P2, mm.
+    P1, P2 : array_like, shape (3,) or (m, 3)
+        Centres, mm.
+    ref : array_like, shape (m, 3) or (3,)
+        Picks the branch, as in :func:`solve`.
+
+    Returns
+    -------
+    SphereIntersection
+    """
 
     def comp(v):
         v = np.asarray(v, dtype=float)

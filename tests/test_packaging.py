@@ -78,6 +78,8 @@ def test_the_wheel_holds_one_top_level_package_and_its_data(built: tuple[Path, P
                    "loopcal/systemd/tmpfiles.d/loopcal.conf", "loopcal/systemd/README.md",
                    "loopcal/docs/foxglove/loopcal-layout.json", "loopcal/docs/daemon.md"):
         assert needed in names, needed  # fmt: skip
+    # the API reference's sources are not package data (pyproject.toml's exclude-package-data)
+    assert not [n for n in names if n.startswith("loopcal/docs/api/")]
     meta = next(n for n in names if n.endswith(".dist-info/METADATA"))
     text = zipfile.ZipFile(wheel).read(meta).decode()
     assert "License-Expression: MIT" in text
