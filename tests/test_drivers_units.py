@@ -1,4 +1,4 @@
-"""Pure-logic tests of the drivers: URL dispatch, frame parsing, sequencing, LVDT maths.
+"""Pure-logic tests of the drivers: URL dispatch, frame parsing, sequencing, the Scan record.
 
 No transport is involved (and none is mocked): these functions take bytes / registers /
 raw readings and return values or raise typed errors.
@@ -13,7 +13,6 @@ from loopcal.drivers import ascii as asc
 from loopcal.drivers import ldq412, open_daq, parse_url
 from loopcal.drivers.base import Identity, Scan, registered_schemes
 from loopcal.drivers.errors import DAQError, DAQInvalidCommand, DAQProtocolError, DAQTimeout
-from loopcal.drivers.lvdt import LvdtCalibration, code_resolution_mm, codes_to_mm, volts_to_mm
 from loopcal.drivers.modbus import format_firmware, parse_fifo, parse_snapshot
 from loopcal.drivers.sequence import RawSnapshot, Sequencer, derived_status, period_ticks_us
 
@@ -394,30 +393,6 @@ def test_scan_properties() -> None:
     assert s.restart_latched and s.overflow_latched
     assert s.time_s == 2.0
     np.testing.assert_allclose(s.volts, ldq412.code_to_volts(np.array([0, 2048, 4095, 1])))
-
-
-# --------------------------------------------------------------------------- LVDT
-
-
-def test_lvdt_conversion() -> None:
-    cals = [
-        LvdtCalibration(2.0, 0.5),
-        LvdtCalibration(-1.0),
-        LvdtCalibration(1.0, -3.0),
-        LvdtCalibration(0.25, 10.0),
-    ]
-    codes = np.array([[2048, 0, 4095, 1000], [2047, 1, 4094, 3000]])
-    v = ldq412.code_to_volts(codes)
-    expect = v * np.array([2.0, -1.0, 1.0, 0.25]) + np.array([0.5, 0.0, -3.0, 10.0])
-    np.testing.assert_allclose(codes_to_mm(codes, cals), expect)
-    np.testing.assert_allclose(volts_to_mm(v, cals), expect)
-    # mid-code: code 2048 is +0.5 LSB above 0 V
-    assert cals[0].codes_to_mm(2048) == pytest.approx(2.0 * (0.5 * 20 / 4096) + 0.5)
-    nan = codes_to_mm(codes, cals, rail_to_nan=True)
-    assert np.isnan(nan[0, 1]) and np.isnan(nan[0, 2]) and not np.isnan(nan[1]).any()
-    assert code_resolution_mm(cals[0]) == pytest.approx(2.0 * 20 / 4096)
-    with pytest.raises(ValueError):
-        volts_to_mm(np.zeros((2, 3)), cals)
 
 
 def test_error_hierarchy() -> None:
