@@ -324,15 +324,6 @@ class AsciiDAQ(DAQ):
         """The ASCII protocol cannot clear the restart flag: returns False."""
         return False
 
-    @property
-    def scan_rate_hz(self) -> int:
-        return self._seq.scan_rate_hz
-
-    @property
-    def sequencer(self) -> Sequencer:
-        """Sequence state (restarts detected, total missed); read-only use."""
-        return self._seq
-
     def close(self) -> None:
         self._closed = True
         self._drop()

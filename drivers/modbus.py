@@ -416,15 +416,6 @@ class ModbusDAQ(DAQ):
         self._seq.restart_bit_cleared()
         return True
 
-    @property
-    def scan_rate_hz(self) -> int:
-        return self._seq.scan_rate_hz
-
-    @property
-    def sequencer(self) -> Sequencer:
-        """Sequence state (restarts detected, total missed); read-only use."""
-        return self._seq
-
     def close(self) -> None:
         if self._closed:
             return

@@ -39,7 +39,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from . import ldq412
-from .base import Scan, ScanSource
+from .records import Scan, ScanSource
 
 U32 = ldq412.U32_MOD
 HALF = U32 // 2
