@@ -15,15 +15,20 @@ URL, rejects unknown query parameters, and hands the parsed URL to the driver cl
 from __future__ import annotations
 
 import importlib
+import math
+import numbers
 import re
+import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import ClassVar, TypeVar
 from urllib.parse import parse_qsl, urlsplit
 
 from . import ldq412
+from .errors import DAQError, DAQTimeout
+from .pacing import FifoPacer, PollPacer
 from .records import Identity, Scan
 from .sequence import Sequencer
 
@@ -139,6 +144,29 @@ def serial_options(url: DaqUrl, example: str) -> dict[str, object]:
     }
 
 
+#: s between two tries of a stream (DAQ.scans) after a failed read, as the daemon's retries
+#: through a power cycle's restart window
+STREAM_RETRY_S = 0.05
+
+
+def _seconds(name: str, value: float | None) -> float | None:
+    """A stream's timeout or duration, checked: None, or a finite number of s > 0."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a number of seconds or None, got {value!r}")
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a finite number of seconds > 0 (or None), got {value}")
+    return float(value)
+
+
+def _sleep_until(t: float) -> None:
+    """Sleep until host monotonic time ``t`` (s); return at once if it has passed."""
+    wait = t - time.monotonic()
+    if wait > 0:
+        time.sleep(wait)
+
+
 D = TypeVar("D", bound="DAQ")
 _REGISTRY: dict[str, type[DAQ]] = {}
 
@@ -229,6 +257,10 @@ class DAQ(ABC):
     url: str
     #: links the driver's successive reads into one scan sequence; set at connect
     _seq: Sequencer
+    #: scans taken off the module and not yet returned: the next read_scans returns them first
+    _pending: list[Scan]
+    #: True once close() was called (every call then raises DAQDisconnected)
+    _closed: bool
 
     @classmethod
     def url_options(cls, url: DaqUrl) -> dict[str, object]:
@@ -251,6 +283,112 @@ class DAQ(ABC):
         Scans already taken off the device when a call fails are kept and returned by the
         next successful call.
         """
+
+    def scans(self, timeout: float | None = None, duration: float | None = None) -> Iterator[Scan]:
+        """Every scan, once and in order, as the module makes them: a stream.
+
+        The module is read at its own pace: over a FIFO every
+        :data:`~loopcal.drivers.pacing.FIFO_READ_PERIOD_S` (0.2 s), and without one
+        (ASCII, Modbus ``fifo=0``) once per scan, each poll between two scans
+        (:mod:`loopcal.drivers.pacing`); in between the stream sleeps. Scans the module
+        made that were not read (FIFO overflow, polls that came too late) are reported in
+        ``Scan.missed`` as by :meth:`read_scans`. Errors while waiting (a stall, a corrupted
+        answer, a reconnect) are retried every 0.05 s until ``timeout`` runs out, since the
+        next read recovers from them. Scans read but not yet yielded when the stream is
+        closed early (``break``) are kept: the next :meth:`read_scans` or stream returns
+        them first. ``for scan in daq`` is ``for scan in daq.scans()``.
+
+        Parameters
+        ----------
+        timeout : float or None
+            s without a new scan after which the stream raises DAQTimeout (from the start,
+            or from the newest scan); None waits for scans for ever, and then a driver
+            error is raised at once (nothing waits for it to clear).
+        duration : float or None
+            s after which the stream ends (after a last read, which brings the scans made
+            until then); None: it does not end by itself.
+
+        Returns
+        -------
+        Iterator[Scan]
+            A generator of the scans, oldest first.
+
+        Raises
+        ------
+        TypeError
+            If ``timeout`` or ``duration`` is not a number or None.
+        ValueError
+            If ``timeout`` or ``duration`` is not finite and > 0 (at the call, before
+            anything is read).
+        DAQTimeout
+            While iterating: no new scan within ``timeout`` s; chained from the driver's
+            last error, if there was one.
+        DAQError
+            While iterating with ``timeout`` None: the driver's error; with any timeout:
+            DAQDisconnected if the driver was closed.
+
+        Examples
+        --------
+        >>> with open_daq("modbus-tcp://127.0.0.1:5020?unit=1") as daq:  # doctest: +SKIP
+        ...     for scan in daq.scans(timeout=1.0, duration=10.0):
+        ...         print(scan.counter64, scan.volts)
+        """
+        return self._stream(_seconds("timeout", timeout), _seconds("duration", duration))
+
+    def __iter__(self) -> Iterator[Scan]:
+        """``for scan in daq``: :meth:`scans` with no timeout and no end."""
+        return self.scans()
+
+    def _stream(self, timeout: float | None, duration: float | None) -> Iterator[Scan]:
+        start = time.monotonic()
+        end = math.inf if duration is None else start + duration
+        newest_at = start  # when the newest scan (or the stream's start) arrived
+        pacer: FifoPacer | PollPacer | None = None
+        at = start
+        while True:
+            last = at >= end
+            if last:
+                at = end
+            if timeout is not None:
+                at = min(at, newest_at + timeout)  # to notice the timeout when it runs out
+            _sleep_until(at)
+            if self.has_fifo and pacer is None:
+                pacer = FifoPacer()
+            elif not self.has_fifo and (pacer is None or pacer.rate_hz != self.scan_rate_hz):
+                pacer = PollPacer(self.scan_rate_hz)
+            sent = time.monotonic()
+            try:
+                batch = self.read_scans()
+            except DAQError as exc:
+                now = time.monotonic()
+                if timeout is None or self._closed:
+                    raise
+                if now - newest_at >= timeout:
+                    raise DAQTimeout(
+                        f"{self.url}: no scan within {timeout:g} s "
+                        f"(last error: {type(exc).__name__}: {exc})"
+                    ) from exc
+                if last or now >= end:
+                    return
+                at = now + STREAM_RETRY_S
+                continue
+            received = time.monotonic()
+            pacer.observe(sent, received, batch)
+            if batch:
+                newest_at = received
+            elif timeout is not None and received - newest_at >= timeout:
+                raise DAQTimeout(f"{self.url}: no scan within {timeout:g} s")
+            given = 0
+            try:
+                for scan in batch:
+                    given += 1
+                    yield scan
+            finally:
+                if given < len(batch):  # closed early: the next read returns the rest
+                    self._pending[:0] = batch[given:]
+            if last:
+                return
+            at = pacer.next_read(time.monotonic())
 
     @abstractmethod
     def snapshot(self) -> Scan:
