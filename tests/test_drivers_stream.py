@@ -1,15 +1,21 @@
 """The scan stream, ``DAQ.scans()`` and ``for scan in daq``, against the emulated LDQ-412.
 
 Real transports (Modbus TCP on 127.0.0.1, Modbus RTU and ASCII on pseudo-terminals) on a
-real clock at the datasheet's 20 Hz, through the pytest plugin's ``ldq412`` fixture. The
-pacers' logic is also run against a simulated module's edges (no transport) over minutes
-of scans.
+real clock at the datasheet's 20 Hz, through the pytest plugin's ``ldq412`` fixture; the
+README's example is run as it stands in a process of its own. The pacers' logic is also
+run against a simulated module's edges (no transport) over minutes of scans.
 """
 
 from __future__ import annotations
 
 import math
+import re
+import selectors
+import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +24,7 @@ from loopcal.drivers import DAQDisconnected, DAQError, DAQTimeout, Scan, ldq412,
 from loopcal.drivers.pacing import FIFO_READ_PERIOD_S, FifoPacer, PollPacer
 from loopcal.simulator.open_points import OpenPoints
 
+ROOT = Path(__file__).resolve().parent.parent
 TRANSPORTS = ["modbus-tcp", "modbus-rtu", "ascii"]
 MODBUS = ["modbus-tcp", "modbus-rtu"]
 RATE = 20  # the datasheet's default, the fixture's
@@ -206,6 +213,55 @@ def test_bad_timeouts_and_durations_are_refused_at_the_call(ldq412, kwargs, erro
         with pytest.raises(error, match=message):
             daq.scans(**kwargs)  # not iterated: the check does not wait for the first scan
         assert isinstance(next(daq.scans(timeout=1.0, duration=1.0)), Scan)
+
+
+# --------------------------------------------------------------------------- the README
+
+
+def readme_drivers_example() -> str:
+    """The code block of the README's "Drivers" section, as it stands."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = text.split("\n## Drivers\n", 1)[1]
+    lines = []
+    for line in section.splitlines()[1:]:
+        if line and not line.startswith("    "):
+            break
+        lines.append(line[4:])
+    return "\n".join(lines).strip() + "\n"
+
+
+@pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
+def test_the_readme_example_streams_scans(ldq412) -> None:
+    code = readme_drivers_example()
+    urls = re.findall(r'open_daq\("([^"]+)"\)', code)
+    assert urls == ["modbus-tcp://127.0.0.1:5020?unit=1"] and "daq.scans(" in code
+    code = code.replace(urls[0], ldq412.url)
+    proc = subprocess.Popen(
+        [sys.executable, "-u", "-c", code],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        sel = selectors.DefaultSelector()
+        sel.register(proc.stdout, selectors.EVENT_READ)
+        assert sel.select(timeout=20.0), "the example printed nothing"
+        identity = proc.stdout.readline()
+        made_at_connect = len(ldq412.scans)  # the first read brings at most these (and 1)
+        time.sleep(2.0)
+        proc.send_signal(signal.SIGINT)  # the example's Ctrl-C
+        out, err = proc.communicate(timeout=10.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert identity.startswith("Identity(model='LDQ412'"), (identity, proc.stderr)
+    assert "KeyboardInterrupt" in err and "DAQ" not in err, err
+    counters = [int(line.split()[0]) for line in out.splitlines()]
+    assert len(counters) >= 1.5 * RATE
+    assert counters == list(range(counters[0], counters[0] + len(counters)))
+    # more than one batch's worth: scans made a second and more after the first read
+    assert counters[-1] >= made_at_connect + RATE
 
 
 # --------------------------------------------------------------------------- the pacers
