@@ -4,7 +4,11 @@ Open a module by URL; the scheme picks the driver::
 
     from loopcal.drivers import open_daq
     with open_daq("modbus-tcp://192.168.1.50:502?unit=1") as daq:
-        scans = daq.read_scans()
+        for scan in daq.scans(timeout=1.0):  # every scan once, as the module makes them
+            print(scan.counter64, scan.volts)
+
+``daq.read_scans()`` returns at once what arrived since the previous call, for a read loop
+of one's own.
 
 The driver classes (and pymodbus, pyserial behind them) are imported on first use: a program
 that needs only the datasheet's constants (``loopcal.drivers.ldq412``) or the URL parser does not

@@ -55,7 +55,29 @@ MAX_ANSWER_LEN = SCAN_BODY_LEN + 3
 
 
 def encode_command(lead: str, addr: int, tail: str = "", *, checksum: bool) -> bytes:
-    """Command frame: lead + AA (two uppercase hex digits) + tail [+ checksum] + CR."""
+    """Build a command frame: lead + AA (two uppercase hex digits) + tail [+ checksum] + CR.
+
+    Parameters
+    ----------
+    lead : {"#", "$", "%"}
+        Data, query or set command.
+    addr : int
+        Module address, 0..255.
+    tail : str
+        What follows the address, e.g. ``"M"``, ``"R0014"`` (ASCII).
+    checksum : bool
+        Append the two checksum digits (the module's checksum mode).
+
+    Returns
+    -------
+    bytes
+        The frame, e.g. ``b"#01\\r"``.
+
+    Raises
+    ------
+    ValueError
+        For another lead.
+    """
     if lead not in ("#", "$", "%"):
         raise ValueError(f"command lead {lead!r}")
     frame = f"{lead}{addr:02X}{tail}".encode("ascii")
@@ -72,7 +94,26 @@ def _hex(field: bytes, what: str, *, upper_only: bool = False) -> int:
 
 
 def unframe(line: bytes, *, checksum: bool) -> bytes:
-    """Answer line (ending in CR) -> body, checking printability and the checksum."""
+    """The body of an answer line, its framing checked.
+
+    Parameters
+    ----------
+    line : bytes
+        The answer, ending in CR.
+    checksum : bool
+        The line carries two uppercase checksum digits before the CR.
+
+    Returns
+    -------
+    bytes
+        The body, without CR and checksum.
+
+    Raises
+    ------
+    DAQProtocolError
+        For a line without CR, an empty one, non-printable bytes, or a missing, malformed
+        or wrong checksum.
+    """
     if not line.endswith(CR):
         raise DAQProtocolError(f"partial answer (no CR): {line!r}")
     body = line[:-1]
@@ -100,7 +141,28 @@ def _check_not_rejected(body: bytes, addr: int) -> None:
 
 
 def parse_scan(body: bytes, addr: int) -> RawSnapshot:
-    """``#AA`` answer body -> RawSnapshot (fifo_level None)."""
+    """Decode a ``#AA`` answer: the latest scan.
+
+    Parameters
+    ----------
+    body : bytes
+        The answer's body (:func:`unframe`): ``>`` + counter (8 hex) + time (8 hex) +
+        ch1..ch4 (3 hex each) + status (4 hex).
+    addr : int
+        The module's address (a ``?AA`` rejection names it).
+
+    Returns
+    -------
+    RawSnapshot
+        ``fifo_level`` None.
+
+    Raises
+    ------
+    DAQInvalidCommand
+        For ``?AA``.
+    DAQProtocolError
+        For anything else that is not such an answer.
+    """
     _check_not_rejected(body, addr)
     if body[:1] != b">" or len(body) != SCAN_BODY_LEN:
         raise DAQProtocolError(f"not a scan answer ('>' + 32 hex digits): {body!r}")
@@ -112,7 +174,27 @@ def parse_scan(body: bytes, addr: int) -> RawSnapshot:
 
 
 def parse_channel(body: bytes, addr: int) -> int:
-    """``#AAn`` answer body (``>`` + 3 hex digits) -> code."""
+    """Decode a ``#AAn`` answer: one channel's code.
+
+    Parameters
+    ----------
+    body : bytes
+        The answer's body, ``>`` + 3 hex digits.
+    addr : int
+        The module's address.
+
+    Returns
+    -------
+    int
+        The code, 0..4095.
+
+    Raises
+    ------
+    DAQInvalidCommand
+        For ``?AA``.
+    DAQProtocolError
+        For anything else that is not such an answer.
+    """
     _check_not_rejected(body, addr)
     if body[:1] != b">" or len(body) != 4:
         raise DAQProtocolError(f"not a channel answer ('>' + 3 hex digits): {body!r}")
@@ -120,7 +202,27 @@ def parse_channel(body: bytes, addr: int) -> int:
 
 
 def parse_ack(body: bytes, addr: int) -> bytes:
-    """``!AA...`` answer body -> the payload after ``!AA``."""
+    """Decode a ``!AA...`` answer (to ``$`` and ``%`` commands).
+
+    Parameters
+    ----------
+    body : bytes
+        The answer's body.
+    addr : int
+        The module's address, which the answer must name.
+
+    Returns
+    -------
+    bytes
+        The payload after ``!AA`` (possibly empty).
+
+    Raises
+    ------
+    DAQInvalidCommand
+        For ``?AA``.
+    DAQProtocolError
+        If the answer does not start with ``!AA``.
+    """
     _check_not_rejected(body, addr)
     head = b"!%02X" % addr
     if body[:3] != head:
@@ -129,7 +231,23 @@ def parse_ack(body: bytes, addr: int) -> bytes:
 
 
 def parse_firmware(payload: bytes) -> str:
-    """``$AAF`` payload ``M.mm`` -> "M.mm"."""
+    """Decode the ``$AAF`` payload: the firmware version.
+
+    Parameters
+    ----------
+    payload : bytes
+        ``M.mm`` (1-3 digits, a dot, 2 digits).
+
+    Returns
+    -------
+    str
+        ``"M.mm"``, leading zeros of the major dropped.
+
+    Raises
+    ------
+    DAQProtocolError
+        If the payload is not ``M.mm``.
+    """
     m = _FIRMWARE_RE.match(payload.decode("ascii", errors="replace"))
     if not m:
         raise DAQProtocolError(f"firmware version {payload!r} is not M.mm")
@@ -137,7 +255,23 @@ def parse_firmware(payload: bytes) -> str:
 
 
 def parse_rate(payload: bytes) -> int:
-    """``$AAR`` payload (4 hex digits) -> Hz."""
+    """Decode the ``$AAR`` payload: the scan rate.
+
+    Parameters
+    ----------
+    payload : bytes
+        4 hex digits.
+
+    Returns
+    -------
+    int
+        Scan rate, Hz (1..200).
+
+    Raises
+    ------
+    DAQProtocolError
+        If it is not 4 hex digits, or outside the datasheet's 1..200 Hz.
+    """
     if len(payload) != 4:
         raise DAQProtocolError(f"scan rate {payload!r} is not 4 hex digits")
     rate = _hex(payload, "scan rate")
@@ -148,7 +282,38 @@ def parse_rate(payload: bytes) -> int:
 
 @register_scheme("ascii")
 class AsciiDAQ(DAQ):
-    """LDQ-412 on RS-232/RS-485 speaking the vendor ASCII protocol."""
+    """LDQ-412 on RS-232/RS-485 speaking the vendor ASCII protocol,
+    ``ascii:///dev/ttyUSB0?baud=115200&addr=01&checksum=0&parity=N&stopbits=1``.
+
+    No FIFO: :meth:`read_scans` polls once per call (module docstring).
+
+    Parameters
+    ----------
+    port : str
+        Serial device, e.g. ``"/dev/ttyUSB0"`` (or a pyserial URL).
+    baud : int
+        Line speed, baud (default 115200).
+    addr : int
+        Module address, 0..255 (default 1; two hex digits in the URL).
+    checksum : bool
+        The module's checksum mode (default off).
+    parity : {"N", "E", "O"}
+        Parity (default none).
+    stopbits : {1, 2}
+        Stop bits (default 1).
+    timeout : float
+        s without an answer before a call raises DAQTimeout (default 0.1).
+    check_identity : bool
+        Raise DAQIdentityError unless the module answers ``$AAM`` with ``LDQ412``.
+
+    Raises
+    ------
+    ValueError
+        For an address, parity or stop bits out of range.
+    DAQError
+        If the port cannot be opened, the module does not answer at connect (the message
+        asks whether addr and checksum are the module's), or it is not an LDQ-412.
+    """
 
     url_params: ClassVar[frozenset[str]] = frozenset(
         {"baud", "addr", "checksum", "parity", "stopbits"}
@@ -227,10 +392,26 @@ class AsciiDAQ(DAQ):
             self._ser = None
 
     def transact(self, command: bytes) -> bytes:
-        """Send one complete command frame; return the answer body (checksum stripped).
+        """Send one complete command frame and read its answer; for diagnostics too.
 
-        Raises DAQTimeout if no byte arrives within the timeout, DAQProtocolError for a
-        partial or malformed answer, DAQDisconnected if the port fails.
+        Parameters
+        ----------
+        command : bytes
+            A frame (:func:`encode_command`), ending in CR.
+
+        Returns
+        -------
+        bytes
+            The answer's body (CR and checksum stripped, checked).
+
+        Raises
+        ------
+        DAQTimeout
+            If no byte arrives within the timeout.
+        DAQProtocolError
+            For a partial or malformed answer.
+        DAQDisconnected
+            If the port fails (or the driver is closed).
         """
         ser = self._open()
         try:
@@ -302,11 +483,41 @@ class AsciiDAQ(DAQ):
         return out
 
     def snapshot(self) -> Scan:
-        """Poll ``#AA``; a new scan seen here is also returned by the next read_scans."""
+        """Poll ``#AA``: the latest scan. A new scan seen here is also returned by the
+        next :meth:`read_scans`.
+
+        Returns
+        -------
+        Scan
+            ``source="snapshot"``.
+
+        Raises
+        ------
+        DAQError
+            As :meth:`read_scans`.
+        """
         return self._poll()
 
     def read_channel(self, channel: int) -> int:
-        """``#AAn``: code of one channel (1..4) of the latest scan."""
+        """``#AAn``: one channel's code in the latest scan.
+
+        Parameters
+        ----------
+        channel : int
+            1..4.
+
+        Returns
+        -------
+        int
+            The code, 0..4095.
+
+        Raises
+        ------
+        ValueError
+            For a channel outside 1..4.
+        DAQError
+            As :meth:`transact`.
+        """
         if not 1 <= channel <= ldq412.N_CHANNELS:
             raise ValueError(f"channel {channel} outside 1..{ldq412.N_CHANNELS}")
         return parse_channel(self._command("#", str(channel)), self.addr)
@@ -321,7 +532,13 @@ class AsciiDAQ(DAQ):
         self._seq.set_rate(hz)
 
     def clear_restart(self) -> bool:
-        """The ASCII protocol cannot clear the restart flag: returns False."""
+        """The ASCII protocol cannot clear the restart flag.
+
+        Returns
+        -------
+        bool
+            False, always (no command is sent).
+        """
         return False
 
     def close(self) -> None:

@@ -35,12 +35,24 @@ from .sequence import Sequencer
 
 @dataclass(frozen=True, slots=True)
 class DaqUrl:
-    """A parsed driver URL.
+    """A parsed driver URL (:func:`parse_url`).
 
-    scheme: lower-case scheme, e.g. "modbus-tcp".
-    host, port: network endpoint (None for serial URLs).
-    path: serial device path (e.g. "/dev/ttyUSB0", "COM3"), "" for network URLs.
-    params: query parameters, all values as strings.
+    Attributes
+    ----------
+    scheme : str
+        The scheme in lower case, e.g. ``"modbus-tcp"``.
+    host : str or None
+        Network host, lower case (None for serial URLs, ``ascii:///dev/ttyUSB0``).
+    port : int or None
+        Network port, or None if the URL gives none.
+    path : str
+        Serial device: the URL's path (``"/dev/ttyUSB0"`` in ``ascii:///dev/ttyUSB0``),
+        or its netloc if it has no path and no port (``"COM3"`` in ``ascii://COM3``);
+        ``""`` for a network URL with a port.
+    params : Mapping[str, str]
+        Query parameters, every value a string as written (read-only).
+    raw : str
+        The URL as given (for error messages).
     """
 
     scheme: str
@@ -54,8 +66,31 @@ class DaqUrl:
         self, key: str, default: int, *, base: int = 10, lo: int | None = None,
         hi: int | None = None,
     ) -> int:  # fmt: skip
-        """Integer query parameter, or default if absent. Raises ValueError if malformed or
-        outside ``lo..hi``."""
+        """An integer query parameter.
+
+        Parameters
+        ----------
+        key : str
+            The parameter's name.
+        default : int
+            What an absent parameter gives (not checked against ``lo..hi``).
+        base : int
+            10 (an optional ``-`` and 1-20 digits) or 16 (1-16 hex digits, no ``0x``).
+        lo, hi : int or None
+            Inclusive bounds, None for none.
+
+        Returns
+        -------
+        int
+            The value, or ``default``.
+
+        Raises
+        ------
+        ValueError
+            If the value is not such a number (``int()``'s leniency, `` 1``, ``1_0``,
+            ``+1``, is refused) or outside ``lo..hi``; the message names the URL, the
+            parameter and the value.
+        """
         value = self.params.get(key)
         if value is None:
             return default
@@ -69,7 +104,27 @@ class DaqUrl:
         return out
 
     def get_choice(self, key: str, default: str, choices: tuple[str, ...]) -> str:
-        """Query parameter that must be one of ``choices`` (case-insensitive)."""
+        """A query parameter that must be one of ``choices``, compared in upper case.
+
+        Parameters
+        ----------
+        key : str
+            The parameter's name.
+        default : str
+            What an absent parameter gives.
+        choices : tuple of str
+            The allowed values, in upper case (e.g. ``("N", "E", "O")``).
+
+        Returns
+        -------
+        str
+            The value in upper case, or ``default``.
+
+        Raises
+        ------
+        ValueError
+            If the value is not one of ``choices``, naming the URL and the choices.
+        """
         value = self.params.get(key)
         if value is None:
             return default
@@ -78,7 +133,25 @@ class DaqUrl:
         return value.upper()
 
     def get_bool(self, key: str, default: bool) -> bool:
-        """0/1 (also false/true, no/yes, off/on) query parameter."""
+        """A boolean query parameter: 0/1, also false/true, no/yes, off/on.
+
+        Parameters
+        ----------
+        key : str
+            The parameter's name.
+        default : bool
+            What an absent parameter gives.
+
+        Returns
+        -------
+        bool
+            The value, or ``default``.
+
+        Raises
+        ------
+        ValueError
+            If the value is none of those words, naming the URL and the parameter.
+        """
         value = self.params.get(key)
         if value is None:
             return default
@@ -96,9 +169,25 @@ _HEX_RE = re.compile(r"^[0-9A-Fa-f]{1,16}\Z")
 
 
 def parse_url(url: str) -> DaqUrl:
-    """Split a driver URL into scheme, endpoint and query parameters.
+    """Split a driver URL into scheme, endpoint and query parameters, without checking
+    them against a driver (:func:`driver_for_url` does).
 
-    Raises ValueError on a missing scheme, a repeated query key, or a malformed port.
+    Parameters
+    ----------
+    url : str
+        ``scheme://host[:port][?query]`` or ``scheme:///device[?query]``, e.g.
+        ``"modbus-tcp://192.168.1.50:502?unit=1"``, ``"ascii:///dev/ttyUSB0?addr=01"``.
+
+    Returns
+    -------
+    DaqUrl
+        The parts.
+
+    Raises
+    ------
+    ValueError
+        On control characters, a missing or malformed scheme (or no ``://``), a query
+        parameter given twice, or a malformed port.
     """
     if any(ord(c) < 0x20 or ord(c) == 0x7F for c in url):
         raise ValueError(f"{url!r}: control characters in a DAQ URL")
@@ -130,10 +219,28 @@ MAX_BAUD = 4_000_000
 
 
 def serial_options(url: DaqUrl, example: str) -> dict[str, object]:
-    """The serial line a URL names, every value checked: ``port`` (the URL's path),
-    ``baud``, ``parity``, ``stopbits`` (datasheet defaults 115200, 8N1). example: a URL of
-    the scheme with a port, for the error if the URL has none. Raises ValueError naming
-    the URL."""
+    """The serial line a URL names, every value checked (for the serial drivers'
+    :meth:`DAQ.url_options`).
+
+    Parameters
+    ----------
+    url : DaqUrl
+        A parsed serial URL.
+    example : str
+        A URL of the scheme with a port, quoted in the error if the URL has none.
+
+    Returns
+    -------
+    dict
+        ``port`` (the URL's path), ``baud`` (1..:data:`MAX_BAUD`, default 115200),
+        ``parity`` (``"N"``, ``"E"`` or ``"O"``, default ``"N"``) and ``stopbits`` (1 or
+        2, default 1): the datasheet's 115200 8N1 unless the URL says otherwise.
+
+    Raises
+    ------
+    ValueError
+        If the URL names no port or a value is out of range, naming the URL.
+    """
     if not url.path:
         raise ValueError(f"{url.raw}: no serial port ({example})")
     return {
@@ -172,7 +279,24 @@ _REGISTRY: dict[str, type[DAQ]] = {}
 
 
 def register_scheme(scheme: str) -> Callable[[type[D]], type[D]]:
-    """Class decorator: make ``open_daq`` dispatch URLs with ``scheme`` to the class."""
+    """Class decorator: make :func:`open_daq` open URLs of ``scheme`` with the class.
+
+    Parameters
+    ----------
+    scheme : str
+        The URL scheme, lower case (e.g. ``"modbus-tcp"``); set as the class's
+        :attr:`DAQ.scheme`.
+
+    Returns
+    -------
+    Callable[[type[DAQ]], type[DAQ]]
+        The decorator; it returns the class unchanged.
+
+    Raises
+    ------
+    ValueError
+        When the decorator is applied, if another class has registered ``scheme``.
+    """
 
     def deco(cls: type[D]) -> type[D]:
         if scheme in _REGISTRY and _REGISTRY[scheme] is not cls:
@@ -195,15 +319,36 @@ def _load_builtin() -> None:
 
 
 def registered_schemes() -> dict[str, type[DAQ]]:
-    """A copy of the scheme -> driver class registry."""
+    """The registered drivers, the built-in ones imported first.
+
+    Returns
+    -------
+    dict[str, type[DAQ]]
+        Scheme -> driver class (a copy).
+    """
     _load_builtin()
     return dict(_REGISTRY)
 
 
 def driver_for_url(url: str) -> tuple[type[DAQ], DaqUrl]:
-    """The driver class a URL names and the parsed URL, without connecting.
+    """The driver class a URL names and the parsed URL, every value checked, without
+    connecting.
 
-    Raises ValueError for a malformed URL, an unknown scheme or an unknown query parameter.
+    Parameters
+    ----------
+    url : str
+        A driver URL (see :func:`parse_url` and the drivers' docstrings).
+
+    Returns
+    -------
+    tuple[type[DAQ], DaqUrl]
+        The driver class registered for the URL's scheme, and the parsed URL.
+
+    Raises
+    ------
+    ValueError
+        For a malformed URL, an unknown scheme (naming the known ones), a query parameter
+        the driver does not take (naming those it takes), or a value out of range.
     """
     parsed = parse_url(url)
     if parsed.scheme not in _REGISTRY:
@@ -228,11 +373,30 @@ def open_daq(
 ) -> DAQ:
     """Open the driver the URL's scheme names and connect to the module.
 
-    timeout: s without an answer before a call raises DAQTimeout (datasheet: 0.1 s).
-    check_identity: raise DAQIdentityError unless the module identifies as an LDQ-412.
+    Parameters
+    ----------
+    url : str
+        ``modbus-tcp://host[:port]?unit=1[&fifo=1]``,
+        ``modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1[&parity=N&stopbits=1&fifo=1]`` or
+        ``ascii:///dev/ttyUSB0?baud=115200&addr=01&checksum=0``.
+    timeout : float
+        s without an answer before a call raises DAQTimeout (> 0; datasheet: 0.1 s).
+    check_identity : bool
+        Raise DAQIdentityError unless the module identifies as an LDQ-412.
 
-    Raises ValueError for an unknown scheme or bad/unknown query parameters, and the
-    driver's DAQError subclasses for connection/identity failures.
+    Returns
+    -------
+    DAQ
+        The connected driver (a context manager: ``with open_daq(url) as daq: ...``).
+
+    Raises
+    ------
+    ValueError
+        For a malformed URL, an unknown scheme, an unknown or bad query parameter, or a
+        timeout that is not > 0.
+    DAQError
+        The driver's subclasses: DAQDisconnected (cannot connect), DAQTimeout (no answer
+        at connect), DAQProtocolError, DAQIdentityError (not an LDQ-412).
     """
     cls, parsed = driver_for_url(url)
     if not timeout > 0:
@@ -241,16 +405,35 @@ def open_daq(
 
 
 class DAQ(ABC):
-    """An LDQ-412 module reached over one transport.
+    """An LDQ-412 module reached over one transport; :func:`open_daq` opens one by URL.
 
     Every call is bounded in time by the timeout given at open (plus the transfer time
     of the answer) and either returns valid data or raises a DAQError; after an error
     the next call tries again (reconnecting if needed). A DAQ is not thread-safe: one
-    thread (or one lock) per instance.
+    thread (or one lock) per instance. Scans come by :meth:`read_scans` (what arrived
+    since the previous call, at once) or by the stream :meth:`scans` (``for scan in
+    daq``); a DAQ is a context manager that closes it.
+
+    A driver subclass registers its scheme (:func:`register_scheme`), lists its
+    :attr:`url_params`, turns a URL into its constructor's arguments
+    (:meth:`url_options`), sets :attr:`identity`, :attr:`url` and the sequencer at
+    connect, and implements :meth:`read_scans`, :meth:`snapshot`, :meth:`clear_restart`,
+    :meth:`close` and the scan rate's getter and setter.
+
+    Attributes
+    ----------
+    scheme : str
+        The URL scheme the class is registered for (class attribute).
+    url_params : frozenset of str
+        The query parameters its URLs may carry (class attribute).
+    identity : Identity
+        What the module said it is at connect.
+    url : str
+        The URL of the connection, every parameter written out.
     """
 
     scheme: ClassVar[str] = ""
-    #: query parameters accepted in the URL
+    # query parameters accepted in the URL
     url_params: ClassVar[frozenset[str]] = frozenset()
 
     identity: Identity
@@ -264,24 +447,75 @@ class DAQ(ABC):
 
     @classmethod
     def url_options(cls, url: DaqUrl) -> dict[str, object]:
-        """The constructor's keyword arguments that a parsed URL gives, every value checked
-        without connecting. Raises ValueError naming the URL, the parameter and the value."""
+        """The constructor's keyword arguments a parsed URL gives, every value checked,
+        without connecting.
+
+        Parameters
+        ----------
+        url : DaqUrl
+            A URL of the class's scheme, its parameters among :attr:`url_params`.
+
+        Returns
+        -------
+        dict[str, object]
+            Keyword arguments for the constructor (without ``timeout`` and
+            ``check_identity``).
+
+        Raises
+        ------
+        ValueError
+            Naming the URL, the parameter and the value.
+        """
         return {}
 
     @classmethod
     def from_url(cls, url: DaqUrl, *, timeout: float, check_identity: bool) -> DAQ:
-        """Connect to the module the parsed URL describes (used by open_daq)."""
+        """Connect to the module a parsed URL describes (what :func:`open_daq` calls).
+
+        Parameters
+        ----------
+        url : DaqUrl
+            A URL of the class's scheme.
+        timeout : float
+            s without an answer before a call raises DAQTimeout.
+        check_identity : bool
+            Raise DAQIdentityError unless the module identifies as an LDQ-412.
+
+        Returns
+        -------
+        DAQ
+            The connected driver.
+
+        Raises
+        ------
+        ValueError
+            For a bad URL value.
+        DAQError
+            If the module cannot be reached or is not an LDQ-412.
+        """
         return cls(**cls.url_options(url), timeout=timeout, check_identity=check_identity)
 
     @abstractmethod
     def read_scans(self) -> list[Scan]:
-        """Every scan since the previous call, exactly once, oldest first.
+        """Every scan since the previous call, exactly once, oldest first, at once.
 
         From the FIFO where the transport has one (Modbus), otherwise by polling the
         latest-scan snapshot once per call (ASCII, or Modbus with ``fifo=0``), in which
         case scans the device produced between two polls are reported in Scan.missed.
         Scans already taken off the device when a call fails are kept and returned by the
-        next successful call.
+        next successful call. To read continuously at the module's pace, use
+        :meth:`scans`.
+
+        Returns
+        -------
+        list[Scan]
+            The new scans (possibly none), oldest first.
+
+        Raises
+        ------
+        DAQError
+            DAQTimeout, DAQProtocolError, DAQModbusException or DAQDisconnected; the next
+            call tries again.
         """
 
     def scans(self, timeout: float | None = None, duration: float | None = None) -> Iterator[Scan]:
@@ -301,9 +535,11 @@ class DAQ(ABC):
         Parameters
         ----------
         timeout : float or None
-            s without a new scan after which the stream raises DAQTimeout (from the start,
-            or from the newest scan); None waits for scans for ever, and then a driver
-            error is raised at once (nothing waits for it to clear).
+            s without a new scan after which the stream raises DAQTimeout, counted from
+            the stream's start, then from the newest scan's arrival (it is raised by the
+            first read after that, which a failing driver may take its own timeout to
+            answer). None: no limit on waiting for new scans, and a driver error is raised
+            at once (nothing waits for it to clear).
         duration : float or None
             s after which the stream ends (after a last read, which brings the scans made
             until then); None: it does not end by itself.
@@ -336,7 +572,13 @@ class DAQ(ABC):
         return self._stream(_seconds("timeout", timeout), _seconds("duration", duration))
 
     def __iter__(self) -> Iterator[Scan]:
-        """``for scan in daq``: :meth:`scans` with no timeout and no end."""
+        """``for scan in daq``: :meth:`scans` with no timeout and no end.
+
+        Returns
+        -------
+        Iterator[Scan]
+            The stream; a driver error ends it (raised).
+        """
         return self.scans()
 
     def _stream(self, timeout: float | None, duration: float | None) -> Iterator[Scan]:
@@ -392,31 +634,61 @@ class DAQ(ABC):
 
     @abstractmethod
     def snapshot(self) -> Scan:
-        """The latest scan (measured time and status)."""
+        """The latest scan, with its measured time and status.
+
+        Over a FIFO the scan is not taken off the FIFO, and the sequence is not moved on
+        (read_scans still returns it); when polling, a new scan seen here is also
+        returned by the next :meth:`read_scans`.
+
+        Returns
+        -------
+        Scan
+            ``source="snapshot"``.
+
+        Raises
+        ------
+        DAQError
+            As :meth:`read_scans`.
+        """
 
     @property
     def has_fifo(self) -> bool:
-        """True if read_scans drains the module's FIFO (every scan once, up to 256 waiting);
-        False if it polls the latest scan, so that a host must call it more often than the
-        module scans to miss none."""
+        """True if :meth:`read_scans` drains the module's FIFO (every scan once, up to 256
+        waiting); False if it polls the latest scan, so that a host must call it once per
+        scan to miss none (as :meth:`scans` does)."""
         return False
 
     @property
     def scan_rate_hz(self) -> int:
-        """The scan rate the driver works with, Hz, without a request: read from the module
-        at connect, followed when set, and re-read when the scans' spacing shows that the
-        module changed it (a power cycle restores the power-on rate). What a recorder
-        stamps and expects; :attr:`scan_rate` asks the module."""
+        """The scan rate the driver works with, Hz (1..200), without a request: read from
+        the module at connect, followed when set, and re-read when the scans' spacing
+        shows that the module changed it (a power cycle restores the power-on rate). What
+        a recorder stamps and a stream paces its polls by; :attr:`scan_rate` asks the
+        module."""
         return self._seq.scan_rate_hz
 
     @property
     def sequencer(self) -> Sequencer:
-        """Sequence state (restarts detected, total missed); read-only use."""
+        """The sequence state that links the driver's reads: ``restarts_detected``,
+        ``missed_total``, ``epoch``, ``measured_period_us`` (read-only use)."""
         return self._seq
 
     @property
     def scan_rate(self) -> int:
-        """Configured scan rate, Hz (read from the module)."""
+        """The module's configured scan rate, Hz (1..200), read from it at each access.
+
+        Setting it writes the module (over a FIFO the scans made at the old rate are
+        read first: their derived times need it).
+
+        Raises
+        ------
+        TypeError
+            When set to anything but an int.
+        ValueError
+            When set outside 1..200 Hz.
+        DAQError
+            If the module cannot be read or written.
+        """
         return self._get_scan_rate()
 
     @scan_rate.setter
@@ -437,11 +709,23 @@ class DAQ(ABC):
 
     @abstractmethod
     def clear_restart(self) -> bool:
-        """Clear the module's latched restart flag; False if the transport cannot."""
+        """Clear the module's latched restart flag (status bit 9), after reading what is
+        waiting so that no restart goes unreported.
+
+        Returns
+        -------
+        bool
+            True if cleared; False if the transport cannot (ASCII).
+
+        Raises
+        ------
+        DAQError
+            If the module cannot be read or written.
+        """
 
     @abstractmethod
     def close(self) -> None:
-        """Release the transport. Idempotent."""
+        """Release the transport; every later call raises DAQDisconnected. Idempotent."""
 
     def __enter__(self: D) -> D:
         return self

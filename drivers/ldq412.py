@@ -68,9 +68,17 @@ ASCII_DEFAULT_ADDR = 0x01
 
 
 def volts_to_code(volts: np.ndarray | float) -> np.ndarray:
-    """Exact ADC transfer function: ``clamp(floor((V + 10) * 4096 / 20), 0, 4095)``.
+    """The ADC's exact transfer function: ``clamp(floor((V + 10) * 4096 / 20), 0, 4095)``.
 
-    volts: any shape, in V. Returns int64 codes of the same shape.
+    Parameters
+    ----------
+    volts : array_like or float
+        Input voltages, V, any shape.
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 codes 0..4095, the same shape.
     """
     v = np.asarray(volts, dtype=float)
     code = np.floor((v - V_MIN) * (CODE_MAX + 1) / V_SPAN)
@@ -78,28 +86,83 @@ def volts_to_code(volts: np.ndarray | float) -> np.ndarray:
 
 
 def code_to_volts(code: np.ndarray | int) -> np.ndarray:
-    """Mid-code reconstruction: ``V = (code + 0.5) * 20 / 4096 - 10``, in V."""
+    """Mid-code reconstruction: ``V = (code + 0.5) * 20 / 4096 - 10``.
+
+    Parameters
+    ----------
+    code : array_like or int
+        ADC codes, 0..4095, any shape.
+
+    Returns
+    -------
+    numpy.ndarray
+        Voltages, V, float64, the same shape.
+    """
     c = np.asarray(code, dtype=float)
     return (c + 0.5) * V_SPAN / (CODE_MAX + 1) + V_MIN
 
 
 def at_rail(code: np.ndarray | int) -> np.ndarray:
-    """True where a code is 0 or 4095 (the reading is not trustworthy)."""
+    """Where a code is at the rail (0 or 4095): the reading is not trustworthy.
+
+    Parameters
+    ----------
+    code : array_like or int
+        ADC codes, any shape.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool, the same shape.
+    """
     c = np.asarray(code)
     return (c == 0) | (c == CODE_MAX)
 
 
 def ascii_checksum(frame: bytes) -> bytes:
-    """Two uppercase hex digits: the sum of all bytes of ``frame`` modulo 256."""
+    """The ASCII protocol's checksum of a frame.
+
+    Parameters
+    ----------
+    frame : bytes
+        The frame up to the checksum (without CR).
+
+    Returns
+    -------
+    bytes
+        Two uppercase hex digits: the sum of the bytes modulo 256.
+    """
     return b"%02X" % (sum(frame) & 0xFF)
 
 
 def split_u32(value: int) -> tuple[int, int]:
-    """A uint32 as two 16-bit registers, high word first."""
+    """A uint32 as two 16-bit registers, high word first.
+
+    Parameters
+    ----------
+    value : int
+        Taken modulo 2**32.
+
+    Returns
+    -------
+    tuple[int, int]
+        ``(high, low)``, 0..65535 each.
+    """
     value &= 0xFFFFFFFF
     return value >> 16, value & 0xFFFF
 
 
 def join_u32(hi: int, lo: int) -> int:
-    """Two 16-bit registers, high word first, as a uint32."""
+    """Two 16-bit registers, high word first, as a uint32.
+
+    Parameters
+    ----------
+    hi, lo : int
+        The registers (only their low 16 bits count).
+
+    Returns
+    -------
+    int
+        0..2**32-1.
+    """
     return ((hi & 0xFFFF) << 16) | (lo & 0xFFFF)

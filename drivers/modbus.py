@@ -54,7 +54,23 @@ FC_WRITE_SINGLE = 6
 
 
 def parse_snapshot(regs: list[int]) -> RawSnapshot:
-    """Input registers 0..9 -> RawSnapshot. Raises DAQProtocolError on out-of-range values."""
+    """Decode the snapshot, input registers 0..9.
+
+    Parameters
+    ----------
+    regs : list of int
+        The 10 registers, 16-bit each.
+
+    Returns
+    -------
+    RawSnapshot
+        Counter, time, codes, status and FIFO level of the latest scan.
+
+    Raises
+    ------
+    DAQProtocolError
+        For another number of registers, a code above 4095 or a FIFO level above 256.
+    """
     if len(regs) != ldq412.IR_SNAPSHOT_LEN:
         raise DAQProtocolError(f"snapshot: {len(regs)} registers, expected 10")
     codes = (regs[4], regs[5], regs[6], regs[7])
@@ -73,11 +89,25 @@ def parse_snapshot(regs: list[int]) -> RawSnapshot:
 
 
 def parse_fifo(regs: list[int]) -> tuple[list[tuple[int, tuple[int, int, int, int]]], int]:
-    """FIFO window registers -> ([(counter, codes)] oldest first, filler scans dropped).
+    """Decode a FIFO answer, input registers 256.. (six per scan).
 
-    Returns the scans and the number of filler scans (six 0xFFFF registers). Anything
-    else with a code above 4095 (a partly filled scan, corrupted data), or a scan after a
-    filler scan, raises DAQProtocolError.
+    Parameters
+    ----------
+    regs : list of int
+        The registers answered, 16-bit each: counter hi, counter lo, ch1..ch4 per scan.
+
+    Returns
+    -------
+    scans : list of (int, tuple of 4 int)
+        ``(counter, codes)`` per scan, oldest first, filler scans dropped.
+    filler : int
+        Filler scans (six 0xFFFF registers) at the end: the FIFO ran empty.
+
+    Raises
+    ------
+    DAQProtocolError
+        If the registers are not whole scans, a scan has a code above 4095 (a partly
+        filled scan, corrupted data), or a scan follows a filler scan.
     """
     n = ldq412.FIFO_SCAN_REGS
     if len(regs) % n:
@@ -99,23 +129,78 @@ def parse_fifo(regs: list[int]) -> tuple[list[tuple[int, tuple[int, int, int, in
 
 
 def format_firmware(reg: int) -> str:
-    """Register 513 (major*256 + minor) -> "M.mm"."""
+    """The firmware version in input register 513.
+
+    Parameters
+    ----------
+    reg : int
+        ``major * 256 + minor``.
+
+    Returns
+    -------
+    str
+        ``"M.mm"``, e.g. ``"2.01"`` for 0x0201.
+    """
     return f"{reg >> 8}.{reg & 0xFF:02d}"
 
 
 class ModbusDAQ(DAQ):
     """LDQ-412 over Modbus (TCP or RTU): the register map, FIFO draining, flag clearing.
 
-    URL parameters common to both: ``unit`` (Modbus device id, default 1), ``fifo``
-    (1: read_scans drains the FIFO, the default; 0: it polls the snapshot, e.g. when
-    another master owns the FIFO).
+    Abstract: :class:`~loopcal.drivers.modbus_tcp.ModbusTcpDAQ` and
+    :class:`~loopcal.drivers.modbus_rtu.ModbusRtuDAQ` give it a pymodbus client. URL
+    parameters common to both: ``unit`` (Modbus device id, default 1), ``fifo`` (1:
+    read_scans drains the FIFO, the default; 0: it polls the snapshot, e.g. when another
+    master owns the FIFO).
+
+    Parameters
+    ----------
+    url : str
+        The connection's URL, every parameter written out (for messages).
+    unit : int
+        Modbus device id, 0..247 (0 broadcast; the URL takes 1..247).
+    timeout : float
+        s without an answer before a call raises DAQTimeout.
+    use_fifo : bool
+        Drain the FIFO (True) or poll the snapshot (False).
+    check_identity : bool
+        Raise DAQIdentityError unless the model code is 0x0412.
+
+    Attributes
+    ----------
+    fifo_chunk : int
+        Scans per FIFO read: the datasheet's 20, fewer once a module refused or
+        truncated a read of that many.
+
+    Raises
+    ------
+    ValueError
+        If ``unit`` is outside 0..247.
+    DAQError
+        If the module cannot be reached or read at connect, or is not an LDQ-412.
     """
 
     url_params: ClassVar[frozenset[str]] = frozenset({"unit", "fifo"})
 
     @staticmethod
     def common_options(url: DaqUrl) -> dict[str, object]:
-        """``unit`` (1..247) and ``fifo`` (0/1) from a URL, checked."""
+        """The Modbus URL parameters both transports take, checked.
+
+        Parameters
+        ----------
+        url : DaqUrl
+            A ``modbus-tcp`` or ``modbus-rtu`` URL.
+
+        Returns
+        -------
+        dict[str, object]
+            ``unit`` (1..247, default 1) and ``use_fifo`` (from ``fifo`` 0/1, default 1).
+
+        Raises
+        ------
+        ValueError
+            For a value out of range, naming the URL.
+        """
         return {
             "unit": url.get_int("unit", ldq412.MODBUS_UNIT, lo=1, hi=247),
             "use_fifo": url.get_bool("fifo", True),
@@ -134,7 +219,7 @@ class ModbusDAQ(DAQ):
         self._closed = False
         self._resync_needed = False
         self._pending: list[Scan] = []
-        #: scans per FIFO read: the datasheet's 20, fewer for a module that refuses that
+        # scans per FIFO read: the datasheet's 20, fewer for a module that refuses that
         self.fifo_chunk = ldq412.FIFO_MAX_SCANS_PER_READ
         self._client = self._make_client(self._trace_packet)
         try:
@@ -217,9 +302,32 @@ class ModbusDAQ(DAQ):
     # -- low-level register access (public: also for diagnostics) ------------------------
 
     def read_input_registers(self, address: int, count: int, *, step: int = 0) -> list[int]:
-        """Function 04. Raises DAQProtocolError if the answer has the wrong length: not
-        ``count`` registers, or with ``step``, not a multiple of ``step`` up to ``count``
-        (a FIFO answer of fewer whole scans)."""
+        """Read input registers (function 04); for diagnostics too.
+
+        Parameters
+        ----------
+        address : int
+            First register, zero-based.
+        count : int
+            Registers to read (1..125).
+        step : int
+            If > 0, a shorter answer of a multiple of ``step`` registers is accepted (a
+            FIFO answer of fewer whole scans).
+
+        Returns
+        -------
+        list of int
+            The registers, 16-bit each.
+
+        Raises
+        ------
+        DAQProtocolError
+            If the answer has the wrong length, or is malformed.
+        DAQModbusException
+            If the module answered an exception (02: address, 03: value).
+        DAQTimeout, DAQDisconnected
+            No answer in time, or no connection.
+        """
         rsp = self._execute(
             f"read input registers {address}+{count}",
             FC_READ_INPUT,
@@ -228,7 +336,28 @@ class ModbusDAQ(DAQ):
         return self._checked_registers(rsp, count, f"input registers {address}+{count}", step)
 
     def read_holding_registers(self, address: int, count: int) -> list[int]:
-        """Function 03. Raises DAQProtocolError if the answer has the wrong length."""
+        """Read holding registers (function 03).
+
+        Parameters
+        ----------
+        address : int
+            First register, zero-based (0..4: scan rate, oversampling, clear FIFO, clear
+            restart, ASCII checksum mode).
+        count : int
+            Registers to read.
+
+        Returns
+        -------
+        list of int
+            The registers, 16-bit each.
+
+        Raises
+        ------
+        DAQProtocolError
+            If the answer has the wrong length, or is malformed.
+        DAQModbusException, DAQTimeout, DAQDisconnected
+            As :meth:`read_input_registers`.
+        """
         rsp = self._execute(
             f"read holding registers {address}+{count}",
             FC_READ_HOLDING,
@@ -237,7 +366,22 @@ class ModbusDAQ(DAQ):
         return self._checked_registers(rsp, count, f"holding registers {address}+{count}")
 
     def write_register(self, address: int, value: int) -> None:
-        """Function 06. Raises DAQProtocolError unless the echo matches the request."""
+        """Write one holding register (function 06).
+
+        Parameters
+        ----------
+        address : int
+            The register, zero-based.
+        value : int
+            0..65535.
+
+        Raises
+        ------
+        DAQProtocolError
+            Unless the module echoes the request.
+        DAQModbusException, DAQTimeout, DAQDisconnected
+            As :meth:`read_input_registers`.
+        """
         rsp = self._execute(
             f"write register {address}={value}",
             FC_WRITE_SINGLE,
@@ -391,7 +535,16 @@ class ModbusDAQ(DAQ):
 
     @property
     def oversampling(self) -> int:
-        """Conversions averaged per reported code (1, 2, 4, 8 or 16)."""
+        """Conversions averaged per reported code: 1, 2, 4, 8 or 16 (holding register 1),
+        read from the module at each access.
+
+        Raises
+        ------
+        ValueError
+            When set to another number.
+        DAQError
+            If the module cannot be read or written.
+        """
         (n,) = self.read_holding_registers(ldq412.HR_OVERSAMPLING, 1)
         return n
 
@@ -402,8 +555,14 @@ class ModbusDAQ(DAQ):
         self.write_register(ldq412.HR_OVERSAMPLING, n)
 
     def clear_fifo(self) -> None:
-        """Empty the module's FIFO and clear its overflow flag (scans in it are lost and
-        reported as missed). read_scans never does this."""
+        """Empty the module's FIFO and clear its overflow flag (holding register 2): the
+        scans in it are lost, and reported as missed. read_scans never does this.
+
+        Raises
+        ------
+        DAQError
+            If the module cannot be written.
+        """
         self.write_register(ldq412.HR_CLEAR_FIFO, 1)
 
     def clear_restart(self) -> bool:

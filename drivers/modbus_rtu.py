@@ -24,9 +24,40 @@ QUIET_S = 0.005
 
 @register_scheme("modbus-rtu")
 class ModbusRtuDAQ(ModbusDAQ):
-    """LDQ-412 on RS-485. RTU has no transaction id, so after an error the port is
-    reopened and the line drained until ``QUIET_S`` of silence (bounded by the timeout)
-    before the next request; answers are checked for function code and length."""
+    """LDQ-412 on RS-485,
+    ``modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1&parity=N&stopbits=1&fifo=1``.
+
+    RTU has no transaction id, so after an error the port is reopened and the line
+    drained until ``QUIET_S`` of silence (bounded by the timeout) before the next
+    request; answers are checked for function code and length.
+
+    Parameters
+    ----------
+    port : str
+        Serial device, e.g. ``"/dev/ttyUSB0"``.
+    baud : int
+        Line speed, baud (> 0; default 115200).
+    parity : {"N", "E", "O"}
+        Parity (default none).
+    stopbits : {1, 2}
+        Stop bits (default 1).
+    unit : int
+        Modbus device id (default 1).
+    timeout : float
+        s without an answer before a call raises DAQTimeout (default 0.1).
+    use_fifo : bool
+        Drain the FIFO (default) or poll the snapshot.
+    check_identity : bool
+        Raise DAQIdentityError unless the module is an LDQ-412.
+
+    Raises
+    ------
+    ValueError
+        For a parity, stop bits, baud or unit out of range.
+    DAQError
+        If the port cannot be opened, the module not read at connect, or it is not an
+        LDQ-412.
+    """
 
     url_params: ClassVar[frozenset[str]] = ModbusDAQ.url_params | {"baud", "parity", "stopbits"}
 

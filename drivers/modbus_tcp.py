@@ -17,8 +17,33 @@ from .modbus import ModbusDAQ
 
 @register_scheme("modbus-tcp")
 class ModbusTcpDAQ(ModbusDAQ):
-    """LDQ-412 on Ethernet. A timeout or protocol error closes the socket; the next call
-    opens a fresh one (so a late answer can never be mistaken for the next one)."""
+    """LDQ-412 on Ethernet, ``modbus-tcp://host[:port]?unit=1&fifo=1``.
+
+    A timeout or protocol error closes the socket; the next call opens a fresh one (so a
+    late answer can never be mistaken for the next one).
+
+    Parameters
+    ----------
+    host : str
+        Host name or address.
+    port : int
+        TCP port (default 502).
+    unit : int
+        Modbus device id (default 1).
+    timeout : float
+        s without an answer before a call raises DAQTimeout (default 0.1).
+    use_fifo : bool
+        Drain the FIFO (default) or poll the snapshot.
+    check_identity : bool
+        Raise DAQIdentityError unless the module is an LDQ-412.
+
+    Raises
+    ------
+    ValueError
+        If ``unit`` is outside 0..247.
+    DAQError
+        If the module cannot be reached or read at connect, or is not an LDQ-412.
+    """
 
     def __init__(
         self,

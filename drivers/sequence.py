@@ -48,7 +48,21 @@ LATCHED_MASK = ldq412.STATUS_OVERFLOW | ldq412.STATUS_RESTART
 
 @dataclass(frozen=True, slots=True)
 class RawSnapshot:
-    """The latest scan as read from the device (all fields raw, 32-bit)."""
+    """The latest scan as read from the device, every field raw (32-bit, wrapping).
+
+    Attributes
+    ----------
+    counter : int
+        Scan counter, 0..2**32-1.
+    time_us : int
+        Device time of channel 1's conversion, µs, 0..2**32-1.
+    codes : tuple of 4 int
+        Channel 1..4 ADC codes, 0..4095.
+    status : int
+        Status register (bits 0-3 rail, 4-7 fault, 8 overflow, 9 restart).
+    fifo_level : int or None
+        Scans waiting in the FIFO, 0..256 (Modbus input register 9); None over ASCII.
+    """
 
     counter: int
     time_us: int
@@ -75,18 +89,57 @@ class _Last:
 
 
 def signed_delta(value: int, ref: int) -> int:
-    """value - ref for 32-bit wrapping counters, in [-2**31, 2**31)."""
+    """The difference of two 32-bit wrapping counters.
+
+    Parameters
+    ----------
+    value, ref : int
+        Counters (or device times), 0..2**32-1.
+
+    Returns
+    -------
+    int
+        ``value - ref`` modulo 2**32, in [-2**31, 2**31).
+    """
     return (value - ref + HALF) % U32 - HALF
 
 
 def period_ticks_us(dcount: int, rate_hz: int) -> int:
-    """round(dcount * 1e6 / rate_hz) in exact integer arithmetic (dcount may be < 0)."""
+    """The device time ``dcount`` scan periods take, in exact integer arithmetic.
+
+    Parameters
+    ----------
+    dcount : int
+        Scans (may be < 0).
+    rate_hz : int
+        Scan rate, Hz (> 0).
+
+    Returns
+    -------
+    int
+        ``round(dcount * 1e6 / rate_hz)`` µs, halves rounded up.
+    """
     return (2 * dcount * 1_000_000 + rate_hz) // (2 * rate_hz)
 
 
 def derived_status(codes: Sequence[int], anchor_status: int, other_fault: int = 0) -> int:
-    """Status word for a FIFO scan (see module docstring); other_fault: fault bits of the
-    previous anchor."""
+    """The status word of a FIFO scan, which the FIFO does not carry (module docstring).
+
+    Parameters
+    ----------
+    codes : sequence of 4 int
+        The scan's channel 1..4 codes, 0..4095.
+    anchor_status : int
+        The status of the snapshot the batch is anchored on.
+    other_fault : int
+        The status of the previous anchor (its fault bits count too).
+
+    Returns
+    -------
+    int
+        Rail bits 0-3 from the codes (0 or 4095), fault bits 4-7 of either anchor on
+        channels reading 4095, latched bits 8-9 of ``anchor_status``.
+    """
     rail = 0
     at_max = 0
     for i, code in enumerate(codes):
@@ -99,7 +152,30 @@ def derived_status(codes: Sequence[int], anchor_status: int, other_fault: int = 
 
 
 class Sequencer:
-    """State that links successive reads of one device into one scan sequence."""
+    """State that links successive reads of one device into one scan sequence: which
+    scans are new, how many were missed, where the device restarted, and each scan's
+    64-bit counter and time (module docstring). Every driver holds one
+    (:attr:`loopcal.drivers.DAQ.sequencer`).
+
+    Parameters
+    ----------
+    scan_rate_hz : int
+        The module's scan rate, Hz (1..200), which derives FIFO scans' times.
+
+    Attributes
+    ----------
+    scan_rate_hz : int
+        The nominal scan rate in use, Hz.
+    epoch : int
+        Restarts detected so far (the epoch of the newest scan).
+    restarts_detected : int
+        Restarts detected so far (equal to ``epoch``).
+    missed_total : int
+        Scans missed over the sequence's life (the sum of Scan.missed).
+    measured_period_us : float or None
+        The scan period measured between the latest two successive anchors of one epoch
+        at least 20 scans apart, µs, or None (none yet, or the rate was set since).
+    """
 
     def __init__(self, scan_rate_hz: int) -> None:
         self.scan_rate_hz = scan_rate_hz
@@ -117,7 +193,7 @@ class Sequencer:
         self._lost_read = False  # a FIFO answer was lost since the last delivered scan
         self._boundary_pending = False
         self._anchor_host_time: float | None = None
-        #: measured scan period (µs) between the last two anchors of one epoch, or None
+        # measured scan period (µs) between the last two anchors of one epoch, or None
         self.measured_period_us: float | None = None
 
     # -- bookkeeping ---------------------------------------------------------------
@@ -133,6 +209,7 @@ class Sequencer:
 
     @property
     def anchor_counter64(self) -> int | None:
+        """counter64 of the newest snapshot (anchor) seen, or None before the first."""
         return None if self._anchor is None else self._anchor.counter64
 
     def _observe(self, snap: RawSnapshot) -> bool:
@@ -184,13 +261,31 @@ class Sequencer:
         return anchor
 
     def period_mismatch(self, tolerance: float = 0.005) -> bool:
-        """True if the measured period disagrees with the nominal rate (rate changed?)."""
+        """Whether the measured scan period disagrees with the nominal rate (somebody
+        changed the module's rate).
+
+        Parameters
+        ----------
+        tolerance : float
+            Relative disagreement allowed (0.005: 0.5 %).
+
+        Returns
+        -------
+        bool
+            False while no period has been measured.
+        """
         p = self.measured_period_us
         nominal = 1e6 / self.scan_rate_hz
         return p is not None and abs(p - nominal) > tolerance * nominal
 
     def set_rate(self, hz: int) -> None:
-        """New nominal scan rate; forget the period measured at the old one."""
+        """A new nominal scan rate; the period measured at the old one is forgotten.
+
+        Parameters
+        ----------
+        hz : int
+            Scan rate, Hz (1..200).
+        """
         self.scan_rate_hz = hz
         self.measured_period_us = None
 
@@ -214,8 +309,23 @@ class Sequencer:
     def poll(
         self, snap: RawSnapshot, host_time: float, source: ScanSource = "snapshot"
     ) -> tuple[Scan, bool]:
-        """Feed one snapshot. Returns (scan, is_new); a repeated counter gives is_new False
-        and a Scan with no events."""
+        """Feed one snapshot (a poll).
+
+        Parameters
+        ----------
+        snap : RawSnapshot
+            What the device answered.
+        host_time : float
+            ``time.monotonic()`` when the answer arrived, s.
+        source : {"snapshot", "fifo"}
+            Stored in the Scan.
+
+        Returns
+        -------
+        tuple[Scan, bool]
+            The scan and whether it is new; a counter already delivered gives False and a
+            Scan with no events.
+        """
         if self._observe(snap):
             self._start_epoch()
         a = self._set_anchor(snap)
@@ -243,15 +353,35 @@ class Sequencer:
         return scan, is_new
 
     def peek(self, snap: RawSnapshot, host_time: float) -> Scan:
-        """Like poll, without changing any state (a snapshot read beside the FIFO)."""
+        """Like :meth:`poll`, without changing any state (a snapshot read beside the FIFO).
+
+        Parameters
+        ----------
+        snap : RawSnapshot
+            What the device answered.
+        host_time : float
+            ``time.monotonic()`` when the answer arrived, s.
+
+        Returns
+        -------
+        Scan
+            The scan as :meth:`poll` would make it.
+        """
         scan, _ = copy.deepcopy(self).poll(snap, host_time)
         return scan
 
     # -- FIFO ------------------------------------------------------------------------
 
     def begin_batch(self, snap: RawSnapshot, host_time: float | None = None) -> None:
-        """Anchor the FIFO scans about to be read on the snapshot read just before
-        (host_time: when that snapshot arrived; the anchor scan keeps it)."""
+        """Anchor the FIFO scans about to be read on the snapshot read just before.
+
+        Parameters
+        ----------
+        snap : RawSnapshot
+            The snapshot (input registers 0..9).
+        host_time : float or None
+            ``time.monotonic()`` when it arrived, s; the FIFO scan equal to it keeps it.
+        """
         self._anchor_host_time = host_time
         old = self._anchor
         if self._observe(snap):
@@ -267,11 +397,28 @@ class Sequencer:
     def fifo_scans(
         self, raw: Sequence[tuple[int, tuple[int, int, int, int]]], host_time: float
     ) -> list[Scan]:
-        """Turn (counter, codes) pairs read from the FIFO, oldest first, into Scans.
+        """Turn the ``(counter, codes)`` pairs read from the FIFO into Scans.
 
         Scans that are not newer than the last delivered one (duplicates, stale data) are
         dropped. If the anchor showed a restart, the new epoch begins at the first scan
         whose counter goes backwards, or at the first scan if none does.
+
+        Parameters
+        ----------
+        raw : sequence of (int, tuple of 4 int)
+            Raw counters and channel 1..4 codes, oldest first.
+        host_time : float
+            ``time.monotonic()`` when the last FIFO answer arrived, s.
+
+        Returns
+        -------
+        list[Scan]
+            The new scans, oldest first, ``source="fifo"``.
+
+        Raises
+        ------
+        RuntimeError
+            If no batch was begun (:meth:`begin_batch`).
         """
         anchor = self._anchor
         if anchor is None:
