@@ -588,11 +588,11 @@ class DAQ(ABC):
         pacer: FifoPacer | PollPacer | None = None
         at = start
         while True:
+            if timeout is not None:
+                at = min(at, newest_at + timeout)  # to notice the timeout when it runs out
             last = at >= end
             if last:
                 at = end
-            if timeout is not None:
-                at = min(at, newest_at + timeout)  # to notice the timeout when it runs out
             _sleep_until(at)
             if self.has_fifo and pacer is None:
                 pacer = FifoPacer()
