@@ -10,6 +10,15 @@ python-can's interfaces do::
 
 Drivers register their scheme with :func:`register_scheme`; :func:`open_daq` parses the
 URL, rejects unknown query parameters, and hands the parsed URL to the driver class.
+
+A driver gives its scans two ways, as python-can's buses give messages: :meth:`DAQ.read_scans`
+returns at once what arrived since the previous call, and :meth:`DAQ.scans` (``for scan in
+daq``) is a stream that reads at the module's own pace (:mod:`loopcal.drivers.pacing`),
+for a duration or until no scan comes within a timeout::
+
+    with open_daq("ascii:///dev/ttyUSB0?addr=01") as daq:
+        for scan in daq.scans(timeout=1.0, duration=60.0):
+            print(scan.counter64, scan.volts)
 """
 
 from __future__ import annotations
