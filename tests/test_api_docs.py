@@ -2,10 +2,10 @@
 errors, as CI builds it, and every public function and class of the packages whose docstrings
 are numpy style is in it, with a Parameters, Returns or Attributes section.
 
-Those packages are docs/api/conf.py's ``NUMPY_STYLE`` (calibration/ for now): adding one there
-is one line, and both the build's strictness and these checks follow. Public: a name without a
-leading underscore, defined in that module (not imported into it), listed in the module's
-``__all__`` where it has one.
+Those packages are docs/api/conf.py's ``NUMPY_STYLE`` (calibration/ and drivers/ for now):
+adding one there is one line, and both the build's strictness and these checks follow. Public:
+a name without a leading underscore, defined in that module (not imported into it), listed in
+the module's ``__all__`` where it has one.
 """
 
 from __future__ import annotations
