@@ -400,13 +400,33 @@ def listen_host(text: str) -> str:
 
 
 def add_transport_option(p: argparse.ArgumentParser, what: str) -> None:
-    """``--transport`` of the commands that serve an emulated module (simulate, replay,
-    demo): ``what`` says what goes over it."""
+    """Add ``--transport`` to a command that serves an emulated module (simulate, replay, demo).
+
+    Parameters
+    ----------
+    p : argparse.ArgumentParser
+        The command's parser.
+    what : str
+        What goes over the wire, for the option's help (the choices and the default,
+        modbus-tcp, follow it).
+    """
     p.add_argument("--transport", choices=TRANSPORTS, default="modbus-tcp",
                    help=f"{what}: {', '.join(TRANSPORTS)} (default modbus-tcp)")  # fmt: skip
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Add ``loopcal simulate``'s options to its parser.
+
+    The transport and listening address, the module's identity and power-on settings, the
+    speed, the simulated mechanism (seed, scenario, noise, pauses, true parameters), the
+    fault schedule, the duration, the truth file, and the open points
+    (:func:`~loopcal.simulator.open_points.add_arguments`).
+
+    Parameters
+    ----------
+    p : argparse.ArgumentParser
+        The ``simulate`` command's parser.
+    """
     add_transport_option(p, "the wire the emulated module answers on")
     p.add_argument(
         "--host", type=listen_host, default="127.0.0.1", help="TCP address (default 127.0.0.1)"
