@@ -405,12 +405,12 @@ class LDQ412:
 
     @property
     def boot(self) -> int:
-        """Power-on index: 0 for the first power-on, +1 per completed power cycle."""
+        """Power-on index, 0 for the first power-on and +1 per completed power cycle."""
         return self._boot
 
     @property
     def ready(self) -> bool:
-        """Powered and past its first scan: the module answers requests."""
+        """Whether the module answers requests (powered and past its first scan)."""
         return self._off_until_ns is None and self._latest is not None
 
     @property
@@ -516,7 +516,7 @@ class LDQ412:
 
     @property
     def status(self) -> int:
-        """Status register: rail and fault bits of the latest scan plus the latches.
+        """The status register, the latest scan's rail and fault bits plus the latches.
 
         Bits 0-3 channel at the rail and 4-7 sensor fault, of the latest scan; bit 8 FIFO
         overflow (latched until 1 is written to holding register 2, or a power cycle) and

@@ -88,7 +88,7 @@ class PtyLink:
 
     @property
     def device_fd(self) -> int:
-        """The module side's slave fd (raw, blocking): for servers that use the fd."""
+        """The module side's slave fd (raw, blocking), for servers that use the fd."""
         return self._device.slave
 
     @property

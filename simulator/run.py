@@ -370,7 +370,7 @@ def int_in(lo: int, hi: int, *, base: int = 10) -> Callable[[str], int]:
     return parse
 
 
-#: a TCP port to listen on (0: a free one)
+#: a TCP port to listen on, 0 for a free one
 tcp_port = int_in(0, 65535)
 
 

@@ -294,8 +294,11 @@ class EmulatedLDQ412:
 
     @property
     def url(self) -> str:
-        """The driver URL: ``modbus-tcp://127.0.0.1:PORT?unit=1``,
-        ``modbus-rtu:///dev/pts/N?baud=115200&unit=1`` or ``ascii:///dev/pts/N?...``."""
+        """The URL a driver opens (:func:`loopcal.drivers.open_daq`).
+
+        ``modbus-tcp://127.0.0.1:PORT?unit=1``,
+        ``modbus-rtu:///dev/pts/N?baud=115200&unit=1`` or ``ascii:///dev/pts/N?...``.
+        """
         return self.emulator.url
 
     @property
@@ -331,8 +334,11 @@ class EmulatedLDQ412:
 
     @property
     def scans(self) -> list[TruthScan]:
-        """Every scan the module produced so far, in order: counter, device time, codes,
-        status, source time and power-on index (ground truth, a copy)."""
+        """Every scan the module produced so far, in order (ground truth, a copy).
+
+        A list of :class:`~loopcal.simulator.device.TruthScan`: counter, device time,
+        codes, status, source time and power-on index of each.
+        """
         return self.emulator.truth
 
     @property
