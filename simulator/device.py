@@ -82,9 +82,9 @@ from .source import SignalSource
 
 # Modbus exception codes the module answers (datasheet: 02 and 03; 01 for functions it
 # does not implement).
-ILLEGAL_FUNCTION = 0x01
-ILLEGAL_ADDRESS = 0x02
-ILLEGAL_VALUE = 0x03
+ILLEGAL_FUNCTION = 0x01  #: Modbus exception 01, illegal function
+ILLEGAL_ADDRESS = 0x02  #: Modbus exception 02, illegal data address
+ILLEGAL_VALUE = 0x03  #: Modbus exception 03, illegal data value
 
 # Protocol limit of a single Modbus register write (Modbus application spec; the read's,
 # MODBUS_MAX_READ, is in open_points).

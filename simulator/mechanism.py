@@ -154,7 +154,9 @@ class MechanismSource:
         return lengths_to_volts(d, self.truth)
 
     def convert(self, t: np.ndarray) -> np.ndarray:
-        """One conversion of the four channels (:meth:`SignalSource.convert`).
+        """One conversion of the four channels.
+
+        See :meth:`~loopcal.simulator.source.SignalSource.convert`.
 
         Parameters
         ----------

@@ -371,6 +371,7 @@ class HandMoves(Scenario):
         }
 
 
+#: the scenarios by name, as ``loopcal simulate --scenario NAME`` offers them
 SCENARIOS = {"hand": HandMoves, "static": Static, "sweep": Sweep}
 
 

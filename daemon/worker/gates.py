@@ -42,19 +42,20 @@ from loopcal.calibration.poses import pose_noise_volts
 from loopcal.calibration.residuals import loop_residuals, noise_directions, reference_points
 from loopcal.calibration.simulate import NEAR_SINGULAR_MM
 
-MIN_POSES = 30
-MIN_CHANNEL_RANGE_V = 0.5  # a channel that moves less than this over all poses is stuck
-BARELY_MOVED_V = 2.0  # every channel within this over all poses: the plate barely moved
-MIN_SINGULAR = 0.05
-NOISE_RATIO = 1.5
-HOLDOUT_EVERY = 5  # every fifth pose is kept out of the fit to validate it
+MIN_POSES = 30  #: still poses the ``poses`` gate needs at least
+MIN_CHANNEL_RANGE_V = 0.5  #: V; a channel that moves less than this over all poses is stuck
+BARELY_MOVED_V = 2.0  #: V; every channel within this over all poses, the plate barely moved
+MIN_SINGULAR = 0.05  #: smallest minimum singular value of the scaled Jacobian
+NOISE_RATIO = 1.5  #: largest fitted noise over the noise the poses predict
+HOLDOUT_EVERY = 5  #: every fifth pose is kept out of the fit to validate it
 #: allowance over the chi-square bound, since the predicted noise is itself estimated and
 #: the parameters' own uncertainty adds to the held-out poses' errors
 HOLDOUT_MARGIN = 1.15
 #: largest believable change per parameter group (a refitted LVDT moves its offset by mm)
 CHANGE_LIMITS = {"offset": 15.0, "geometry": 3.0, "gain": 0.05}
+#: largest standard deviation of an identified parameter, by unit
 PRECISION = {"mm": 0.25, "mm/V": 0.01}
-GOOD_TILT_DEG = 25.0  # the workspace allows 45 deg; poses should reach this far every way
+GOOD_TILT_DEG = 25.0  #: deg; the workspace allows 45, poses should reach this far every way
 
 
 @dataclass(frozen=True)
