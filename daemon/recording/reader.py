@@ -42,7 +42,8 @@ class Recording:
         in two files is kept once): files in the order of their first scan, each file's
         scans in (epoch, counter) order.
     events : list of Event
-        The recorded events (:class:`loopcal.daemon.events.Event`), in time order.
+        The recorded events (:class:`loopcal.daemon.events.Event`) within the time window,
+        in time order.
     files : list of RecordingFile
         One entry per file read, in the order of their first scan (files with no scan
         last); files wholly outside the time window are not read and not listed.
