@@ -1,8 +1,10 @@
 """The emulated LDQ-412 DAQ module: device model, clocks, signal sources and wire servers.
 
-from loopcal.simulator import Emulator, ManualClock
-with Emulator("modbus-tcp", clock=ManualClock()) as emu:
-    ...  # open_daq(emu.url), emu.clock.advance(1.0), emu.faults.restart(), emu.truth
+::
+
+    from loopcal.simulator import Emulator, ManualClock
+    with Emulator("modbus-tcp", clock=ManualClock()) as emu:
+        ...  # open_daq(emu.url), emu.clock.advance(1.0), emu.faults.restart(), emu.truth
 """
 
 import importlib

@@ -30,12 +30,43 @@ _HEX = frozenset(b"0123456789ABCDEFabcdef")
 
 
 def encode_answer(body: bytes, checksum: bool) -> bytes:
-    """``body`` + (checksum digits) + CR."""
+    """Frame an answer: ``body`` + (checksum digits) + CR.
+
+    Parameters
+    ----------
+    body : bytes
+        The answer without framing, e.g. ``b"!01LDQ412"``.
+    checksum : bool
+        The checksum mode: add two uppercase hex digits, the sum of ``body``'s bytes
+        modulo 256.
+
+    Returns
+    -------
+    bytes
+        The complete answer, CR included.
+    """
     return body + (ascii_checksum(body) if checksum else b"") + CR
 
 
 def latest_scan_body(device: LDQ412) -> bytes:
-    """The ``#AA`` answer without framing: ``>`` counter time ch1..ch4 status."""
+    """The ``#AA`` answer without framing: ``>`` counter time ch1..ch4 status.
+
+    Parameters
+    ----------
+    device : LDQ412
+        The module, ready and synced; reading its latest scan counts as a host's read.
+
+    Returns
+    -------
+    bytes
+        ``>`` then the counter (8 hex digits), the device time in µs (8), channel 1..4
+        codes (3 each) and the status register (4), uppercase.
+
+    Raises
+    ------
+    DeviceOffError
+        If the module is not ready.
+    """
     s = device.latest
     text = f">{s.counter:08X}{s.time_us:08X}" + "".join(f"{c:03X}" for c in s.codes)
     return (text + f"{device.status:04X}").encode()
@@ -44,7 +75,27 @@ def latest_scan_body(device: LDQ412) -> bytes:
 def handle_frame(device: LDQ412, frame: bytes, address: int) -> bytes | None:
     """Answer one received frame (without its CR), or None for no answer.
 
-    ``device`` must be powered and synced; ``address`` is the module address (0..255).
+    Parameters
+    ----------
+    device : LDQ412
+        The module, ready and synced (a ``%AARhhhh`` sets its scan rate).
+    frame : bytes
+        The bytes received before a CR.
+    address : int
+        The module address, 0..255.
+
+    Returns
+    -------
+    bytes or None
+        The complete answer (checksum digits and CR included), or None: no answer at all
+        (not printable, not addressed to this module, a wrong or missing checksum, or an
+        answer lead ``>``, ``!``, ``?``). A command it does not know, for this address,
+        answers ``?AA``.
+
+    Raises
+    ------
+    DeviceOffError
+        If the module is not ready when the command reads it.
     """
     if not frame or any(b not in _PRINTABLE for b in frame):
         return None

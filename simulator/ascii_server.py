@@ -24,7 +24,33 @@ LINE_BUFFER_BYTES = 64
 
 
 class AsciiServer:
-    """Serve the ASCII protocol for module ``address`` on the (raw) serial fd ``fd``."""
+    """Serve the ASCII protocol for module ``address`` on the (raw) serial fd ``fd``.
+
+    Parameters
+    ----------
+    handle : DeviceHandle
+        The device, clock and wire faults, behind their lock.
+    fd : int
+        The module side of the serial line (a pty slave,
+        :attr:`~loopcal.simulator.pty.PtyLink.device_fd`); made non-blocking by
+        :meth:`start`.
+    address : int
+        The module address, 0..255 (``AA`` in the frames, two uppercase hex digits).
+
+    Attributes
+    ----------
+    handle : DeviceHandle
+        As given.
+    fd : int
+        As given.
+    address : int
+        As given.
+
+    Raises
+    ------
+    ValueError
+        If ``address`` is outside 0..255.
+    """
 
     def __init__(self, handle: DeviceHandle, fd: int, address: int) -> None:
         if not 0 <= address <= 0xFF:
@@ -37,6 +63,13 @@ class AsciiServer:
         self._send_at = 0.0  # loop time the latest delayed answer goes out
 
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Answer frames as they arrive on ``loop`` (call from the loop's thread).
+
+        Parameters
+        ----------
+        loop : asyncio.AbstractEventLoop
+            The emulator's loop: it reads the fd and sends delayed answers.
+        """
         os.set_blocking(self.fd, False)
         self._loop = loop
         loop.add_reader(self.fd, self._on_readable)
@@ -83,6 +116,7 @@ class AsciiServer:
                 return
 
     def close(self) -> None:
+        """Stop reading the fd (the fd itself belongs to the pty link, which closes it)."""
         if self._loop is not None:
             with contextlib.suppress(Exception):
                 self._loop.remove_reader(self.fd)

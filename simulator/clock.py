@@ -28,14 +28,31 @@ NS_PER_S = 1_000_000_000
 
 @runtime_checkable
 class Clock(Protocol):
-    """A monotonic time base, in seconds since the clock was created."""
+    """A monotonic time base, in seconds since the clock was created.
+
+    Anything with these two methods is a clock for the emulator
+    (:class:`~loopcal.simulator.emulator.Emulator`); the device model only ever sees the
+    integer nanoseconds of :meth:`now_ns`.
+    """
 
     def now_ns(self) -> int:
-        """Current time in integer nanoseconds (never decreases)."""
+        """Current time in integer nanoseconds (never decreases).
+
+        Returns
+        -------
+        int
+            Nanoseconds since the clock was created.
+        """
         ...
 
     def now(self) -> float:
-        """Current time in seconds (``now_ns() / 1e9``)."""
+        """Current time in seconds (``now_ns() / 1e9``).
+
+        Returns
+        -------
+        float
+            Seconds since the clock was created.
+        """
         ...
 
 
@@ -46,17 +63,46 @@ class RealClock:
         self._origin_ns = time.monotonic_ns()
 
     def now_ns(self) -> int:
+        """Monotonic wall time since creation.
+
+        Returns
+        -------
+        int
+            Nanoseconds since the clock was created.
+        """
         return time.monotonic_ns() - self._origin_ns
 
     def now(self) -> float:
+        """Monotonic wall time since creation.
+
+        Returns
+        -------
+        float
+            Seconds since the clock was created.
+        """
         return self.now_ns() / NS_PER_S
 
 
 class SimClock:
-    """Simulated time running ``speed`` times as fast as wall time (``speed > 0``).
+    """Simulated time running ``speed`` times as fast as wall time.
 
     ``SimClock(10.0)`` makes one real second count as ten device seconds, so a 2 s power
     cycle takes 0.2 s of a test's wall time.
+
+    Parameters
+    ----------
+    speed : float
+        Simulated seconds per wall-clock second, > 0 (below 1 slows time down).
+
+    Attributes
+    ----------
+    speed : float
+        As given.
+
+    Raises
+    ------
+    ValueError
+        If ``speed`` is not > 0.
     """
 
     def __init__(self, speed: float) -> None:
@@ -66,21 +112,68 @@ class SimClock:
         self._origin_ns = time.monotonic_ns()
 
     def now_ns(self) -> int:
+        """Simulated time since creation.
+
+        Returns
+        -------
+        int
+            Wall nanoseconds since creation times :attr:`speed`, truncated.
+        """
         return int((time.monotonic_ns() - self._origin_ns) * self.speed)
 
     def now(self) -> float:
+        """Simulated time since creation.
+
+        Returns
+        -------
+        float
+            Seconds (``now_ns() / 1e9``).
+        """
         return self.now_ns() / NS_PER_S
 
 
 def clock_for(speed: float) -> RealClock | SimClock:
-    """Wall time running ``speed`` times as fast: a :class:`RealClock` at 1."""
+    """Wall time running ``speed`` times as fast: a :class:`RealClock` at 1.
+
+    Parameters
+    ----------
+    speed : float
+        Simulated seconds per wall-clock second.
+
+    Returns
+    -------
+    RealClock or SimClock
+        A :class:`RealClock` when ``speed == 1.0``, else a :class:`SimClock`.
+
+    Raises
+    ------
+    ValueError
+        If ``speed`` is not > 0 (from :class:`SimClock`).
+    """
     return RealClock() if speed == 1.0 else SimClock(speed)
 
 
 class HeldClock:
     """Wall time, ``speed`` times as fast, standing at 0 until :meth:`release`.
 
-    An emulator on a HeldClock releases it at the first request it receives.
+    An emulator on a HeldClock releases it at the first request it receives
+    (:meth:`~loopcal.simulator.handle.DeviceHandle.note_request`): the module is switched
+    on when its first client talks (``loopcal simulate --wait-for-client``).
+
+    Parameters
+    ----------
+    speed : float, default 1.0
+        Simulated seconds per wall-clock second once released, > 0.
+
+    Attributes
+    ----------
+    speed : float
+        As given.
+
+    Raises
+    ------
+    ValueError
+        If ``speed`` is not > 0.
     """
 
     def __init__(self, speed: float = 1.0) -> None:
@@ -91,45 +184,108 @@ class HeldClock:
         self._lock = threading.Lock()
 
     def release(self) -> None:
-        """Start the clock (later calls do nothing)."""
+        """Start the clock (later calls do nothing); thread-safe."""
         with self._lock:
             if self._origin_ns is None:
                 self._origin_ns = time.monotonic_ns()
 
     def now_ns(self) -> int:
+        """Time since :meth:`release`.
+
+        Returns
+        -------
+        int
+            0 before :meth:`release`; after it, wall nanoseconds since the release times
+            :attr:`speed`, truncated.
+        """
         origin = self._origin_ns
         return 0 if origin is None else int((time.monotonic_ns() - origin) * self.speed)
 
     def now(self) -> float:
+        """Time since :meth:`release`.
+
+        Returns
+        -------
+        float
+            Seconds (``now_ns() / 1e9``); 0.0 before the release.
+        """
         return self.now_ns() / NS_PER_S
 
 
 class ManualClock:
-    """A clock that only moves when told to; safe to advance from any thread."""
+    """A clock that only moves when told to; safe to advance from any thread.
+
+    It starts at 0 and stands still between calls of :meth:`advance`: the basis of every
+    bit-exact test (the same requests at the same clock readings give the same bytes).
+    """
 
     def __init__(self) -> None:
         self._ns = 0
         self._lock = threading.Lock()
 
     def advance(self, seconds: float) -> None:
-        """Move time forward by ``seconds`` (>= 0), rounded to the nearest nanosecond."""
+        """Move time forward by ``seconds``, rounded to the nearest nanosecond.
+
+        Parameters
+        ----------
+        seconds : float
+            How far to move, s, >= 0.
+
+        Raises
+        ------
+        ValueError
+            If ``seconds`` is negative.
+        """
         if seconds < 0:
             raise ValueError(f"a clock cannot go backwards ({seconds!r} s)")
         with self._lock:
             self._ns += round(seconds * NS_PER_S)
 
     def now_ns(self) -> int:
+        """The time the advances so far add up to.
+
+        Returns
+        -------
+        int
+            Nanoseconds since creation.
+        """
         with self._lock:
             return self._ns
 
     def now(self) -> float:
+        """The time the advances so far add up to.
+
+        Returns
+        -------
+        float
+            Seconds (``now_ns() / 1e9``).
+        """
         return self.now_ns() / NS_PER_S
 
 
 class PlayClock:
-    """Wall time ``speed`` times as fast, up to a limit: :meth:`run_until` lets it run from
-    where it stands to ``limit_ns`` and stop there until the next call. Read at any instant
-    it is exact (no steps), however late its owner's thread runs."""
+    """Wall time ``speed`` times as fast, up to a limit its owner moves.
+
+    :meth:`run_until` lets it run from where it stands to ``limit_ns`` and stop there
+    until the next call. Read at any instant it is exact (no steps), however late its
+    owner's thread runs. It starts at 0, held there until the first :meth:`run_until`.
+    A replay's :class:`~loopcal.simulator.replay.Player` drives one.
+
+    Parameters
+    ----------
+    speed : float, default 1.0
+        Simulated seconds per wall-clock second while it runs, > 0.
+
+    Attributes
+    ----------
+    speed : float
+        As given.
+
+    Raises
+    ------
+    ValueError
+        If ``speed`` is not > 0.
+    """
 
     def __init__(self, speed: float = 1.0) -> None:
         if not speed > 0:
@@ -141,7 +297,14 @@ class PlayClock:
         self._limit_ns = 0
 
     def run_until(self, limit_ns: int) -> None:
-        """Run on from now to ``limit_ns`` (never back: an earlier limit holds it still)."""
+        """Run on from now to ``limit_ns``, then stand still.
+
+        Parameters
+        ----------
+        limit_ns : int
+            Clock time to stop at, ns. Never back: a limit earlier than the time the clock
+            shows holds it still where it is.
+        """
         with self._lock:
             now = self._now_locked()
             self._base_ns, self._base_mono = now, time.monotonic_ns()
@@ -152,8 +315,23 @@ class PlayClock:
         return min(self._limit_ns, self._base_ns + run)
 
     def now_ns(self) -> int:
+        """Where the clock stands.
+
+        Returns
+        -------
+        int
+            Nanoseconds: where it stood at the last :meth:`run_until`, plus the wall time
+            since times :attr:`speed`, at most the limit.
+        """
         with self._lock:
             return self._now_locked()
 
     def now(self) -> float:
+        """Where the clock stands.
+
+        Returns
+        -------
+        float
+            Seconds (``now_ns() / 1e9``).
+        """
         return self.now_ns() / NS_PER_S

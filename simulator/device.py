@@ -82,9 +82,9 @@ from .source import SignalSource
 
 # Modbus exception codes the module answers (datasheet: 02 and 03; 01 for functions it
 # does not implement).
-ILLEGAL_FUNCTION = 0x01
-ILLEGAL_ADDRESS = 0x02
-ILLEGAL_VALUE = 0x03
+ILLEGAL_FUNCTION = 0x01  #: Modbus exception 01, illegal function
+ILLEGAL_ADDRESS = 0x02  #: Modbus exception 02, illegal data address
+ILLEGAL_VALUE = 0x03  #: Modbus exception 03, illegal data value
 
 # Protocol limit of a single Modbus register write (Modbus application spec; the read's,
 # MODBUS_MAX_READ, is in open_points).
@@ -100,13 +100,41 @@ _SATURATION_V = {"high": V_MAX + 1.0, "low": V_MIN - 1.0}
 
 
 def rail_bits(codes: list[int]) -> int:
-    """The status word's rail bits of a scan's codes: bit ch for a channel at 0 or
-    :data:`~loopcal.drivers.ldq412.CODE_MAX`."""
+    """The status word's rail bits of a scan's codes.
+
+    Parameters
+    ----------
+    codes : sequence of int
+        Channel 1..4 codes, 0..4095.
+
+    Returns
+    -------
+    int
+        Bit ch (0-based) set for each channel at 0 or
+        :data:`~loopcal.drivers.ldq412.CODE_MAX` (status bits 0-3); no other bit.
+    """
     return sum(1 << ch for ch, c in enumerate(codes) if c in (0, CODE_MAX))
 
 
 class DeviceError(Exception):
-    """A request the module refuses with a Modbus exception code (``code``)."""
+    """A request the module refuses with a Modbus exception code.
+
+    The Modbus servers answer it as that exception; the ASCII protocol as ``?AA``.
+
+    Parameters
+    ----------
+    code : int
+        The exception code: 0x01 illegal function, 0x02 illegal data address, 0x03
+        illegal data value (:data:`ILLEGAL_FUNCTION`, :data:`ILLEGAL_ADDRESS`,
+        :data:`ILLEGAL_VALUE`).
+    message : str
+        Why, for people; the exception's text is ``exception CC: message``.
+
+    Attributes
+    ----------
+    code : int
+        As given.
+    """
 
     def __init__(self, code: int, message: str) -> None:
         super().__init__(f"exception {code:02X}: {message}")
@@ -114,18 +142,34 @@ class DeviceError(Exception):
 
 
 class DeviceOffError(RuntimeError):
-    """The module is powered off (inside a power cycle) and cannot be accessed."""
+    """The module cannot be accessed: powered off, or before its first scan.
+
+    Raised inside a power cycle, and after a power-on until its first scan is taken (see
+    :attr:`LDQ412.ready`). The servers never let a request reach a module that is not
+    ready (it answers nothing); this is the model's own guard.
+    """
 
 
 @dataclass(frozen=True, slots=True)
 class TruthScan:
     """One scan exactly as the module produced it (ground truth for tests and calibration).
 
-    counter, time_us: the uint32 values the module reports (wrapped).
-    codes: channel 1..4 codes.
-    status: the status register right after this scan was taken and pushed to the FIFO.
-    t_s: source time of channel 1's instant (seconds since the first power-on).
-    boot: power-on index, 0 for the first power-on, +1 per power cycle.
+    Attributes
+    ----------
+    counter : int
+        The scan counter as the module reports it, uint32 (wrapped).
+    time_us : int
+        Device time of the scan (channel 1's conversion) since the power-on, µs, uint32
+        (wrapped).
+    codes : tuple of 4 int
+        Channel 1..4 codes, 0..4095.
+    status : int
+        The status register right after this scan was taken and pushed to the FIFO
+        (bits 0-3 rail, 4-7 sensor fault, 8 FIFO overflow, 9 restart).
+    t_s : float
+        Source time of channel 1's instant, s since the first power-on.
+    boot : int
+        Power-on index, 0 for the first power-on, +1 per power cycle.
     """
 
     counter: int
@@ -137,21 +181,85 @@ class TruthScan:
 
 
 def scans_due(uptime_us: int, rate_hz: int) -> int:
-    """Number of scans j >= 0 with ``floor(j * 1e6 / rate) <= uptime_us`` (anchor 0)."""
+    """How many scans a schedule anchored at 0 has made by ``uptime_us``.
+
+    Parameters
+    ----------
+    uptime_us : int
+        Device time since the anchor, µs, >= 0.
+    rate_hz : int
+        Scan rate, Hz.
+
+    Returns
+    -------
+    int
+        The number of scans j >= 0 with ``floor(j * 1e6 / rate_hz) <= uptime_us``.
+    """
     return ((uptime_us + 1) * rate_hz + _US_PER_S - 1) // _US_PER_S
 
 
 class LDQ412:
     """The module's state: scanning, FIFO, registers, latches and channel faults.
 
-    source: the analog inputs (called N times per scan with oversampling N).
-    now_ns: the owner's clock at construction; the module has been powered on for
+    A pure state machine (module docstring): the owner calls :meth:`sync` with its clock's
+    time before every access, and serializes access.
+
+    Parameters
+    ----------
+    source : SignalSource
+        The analog inputs (called N times per scan with oversampling N).
+    now_ns : int, default 0
+        The owner's clock at construction, ns; the module has been powered on for
         ``initial_uptime_s`` at that instant.
-    scan_rate_hz, ascii_checksum: power-on values of holding registers 0 and 4.
-    serial_number, firmware: identity (input registers 513..515, ``$AAF``).
-    truth_limit: None: :attr:`truth` keeps every scan; N: it keeps the latest N to 2N-1.
-    open_points: the choices the datasheet leaves open (:class:`OpenPoints`; the default
-        is the emulator as it always was).
+    scan_rate_hz : int, default 20
+        Power-on value of holding register 0, the scan rate, 1..200 Hz.
+    serial_number : int, default 0x00C0FFEE
+        Serial number, uint32 (input registers 514-515).
+    firmware : tuple of 2 int, default (2, 1)
+        Firmware version (major 0..255, minor 0..99): input register 513 is
+        ``major * 256 + minor``, ``$AAF`` answers ``M.mm``.
+    ascii_checksum : bool, default False
+        Power-on value of holding register 4, the ASCII checksum mode.
+    initial_uptime_s : float, default 0.0
+        How long the module has been on at ``now_ns``, s, >= 0 (for 32-bit wraps of the
+        counter and device time). Only the last 256 scans of that time exist, in the FIFO,
+        with the overflow flag latched if there were more.
+    truth_limit : int or None, default None
+        None: :attr:`truth` keeps every scan; N >= 1: it keeps the latest N to 2N-1.
+    open_points : OpenPoints or None, default None
+        The choices the datasheet leaves open (:class:`OpenPoints`; None is
+        ``OpenPoints()``, the emulator as it always was).
+
+    Attributes
+    ----------
+    source : SignalSource
+        As given.
+    serial_number : int
+        As given.
+    firmware : tuple of 2 int
+        (major, minor), as given.
+    power_on_scan_rate_hz : int
+        The scan rate every power-on starts with, Hz.
+    power_on_ascii_checksum : bool
+        The checksum mode every power-on starts with.
+    latest_reads : int
+        How often a host read the latest scan (a snapshot or ``#AA``: each access of
+        :attr:`latest`).
+    fifo_reads : int
+        How often a host read the FIFO window (each :meth:`pop_fifo`).
+    truth : list of TruthScan
+        Every scan the module produced, in order (bounded by ``truth_limit``); the owner
+        may replace the list.
+    truth_limit : int or None
+        As given.
+    open : OpenPoints
+        The open points in force.
+
+    Raises
+    ------
+    ValueError
+        If ``truth_limit`` < 1, ``scan_rate_hz`` is outside 1..200, ``serial_number`` is
+        not a uint32, ``firmware`` is out of range or ``initial_uptime_s`` is negative.
     """
 
     def __init__(
@@ -183,7 +291,7 @@ class LDQ412:
         self.firmware = (major, minor)
         self.power_on_scan_rate_hz = scan_rate_hz
         self.power_on_ascii_checksum = bool(ascii_checksum)
-        #: how often a host read the latest scan (a snapshot or ``#AA``), or the FIFO
+        # how often a host read the latest scan (a snapshot or ``#AA``), or the FIFO
         self.latest_reads = 0
         self.fifo_reads = 0
         self.truth: list[TruthScan] = []
@@ -249,7 +357,16 @@ class LDQ412:
     def sync(self, now_ns: int) -> None:
         """Bring the module to time ``now_ns``: finish a power cycle, take due scans.
 
-        Time never goes back: an earlier ``now_ns`` than the last one is ignored.
+        Parameters
+        ----------
+        now_ns : int
+            The owner's clock, ns. Time never goes back: an earlier ``now_ns`` than the
+            last one is taken as the last one.
+
+        Notes
+        -----
+        Every scan due up to ``now_ns`` is taken, in order, at its own scheduled instant
+        (so the scans depend only on the schedule, not on when the module was synced).
         """
         now_ns = max(now_ns, self._now_ns)
         self._now_ns = now_ns
@@ -271,7 +388,7 @@ class LDQ412:
 
     @property
     def now_ns(self) -> int:
-        """The time of the last :meth:`sync`."""
+        """The owner's clock at the last :meth:`sync`, ns."""
         return self._now_ns
 
     @property
@@ -282,17 +399,18 @@ class LDQ412:
 
     @property
     def powered(self) -> bool:
-        """False inside a power cycle (as of the last :meth:`sync`)."""
+        """False inside a power cycle, as of the last :meth:`sync` (True before the first
+        scan of a power-on: see :attr:`ready`)."""
         return self._off_until_ns is None
 
     @property
     def boot(self) -> int:
-        """Power-on index: 0 for the first power-on, +1 per completed power cycle."""
+        """Power-on index, 0 for the first power-on and +1 per completed power cycle."""
         return self._boot
 
     @property
     def ready(self) -> bool:
-        """Powered and past its first scan: the module answers requests."""
+        """Whether the module answers requests (powered and past its first scan)."""
         return self._off_until_ns is None and self._latest is not None
 
     @property
@@ -301,8 +419,21 @@ class LDQ412:
         return self._device_us(self._now_ns)
 
     def host_ns(self, boot: int, time64_us: int) -> int | None:
-        """The owner's clock (ns) at device time ``time64_us`` of the current power-on
-        (None for another power-on): when that scan was taken."""
+        """The owner's clock at a device time of the current power-on (when a scan was taken).
+
+        Parameters
+        ----------
+        boot : int
+            Power-on index (:attr:`boot`).
+        time64_us : int
+            Device time since that power-on, µs, unwrapped.
+
+        Returns
+        -------
+        int or None
+            The owner's clock at that device time, ns (the module's clock error taken
+            out, rounded down); None if ``boot`` is not the current power-on.
+        """
         if boot != self._boot:
             return None
         return self._boot_ns + self._owner_ns(time64_us)
@@ -310,7 +441,13 @@ class LDQ412:
     def power_cycle(self, off_s: float = POWER_CYCLE_S) -> None:
         """Switch the module off now and on again ``off_s`` seconds later.
 
-        Scans due up to now are taken first; nothing is scanned while off.
+        Scans due up to now are taken first; nothing is scanned while off. The power-on
+        comes with the first :meth:`sync` at or after it (module docstring: power-on state).
+
+        Parameters
+        ----------
+        off_s : float, default POWER_CYCLE_S
+            How long it stays off, s of the owner's clock (the datasheet's 2 s by default).
         """
         self.sync(self._now_ns)
         self._off_until_ns = self._now_ns + round(off_s * 1e9)
@@ -367,7 +504,11 @@ class LDQ412:
 
     @property
     def latest(self) -> TruthScan:
-        """The latest scan (what registers 0..7 and ``#AA`` report)."""
+        """The latest scan (what registers 0..7 and ``#AA`` report).
+
+        Each access counts as a host's read (:attr:`latest_reads`). Raises
+        :class:`DeviceOffError` while the module is not :attr:`ready`.
+        """
         self._require_power()
         assert self._latest is not None
         self.latest_reads += 1
@@ -375,7 +516,13 @@ class LDQ412:
 
     @property
     def status(self) -> int:
-        """Status register: rail and fault bits of the latest scan plus the latches."""
+        """The status register, the latest scan's rail and fault bits plus the latches.
+
+        Bits 0-3 channel at the rail and 4-7 sensor fault, of the latest scan; bit 8 FIFO
+        overflow (latched until 1 is written to holding register 2, or a power cycle) and
+        bit 9 module restarted (set at power-on, latched until 1 is written to holding
+        register 3).
+        """
         return (
             self._latest_low_status
             | (STATUS_OVERFLOW if self._overflow else 0)
@@ -384,14 +531,17 @@ class LDQ412:
 
     @property
     def fifo_level(self) -> int:
+        """Scans waiting in the FIFO, 0..256 (input register 9)."""
         return len(self._fifo)
 
     @property
     def scan_rate_hz(self) -> int:
+        """The scan rate in force, Hz (holding register 0)."""
         return self._scan_rate
 
     @property
     def oversampling(self) -> int:
+        """Conversions averaged per code, 1, 2, 4, 8 or 16 (holding register 1)."""
         return self._oversampling
 
     @property
@@ -407,7 +557,19 @@ class LDQ412:
     # ------------------------------------------------------------------ registers
 
     def snapshot_registers(self) -> list[int]:
-        """Input registers 0..9: one consistent view of the latest scan."""
+        """Input registers 0..9: one consistent view of the latest scan.
+
+        Returns
+        -------
+        list of int
+            Ten 16-bit registers: counter (hi, lo), device time in µs (hi, lo), channel
+            1..4 codes, status, FIFO level.
+
+        Raises
+        ------
+        DeviceOffError
+            While the module is not :attr:`ready`.
+        """
         s = self.latest
         return [
             *split_u32(s.counter),
@@ -418,19 +580,51 @@ class LDQ412:
         ]
 
     def identity_registers(self) -> list[int]:
-        """Input registers 512..515: model, firmware, serial number."""
+        """Input registers 512..515: model, firmware, serial number.
+
+        Returns
+        -------
+        list of int
+            Four 16-bit registers: model code 0x0412, ``major * 256 + minor``, serial
+            number (hi, lo).
+        """
         major, minor = self.firmware
         return [MODEL_CODE, major * 256 + minor, *split_u32(self.serial_number)]
 
     def read_input_registers(self, address: int, count: int) -> list[int]:
-        """Function 04. Reading the FIFO window pops the scans it returns.
+        """Function 04, read input registers (a FIFO-window read pops its scans).
 
-        Raises :class:`DeviceError` with 03 for a count outside 1..125 or a FIFO-window
-        read whose count is not a multiple of 6, and 02 for addresses outside 0..9,
-        256..375, 512..515, a FIFO-window read not starting at 256 or reading past 375
-        (more than 20 scans). The open points (``max_read_registers``, ``over_limit``,
-        ``holes``, ``snapshot_reads``, ``fifo_underrun``) change these answers; a
-        truncated or short answer has fewer registers than asked.
+        Parameters
+        ----------
+        address : int
+            First register, zero-based.
+        count : int
+            Registers asked for.
+
+        Returns
+        -------
+        list of int
+            The 16-bit registers: ``count`` of them, or fewer for a truncated read
+            (``over_limit="truncate"``) or a short FIFO answer (``fifo_underrun="short"``).
+
+        Raises
+        ------
+        DeviceError
+            03 for a count outside 1..125 or a FIFO-window read whose count is not a
+            multiple of 6; 02 for addresses outside 0..9, 256..375, 512..515, a
+            FIFO-window read not starting at 256 or reading past 375 (more than 20
+            scans). The open points change these answers (Notes).
+        DeviceOffError
+            While the module is not :attr:`ready`.
+
+        Notes
+        -----
+        ``max_read_registers`` below 125 refuses a longer read with 03
+        (``over_limit="refuse"``) or answers its first ``max_read_registers`` registers
+        (``"truncate"``; in the FIFO window whole scans only, the rest left waiting);
+        ``holes="zero"`` answers a read that leaves the listed blocks (unlisted registers
+        0, the FIFO window 0xFFFF without taking a scan); ``snapshot_reads="whole"``
+        refuses a read of part of 0..9 with 02 (:mod:`loopcal.simulator.open_points`).
         """
         self._require_power()
         if not 1 <= count <= MODBUS_MAX_READ:
@@ -480,10 +674,27 @@ class LDQ412:
         return out
 
     def pop_fifo(self, n: int) -> list[int]:
-        """Remove the ``n`` (1..20) oldest scans; registers as the FIFO window returns them.
+        """Remove the ``n`` oldest scans; registers as the FIFO window returns them.
 
-        Missing scans (fewer than ``n`` waiting) are all-0xFFFF filler scans, or left out
-        (``fifo_underrun="short"``: the answer is shorter).
+        Counts as a host's FIFO read (:attr:`fifo_reads`), whether any scan was waiting or
+        not.
+
+        Parameters
+        ----------
+        n : int
+            Scans to take, 1..20.
+
+        Returns
+        -------
+        list of int
+            Six registers per scan (counter hi, counter lo, channel 1..4 codes), oldest
+            first. Missing scans (fewer than ``n`` waiting) are all-0xFFFF filler scans,
+            or left out (``fifo_underrun="short"``: the answer is shorter).
+
+        Raises
+        ------
+        DeviceError
+            03 for ``n`` outside 1..20.
         """
         if not 1 <= n <= FIFO_MAX_SCANS_PER_READ:
             raise DeviceError(ILLEGAL_VALUE, f"{n} scans per FIFO read")
@@ -500,11 +711,38 @@ class LDQ412:
         return regs
 
     def holding_registers(self) -> list[int]:
-        """Holding registers 0..4 as read (the command registers 2 and 3 read 0)."""
+        """Holding registers 0..4 as read.
+
+        Returns
+        -------
+        list of int
+            Scan rate (Hz), oversampling, 0, 0 (the command registers 2 and 3 read 0),
+            ASCII checksum mode (0 or 1).
+        """
         return [self._scan_rate, self._oversampling, 0, 0, int(self._ascii_checksum)]
 
     def read_holding_registers(self, address: int, count: int) -> list[int]:
-        """Function 03 (03 for a count outside 1..125, 02 outside 0..4)."""
+        """Function 03, read holding registers.
+
+        Parameters
+        ----------
+        address : int
+            First register, zero-based.
+        count : int
+            Registers asked for.
+
+        Returns
+        -------
+        list of int
+            ``count`` registers of :meth:`holding_registers` from ``address``.
+
+        Raises
+        ------
+        DeviceError
+            03 for a count outside 1..125, 02 for registers outside 0..4.
+        DeviceOffError
+            While the module is not :attr:`ready`.
+        """
         self._require_power()
         if not 1 <= count <= MODBUS_MAX_READ:
             raise DeviceError(ILLEGAL_VALUE, f"count {count} outside 1..{MODBUS_MAX_READ}")
@@ -515,11 +753,27 @@ class LDQ412:
         return self.holding_registers()[address : address + count]
 
     def write_registers(self, address: int, values: list[int]) -> None:
-        """Functions 06 and 16: all values are checked before any is applied.
+        """Functions 06 and 16, write holding registers (every value checked first).
 
-        02 for addresses outside 0..4; 03 for a count outside 1..123 or a value out of
-        range: rate 1..200, oversampling 1/2/4/8/16, command registers 2 and 3 take 0
-        (no-op) or 1, checksum mode 0 or 1. Values are applied in address order.
+        Values are applied in address order: 0 sets the scan rate (:meth:`set_scan_rate`),
+        1 the oversampling, 1 written to 2 clears the FIFO and the overflow flag, 1
+        written to 3 clears the restart flag, 4 sets the ASCII checksum mode.
+
+        Parameters
+        ----------
+        address : int
+            First register, zero-based.
+        values : list of int
+            The 16-bit values, one per register from ``address``.
+
+        Raises
+        ------
+        DeviceError
+            02 for registers outside 0..4; 03 for a count outside 1..123 or a value out
+            of range: rate 1..200, oversampling 1/2/4/8/16, command registers 2 and 3
+            take 0 (no-op) or 1, checksum mode 0 or 1. Nothing is applied then.
+        DeviceOffError
+            While the module is not :attr:`ready`.
         """
         self._require_power()
         if not 1 <= len(values) <= MODBUS_MAX_WRITE:
@@ -545,7 +799,23 @@ class LDQ412:
                 self._ascii_checksum = bool(value)
 
     def set_scan_rate(self, rate_hz: int) -> None:
-        """Set the scan rate; a change re-anchors the schedule at the current time."""
+        """Set the scan rate; a change re-anchors the schedule at the current time.
+
+        Scans due up to now are taken at the old rate; the next scan follows one new
+        period after now. The same rate again changes nothing.
+
+        Parameters
+        ----------
+        rate_hz : int
+            Scans per second, 1..200.
+
+        Raises
+        ------
+        DeviceError
+            03 for a rate outside 1..200.
+        DeviceOffError
+            While the module is not :attr:`ready`.
+        """
         self._require_power()
         if not SCAN_RATE_MIN_HZ <= rate_hz <= SCAN_RATE_MAX_HZ:
             raise DeviceError(ILLEGAL_VALUE, f"scan rate {rate_hz} Hz")
@@ -559,18 +829,58 @@ class LDQ412:
     # ------------------------------------------------------------------ channel faults
 
     def set_stuck(self, channel: int, code: int | None) -> None:
-        """Channel (1..4) reports ``code`` on every scan from now on; None releases it."""
+        """Channel ``channel`` reports ``code`` on every scan from now on.
+
+        Parameters
+        ----------
+        channel : int
+            1..4.
+        code : int or None
+            The code, 0..4095; None releases the channel.
+
+        Raises
+        ------
+        ValueError
+            If ``channel`` is not 1..4 or ``code`` not 0..4095.
+        """
         ch = _channel_index(channel)
         if code is not None and not 0 <= code <= CODE_MAX:
             raise ValueError(f"code must be 0..{CODE_MAX}")
         self._stuck[ch] = code
 
     def set_sensor_fault(self, channel: int, on: bool) -> None:
-        """Sensor fault on a channel (1..4): it reads 4095 with its fault bit set."""
+        """Sensor fault on a channel: it reads 4095 with its fault bit set.
+
+        Parameters
+        ----------
+        channel : int
+            1..4.
+        on : bool
+            True from the next scan on; False ends it.
+
+        Raises
+        ------
+        ValueError
+            If ``channel`` is not 1..4.
+        """
         self._sensor_fault[_channel_index(channel)] = bool(on)
 
     def set_saturation(self, channel: int, mode: str | None) -> None:
-        """The channel's conditioner output sits beyond the rail ("high"/"low"), or not."""
+        """The channel's conditioner output sits beyond the rail, or not.
+
+        Parameters
+        ----------
+        channel : int
+            1..4.
+        mode : {"high", "low"} or None
+            ``"high"``: 1 V above +10 V (code 4095); ``"low"``: 1 V below -10 V (code 0);
+            None: the source's volts again.
+
+        Raises
+        ------
+        ValueError
+            If ``channel`` is not 1..4 or ``mode`` is none of those.
+        """
         if mode not in (None, "high", "low"):
             raise ValueError('mode must be "high", "low" or None')
         self._saturate[_channel_index(channel)] = mode

@@ -22,8 +22,34 @@ import numpy as np
 
 @dataclass(frozen=True)
 class OffsetDrift:
-    """One drift of sensor ``channel`` (1..4): ``kind`` "step" (``amount`` mm) or "creep"
-    (``amount`` mm per minute), from ``at`` s, for ``duration`` s (None: for ever)."""
+    """One drift of sensor ``channel``'s offset: a step or a creep, from ``at`` on.
+
+    Attributes
+    ----------
+    kind : str
+        ``"step"``: the offset moves by ``amount`` mm at ``at``; ``"creep"``: it moves by
+        ``amount`` mm per minute from ``at`` on.
+    channel : int
+        The sensor, 1..4.
+    at : float
+        When the drift starts, s of source time (since the module's first power-on).
+    amount : float
+        mm (a step) or mm per minute (a creep); either sign.
+    duration : float or None, default None
+        How long it lasts, s: a step ends (the offset goes back), a creep stops growing
+        and is held. None: for ever.
+
+    Raises
+    ------
+    ValueError
+        If ``kind`` is not step or creep, ``channel`` not 1..4, ``at`` negative or not
+        finite, ``amount`` not finite, or ``duration`` not positive.
+
+    Notes
+    -----
+    A positive shift of sensor i's offset makes it read ``V_i = (d_i - d0_i - shift) / S_i``:
+    a length ``d`` reads as ``d - shift`` with the unchanged ``d0`` and ``S``.
+    """
 
     kind: str
     channel: int
@@ -42,7 +68,18 @@ class OffsetDrift:
             raise ValueError("drift duration must be positive")
 
     def shift_mm(self, t: np.ndarray) -> np.ndarray:
-        """The offset change, mm, at device times t (any shape)."""
+        """The offset change this drift makes at times ``t``.
+
+        Parameters
+        ----------
+        t : array_like of float, any shape
+            Source times, s since the module's first power-on.
+
+        Returns
+        -------
+        ndarray of float, same shape as ``t``
+            The change of the sensor's offset, mm (0 before ``at``).
+        """
         t = np.asarray(t, dtype=float)
         if self.kind == "step":
             on = t >= self.at
@@ -55,8 +92,20 @@ class OffsetDrift:
 
 
 def offset_shift(drifts: tuple[OffsetDrift, ...] | list[OffsetDrift], t: np.ndarray) -> np.ndarray:
-    """Sum of the drifts at times t (..., 4), channel i's column at channel i's instants:
-    returns (..., 4) mm."""
+    """Each sensor's offset change, summed over the drifts.
+
+    Parameters
+    ----------
+    drifts : sequence of OffsetDrift
+        The drifts (any channels; several on one channel add up).
+    t : array_like of float, shape (..., 4)
+        Source times, s: column i holds channel i+1's instants.
+
+    Returns
+    -------
+    ndarray of float, shape (..., 4)
+        Column i: the sum of channel i+1's drifts at column i's times, mm.
+    """
     t = np.asarray(t, dtype=float)
     out = np.zeros(t.shape)
     for d in drifts:

@@ -73,25 +73,98 @@ def _reason(exc: BaseException) -> str:
 class Emulator:
     """An emulated LDQ-412 reachable at :attr:`url`; a context manager.
 
-    transport: "modbus-tcp", "modbus-rtu" or "ascii".
-    source: the analog inputs; None: :class:`~loopcal.simulator.source.TestSource` (seed).
-    scan_rate_hz, ascii_checksum: power-on values of holding registers 0 and 4.
-    clock: None: :class:`~loopcal.simulator.clock.RealClock`.
-    seed: seeds the built-in source and the garbage bytes.
-    serial_number, firmware: identity registers.
-    unit: Modbus unit id (1..247). ascii_addr: ASCII module address (0..255).
-    initial_uptime_s: the module was powered on this long ago (for 32-bit wraps); only
-        the last 256 scans of that time exist (in the FIFO, overflow latched if more).
-    host, port: TCP listening address (port 0: a free port, reported in ``url``).
-    truth_limit: None keeps every scan in :attr:`truth`; N keeps at least the latest N
-        (bounded memory for long real-time runs).
-    open_points: the choices the datasheet leaves open (:mod:`loopcal.simulator.open_points`:
-        scan phase, clock error, answer latency, FIFO underrun, accepted reads); the
-        default is the emulator as it always was.
-    device: a device model to serve instead of a new :class:`~loopcal.simulator.device.LDQ412`
-        (a replay's); source, scan_rate_hz, serial_number, firmware, ascii_checksum,
-        initial_uptime_s, truth_limit and the open points other than the latency are then
-        the device's own.
+    Nothing runs until :meth:`start` (or ``with``): then the servers answer on their own
+    thread until :meth:`close`.
+
+    Parameters
+    ----------
+    transport : {"modbus-tcp", "modbus-rtu", "ascii"}
+        The wire: a TCP socket, or a pseudo-terminal a driver opens with pyserial.
+    source : SignalSource or None, default None
+        The analog inputs; None: :class:`~loopcal.simulator.source.TestSource` (``seed``).
+    scan_rate_hz : int, default 20
+        Power-on value of holding register 0, the scan rate, 1..200 Hz.
+    clock : Clock or None, default None
+        The module's time base; None: :class:`~loopcal.simulator.clock.RealClock`.
+    seed : int, default 0
+        Seeds the built-in source, the garbage bytes and the answer delays (three
+        separate streams).
+    serial_number : int, default 0x00C0FFEE
+        Serial number, uint32 (input registers 514-515).
+    firmware : tuple of 2 int, default (2, 1)
+        Firmware version (major, minor).
+    unit : int, default 1
+        Modbus unit id, 1..247 (requests for another unit get no answer).
+    ascii_addr : int, default 0x01
+        ASCII module address, 0..255.
+    ascii_checksum : bool, default False
+        Power-on value of holding register 4, the ASCII checksum mode.
+    initial_uptime_s : float, default 0.0
+        The module was powered on this long ago, s (for 32-bit wraps); only the last 256
+        scans of that time exist (in the FIFO, overflow latched if more).
+    host : str, default "127.0.0.1"
+        TCP listening address (modbus-tcp only).
+    port : int, default 0
+        TCP port (modbus-tcp only); 0: a free port, reported in :attr:`port` and
+        :attr:`url` once started.
+    truth_limit : int or None, default None
+        None keeps every scan in :attr:`truth`; N keeps at least the latest N (bounded
+        memory for long real-time runs).
+    open_points : OpenPoints or None, default None
+        The choices the datasheet leaves open (:mod:`loopcal.simulator.open_points`: scan
+        phase, clock error, answer latency, FIFO underrun, accepted reads); None is the
+        emulator as it always was.
+    device : LDQ412 or None, default None
+        A device model to serve instead of a new
+        :class:`~loopcal.simulator.device.LDQ412` (a replay's); source, scan_rate_hz,
+        serial_number, firmware, ascii_checksum, initial_uptime_s, truth_limit and the
+        open points other than the latency are then the device's own.
+
+    Attributes
+    ----------
+    transport : str
+        As given.
+    clock : Clock
+        The time base in use.
+    source : SignalSource
+        The analog inputs (not used by a ``device`` given).
+    device : LDQ412
+        The device model served. Read it holding :attr:`lock`.
+    faults : FaultInjector
+        Fault injection (:mod:`loopcal.simulator.faults`): disconnect, stall, restart,
+        garbage, corruption, channel faults, latency.
+    url : str
+        What :func:`loopcal.drivers.open_daq` opens, e.g.
+        ``modbus-tcp://127.0.0.1:40123?unit=1``,
+        ``modbus-rtu:///dev/pts/7?baud=115200&unit=1`` or
+        ``ascii:///dev/pts/7?baud=115200&addr=01&checksum=0``; empty until started.
+    port : int
+        The TCP port (the one picked once started, for port 0).
+    host : str
+        As given.
+    unit : int
+        As given.
+    ascii_addr : int
+        As given.
+    open_points : OpenPoints
+        As given (None: ``OpenPoints()``); the wire takes its latency from it.
+    wire : WireFaults
+        The wire fault state the servers consult.
+    handle : DeviceHandle
+        Serialized, clock-synced access to the device and the wire.
+
+    Raises
+    ------
+    ValueError
+        If ``transport``, ``unit`` or ``ascii_addr`` is out of range, or the device model
+        refuses its settings (:class:`~loopcal.simulator.device.LDQ412`).
+
+    Notes
+    -----
+    Everything (servers, pty relay, a 10 ms housekeeping tick that keeps the module
+    scanning and the TCP endpoint following power and link state) runs on one asyncio
+    loop in one thread. With a :class:`~loopcal.simulator.clock.ManualClock`, the same
+    scenario, seed and request sequence put the same bytes on the wire.
     """
 
     def __init__(
@@ -162,37 +235,65 @@ class Emulator:
 
     @property
     def first_request(self) -> threading.Event:
-        """Set once a server has handled its first request (a driver is talking)."""
+        """An event set once a server has handled its first request (a driver is talking)."""
         return self.handle.requested
 
     @property
     def lock(self) -> threading.RLock:
-        """Hold this to read :attr:`device` consistently while the servers run.
+        """The lock to hold to read :attr:`device` consistently while the servers run.
 
-        Do not call :attr:`faults` methods while holding it: link and power changes wait
-        for the server thread, which needs the lock.
+        A re-entrant lock. Do not call :attr:`faults` methods while holding it: link and
+        power changes wait for the server thread, which needs the lock.
         """
         return self.handle.lock
 
     @property
     def truth(self) -> list[TruthScan]:
-        """Every scan the module produced so far, in order (a copy, synced to the clock)."""
+        """Every scan the module produced so far, in order (a copy, synced to the clock).
+
+        A list of :class:`~loopcal.simulator.device.TruthScan`; with ``truth_limit``, only
+        the latest of them.
+        """
         with self.handle.synced() as device:
             return list(device.truth)
 
     def take_truth(self) -> list[TruthScan]:
-        """The scans produced since the last call, in order, removed from :attr:`truth`
-        (for long runs that keep the ground truth elsewhere)."""
+        """The scans produced since the last call, removed from :attr:`truth`.
+
+        For long runs that keep the ground truth elsewhere.
+
+        Returns
+        -------
+        list of TruthScan
+            The scans the module kept since the last call (or since it was created), in
+            order; :attr:`truth` is empty afterwards.
+        """
         with self.handle.synced() as device:
             out, device.truth = device.truth, []
             return out
 
     @property
     def running(self) -> bool:
+        """Whether the emulator's thread is alive (started and not closed)."""
         return self._thread is not None and self._thread.is_alive()
 
     def start(self) -> Emulator:
-        """Start the servers; returns once :attr:`url` is reachable. Idempotent."""
+        """Start the servers; returns once :attr:`url` is reachable. Idempotent.
+
+        Returns
+        -------
+        Emulator
+            ``self``.
+
+        Raises
+        ------
+        RuntimeError
+            If the TCP port is taken (``cannot listen on HOST:PORT: ...``) or the servers
+            failed to start (a pseudo-terminal that cannot be opened, say); the message
+            says why.
+        TimeoutError
+            If the servers were not up within 5 s.
+        """
         if self._thread is not None:
             return self
         if self.transport == "modbus-tcp" and self.port:
@@ -220,7 +321,16 @@ class Emulator:
         return self
 
     def close(self) -> None:
-        """Stop the servers and the thread, close every fd. Idempotent."""
+        """Stop the servers and the thread, close every fd. Idempotent.
+
+        TCP clients see an orderly close; the pseudo-terminals go away.
+
+        Raises
+        ------
+        RuntimeError
+            If called from the emulator's own thread, or the thread did not stop within
+            5 s.
+        """
         if self._thread is not None and threading.current_thread() is self._thread:
             raise RuntimeError("Emulator.close() called from the emulator's own thread")
         thread, self._thread = self._thread, None

@@ -25,9 +25,41 @@ _DIAG = np.arange(4)
 def true_parameters(
     seed: int = 0, offset_error_mm: float = 3.0, overrides: Mapping[str, float] | None = None
 ) -> np.ndarray:
-    """The simulated mechanism's true parameters (20,): the offsets (and the paper's seven
-    parameters' geometry) moved at random from the blueprint by ``seed`` (offsets by up to
-    ``offset_error_mm``), then explicit ``{NAME: value}`` overrides (mm, as in the config)."""
+    """The simulated mechanism's true parameters, drawn from ``seed``.
+
+    The offsets (and the paper's seven parameters' geometry) moved at random from the
+    blueprint by ``seed`` (offsets by up to ``offset_error_mm``), then explicit
+    ``{NAME: value}`` overrides.
+
+    Parameters
+    ----------
+    seed : int, default 0
+        Seed of the draw (:func:`loopcal.calibration.simulate.perturbed_truth` with the
+        paper's seven free parameters: offsets uniform within ``+-offset_error_mm``, the
+        free geometry within +-0.5 mm).
+    offset_error_mm : float, default 3.0
+        Largest offset error, mm, finite and >= 0.
+    overrides : mapping of str to float, optional
+        Parameters set exactly, by name (:data:`loopcal.calibration.parameters.NAMES`), in
+        the config's units (mm, mm/V for the gains ``S1``..``S4``).
+
+    Returns
+    -------
+    ndarray of float, shape (20,)
+        The full parameter vector, in the order of
+        :data:`loopcal.calibration.parameters.NAMES`.
+
+    Raises
+    ------
+    ValueError
+        If ``offset_error_mm`` is negative or not finite, or an override names an unknown
+        parameter or is not a finite number (a bool is not a number here).
+
+    Notes
+    -----
+    The overrides are not checked beyond that: a vector they make invalid (a gain <= 0,
+    say) is refused later, by :class:`MechanismSource`.
+    """
     if not (np.isfinite(offset_error_mm) and offset_error_mm >= 0):
         raise ValueError(f"offset error must be >= 0 mm, got {offset_error_mm!r}")
     rng = np.random.default_rng([seed, 1])
@@ -47,10 +79,40 @@ def true_parameters(
 class MechanismSource:
     """:class:`~loopcal.simulator.source.SignalSource` of a simulated mechanism.
 
-    scenario: the plate's motion; truth: the mechanism's true parameters (20,);
-    noise_volts: 1-sigma noise per conversion; seed: the noise stream; drifts: offset
-    drifts of the sensors (:mod:`loopcal.simulator.drift`); more can be added later to
-    :attr:`drifts` (they act from their own start times).
+    Each conversion samples the plate's orientation at each channel's own instant, takes
+    the four actuator lengths by inverse kinematics of the true parameters, subtracts the
+    offset drifts, turns them into volts ``V = (d - d0) / S`` and adds noise.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        The plate's motion (:mod:`loopcal.simulator.scenarios`).
+    truth : ndarray of float, shape (20,)
+        The mechanism's true parameters (:func:`true_parameters`; mm, mm/V).
+    noise_volts : float, default NOISE_VOLTS
+        Standard deviation of the Gaussian noise per conversion, V, >= 0 (the default,
+        :data:`loopcal.calibration.simulate.NOISE_VOLTS`, is 0.040 V).
+    seed : int, default 0
+        Seed of the noise stream.
+    drifts : tuple of OffsetDrift, default ()
+        Offset drifts of the sensors (:mod:`loopcal.simulator.drift`).
+
+    Attributes
+    ----------
+    scenario : Scenario
+        As given.
+    truth : ndarray of float, shape (20,)
+        A copy of the true parameters.
+    noise_volts : float
+        As given.
+    drifts : list of OffsetDrift
+        The drifts; more can be appended later (each acts from its own start time).
+
+    Raises
+    ------
+    ValueError
+        If ``noise_volts`` is negative or not finite, or ``truth`` is not a valid
+        parameter vector (:class:`~loopcal.calibration.errors.ParameterError`).
     """
 
     def __init__(
@@ -71,7 +133,19 @@ class MechanismSource:
         self.drifts: list[OffsetDrift] = list(drifts)
 
     def clean(self, t: np.ndarray) -> np.ndarray:
-        """Noise-free volts of the four channels at their instants t (4,)."""
+        """Noise-free volts of the four channels at their instants; draws no noise.
+
+        Parameters
+        ----------
+        t : array_like of float, shape (4,)
+            Channel 1..4's instants, source time, s.
+
+        Returns
+        -------
+        ndarray of float, shape (4,)
+            Channel i's volts for the plate's orientation at channel i's instant, drifts
+            included, V.
+        """
         t = np.asarray(t, dtype=float)
         R = self.scenario.rotation(t)  # one rotation per channel
         d = inverse_kinematics(R, self.truth)[_DIAG, _DIAG]  # channel i at its own instant
@@ -80,16 +154,57 @@ class MechanismSource:
         return lengths_to_volts(d, self.truth)
 
     def convert(self, t: np.ndarray) -> np.ndarray:
+        """One conversion of the four channels.
+
+        See :meth:`~loopcal.simulator.source.SignalSource.convert`.
+
+        Parameters
+        ----------
+        t : ndarray of float, shape (4,)
+            Channel 1..4's instants, source time, s.
+
+        Returns
+        -------
+        ndarray of float, shape (4,)
+            :meth:`clean` plus four normal draws of standard deviation ``noise_volts``, V.
+        """
         return self.clean(t) + self._rng.normal(0.0, self.noise_volts, 4)
 
 
 class ReplaySource:
-    """:class:`~loopcal.simulator.source.SignalSource` replaying a recording: each channel reads the
-    latest recorded value at or before its instant (sample and hold), the recording starting
-    at source time 0; after the end it holds the last value, or starts over with ``loop``.
+    """:class:`~loopcal.simulator.source.SignalSource` replaying recorded volts.
 
-    times_s: (n,) increasing recording times, s; volts: (n, 4). Recorded codes replay
-    bit for bit when given as their mid-code volts (:func:`loopcal.drivers.ldq412.code_to_volts`).
+    Each channel reads the latest recorded value at or before its instant (sample and
+    hold), the recording starting at source time 0; after the end it holds the last value,
+    or starts over with ``loop``. Recorded codes replay bit for bit when given as their
+    mid-code volts (:func:`loopcal.drivers.ldq412.code_to_volts`). This replays the analog
+    inputs only; :mod:`loopcal.simulator.replay` replays a recording's scans themselves.
+
+    Parameters
+    ----------
+    times_s : array_like of float, shape (n,)
+        Recording times, s, strictly increasing, n >= 1 (shifted to start at 0).
+    volts : array_like of float, shape (n, 4)
+        Channel 1..4 volts at those times, V.
+    loop : bool, default False
+        Start over after the end (the span is the last time plus the median interval)
+        instead of holding the last value.
+
+    Attributes
+    ----------
+    times : ndarray of float, shape (n,)
+        The times, s, shifted to start at 0.
+    volts : ndarray of float, shape (n, 4)
+        As given, V.
+    loop : bool
+        As given.
+    span : float
+        How long one pass lasts with ``loop``, s.
+
+    Raises
+    ------
+    ValueError
+        If the shapes do not match, there are no times, or they do not increase strictly.
     """
 
     def __init__(self, times_s: np.ndarray, volts: np.ndarray, *, loop: bool = False) -> None:
@@ -104,6 +219,18 @@ class ReplaySource:
         self.span = self.times[-1] + (np.median(np.diff(self.times)) if len(self.times) > 1 else 1)
 
     def convert(self, t: np.ndarray) -> np.ndarray:
+        """One conversion: each channel's recorded value at or before its instant.
+
+        Parameters
+        ----------
+        t : ndarray of float, shape (4,)
+            Channel 1..4's instants, source time, s (before 0: the first value).
+
+        Returns
+        -------
+        ndarray of float, shape (4,)
+            Channel i's held value at channel i's instant, V (no noise added).
+        """
         rel = np.asarray(t, dtype=float)
         if self.loop:
             rel = np.mod(rel, self.span)
@@ -112,8 +239,31 @@ class ReplaySource:
 
     @classmethod
     def from_truth_file(cls, path, *, loop: bool = False) -> ReplaySource:
-        """Replay the scans of a ``loopcal simulate --truth-out`` file (every power-on in
-        order; times from the scans' own source times)."""
+        """Replay the scans of a ``loopcal simulate --truth-out`` file.
+
+        Every power-on in order; times from the scans' own source times (``t_s``), codes as
+        their mid-code volts.
+
+        Parameters
+        ----------
+        path : str or os.PathLike
+            The JSON Lines truth file (a header, then one ``{"type": "scan", ...}`` per scan).
+        loop : bool, default False
+            Start over after the end.
+
+        Returns
+        -------
+        ReplaySource
+            A source holding each scan's volts from its ``t_s`` on.
+
+        Raises
+        ------
+        ValueError
+            If a line is not JSON, the file holds no scans, or the scans' times do not
+            increase strictly.
+        OSError
+            If the file cannot be read.
+        """
         import json
 
         from loopcal.drivers.ldq412 import code_to_volts

@@ -108,6 +108,17 @@ def custom_pdus(adapter: ModbusAdapter) -> list[type[ModbusPDU]]:
     04, 06, 16 answers 01; the RTU frame size of a request comes from pymodbus' stock
     class where it has one (so an RTU request is consumed whole), else a bare
     ``address fc crc`` frame is assumed.
+
+    Parameters
+    ----------
+    adapter : ModbusAdapter
+        The server's adapter: it answers the reads.
+
+    Returns
+    -------
+    list of type
+        :class:`pymodbus.pdu.ModbusPDU` subclasses, for the servers' ``custom_pdu``: the
+        two reads, then one class per unsupported function code.
     """
     classes: list[type[ModbusPDU]] = [
         type("_ReadHolding", (_CheckedReadHolding,), {"adapter": adapter}),
@@ -131,9 +142,34 @@ def custom_pdus(adapter: ModbusAdapter) -> list[type[ModbusPDU]]:
 class ModbusAdapter:
     """Connects pymodbus' hooks to the device model for one server.
 
-    unit: the module's unit id. unit_index: where the unit id sits in an outgoing frame
-    (6 for TCP after the MBAP's first six bytes, 0 for RTU). corrupter: breaks a frame.
-    transport: "modbus-tcp" or "modbus-rtu" (the datasheet's latency bound differs).
+    Parameters
+    ----------
+    handle : DeviceHandle
+        The device, clock and wire faults, behind their lock.
+    unit : int
+        The module's unit id (requests for another get no answer).
+    unit_index : int
+        Where the unit id sits in an outgoing frame: 6 for TCP (after the MBAP's first
+        six bytes), 0 for RTU.
+    corrupter : callable
+        ``corrupter(frame) -> bytes`` breaks a frame
+        (:func:`~loopcal.simulator.wire.corrupt_mbap`,
+        :func:`~loopcal.simulator.wire.corrupt_rtu`).
+    transport : {"modbus-tcp", "modbus-rtu"}, default "modbus-tcp"
+        Which one (the datasheet's latency bound differs).
+
+    Attributes
+    ----------
+    handle : DeviceHandle
+        As given.
+    unit : int
+        As given.
+    unit_index : int
+        As given.
+    corrupter : callable
+        As given.
+    transport : str
+        As given.
     """
 
     def __init__(
@@ -151,8 +187,15 @@ class ModbusAdapter:
         self.transport = transport
 
     def sim_device(self) -> SimDevice:
-        """The register map (a write outside it answers 02 inside pymodbus) with the device
-        as action."""
+        """The pymodbus device: the module's register map, with :meth:`action` as hook.
+
+        A write outside the holding registers answers 02 inside pymodbus; the input
+        register blocks are never reached (reads have request classes of their own).
+
+        Returns
+        -------
+        pymodbus.simulator.SimDevice
+        """
         regs = DataType.REGISTERS
         return SimDevice(
             id=self.unit,
@@ -188,8 +231,23 @@ class ModbusAdapter:
             return ExcCodes.DEVICE_FAILURE
 
     async def read(self, function_code: int, address: int, count: int) -> ModbusPDU:
-        """Answer a read (03 or 04) from the device model: its registers (perhaps fewer
-        than asked), or its exception code."""
+        """Answer a read (03 or 04) from the device model, after the drawn latency.
+
+        Parameters
+        ----------
+        function_code : int
+            3 (holding registers) or 4 (input registers).
+        address : int
+            First register.
+        count : int
+            Registers asked for.
+
+        Returns
+        -------
+        pymodbus.pdu.ModbusPDU
+            The registers (perhaps fewer than asked: a truncated or short FIFO read), or
+            an exception response with the device's code.
+        """
         rsp: ModbusPDU
         if function_code == 4:
             regs = self._on_device(lambda device: device.read_input_registers(address, count))
@@ -212,13 +270,33 @@ class ModbusAdapter:
         registers: list[int],
         set_values: list[int] | list[bool] | None,
     ) -> ExcCodes | None:
-        """pymodbus access hook, reached by writes (06, 16) only: reads and the functions
-        the module does not implement have request classes of their own
-        (:func:`custom_pdus`) that do not touch the datastore.
+        """pymodbus access hook, reached by writes (06, 16) only.
 
-        Applies the write to the device model; pymodbus then stores the values, and its
-        read-back of a function 06 (``set_values`` None, for the echo) returns exactly the
-        value written.
+        Reads and the functions the module does not implement have request classes of
+        their own (:func:`custom_pdus`) that do not touch the datastore. Applies the write
+        to the device model (after the drawn latency); pymodbus then stores the values,
+        and its read-back of a function 06 (``set_values`` None, for the echo) returns
+        exactly the value written.
+
+        Parameters
+        ----------
+        function_code : int
+            6 or 16.
+        start_address : int
+            pymodbus' start of the register block (not used).
+        address : int
+            First register written.
+        count : int
+            Registers written.
+        registers : list of int
+            pymodbus' copy of the block (not used).
+        set_values : list of int, list of bool or None
+            The values written; None for pymodbus' read-back of a 06.
+
+        Returns
+        -------
+        pymodbus.constants.ExcCodes or None
+            The device's exception code (02, 03), or None: applied.
         """
         if set_values is None:  # the read-back of a 06: the write was applied already
             return None
@@ -230,10 +308,23 @@ class ModbusAdapter:
     def trace_pdu(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU | None:
         """Drop (return None) a received request the module would not act on.
 
-        Over TCP that includes a request on a connection opened before the module's
-        latest power-on: the rebooted module knows nothing of it (the emulator's next
-        housekeeping tick resets it), and answering it, say with the scans of a FIFO
-        read, would lose them when the reset comes.
+        Another unit id, a module not ready, stalled or with its link cut. Over TCP that
+        includes a request on a connection opened before the module's latest power-on: the
+        rebooted module knows nothing of it (the emulator's next housekeeping tick resets
+        it), and answering it, say with the scans of a FIFO read, would lose them when the
+        reset comes.
+
+        Parameters
+        ----------
+        sending : bool
+            True for an outgoing response (passed through).
+        pdu : pymodbus.pdu.ModbusPDU
+            The request or response.
+
+        Returns
+        -------
+        pymodbus.pdu.ModbusPDU or None
+            ``pdu``, or None to drop it.
         """
         if sending:
             return pdu
@@ -245,7 +336,23 @@ class ModbusAdapter:
         return pdu
 
     def trace_packet(self, sending: bool, packet: bytes) -> bytes:
-        """Apply wire faults to an outgoing frame; b"" sends nothing."""
+        """Apply wire faults to an outgoing frame.
+
+        Parameters
+        ----------
+        sending : bool
+            True for an outgoing frame (incoming ones pass through).
+        packet : bytes
+            The frame.
+
+        Returns
+        -------
+        bytes
+            The frame with pending garbage and corruption applied
+            (:meth:`WireFaults.outgoing <loopcal.simulator.wire.WireFaults.outgoing>`); b""
+            (send nothing) for a frame of another unit or a module that would not answer
+            now.
+        """
         if not sending or not packet:
             return packet
         with self.handle.synced():
@@ -274,7 +381,30 @@ class ModbusTcpHost:
     A power-off stops listening (connection attempts are refused) and leaves established
     connections open but silent; power-on resets them (RST, as the module's rebooted
     stack does on the client's next segment) and listens again. A cut link resets the
-    connections and refuses new ones until the link is back.
+    connections and refuses new ones until the link is back. The emulator's housekeeping
+    decides when (the methods below only act).
+
+    Parameters
+    ----------
+    handle : DeviceHandle
+        The device, clock and wire faults, behind their lock.
+    unit : int
+        The module's unit id.
+    host : str, default "127.0.0.1"
+        Listening address.
+    port : int, default 0
+        Listening port; 0: a free one, picked by the first :meth:`listen`.
+
+    Attributes
+    ----------
+    adapter : ModbusAdapter
+        The hooks into the device model.
+    host : str
+        As given.
+    port : int
+        The port listened on (after the first :meth:`listen`).
+    listening : bool
+        Whether new connections are accepted.
     """
 
     def __init__(self, handle: DeviceHandle, unit: int, host: str = "127.0.0.1", port: int = 0):
@@ -285,7 +415,17 @@ class ModbusTcpHost:
         self.listening = False
 
     async def listen(self) -> None:
-        """Start listening (on the first call, binds ``port``; 0 picks a free one)."""
+        """Start listening (on the first call, binds ``port``; 0 picks a free one).
+
+        Each call starts a new pymodbus server on the same port; established connections
+        of the earlier ones stay until :meth:`reset_connections`.
+
+        Raises
+        ------
+        RuntimeError
+            pymodbus' own error if the port cannot be bound (it says only that it could
+            not start listening).
+        """
         server = ModbusTcpServer(
             self.adapter.sim_device(),
             address=(self.host, self.port),
@@ -316,6 +456,7 @@ class ModbusTcpHost:
         self._servers = keep
 
     def close(self) -> None:
+        """Stop listening and close every server and its connections (an orderly close)."""
         self.stop_listening()
         for server in self._servers:
             server.close()
@@ -323,7 +464,29 @@ class ModbusTcpHost:
 
 
 class ModbusRtuHost:
-    """The module's Modbus RTU endpoint: a pymodbus serial server on a pty slave."""
+    """The module's Modbus RTU endpoint: a pymodbus serial server on a pty slave.
+
+    Parameters
+    ----------
+    handle : DeviceHandle
+        The device, clock and wire faults, behind their lock.
+    unit : int
+        The module's unit id.
+    port_path : str
+        The serial device the server opens (the pty link's
+        :attr:`~loopcal.simulator.pty.PtyLink.device_path`).
+    baud : int, default 115200
+        Baud rate the server opens the serial device with.
+
+    Attributes
+    ----------
+    adapter : ModbusAdapter
+        The hooks into the device model.
+    port_path : str
+        As given.
+    baud : int
+        As given.
+    """
 
     def __init__(self, handle: DeviceHandle, unit: int, port_path: str, baud: int = SERIAL_BAUD):
         self.adapter = ModbusAdapter(handle, unit, 0, corrupt_rtu, "modbus-rtu")
@@ -332,6 +495,7 @@ class ModbusRtuHost:
         self._server: ModbusSerialServer | None = None
 
     async def listen(self) -> None:
+        """Open the serial device and serve RTU frames on it in the background."""
         self._server = ModbusSerialServer(
             self.adapter.sim_device(),
             framer=FramerType.RTU,
@@ -344,6 +508,7 @@ class ModbusRtuHost:
         await self._server.serve_forever(background=True)
 
     def close(self) -> None:
+        """Stop serving and close the serial device (idempotent)."""
         if self._server is not None:
             self._server.close()
             self._server = None

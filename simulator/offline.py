@@ -32,11 +32,46 @@ def mechanism_scans(
     seed: int = 0,
     drifts: tuple[OffsetDrift, ...] = (),
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The first ``n_scans`` scans after power-on: (time_us (n,) int64, codes (n, 4) int64).
+    """The first ``n_scans`` scans after power-on, as arrays.
 
-    The noise stream is the one :class:`loopcal.simulator.mechanism.MechanismSource` draws with the
-    same seed, so the codes equal the emulator's, scan for scan. drifts: sensor offset
-    drifts (:mod:`loopcal.simulator.drift`).
+    The noise stream is the one :class:`~loopcal.simulator.mechanism.MechanismSource` draws
+    with the same seed, so the codes equal the emulator's, scan for scan.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        The plate's motion (:mod:`loopcal.simulator.scenarios`).
+    truth : ndarray of float, shape (20,)
+        The mechanism's true parameters (mm, mm/V).
+    n_scans : int
+        How many scans, from scan 0.
+    rate_hz : int, default 20
+        Scan rate, Hz.
+    noise_volts : float, default NOISE_VOLTS
+        Standard deviation of the noise per conversion, V (0.040 V).
+    seed : int, default 0
+        Seed of the noise stream.
+    drifts : tuple of OffsetDrift, default ()
+        Sensor offset drifts (:mod:`loopcal.simulator.drift`).
+
+    Returns
+    -------
+    time_us : ndarray of int64, shape (n_scans,)
+        Device time of each scan since power-on, µs: ``floor(j * 1e6 / rate_hz)``
+        (unwrapped).
+    codes : ndarray of int64, shape (n_scans, 4)
+        Channel 1..4 codes, 0..4095.
+
+    Raises
+    ------
+    ValueError
+        If ``truth`` is not a valid parameter vector
+        (:class:`~loopcal.calibration.errors.ParameterError`).
+
+    Notes
+    -----
+    This is the emulator with its defaults: scan phase 0, no clock error, oversampling 1,
+    no faults; the module's FIFO, counter wraps and status are not modelled.
     """
     p = check_vector(truth)
     rng = np.random.default_rng(seed)

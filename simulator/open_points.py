@@ -56,6 +56,31 @@ class Latency:
     it waits ``uniform(*slow_ms)`` instead. What the answer says is decided when the
     request arrives (a FIFO read pops its scans then); only sending it is delayed, and
     answers leave in the order their requests came.
+
+    Attributes
+    ----------
+    min_ms : float, default 0.5
+        Shortest ordinary answer time, ms, >= 0.
+    max_ms : float or None, default None
+        Longest ordinary answer time, ms, >= ``min_ms``; None: the datasheet's bound for
+        the transport (:data:`DATASHEET_LATENCY_MS`).
+    slow_fraction : float, default 0.0
+        Probability of a slow answer, 0..1.
+    slow_ms : tuple of 2 float, default (50.0, 90.0)
+        (min, max) of a slow answer's time, ms: slower than the datasheet allows, still
+        faster than a host's 100 ms timeout.
+
+    Raises
+    ------
+    ValueError
+        If ``min_ms`` is negative or above ``max_ms``, ``slow_fraction`` is outside 0..1,
+        or ``slow_ms`` is not a range of non-negative times.
+
+    Notes
+    -----
+    Varies the datasheet's "Timing": "Modbus RTU answers within 5 ms, TCP within 10 ms on
+    a quiet network, ASCII within 10 ms. A host should treat 100 ms without an answer as
+    a timeout."
     """
 
     min_ms: float = 0.5
@@ -74,7 +99,26 @@ class Latency:
             raise ValueError(f"latency: slow_ms {self.slow_ms} is not a range")
 
     def draw_s(self, rng: np.random.Generator, transport: str) -> float:
-        """One answer's delay, s."""
+        """One answer's delay.
+
+        Parameters
+        ----------
+        rng : numpy.random.Generator
+            The stream to draw from (one or two draws per answer).
+        transport : str
+            ``"modbus-tcp"``, ``"modbus-rtu"`` or ``"ascii"``: the datasheet's bound when
+            ``max_ms`` is None.
+
+        Returns
+        -------
+        float
+            The delay, s.
+
+        Raises
+        ------
+        KeyError
+            If ``max_ms`` is None and ``transport`` is not one of the three.
+        """
         if self.slow_fraction and rng.random() < self.slow_fraction:
             return float(rng.uniform(*self.slow_ms)) / 1000
         hi = self.max_ms if self.max_ms is not None else DATASHEET_LATENCY_MS[transport]
@@ -82,7 +126,25 @@ class Latency:
 
     @classmethod
     def parse(cls, text: str, slow_fraction: float = 0.0) -> Latency:
-        """``datasheet`` (0.5 ms to the transport's bound), ``MS`` or ``MIN-MAX`` (ms)."""
+        """A latency from ``loopcal simulate --latency``'s text.
+
+        Parameters
+        ----------
+        text : str
+            ``datasheet`` (0.5 ms to the transport's bound), ``MS`` (always that long) or
+            ``MIN-MAX`` (uniform between), in ms, e.g. ``"2-8"``.
+        slow_fraction : float, default 0.0
+            Probability of a slow answer (50-90 ms; ``--slow-answers``).
+
+        Returns
+        -------
+        Latency
+
+        Raises
+        ------
+        ValueError
+            If ``text`` is none of those forms, or the values are out of range.
+        """
         m = _LATENCY.match(text.strip())
         if not m:
             raise ValueError(f"latency {text!r}: give 'datasheet', MS or MIN-MAX (ms)")
@@ -95,7 +157,49 @@ class Latency:
 
 @dataclass(frozen=True)
 class OpenPoints:
-    """The emulated module's choices where the datasheet leaves room (module docstring)."""
+    """The emulated module's choices where the datasheet leaves room.
+
+    Every default is what the emulator did before it had the setting: ``OpenPoints()`` is
+    the emulator as it always was. The module docstring, and docs/daq.md, say what each
+    setting varies; :data:`DATASHEET_LINES` names the datasheet line.
+
+    Attributes
+    ----------
+    scan_phase_us : int, default 0
+        Device time of scan 0 after power-on, µs, 0..1000000 (the module answers nothing
+        before it). Varies "Every scan gets a 32-bit scan counter (starts at 0 at
+        power-on ...)": not when scan 0 is taken.
+    clock_ppm : float, default 0.0
+        The module's clock error against the host's, parts per million, -10000..10000
+        (+200: a 20 Hz module scans at 20.004 Hz by the host's clock, and its device time
+        runs 200 ppm fast). Varies "The module scans on its own clock".
+    latency : Latency or None, default None
+        How long answers take (None: sent at once). Varies the datasheet's answer times.
+    fifo_underrun : {"filler", "short"}, default "filler"
+        A FIFO read asking for more scans than are waiting: the waiting scans then
+        all-0xFFFF filler scans, or only the waiting ones (a shorter answer). Varies
+        "asking for more scans than are waiting returns the waiting ones followed by
+        all-0xFFFF filler scans".
+    max_read_registers : int, default 125
+        Registers one read may ask for, 1..125 (Modbus' own limit,
+        :data:`MODBUS_MAX_READ`). Varies "N is at most 20 per request".
+    over_limit : {"refuse", "truncate"}, default "refuse"
+        A read of more than ``max_read_registers``: exception 03, or an answer of its
+        first ``max_read_registers`` registers (whole scans in the FIFO window, the rest
+        left waiting).
+    holes : {"refuse", "zero"}, default "refuse"
+        A read that leaves the listed input registers (0-9, 256-375, 512-515): exception
+        02, or 0 for the unlisted ones. Varies the input register table, which lists those
+        blocks only.
+    snapshot_reads : {"any", "whole"}, default "any"
+        Reads of part of registers 0..9: answered, or refused with 02 (only 0..9 at once).
+        Varies "A single read of registers 0..9 is one consistent snapshot".
+
+    Raises
+    ------
+    ValueError
+        If a setting is out of its range or not one of its choices.
+    """
 
     scan_phase_us: int = 0
     clock_ppm: float = 0.0
@@ -123,7 +227,14 @@ class OpenPoints:
             raise ValueError(f"snapshot_reads {self.snapshot_reads!r}: 'any' or 'whole'")
 
     def changed(self) -> dict[str, object]:
-        """The settings that differ from the defaults (for logs and truth headers)."""
+        """The settings that differ from the defaults (for logs and truth headers).
+
+        Returns
+        -------
+        dict of str to object
+            ``{field name: value}`` of each setting not at its default; empty for
+            ``OpenPoints()``.
+        """
         default = OpenPoints()
         return {
             f.name: getattr(self, f.name)
@@ -146,10 +257,21 @@ DATASHEET_LINES = {
 
 
 def add_arguments(p: argparse.ArgumentParser, *, scanning: bool = True) -> None:
-    """The ``loopcal simulate`` options for :class:`OpenPoints` (defaults: the datasheet's
-    most literal reading, what the emulator always did). ``scanning=False`` leaves out
-    when and how fast the module scans (a replay serves the recorded times): only how it
-    answers."""
+    """Add the ``loopcal simulate`` options for :class:`OpenPoints` to a parser.
+
+    Defaults: the datasheet's most literal reading, what the emulator always did. The
+    options go in an argument group of their own: ``--scan-phase-us``, ``--clock-ppm``,
+    ``--latency``, ``--slow-answers``, ``--fifo-underrun``, ``--max-read-registers``,
+    ``--over-limit``, ``--holes``, ``--snapshot-reads``.
+
+    Parameters
+    ----------
+    p : argparse.ArgumentParser
+        The parser to add them to.
+    scanning : bool, default True
+        False leaves out when and how fast the module scans (``--scan-phase-us``,
+        ``--clock-ppm``; a replay serves the recorded times): only how it answers.
+    """
     g = p.add_argument_group(
         "what the datasheet leaves open (docs/daq.md; defaults: the emulator as it was)"
     )
@@ -177,7 +299,24 @@ def add_arguments(p: argparse.ArgumentParser, *, scanning: bool = True) -> None:
 
 
 def from_arguments(args: argparse.Namespace) -> OpenPoints:
-    """OpenPoints from the options :func:`add_arguments` added. Raises ValueError."""
+    """The :class:`OpenPoints` the options :func:`add_arguments` added ask for.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed arguments (without ``--scan-phase-us`` and ``--clock-ppm`` when added with
+        ``scanning=False``: those are then left at their defaults).
+
+    Returns
+    -------
+    OpenPoints
+
+    Raises
+    ------
+    ValueError
+        If ``--slow-answers`` is given without ``--latency``, or a value is out of range;
+        the message starts with the option, as the user typed it (``--latency: ...``).
+    """
     if args.slow_answers and args.latency is None:
         raise ValueError("--slow-answers needs --latency")
     try:

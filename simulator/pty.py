@@ -23,7 +23,22 @@ _CHUNK = 4096
 
 
 class PtyPair:
-    """One pseudo-terminal: master fd (non-blocking), raw slave fd and the slave's path."""
+    """One pseudo-terminal: master fd (non-blocking), raw slave fd and the slave's path.
+
+    Attributes
+    ----------
+    master : int
+        The master's file descriptor, non-blocking.
+    slave : int
+        The slave's file descriptor, set raw (no echo, no CR/LF mapping).
+    path : str
+        The slave's path, e.g. ``/dev/pts/7``.
+
+    Raises
+    ------
+    OSError
+        If no pseudo-terminal can be opened.
+    """
 
     def __init__(self) -> None:
         self.master, self.slave = os.openpty()
@@ -32,13 +47,27 @@ class PtyPair:
         self.path = os.ttyname(self.slave)
 
     def close(self) -> None:
+        """Close both file descriptors (errors ignored: closing twice is harmless)."""
         for fd in (self.master, self.slave):
             with contextlib.suppress(OSError):
                 os.close(fd)
 
 
 class PtyLink:
-    """Two pty pairs joined by a relay running on an asyncio loop."""
+    """Two pty pairs joined by a relay running on an asyncio loop: a null-modem cable.
+
+    Attributes
+    ----------
+    bytes_to_device : int
+        Bytes relayed from the driver's side to the module's (diagnostics).
+    bytes_to_host : int
+        Bytes relayed from the module's side to the driver's.
+
+    Raises
+    ------
+    OSError
+        If the two pseudo-terminals cannot be opened (none is left open then).
+    """
 
     def __init__(self) -> None:
         self._device = PtyPair()
@@ -59,7 +88,7 @@ class PtyLink:
 
     @property
     def device_fd(self) -> int:
-        """The module side's slave fd (raw, blocking): for servers that use the fd."""
+        """The module side's slave fd (raw, blocking), for servers that use the fd."""
         return self._device.slave
 
     @property
@@ -68,7 +97,16 @@ class PtyLink:
         return self._host.path
 
     def start(self, loop: asyncio.AbstractEventLoop, connected: Callable[[], bool]) -> None:
-        """Start relaying on ``loop`` (call from the loop's thread)."""
+        """Start relaying on ``loop`` (call from the loop's thread).
+
+        Parameters
+        ----------
+        loop : asyncio.AbstractEventLoop
+            The loop whose readers copy the bytes.
+        connected : callable
+            ``connected() -> bool``, asked for each chunk: while it is False, bytes in both
+            directions are lost (a cut cable).
+        """
         self._loop = loop
         self._connected = connected
         loop.add_reader(self._host.master, self._relay, self._host.master, self._device.master)

@@ -50,6 +50,13 @@ _MARKER = (
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
+    """pytest hook: add ``--ldq412-transport`` (the ``ldq412`` fixtures' default transport).
+
+    Parameters
+    ----------
+    parser : pytest.Parser
+        pytest's command-line parser.
+    """
     group = parser.getgroup("ldq412", "emulated LDQ-412 DAQ module (loopcal)")
     group.addoption(
         "--ldq412-transport",
@@ -61,6 +68,13 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    """pytest hook: register the ``ldq412`` marker (``pytest --markers`` lists it).
+
+    Parameters
+    ----------
+    config : pytest.Config
+        pytest's configuration.
+    """
     config.addinivalue_line("markers", _MARKER)
 
 
@@ -89,7 +103,24 @@ def _make(options: dict[str, Any]) -> EmulatedLDQ412:
 
 @pytest.fixture
 def ldq412_factory(request: pytest.FixtureRequest) -> Iterator[Callable[..., EmulatedLDQ412]]:
-    """``make(**options)``: a started emulated module per call, closed after the test."""
+    """``make(**options)``: a started emulated module per call, closed after the test.
+
+    The closest ``@pytest.mark.ldq412(**options)`` (and ``--ldq412-transport``) give the
+    defaults; the call's keywords win.
+
+    Parameters
+    ----------
+    request : pytest.FixtureRequest
+        pytest's request (the test's marker and the command line).
+
+    Yields
+    ------
+    callable
+        ``make(**options) -> EmulatedLDQ412``, the options being
+        :class:`~loopcal.simulator.testing.LDQ412Options` fields. Every module made is
+        closed after the test (the first error closing one is raised once all are
+        closed).
+    """
     defaults = _options(request)
     made: list[EmulatedLDQ412] = []
 
@@ -111,7 +142,33 @@ def ldq412_factory(request: pytest.FixtureRequest) -> Iterator[Callable[..., Emu
 
 @pytest.fixture
 def ldq412(request: pytest.FixtureRequest) -> Iterator[EmulatedLDQ412]:
-    """An emulated LDQ-412 started for the test and closed after it (``.url``)."""
+    """An emulated LDQ-412 started for the test and closed after it (``.url``).
+
+    Its options, later ones winning: the defaults, ``--ldq412-transport``, the closest
+    ``@pytest.mark.ldq412(**options)``, and an indirect parameter (a transport name or a
+    dict of options).
+
+    Parameters
+    ----------
+    request : pytest.FixtureRequest
+        pytest's request (the marker, the command line, the indirect parameter).
+
+    Yields
+    ------
+    EmulatedLDQ412
+        The started module (:class:`~loopcal.simulator.testing.EmulatedLDQ412`), closed
+        after the test even when it fails.
+
+    Raises
+    ------
+    pytest.UsageError
+        If the marker has positional arguments, or the indirect parameter is neither a
+        transport name nor a dict.
+    TypeError
+        If an option is unknown (the test's setup fails, naming it).
+    ValueError
+        If an option's value is refused.
+    """
     options = _options(request)
     param = getattr(request, "param", None)
     if isinstance(param, str):

@@ -67,12 +67,31 @@ _LOW_STATUS = STATUS_RAIL_MASK | STATUS_FAULT_MASK
 class RecordedPowerOn:
     """The scans of one power-on as recorded.
 
-    counter: (n,) scan counters, unwrapped (may pass 2**32). time_us: (n,) device times
-    since the power-on, µs, unwrapped. codes: (n, 4). status: (n,) status words (their
-    rail and fault bits are served; None: rail bits from the codes, no faults).
-    restart_latched: the module's restart flag at the first scan (a recording that starts
-    after a client cleared it: False). off_s: how long the module was off before this
-    power-on, s (the first power-on's is not used). Counters and times increase strictly.
+    Attributes
+    ----------
+    counter : ndarray of int, shape (n,)
+        Scan counters, unwrapped (may pass 2**32), n >= 1, >= 0, strictly increasing
+        (gaps are scans the recording never received).
+    time_us : ndarray of int, shape (n,)
+        Device times since the power-on, µs, unwrapped, >= 0, strictly increasing.
+    codes : ndarray of int, shape (n, 4)
+        Channel 1..4 codes, 0..4095.
+    status : ndarray of int, shape (n,), or None, default None
+        Status words: their rail and fault bits (0-7) are served; None: rail bits from the
+        codes, no faults.
+    restart_latched : bool, default True
+        The module's restart flag at the first scan (a recording that starts after a
+        client cleared it: False). Only the first power-on's is used: every later one
+        starts with the flag set, as a power-on does.
+    off_s : float, default POWER_CYCLE_S
+        How long the module was off before this power-on, s, in (0, 2] (the first
+        power-on's is not used).
+
+    Raises
+    ------
+    ValueError
+        If the shapes do not match, n is 0, counters or times do not increase strictly
+        or start below 0, a code is outside 0..4095, or ``off_s`` is outside (0, 2].
     """
 
     counter: np.ndarray
@@ -99,12 +118,37 @@ class RecordedPowerOn:
 
 
 class RecordedModule(LDQ412):
-    """An LDQ-412 whose power-on k makes exactly the scans of ``power_ons[k]`` and then
-    none (until the next power cycle). Registers, FIFO, flags and faults are the model's.
+    """An LDQ-412 whose power-on k makes exactly the scans of ``power_ons[k]``.
 
-    now_ns: the owner's clock; the first recorded scan is taken then. open_points: how the
-    module answers (FIFO underrun, read limits; its scans' phase and clock are the
-    recording's, so those two must be left at their defaults).
+    After its last scan a power-on makes none until the next power cycle; after the last
+    power-on, none at all. Registers, FIFO, flags and faults are the model's
+    (:class:`~loopcal.simulator.device.LDQ412`).
+
+    Parameters
+    ----------
+    power_ons : list of RecordedPowerOn
+        The power-ons to serve, in order (at least one).
+    rate_hz : int
+        The recording's scan rate, 1..200 Hz (holding register 0, and the period a driver
+        derives FIFO scans' times from).
+    now_ns : int, default 0
+        The owner's clock, ns; the first recorded scan is taken then (the module has been
+        on for that scan's device time).
+    open_points : OpenPoints or None, default None
+        How the module answers (FIFO underrun, read limits, holes, snapshot reads); its
+        scans' phase and clock are the recording's, so ``scan_phase_us`` and
+        ``clock_ppm`` must be left at their defaults.
+
+    Attributes
+    ----------
+    power_ons : list of RecordedPowerOn
+        As given.
+
+    Raises
+    ------
+    ValueError
+        If ``power_ons`` is empty, ``rate_hz`` is outside 1..200, or ``open_points`` sets
+        a scan phase or a clock error.
     """
 
     def __init__(
@@ -142,7 +186,7 @@ class RecordedModule(LDQ412):
 
     @property
     def power_on(self) -> RecordedPowerOn | None:
-        """The recorded power-on being served (None after the last)."""
+        """The recorded power-on being served (:class:`RecordedPowerOn`; None after the last)."""
         return self.power_ons[self._boot] if self._boot < len(self.power_ons) else None
 
     def _next_scan_us(self) -> int | None:
@@ -165,12 +209,53 @@ class RecordedModule(LDQ412):
 
 
 class Player:
-    """Serve recorded power-ons on an emulated module.
+    """Serve recorded power-ons on an emulated module (``loopcal replay``).
 
-    transport: "modbus-tcp", "modbus-rtu" or "ascii". rate_hz: the recording's scan rate.
-    speed: device seconds per wall second. open_points: how the module answers (latency,
-    FIFO underrun, read limits). The emulator starts with :meth:`start`; its :attr:`url`
-    is what a driver opens; :meth:`run` plays until the end or ``stop``.
+    The emulator starts with :meth:`start` (or ``with``); its :attr:`url` is what a driver
+    opens; :meth:`run` plays until the end or ``stop``.
+
+    Parameters
+    ----------
+    power_ons : list of RecordedPowerOn
+        The recording's power-ons, in order (at least one).
+    transport : {"modbus-tcp", "modbus-rtu", "ascii"}, default "modbus-tcp"
+        The wire.
+    rate_hz : int, default 20
+        The recording's scan rate, Hz.
+    speed : float, default 1.0
+        Device seconds per wall second, > 0 (an ASCII client polls at the module's own
+        rate, so ASCII replays at 1).
+    host : str, default "127.0.0.1"
+        TCP listening address.
+    port : int, default 0
+        TCP port; 0: a free one.
+    seed : int, default 0
+        Seeds the answer delays and garbage bytes.
+    open_points : OpenPoints or None, default None
+        How the module answers (latency, FIFO underrun, read limits); no scan phase or
+        clock error.
+
+    Attributes
+    ----------
+    power_ons : list of RecordedPowerOn
+        As given.
+    speed : float
+        As given.
+    period_ns : int
+        The scan period, ns (``1e9 // rate_hz``).
+    clock : PlayClock
+        The module's clock, run by :meth:`run`.
+    module : RecordedModule
+        The device model served.
+    emulator : Emulator
+        The emulator serving it.
+
+    Raises
+    ------
+    ValueError
+        If ``power_ons`` is empty, ``speed`` is not > 0, or the module or the emulator
+        refuse their settings (:class:`RecordedModule`,
+        :class:`~loopcal.simulator.emulator.Emulator`).
     """
 
     def __init__(
@@ -203,13 +288,33 @@ class Player:
 
     @property
     def url(self) -> str:
+        """What a driver opens (the emulator's URL); empty until started.
+
+        See :attr:`~loopcal.simulator.emulator.Emulator.url`.
+        """
         return self.emulator.url
 
     def start(self) -> Player:
+        """Start the emulator's servers; returns once :attr:`url` is reachable.
+
+        Returns
+        -------
+        Player
+            ``self``.
+
+        Raises
+        ------
+        RuntimeError
+            If the servers could not start
+            (:meth:`~loopcal.simulator.emulator.Emulator.start`).
+        TimeoutError
+            If they were not up within 5 s.
+        """
         self.emulator.start()
         return self
 
     def close(self) -> None:
+        """Stop the emulator's servers (:meth:`~loopcal.simulator.emulator.Emulator.close`)."""
         self.emulator.close()
 
     def __enter__(self) -> Player:
@@ -219,11 +324,28 @@ class Player:
         self.close()
 
     def run(self, stop: threading.Event | None = None, *, wait_for_client: bool = False) -> bool:
-        """Play every power-on to its end (True), or until ``stop`` (False).
+        """Play every power-on to its end, or until ``stop``.
 
-        wait_for_client: hold the first scan until a client has read it (later power-ons'
-        first scans are always held so), so that a client that starts slowly misses
-        nothing of the recording.
+        Blocks. Between power-ons the module is switched off half a period after the last
+        scan, for the next power-on's ``off_s``. The clock is held at each later
+        power-on's first scan until a client has read the latest scan, and at the last
+        scan of each power-on but the last until it has (and emptied the FIFO, if it read
+        the FIFO meanwhile), at most 30 s of wall time each; after the last scan of all it
+        plays 1 s more.
+
+        Parameters
+        ----------
+        stop : threading.Event or None, default None
+            Set it to end the replay early (from another thread, or a signal handler).
+        wait_for_client : bool, default False
+            Hold the first scan until a client has read it (later power-ons' first scans
+            are always held so), so that a client that starts slowly misses nothing of
+            the recording.
+
+        Returns
+        -------
+        bool
+            True if it played to the end, False if stopped.
         """
         stop = stop or threading.Event()
         for k, po in enumerate(self.power_ons):

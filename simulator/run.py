@@ -61,8 +61,28 @@ DRIFT_KINDS = {"offset": "step", "creep": "creep"}
 
 @dataclass(frozen=True)
 class FaultEvent:
-    """A fault switched on at ``at`` (device seconds) and, for lasting ones, off at
-    ``at + duration``."""
+    """A scheduled fault of ``loopcal simulate --fault``: on at ``at``, off at ``at + duration``.
+
+    The syntax is ``KIND@SECONDS[+DURATION][:ARG]`` (module docstring, or ``loopcal
+    simulate --help-faults``).
+
+    Attributes
+    ----------
+    kind : str
+        One of restart, stall, disconnect, garbage, corrupt, stuck, sensor, saturate,
+        offset, creep.
+    at : float
+        When it is switched on, device seconds since the start.
+    duration : float or None
+        How long it lasts, s: the time off for a restart, the length of a stall, and when
+        the lasting ones (disconnect, stuck, sensor, saturate) are switched off; None where
+        not given.
+    channel : int or None
+        The channel (sensor) 1..4 of stuck, sensor, saturate, offset and creep.
+    value : str or None
+        The argument as given: a code (stuck), ``high``/``low`` (saturate), mm (offset),
+        mm per minute (creep), a count (garbage, default 16; corrupt, default 1).
+    """
 
     kind: str
     at: float
@@ -72,6 +92,25 @@ class FaultEvent:
 
     @classmethod
     def parse(cls, text: str) -> FaultEvent:
+        """One ``--fault`` specification.
+
+        Parameters
+        ----------
+        text : str
+            ``KIND@SECONDS[+DURATION][:ARG]``, e.g. ``restart@30``, ``stall@12+2``,
+            ``stuck@15+5:2=1000``, ``offset@30:3=+0.5``.
+
+        Returns
+        -------
+        FaultEvent
+
+        Raises
+        ------
+        ValueError
+            If the text does not match the syntax, names an unknown kind, lacks a duration
+            a lasting fault needs, or has a channel or argument out of range; the message
+            quotes the text.
+        """
         m = _FAULT.match(text.strip())
         if not m or m["kind"] not in _KINDS:
             raise ValueError(
@@ -107,8 +146,17 @@ class FaultEvent:
         return cls(kind, float(m["at"]), dur, channel, value)
 
     def drift(self) -> OffsetDrift | None:
-        """The offset drift this fault is (offset, creep), else None: drifts are functions
-        of device time inside the simulated mechanism, not switched by the fault loop."""
+        """The offset drift this fault is (offset, creep), else None.
+
+        Drifts are functions of device time inside the simulated mechanism, not switched
+        by the fault loop.
+
+        Returns
+        -------
+        OffsetDrift or None
+            A step of ``value`` mm, or a creep of ``value`` mm per minute, on ``channel``
+            from ``at`` for ``duration``.
+        """
         if self.kind not in DRIFT_KINDS:
             return None
         return OffsetDrift(
@@ -116,6 +164,13 @@ class FaultEvent:
         )
 
     def switch_on(self, f: FaultInjector) -> None:
+        """Start the fault on a running emulator (drifts do nothing here).
+
+        Parameters
+        ----------
+        f : FaultInjector
+            The emulator's fault injection (``Emulator.faults``).
+        """
         k = self.kind
         if k == "restart":
             f.restart(self.duration if self.duration is not None else 2.0)
@@ -135,6 +190,15 @@ class FaultEvent:
             f.saturate(self.channel, self.value)
 
     def switch_off(self, f: FaultInjector) -> None:
+        """End a lasting fault (disconnect, stuck, sensor, saturate); nothing for the others.
+
+        The others end by themselves (a stall, a power cycle) or act once.
+
+        Parameters
+        ----------
+        f : FaultInjector
+            The emulator's fault injection.
+        """
         k = self.kind
         if k == "disconnect":
             f.reconnect()
@@ -147,7 +211,29 @@ class FaultEvent:
 
 
 class TruthWriter:
-    """Streams ground truth as JSON Lines: a header, then one object per scan."""
+    """Streams ground truth as JSON Lines: a header, then one object per scan.
+
+    The header line is written at construction: ``{"type": "header", **header}``.
+
+    Parameters
+    ----------
+    out : text file
+        Where to write (flushed after each batch).
+    header : dict
+        The header's fields (parameters, scenario, noise, seed, transport, ...).
+    source : MechanismSource or ReplaySource
+        The module's source: a mechanism's scenario gives each scan's true plate
+        orientation.
+
+    Attributes
+    ----------
+    out : text file
+        As given.
+    source : MechanismSource or ReplaySource
+        As given.
+    last : tuple of 2 int, or None
+        ``(boot, counter)`` of the last scan written (None: none yet).
+    """
 
     def __init__(self, out: TextIO, header: dict, source: MechanismSource | ReplaySource) -> None:
         self.out = out
@@ -156,6 +242,24 @@ class TruthWriter:
         out.write(json.dumps({"type": "header", **header}) + "\n")
 
     def write_new(self, truth: list) -> int:
+        """Write the scans of ``truth`` after the last one written.
+
+        Each is ``{"type": "scan", "boot", "counter", "time_us", "codes", "status",
+        "t_s", "euler_deg"}``: ``t_s`` in s, ``euler_deg`` the plate's true Z-Y-Z Euler
+        angles in degrees (None for a replay).
+
+        Parameters
+        ----------
+        truth : list of TruthScan
+            The emulator's scans, in order (:attr:`Emulator.truth
+            <loopcal.simulator.emulator.Emulator.truth>`); those up to the last written
+            one are skipped (all are written if it is not among them).
+
+        Returns
+        -------
+        int
+            How many scans were written.
+        """
         start = 0
         if self.last is not None:
             for i in range(len(truth) - 1, -1, -1):
@@ -189,8 +293,28 @@ class TruthWriter:
 
 
 def truth_parameters(args: argparse.Namespace) -> np.ndarray:
-    """True parameters: offsets (and the paper's geometry) moved at random by the seed,
-    then explicit ``NAME=VALUE`` overrides (``--truth``)."""
+    """The true parameters ``loopcal simulate`` asks for: seeded, then ``--truth`` overrides.
+
+    Offsets (and the paper's geometry) moved at random by the seed, then explicit
+    ``NAME=VALUE`` overrides (``--truth``).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``loopcal simulate``'s arguments: ``truth`` (``"NAME=VALUE,..."`` or None),
+        ``seed``, ``offset_error`` (mm).
+
+    Returns
+    -------
+    ndarray of float, shape (20,)
+        As :func:`~loopcal.simulator.mechanism.true_parameters` makes them.
+
+    Raises
+    ------
+    ValueError
+        If an entry is not ``NAME=VALUE`` with one of the 20 names and a number, or
+        :func:`~loopcal.simulator.mechanism.true_parameters` refuses the values.
+    """
     overrides = {}
     for item in filter(None, (s.strip() for s in (args.truth or "").split(","))):
         name, eq, value = item.partition("=")
@@ -216,7 +340,22 @@ def _pause(text: str) -> tuple[float, float]:
 
 
 def int_in(lo: int, hi: int, *, base: int = 10) -> Callable[[str], int]:
-    """An argparse type: an integer in lo..hi (hexadecimal digits with base 16)."""
+    """An argparse type: an integer in lo..hi (hexadecimal digits with base 16).
+
+    Parameters
+    ----------
+    lo, hi : int
+        The range, both included.
+    base : int, default 10
+        10 (decimal, a leading ``-`` allowed) or 16 (hexadecimal digits, no sign, no
+        ``0x``).
+
+    Returns
+    -------
+    callable
+        ``parse(text) -> int``, raising :class:`argparse.ArgumentTypeError` for text
+        that is not such an integer or is outside lo..hi.
+    """
 
     def parse(text: str) -> int:
         digits = "0123456789abcdefABCDEF"[: 10 if base == 10 else 22]
@@ -231,12 +370,28 @@ def int_in(lo: int, hi: int, *, base: int = 10) -> Callable[[str], int]:
     return parse
 
 
-#: a TCP port to listen on (0: a free one)
+#: a TCP port to listen on, 0 for a free one
 tcp_port = int_in(0, 65535)
 
 
 def listen_host(text: str) -> str:
-    """An argparse type: an address (or name) this machine can listen on."""
+    """An argparse type: an address (or name) this machine can listen on.
+
+    Parameters
+    ----------
+    text : str
+        An address or host name.
+
+    Returns
+    -------
+    str
+        ``text``, if :func:`socket.getaddrinfo` resolves it.
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        If it does not resolve.
+    """
     try:
         socket.getaddrinfo(text, None, type=socket.SOCK_STREAM)
     except (socket.gaierror, UnicodeError) as exc:
@@ -245,13 +400,33 @@ def listen_host(text: str) -> str:
 
 
 def add_transport_option(p: argparse.ArgumentParser, what: str) -> None:
-    """``--transport`` of the commands that serve an emulated module (simulate, replay,
-    demo): ``what`` says what goes over it."""
+    """Add ``--transport`` to a command that serves an emulated module (simulate, replay, demo).
+
+    Parameters
+    ----------
+    p : argparse.ArgumentParser
+        The command's parser.
+    what : str
+        What goes over the wire, for the option's help (the choices and the default,
+        modbus-tcp, follow it).
+    """
     p.add_argument("--transport", choices=TRANSPORTS, default="modbus-tcp",
                    help=f"{what}: {', '.join(TRANSPORTS)} (default modbus-tcp)")  # fmt: skip
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Add ``loopcal simulate``'s options to its parser.
+
+    The transport and listening address, the module's identity and power-on settings, the
+    speed, the simulated mechanism (seed, scenario, noise, pauses, true parameters), the
+    fault schedule, the duration, the truth file, and the open points
+    (:func:`~loopcal.simulator.open_points.add_arguments`).
+
+    Parameters
+    ----------
+    p : argparse.ArgumentParser
+        The ``simulate`` command's parser.
+    """
     add_transport_option(p, "the wire the emulated module answers on")
     p.add_argument(
         "--host", type=listen_host, default="127.0.0.1", help="TCP address (default 127.0.0.1)"
@@ -319,7 +494,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
-    """Serve until ``--duration`` of device time has passed or SIGINT/SIGTERM."""
+    """Serve until ``--duration`` of device time has passed or SIGINT/SIGTERM.
+
+    ``loopcal simulate``: prints the URL (and a serial transport's device), applies the
+    scheduled faults and streams the truth file.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The options :func:`add_arguments` added.
+    stop : threading.Event or None, default None
+        Set it to stop early (SIGINT and SIGTERM set it when run in the main thread).
+
+    Returns
+    -------
+    int
+        The exit status: 0 after serving (or ``--help-faults``), 2 for bad options, a
+        truth file that cannot be written or servers that cannot start (the error is
+        printed to stderr).
+
+    Raises
+    ------
+    TimeoutError
+        If the servers were not up within 5 s (not turned into an exit status).
+    """
     if args.help_faults:
         print(__doc__)
         return 0

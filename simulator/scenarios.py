@@ -23,19 +23,60 @@ from loopcal.calibration.simulate import NEAR_SINGULAR_MM, reachable, sample_wor
 
 
 class Scenario:
-    """Base class: :meth:`rotation` of the plate at device times ``t``."""
+    """Base class: :meth:`rotation` of the plate at device times ``t``.
+
+    Attributes
+    ----------
+    name : str
+        The scenario's name (``loopcal simulate --scenario NAME``; a class attribute).
+    """
 
     name = "scenario"
 
     def rotation(self, t: np.ndarray) -> np.ndarray:
+        """The plate's orientation at times ``t``.
+
+        Parameters
+        ----------
+        t : array_like of float, shape (k,)
+            Source times, s since the module's first power-on (a scalar is one time).
+
+        Returns
+        -------
+        ndarray of float, shape (k, 3, 3)
+            The plate's rotation matrix (plate frame in base frame) at each time.
+
+        Raises
+        ------
+        NotImplementedError
+            In the base class; every scenario overrides it.
+        """
         raise NotImplementedError
 
     def describe(self) -> dict:
+        """What the scenario is, for a truth file's header.
+
+        Returns
+        -------
+        dict
+            ``{"name": name}`` plus the scenario's settings (JSON-serialisable).
+        """
         return {"name": self.name}
 
 
 class Static(Scenario):
-    """The plate held at one orientation (Z-Y-Z Euler angles in degrees; default home)."""
+    """The plate held at one orientation.
+
+    Parameters
+    ----------
+    euler_deg : tuple of 3 float, default (0.0, 0.0, 0.0)
+        Intrinsic Z-Y-Z Euler angles of the orientation, degrees (the default is home).
+
+    Attributes
+    ----------
+    euler_deg : tuple of 3 float
+        As given.
+    """
 
     name = "static"
 
@@ -44,15 +85,62 @@ class Static(Scenario):
         self._R = from_euler_zyz(np.radians(self.euler_deg))[0]
 
     def rotation(self, t: np.ndarray) -> np.ndarray:
+        """The held orientation, once per time.
+
+        Parameters
+        ----------
+        t : array_like of float, shape (k,)
+            Source times, s (only their number matters).
+
+        Returns
+        -------
+        ndarray of float, shape (k, 3, 3)
+            The same rotation k times.
+        """
         return np.broadcast_to(self._R, (np.size(t), 3, 3)).copy()
 
     def describe(self) -> dict:
+        """``{"name": "static", "euler_deg": [...]}``.
+
+        Returns
+        -------
+        dict
+            The name and the Euler angles, degrees.
+        """
         return {"name": self.name, "euler_deg": list(self.euler_deg)}
 
 
 class Sweep(Scenario):
-    """The output axis circles at ``tilt_deg`` once per ``period_s`` while the plate swivels
-    by ``+-swivel_deg`` (sinusoidally, once per two periods)."""
+    """The output axis circles at a fixed tilt while the plate swivels.
+
+    The output axis circles at ``tilt_deg`` once per ``period_s`` while the plate swivels
+    by ``+-swivel_deg`` (sinusoidally, once per two periods).
+
+    Parameters
+    ----------
+    period_s : float, default 20.0
+        Time of one circle of the output axis, s, > 0.
+    tilt_deg : float, default 20.0
+        Tilt of the output axis from the base's z axis, degrees.
+    swivel_deg : float, default 20.0
+        Amplitude of the swivel about the output axis, degrees.
+
+    Attributes
+    ----------
+    period_s : float
+        As given.
+    tilt_deg : float
+        As given.
+    swivel_deg : float
+        As given.
+
+    Raises
+    ------
+    ValueError
+        If ``period_s`` is not positive, or the sweep leaves the nominal mechanism's
+        reachable workspace (checked at 400 instants over two periods, with the
+        near-singular margin).
+    """
 
     name = "sweep"
 
@@ -70,6 +158,19 @@ class Sweep(Scenario):
             )
 
     def rotation(self, t: np.ndarray) -> np.ndarray:
+        """The plate's orientation at times ``t``.
+
+        Parameters
+        ----------
+        t : array_like of float, shape (k,)
+            Source times, s.
+
+        Returns
+        -------
+        ndarray of float, shape (k, 3, 3)
+            Z-Y-Z Euler angles ``(alpha, tilt, swivel - alpha)`` with
+            ``alpha = 2 pi t / period_s`` and ``swivel = swivel_deg sin(pi t / period_s)``.
+        """
         t = np.atleast_1d(np.asarray(t, dtype=float))
         alpha = 2 * np.pi * t / self.period_s
         swivel = np.radians(self.swivel_deg) * np.sin(np.pi * t / self.period_s)
@@ -77,6 +178,13 @@ class Sweep(Scenario):
         return from_euler_zyz(np.column_stack([alpha, beta, swivel - alpha]))
 
     def describe(self) -> dict:
+        """``{"name": "sweep", "period_s", "tilt_deg", "swivel_deg"}``.
+
+        Returns
+        -------
+        dict
+            The name and the settings (s, degrees).
+        """
         return {
             "name": self.name,
             "period_s": self.period_s,
@@ -94,7 +202,18 @@ class _Segment:
 
 
 def min_jerk(tau: np.ndarray) -> np.ndarray:
-    """Minimum-jerk progress ``10 t^3 - 15 t^4 + 6 t^5`` of a move, for tau in [0, 1]."""
+    """Minimum-jerk progress ``10 tau^3 - 15 tau^4 + 6 tau^5`` of a move.
+
+    Parameters
+    ----------
+    tau : array_like of float, any shape
+        Fraction of the move's duration; clipped to [0, 1].
+
+    Returns
+    -------
+    ndarray of float, same shape as ``tau``
+        Fraction of the way covered, 0 to 1 (zero speed and acceleration at both ends).
+    """
     tau = np.clip(tau, 0.0, 1.0)
     return tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
 
@@ -107,6 +226,35 @@ class HandMoves(Scenario):
     typical of a hand (``speed_deg_s`` range of average angular speeds), pauses, and so on.
     Every orientation on a move stays inside the reachable workspace with a margin from
     singular configurations. Segments are generated on demand from ``seed``.
+
+    Parameters
+    ----------
+    seed : int, default 0
+        Seed of the pauses, the targets and the speeds.
+    pause_s : tuple of 2 float, default (1.0, 3.0)
+        (min, max) of each pause's duration, s (drawn uniformly).
+    speed_deg_s : tuple of 2 float, default (15.0, 40.0)
+        (min, max) of each move's average angular speed, degrees per second (drawn
+        uniformly; a move lasts at least 0.5 s).
+    params : ndarray of float, shape (20,), default NOMINAL
+        The mechanism whose workspace the moves stay in
+        (:data:`loopcal.calibration.parameters.NOMINAL`; mm and mm/V).
+
+    Attributes
+    ----------
+    seed : int
+        As given.
+    pause_s : tuple of 2 float
+        As given.
+    speed_deg_s : tuple of 2 float
+        As given.
+    params : ndarray of float, shape (20,)
+        As given.
+
+    Notes
+    -----
+    The moves are drawn in time order as far as they are asked for: the same seed gives
+    the same motion whatever order the times are asked in.
     """
 
     name = "hand"
@@ -156,13 +304,37 @@ class HandMoves(Scenario):
         self._append(_Segment(t0 + duration, t0 + duration + self._pause(), None, target))
 
     def segments_until(self, t: float) -> list[tuple[float, float, bool]]:
-        """(start, end, moving) of every segment up to time t: the ground truth of which
-        stretches are still."""
+        """Every move and pause that starts by time ``t``: which stretches are still.
+
+        Parameters
+        ----------
+        t : float
+            Source time, s.
+
+        Returns
+        -------
+        list of tuple (float, float, bool)
+            ``(start, end, moving)`` of each segment starting at or before ``t``, in
+            order, times in s; ``moving`` False for a pause.
+        """
         while self._segments[-1].end <= t:
             self._extend()
         return [(s.start, s.end, s.slerp is not None) for s in self._segments if s.start <= t]
 
     def rotation(self, t: np.ndarray) -> np.ndarray:
+        """The plate's orientation at times ``t``.
+
+        Parameters
+        ----------
+        t : array_like of float, shape (k,)
+            Source times, s, any order.
+
+        Returns
+        -------
+        ndarray of float, shape (k, 3, 3)
+            Rotation matrices: the held orientation in a pause, the minimum-jerk slerp
+            between two orientations in a move.
+        """
         t = np.atleast_1d(np.asarray(t, dtype=float))
         while self._segments[-1].end <= t.max():
             self._extend()
@@ -184,6 +356,13 @@ class HandMoves(Scenario):
         return out
 
     def describe(self) -> dict:
+        """``{"name": "hand", "seed", "pause_s", "speed_deg_s"}``.
+
+        Returns
+        -------
+        dict
+            The name and the settings (s, degrees per second).
+        """
         return {
             "name": self.name,
             "seed": self.seed,
@@ -192,6 +371,7 @@ class HandMoves(Scenario):
         }
 
 
+#: the scenarios by name, as ``loopcal simulate --scenario NAME`` offers them
 SCENARIOS = {"hand": HandMoves, "static": Static, "sweep": Sweep}
 
 
@@ -202,9 +382,30 @@ def scenario_named(
     params: np.ndarray = NOMINAL,
     pause_s: tuple[float, float] = (1.0, 3.0),
 ) -> Scenario:
-    """The scenario ``loopcal simulate --scenario NAME`` serves: "hand" (moves from
-    ``seed`` to orientations reachable for ``params``, pausing ``pause_s``), "static"
-    (held at home) or "sweep"."""
+    """The scenario ``loopcal simulate --scenario NAME`` serves.
+
+    Parameters
+    ----------
+    name : str
+        ``"hand"`` (:class:`HandMoves`), ``"static"`` (:class:`Static`, held at home) or
+        ``"sweep"`` (:class:`Sweep` with its defaults).
+    seed : int, default 0
+        With "hand": the seed of the moves.
+    params : ndarray of float, shape (20,), default NOMINAL
+        With "hand": the mechanism whose workspace the moves stay in.
+    pause_s : tuple of 2 float, default (1.0, 3.0)
+        With "hand": (min, max) of each still pause, s.
+
+    Returns
+    -------
+    Scenario
+        A new scenario; the other scenarios ignore ``seed``, ``params`` and ``pause_s``.
+
+    Raises
+    ------
+    ValueError
+        If ``name`` is not one of :data:`SCENARIOS`.
+    """
     if name not in SCENARIOS:
         raise ValueError(f"scenario {name!r}: one of {', '.join(SCENARIOS)}")
     if name == "hand":

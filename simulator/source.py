@@ -21,15 +21,34 @@ from loopcal.drivers.ldq412 import N_CHANNELS
 
 @runtime_checkable
 class SignalSource(Protocol):
-    """The analog inputs of the module."""
+    """The analog inputs of the module: anything with a :meth:`convert` method.
+
+    :class:`TestSource`, :class:`ConstantSource`,
+    :class:`~loopcal.simulator.mechanism.MechanismSource` and
+    :class:`~loopcal.simulator.mechanism.ReplaySource` are the ones loopcal ships.
+    """
 
     def convert(self, t: np.ndarray) -> np.ndarray:
         """Volts the four LVDT conditioners present at instants ``t``.
 
-        ``t`` has shape (4,): seconds of device time since power-on, channel i (0-based)
-        at ``t_scan + i * 250e-6``. Returns shape (4,) float volts, noise included.
-        Called once per conversion, so N times per scan with oversampling N; must be
-        deterministic for a given seed and call sequence.
+        Parameters
+        ----------
+        t : ndarray of float, shape (4,)
+            Source time of each channel's conversion, s: channel i (0-based) at
+            ``t_scan + i * 250e-6``. The device model passes seconds since the module's
+            *first* power-on by the owner's clock (it keeps running through power cycles,
+            as the LVDTs do; :mod:`loopcal.simulator.device`).
+
+        Returns
+        -------
+        ndarray of float, shape (4,)
+            Channel 1..4 volts, noise included (the module quantizes them; beyond +-10 V
+            they clamp to the rail codes).
+
+        Notes
+        -----
+        Called once per conversion, so N times per scan with oversampling N (with the same
+        instants each time); must be deterministic for a given seed and call sequence.
         """
         ...
 
@@ -40,7 +59,41 @@ class TestSource:
     Channel i: ``offset[i] + amplitude[i] * sin(2 pi freq[i] t + phase[i]) + N(0, noise_v)``.
     The defaults stay well inside ±10 V (no rail) and move by less than one code between
     the conversions of one scan. Each call draws exactly four normals, so the noise stream
-    depends only on the seed and the number of calls.
+    depends only on the seed and the number of calls. The emulator's source when it is
+    given none.
+
+    Parameters
+    ----------
+    seed : int, default 0
+        Seed of the noise stream.
+    amplitude_v : sequence of 4 float, default (4.0, 3.0, 5.0, 2.0)
+        Sine amplitude per channel, V.
+    freq_hz : sequence of 4 float, default (0.05, 0.07, 0.11, 0.13)
+        Sine frequency per channel, Hz.
+    offset_v : sequence of 4 float, default (0.5, -1.0, 0.0, 2.5)
+        Level the sine swings about per channel, V.
+    phase_rad : sequence of 4 float, default (0.0, 1.0, 2.0, 3.0)
+        Sine phase at t = 0 per channel, rad.
+    noise_v : float, default 0.005
+        Standard deviation of the Gaussian noise per conversion, V.
+
+    Attributes
+    ----------
+    amplitude_v : ndarray of float, shape (4,)
+        As given, V.
+    freq_hz : ndarray of float, shape (4,)
+        As given, Hz.
+    offset_v : ndarray of float, shape (4,)
+        As given, V.
+    phase_rad : ndarray of float, shape (4,)
+        As given, rad.
+    noise_v : float
+        As given.
+
+    Raises
+    ------
+    ValueError
+        If one of the four per-channel sequences does not have 4 values.
     """
 
     __test__ = False  # not a pytest test class, despite the name
@@ -66,18 +119,57 @@ class TestSource:
         self._rng = np.random.default_rng(seed)
 
     def clean(self, t: np.ndarray) -> np.ndarray:
-        """The noise-free volts at instants ``t`` (shape (4,)); draws no random numbers."""
+        """The noise-free volts at instants ``t``; draws no random numbers.
+
+        Parameters
+        ----------
+        t : array_like of float, shape (4,)
+            Each channel's instant, s.
+
+        Returns
+        -------
+        ndarray of float, shape (4,)
+            ``offset_v + amplitude_v * sin(2 pi freq_hz t + phase_rad)``, V.
+        """
         t = np.asarray(t, dtype=float)
         return self.offset_v + self.amplitude_v * np.sin(
             2.0 * np.pi * self.freq_hz * t + self.phase_rad
         )
 
     def convert(self, t: np.ndarray) -> np.ndarray:
+        """One conversion of the four channels (:meth:`SignalSource.convert`).
+
+        Parameters
+        ----------
+        t : ndarray of float, shape (4,)
+            Each channel's instant, s.
+
+        Returns
+        -------
+        ndarray of float, shape (4,)
+            :meth:`clean` plus four fresh normal draws of standard deviation ``noise_v``, V.
+        """
         return self.clean(t) + self._rng.normal(0.0, self.noise_v, N_CHANNELS)
 
 
 class ConstantSource:
-    """Fixed volts on each channel, no noise. ``volts`` may be changed between scans."""
+    """Fixed volts on each channel, no noise: handy for pinning exact codes.
+
+    Parameters
+    ----------
+    volts : sequence of 4 float
+        Channel 1..4 volts, V.
+
+    Attributes
+    ----------
+    volts : ndarray of float, shape (4,)
+        What every conversion returns; it may be changed (or assigned) between scans.
+
+    Raises
+    ------
+    ValueError
+        If ``volts`` does not have 4 values.
+    """
 
     def __init__(self, volts: Sequence[float]) -> None:
         self.volts = np.asarray(volts, dtype=float)
@@ -85,4 +177,16 @@ class ConstantSource:
             raise ValueError(f"volts needs {N_CHANNELS} values")
 
     def convert(self, t: np.ndarray) -> np.ndarray:
+        """One conversion: :attr:`volts`, whatever the instants.
+
+        Parameters
+        ----------
+        t : ndarray of float, shape (4,)
+            Each channel's instant, s (not used).
+
+        Returns
+        -------
+        ndarray of float, shape (4,)
+            A copy of :attr:`volts`, V.
+        """
         return self.volts.copy()

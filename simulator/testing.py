@@ -48,21 +48,59 @@ CLOCKS = ("real", "manual")
 class LDQ412Options:
     """How the emulated module is built; every field has the default of ``loopcal simulate``.
 
-    transport: "modbus-tcp" (127.0.0.1, a free port), "modbus-rtu" or "ascii" (each on a
-        pseudo-terminal whose path is in the URL).
-    scan_rate_hz: the module's scan rate at power-on, 1..200 Hz.
-    speed: device seconds per real second (a 10 makes a minute of scans in 6 s).
-    clock: "real" (time passes by itself, ``speed`` times as fast) or "manual" (time moves
-        only by :meth:`EmulatedLDQ412.advance`: the same requests give the same bytes).
-    seed: the mechanism's true parameters, the hand's moves and the noise.
-    scenario: "hand" (moves with still pauses), "static" (home) or "sweep".
-    pause_s: with "hand", how long (min, max) each still pause lasts, seconds.
-    noise_volts: 1-sigma noise per conversion, volts.
-    offset_error_mm: the true offsets differ from the blueprint by up to this.
-    truth: true parameters to set exactly, {name: value} in the config's units.
-    open_points: the choices the datasheet leaves open (:mod:`loopcal.simulator.open_points`).
-    unit, ascii_addr, ascii_checksum: the Modbus unit id, the ASCII address, and the
-        ASCII checksum mode at power-on.
+    The options of the pytest plugin's fixtures and marker, and the keyword arguments of
+    :class:`EmulatedLDQ412`.
+
+    Attributes
+    ----------
+    transport : {"modbus-tcp", "modbus-rtu", "ascii"}, default "modbus-tcp"
+        ``"modbus-tcp"`` (127.0.0.1, a free port), ``"modbus-rtu"`` or ``"ascii"`` (each
+        on a pseudo-terminal whose path is in the URL).
+    scan_rate_hz : int, default 20
+        The module's scan rate at power-on, 1..200 Hz.
+    speed : float, default 1.0
+        Device seconds per real second, > 0 (a 10 makes a minute of scans in 6 s).
+    clock : {"real", "manual"}, default "real"
+        ``"real"`` (time passes by itself, ``speed`` times as fast) or ``"manual"`` (time
+        moves only by :meth:`EmulatedLDQ412.advance`: the same requests give the same
+        bytes; ``speed`` must stay 1).
+    seed : int, default 0
+        Seeds the mechanism's true parameters, the hand's moves and the noise.
+    scenario : {"hand", "static", "sweep"}, default "hand"
+        ``"hand"`` (a technician's moves with still pauses), ``"static"`` (held at home)
+        or ``"sweep"`` (:mod:`loopcal.simulator.scenarios`).
+    pause_s : tuple of 2 float, default (1.0, 3.0)
+        With ``"hand"``: (min, max) of each still pause, s, ``0 < min <= max``.
+    noise_volts : float, default NOISE_VOLTS
+        Standard deviation of the noise per conversion, V, >= 0 (0.040 V).
+    offset_error_mm : float, default 3.0
+        The true offsets differ from the blueprint by up to this, mm.
+    truth : mapping of str to float, default {}
+        True parameters set exactly, ``{name: value}`` in the config's units (mm, mm/V),
+        e.g. ``{"d03": 99.1}``.
+    open_points : OpenPoints, default OpenPoints()
+        The choices the datasheet leaves open (:mod:`loopcal.simulator.open_points`).
+    unit : int, default 1
+        The Modbus unit id, 1..247.
+    ascii_addr : int, default 1
+        The ASCII module address, 0..255.
+    ascii_checksum : bool, default False
+        The ASCII checksum mode at power-on.
+
+    Raises
+    ------
+    ValueError
+        If ``transport``, ``scenario`` or ``clock`` is not one of its choices, ``speed``
+        is not a positive number (or not 1 with a manual clock), ``noise_volts`` is not a
+        number >= 0, ``pause_s`` is not a range, or ``open_points`` is not an
+        :class:`~loopcal.simulator.open_points.OpenPoints`; the message starts
+        ``ldq412 option`` and names it.
+
+    Notes
+    -----
+    ``scan_rate_hz``, ``offset_error_mm``, ``truth``, ``unit`` and ``ascii_addr`` are
+    checked when the module is built (:class:`EmulatedLDQ412` raises ValueError naming
+    them).
     """
 
     transport: str = "modbus-tcp"
@@ -104,7 +142,25 @@ class LDQ412Options:
 
     @classmethod
     def from_mapping(cls, options: Mapping[str, Any]) -> LDQ412Options:
-        """Options from keyword arguments, an unknown name a clear error."""
+        """Options from keyword arguments, an unknown name a clear error.
+
+        Parameters
+        ----------
+        options : mapping of str to object
+            Field names and values; fields not given keep their defaults.
+
+        Returns
+        -------
+        LDQ412Options
+
+        Raises
+        ------
+        TypeError
+            If a name is not a field (``unknown ldq412 option(s) ...; the options are
+            ...``).
+        ValueError
+            If a value is refused (see the class).
+        """
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(options) - known)
         if unknown:
@@ -119,12 +175,23 @@ class LDQ412Options:
 class Truth:
     """What the emulated mechanism really is, for a test to compare against.
 
-    parameters: the 20 true parameters (20,) in the order of
-        :data:`loopcal.calibration.parameters.NAMES` (mm and degrees, as in the config).
-    scenario: the plate's motion, as ``loopcal simulate --truth-out`` describes it.
-    noise_volts, seed: as built.
-    drifts: the offset drifts injected so far (:class:`~loopcal.simulator.drift.OffsetDrift`,
-        times in seconds since the module was first switched on).
+    Attributes
+    ----------
+    parameters : ndarray of float, shape (20,)
+        The 20 true parameters in the order of
+        :data:`loopcal.calibration.parameters.NAMES`, in the config's units (mm; mm/V for
+        the gains ``S1``..``S4``).
+    scenario : dict
+        The plate's motion, as ``loopcal simulate --truth-out`` describes it
+        (:meth:`Scenario.describe <loopcal.simulator.scenarios.Scenario.describe>`).
+    noise_volts : float
+        Standard deviation of the noise per conversion, V, as built.
+    seed : int
+        As built.
+    drifts : list of OffsetDrift
+        The offset drifts injected so far (:class:`~loopcal.simulator.drift.OffsetDrift`,
+        times in seconds since the module was first switched on); the very list the
+        simulated mechanism reads.
     """
 
     parameters: np.ndarray
@@ -134,20 +201,68 @@ class Truth:
     drifts: list[OffsetDrift] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, float]:
-        """The true parameters by name, e.g. ``{"d01": 101.3, ...}``."""
+        """The true parameters by name.
+
+        Returns
+        -------
+        dict of str to float
+            ``{name: value}`` for the 20 parameters, e.g. ``{"d01": 101.3, ...}`` (mm,
+            mm/V).
+        """
         return to_dict(self.parameters)
 
     def offset_shift_mm(self, t_s: float) -> np.ndarray:
-        """Each sensor's offset change (4,) mm at source time ``t_s`` (a scan's ``t_s``, or
-        :attr:`EmulatedLDQ412.time_s` for now), from the drifts injected so far."""
+        """Each sensor's offset change at a time, from the drifts injected so far.
+
+        Parameters
+        ----------
+        t_s : float
+            Source time, s since the module was first switched on (a scan's ``t_s``, or
+            :attr:`EmulatedLDQ412.time_s` for now).
+
+        Returns
+        -------
+        ndarray of float, shape (4,)
+            Sensor 1..4's offset change, mm: a length ``d`` reads as ``d - shift``.
+        """
         return offset_shift(self.drifts, np.full(4, float(t_s)))
 
 
 class EmulatedLDQ412:
     """An emulated LDQ-412 on a real transport, started on construction; a context manager.
 
-    Keyword arguments are :class:`LDQ412Options` fields (or pass ``options=``). Close it
-    (or leave the ``with``) to stop its servers and free its port or pseudo-terminal.
+    Close it (or leave the ``with``) to stop its servers and free its port or
+    pseudo-terminal. The module is driven by a simulated shoulder joint
+    (:class:`~loopcal.simulator.mechanism.MechanismSource`) with the true parameters of a
+    seeded mechanism, exactly as ``loopcal simulate`` serves it.
+
+    Parameters
+    ----------
+    options : LDQ412Options or None, default None
+        How to build it.
+    **kwargs
+        :class:`LDQ412Options` fields instead of ``options``.
+
+    Attributes
+    ----------
+    options : LDQ412Options
+        As built.
+    truth : Truth
+        The mechanism's true parameters, scenario, noise, seed and drifts.
+    emulator : Emulator
+        The :class:`~loopcal.simulator.emulator.Emulator` underneath.
+
+    Raises
+    ------
+    TypeError
+        If both ``options`` and keyword options are given, or a keyword is not an option.
+    ValueError
+        If an option's value is refused (the message names it).
+    RuntimeError
+        If the servers could not start
+        (:meth:`~loopcal.simulator.emulator.Emulator.start`).
+    TimeoutError
+        If they were not up within 5 s.
     """
 
     def __init__(self, options: LDQ412Options | None = None, **kwargs: Any) -> None:
@@ -179,23 +294,36 @@ class EmulatedLDQ412:
 
     @property
     def url(self) -> str:
-        """The driver URL: ``modbus-tcp://127.0.0.1:PORT?unit=1``,
-        ``modbus-rtu:///dev/pts/N?baud=115200&unit=1`` or ``ascii:///dev/pts/N?...``."""
+        """The URL a driver opens (:func:`loopcal.drivers.open_daq`).
+
+        ``modbus-tcp://127.0.0.1:PORT?unit=1``,
+        ``modbus-rtu:///dev/pts/N?baud=115200&unit=1`` or ``ascii:///dev/pts/N?...``.
+        """
         return self.emulator.url
 
     @property
     def transport(self) -> str:
+        """``"modbus-tcp"``, ``"modbus-rtu"`` or ``"ascii"``, as built."""
         return self.options.transport
 
     @property
     def port(self) -> str | int:
-        """The TCP port (modbus-tcp), else the pseudo-terminal a serial client opens."""
+        """The TCP port (modbus-tcp), else the pseudo-terminal a serial client opens.
+
+        An int for modbus-tcp; a path such as ``/dev/pts/7`` for the serial transports.
+        """
         if self.transport == "modbus-tcp":
             return self.emulator.port
         return self.url.split("://", 1)[1].split("?", 1)[0]
 
     @property
     def clock(self) -> Clock:
+        """The module's clock (:class:`~loopcal.simulator.clock.Clock`).
+
+        A :class:`~loopcal.simulator.clock.ManualClock` with ``clock="manual"``, else a
+        :class:`~loopcal.simulator.clock.RealClock` (or a
+        :class:`~loopcal.simulator.clock.SimClock` at another ``speed``).
+        """
         return self.emulator.clock
 
     @property
@@ -206,8 +334,11 @@ class EmulatedLDQ412:
 
     @property
     def scans(self) -> list[TruthScan]:
-        """Every scan the module produced so far, in order: counter, device time, codes,
-        status, source time and power-on index (ground truth, a copy)."""
+        """Every scan the module produced so far, in order (ground truth, a copy).
+
+        A list of :class:`~loopcal.simulator.device.TruthScan`: counter, device time,
+        codes, status, source time and power-on index of each.
+        """
         return self.emulator.truth
 
     @property
@@ -219,14 +350,51 @@ class EmulatedLDQ412:
     # ------------------------------------------------------------------ time
 
     def advance(self, seconds: float) -> None:
-        """Move a manual clock forward (``clock="manual"`` only)."""
+        """Move a manual clock forward (``clock="manual"`` only).
+
+        The module takes every scan due meanwhile when it is next looked at.
+
+        Parameters
+        ----------
+        seconds : float
+            Device seconds, >= 0.
+
+        Raises
+        ------
+        RuntimeError
+            If the clock is not manual.
+        ValueError
+            If ``seconds`` is negative.
+        """
         if not isinstance(self.clock, ManualClock):
             raise RuntimeError("advance() needs clock='manual'; a real clock moves by itself")
         self.clock.advance(seconds)
 
     def wait_scans(self, n: int, timeout: float = 10.0) -> list[TruthScan]:
-        """Wait until the module has produced ``n`` more scans (a manual clock is advanced
-        scan by scan); returns them. Raises TimeoutError after ``timeout`` real seconds."""
+        """Wait until the module has produced ``n`` more scans, and return them.
+
+        A manual clock is advanced scan by scan (one period at a time); a real one is
+        waited for.
+
+        Parameters
+        ----------
+        n : int
+            How many scans, >= 0, counted from the call.
+        timeout : float, default 10.0
+            Longest wait, real seconds.
+
+        Returns
+        -------
+        list of TruthScan
+            The ``n`` scans produced after the call, in order.
+
+        Raises
+        ------
+        ValueError
+            If ``n`` is negative.
+        TimeoutError
+            If they did not come within ``timeout`` (a module powered off, say).
+        """
         if n < 0:
             raise ValueError("n must be >= 0")
         before = len(self.scans)
@@ -249,8 +417,16 @@ class EmulatedLDQ412:
     # ------------------------------------------------------------------ faults
 
     def power_cycle(self, off_s: float = POWER_CYCLE_S) -> None:
-        """Switch the module off now and on ``off_s`` seconds later: counter 0, device time
-        0, the restart flag set, the FIFO empty (the datasheet's power-on)."""
+        """Switch the module off now and on ``off_s`` device seconds later.
+
+        Then the datasheet's power-on: counter 0, device time 0, the restart flag set, the
+        FIFO empty (:meth:`~loopcal.simulator.faults.FaultInjector.restart`).
+
+        Parameters
+        ----------
+        off_s : float, default POWER_CYCLE_S
+            How long it is dark, device seconds (2 s).
+        """
         self.faults.restart(off_s)
 
     def disconnect(self) -> None:
@@ -258,22 +434,76 @@ class EmulatedLDQ412:
         self.faults.disconnect()
 
     def reconnect(self) -> None:
+        """Restore the link after :meth:`disconnect`."""
         self.faults.reconnect()
 
     def stall(self, seconds: float) -> None:
-        """No answers for ``seconds`` of device time; the module keeps scanning."""
+        """No answers for ``seconds`` of device time; the module keeps scanning.
+
+        Parameters
+        ----------
+        seconds : float
+            Device seconds, >= 0.
+
+        Raises
+        ------
+        ValueError
+            If ``seconds`` is negative.
+        """
         self.faults.stall(seconds)
 
     def offset_step(self, sensor: int, mm: float, duration: float | None = None) -> OffsetDrift:
-        """Sensor ``sensor`` (1..4) reads as if its offset moved by ``mm`` from now on (for
-        ``duration`` seconds, None: for good): a loose core or a refitted LVDT."""
+        """Sensor ``sensor`` reads as if its offset moved by ``mm`` from now on.
+
+        A loose core or a refitted LVDT: a length ``d`` reads as ``d - mm``. Scans already
+        due are not affected.
+
+        Parameters
+        ----------
+        sensor : int
+            1..4.
+        mm : float
+            The step, mm, either sign.
+        duration : float or None, default None
+            How long, s (then the offset goes back); None: for good.
+
+        Returns
+        -------
+        OffsetDrift
+            The drift, also in :attr:`Truth.drifts`.
+
+        Raises
+        ------
+        ValueError
+            If ``sensor`` is not 1..4, ``mm`` not finite or ``duration`` not positive.
+        """
         return self._drift("step", sensor, mm, duration)
 
     def offset_creep(
         self, sensor: int, mm_per_min: float, duration: float | None = None
     ) -> OffsetDrift:
-        """Sensor ``sensor``'s offset creeps by ``mm_per_min`` from now on (for ``duration``
-        seconds, then held; None: for ever)."""
+        """Sensor ``sensor``'s offset creeps by ``mm_per_min`` from now on.
+
+        Parameters
+        ----------
+        sensor : int
+            1..4.
+        mm_per_min : float
+            The creep rate, mm per minute, either sign.
+        duration : float or None, default None
+            How long it creeps, s (then the offset is held); None: for ever.
+
+        Returns
+        -------
+        OffsetDrift
+            The drift, also in :attr:`Truth.drifts`.
+
+        Raises
+        ------
+        ValueError
+            If ``sensor`` is not 1..4, ``mm_per_min`` not finite or ``duration`` not
+            positive.
+        """
         return self._drift("creep", sensor, mm_per_min, duration)
 
     def _drift(self, kind: str, sensor: int, amount: float, duration: float | None) -> OffsetDrift:

@@ -20,9 +20,26 @@ Corrupter = Callable[[bytes], bytes]
 
 @dataclass
 class WireFaults:
-    """Mutable wire fault state. ``rng`` draws the garbage bytes (seeded: reproducible).
+    """Mutable wire fault state, consulted by the servers under the emulator's lock.
 
-    latency: how long answers take (None: sent at once); ``latency_rng`` draws the delays.
+    Attributes
+    ----------
+    rng : numpy.random.Generator
+        Draws the garbage bytes (seeded: reproducible).
+    latency_rng : numpy.random.Generator
+        Draws the answer delays.
+    latency : Latency or None, default None
+        How long answers take (None: sent at once).
+    disconnected : bool, default False
+        The link carries nothing.
+    stalled_until_ns : int or None, default None
+        The module ignores requests until this device-clock time, ns (None: no stall).
+    garbage : bytes, default b""
+        Junk bytes to go out just before the next answer.
+    corrupt : int, default 0
+        How many of the next answers to break.
+    answers_sent : int, default 0
+        Answers that went out (diagnostics).
     """
 
     rng: np.random.Generator
@@ -35,25 +52,75 @@ class WireFaults:
     answers_sent: int = 0  # answers that went out (diagnostics)
 
     def stalled(self, now_ns: int) -> bool:
-        """True while a stall lasts (device-clock time)."""
+        """Whether a stall lasts at ``now_ns``; an expired stall is forgotten.
+
+        Parameters
+        ----------
+        now_ns : int
+            Device-clock time, ns.
+
+        Returns
+        -------
+        bool
+            True while ``now_ns`` is before :attr:`stalled_until_ns`.
+        """
         if self.stalled_until_ns is not None and now_ns >= self.stalled_until_ns:
             self.stalled_until_ns = None
         return self.stalled_until_ns is not None
 
     def delay_s(self, transport: str) -> float:
-        """How long the answer being sent now waits, s (0 without latency)."""
+        """How long the answer being sent now waits.
+
+        Parameters
+        ----------
+        transport : str
+            ``"modbus-tcp"``, ``"modbus-rtu"`` or ``"ascii"`` (the datasheet's bound
+            differs).
+
+        Returns
+        -------
+        float
+            The delay, s; 0.0 without a latency (then nothing is drawn).
+        """
         if self.latency is None:
             return 0.0
         return self.latency.draw_s(self.latency_rng, transport)
 
     def add_garbage(self, nbytes: int) -> None:
-        """Queue ``nbytes`` random bytes to go out just before the next answer."""
+        """Queue ``nbytes`` random bytes to go out just before the next answer.
+
+        Parameters
+        ----------
+        nbytes : int
+            How many, >= 0.
+
+        Raises
+        ------
+        ValueError
+            If ``nbytes`` is negative.
+        """
         if nbytes < 0:
             raise ValueError("nbytes must be >= 0")
         self.garbage += self.rng.integers(0, 256, nbytes, dtype=np.uint8).tobytes()
 
     def outgoing(self, answer: bytes, corrupter: Corrupter) -> bytes:
-        """The bytes to put on the wire for ``answer``, pending faults applied."""
+        """The bytes to put on the wire for ``answer``, pending faults applied.
+
+        Uses up one pending corruption and all pending garbage, and counts the answer.
+
+        Parameters
+        ----------
+        answer : bytes
+            The complete frame the protocol would send.
+        corrupter : callable
+            ``corrupter(frame) -> bytes`` breaks a frame of this protocol
+            (:func:`corrupt_rtu`, :func:`corrupt_mbap`, :func:`corrupt_ascii`).
+
+        Returns
+        -------
+        bytes
+            The pending garbage, then the answer (broken if a corruption was pending).
+        """
         if self.corrupt > 0:
             self.corrupt -= 1
             answer = corrupter(answer)
@@ -62,28 +129,61 @@ class WireFaults:
         return out
 
     def clear(self) -> None:
-        """Forget pending garbage, corruption and any stall (not the link state)."""
+        """Forget pending garbage, corruption and any stall (not the link, nor the latency)."""
         self.stalled_until_ns = None
         self.garbage = b""
         self.corrupt = 0
 
 
 def corrupt_rtu(frame: bytes) -> bytes:
-    """Break the CRC of a Modbus RTU frame (its last byte inverted)."""
+    """Break the CRC of a Modbus RTU frame (its last byte inverted).
+
+    Parameters
+    ----------
+    frame : bytes
+        A complete RTU frame, CRC included (at least one byte).
+
+    Returns
+    -------
+    bytes
+        The frame with its last byte XOR 0xFF.
+    """
     return frame[:-1] + bytes([frame[-1] ^ 0xFF])
 
 
 def corrupt_mbap(frame: bytes) -> bytes:
-    """Break the MBAP header of a Modbus TCP frame: protocol identifier 0 becomes 1."""
+    """Break the MBAP header of a Modbus TCP frame: protocol identifier 0 becomes 1.
+
+    Parameters
+    ----------
+    frame : bytes
+        A complete Modbus TCP frame (at least the MBAP's first four bytes).
+
+    Returns
+    -------
+    bytes
+        The frame with byte 3 (the protocol identifier's low byte) XOR 0x01.
+    """
     return frame[:2] + bytes([frame[2], frame[3] ^ 0x01]) + frame[4:]
 
 
 def corrupt_ascii(checksum: bool) -> Corrupter:
-    """Break an ASCII answer (``body [cs] CR``).
+    """A corrupter of ASCII answers (``body [cs] CR``) for a checksum mode.
 
     With checksum mode on, the two checksum digits become those of sum + 1 (still hex,
     wrong value). Without it, the byte after the lead character gets bit 6 flipped, which
     turns a hex digit into a non-hex character (``0`` -> ``p``, ``A`` -> 0x01).
+
+    Parameters
+    ----------
+    checksum : bool
+        The module's ASCII checksum mode when the answer is made.
+
+    Returns
+    -------
+    callable
+        ``corrupter(frame) -> bytes``; a frame shorter than three bytes comes back
+        unchanged.
     """
 
     def corrupter(frame: bytes) -> bytes:

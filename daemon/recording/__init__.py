@@ -2,16 +2,16 @@
 
 One recording file holds, for a stretch of time (see docs/recording.md for the full table):
 
-========================  =======================================  =========  ==============
-topic                     schema                                   encoding   rate
-========================  =======================================  =========  ==============
-``/daq/scans``            ``loopcal_msgs/msg/ScanBlock`` (ros2msg)  cdr        one per flush
-``/loopcal/events``       ``loopcal.Event`` (jsonschema)           json       when it happens
-``/loopcal/log``          ``foxglove.Log`` (jsonschema)            json       when it happens
-``/joint/state``          ``loopcal_msgs/msg/JointState``           cdr        every scan
-``/plate/transform``      ``foxglove_msgs/msg/FrameTransform``      cdr        every good scan
-``/plate/scene``          ``foxglove.SceneUpdate`` (jsonschema)    json       once per file
-========================  =======================================  =========  ==============
+========================  ==========================================  =========  ===============
+topic                     schema                                      encoding   rate
+========================  ==========================================  =========  ===============
+``/daq/scans``            ``loopcal_msgs/msg/ScanBlock`` (ros2msg)    cdr        one per flush
+``/loopcal/events``       ``loopcal.Event`` (jsonschema)              json       when it happens
+``/loopcal/log``          ``foxglove.Log`` (jsonschema)               json       when it happens
+``/joint/state``          ``loopcal_msgs/msg/JointState``             cdr        every scan
+``/plate/transform``      ``foxglove_msgs/msg/FrameTransform``        cdr        every good scan
+``/plate/scene``          ``foxglove.SceneUpdate`` (jsonschema)       json       once per file
+========================  ==========================================  =========  ===============
 
 plus metadata records ``loopcal`` (version, host, command), ``device`` (what the DAQ said it
 is) and ``controller_config`` (the parameters the poses were computed with).

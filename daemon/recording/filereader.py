@@ -49,11 +49,22 @@ from .schemas import (
 
 @dataclass(frozen=True)
 class Loss:
-    """Scans a file should hold and does not: a counter gap between two of its scans that
-    no recorded ``missed`` count explains (a damaged or missing chunk).
+    """Scans a file should hold and does not (a damaged or missing chunk).
 
-    epoch: the power-on epoch. first: counter64 of the first missing scan. count: how many.
-    after_ns, before_ns: stamps of the scans on either side.
+    A counter gap between two of its scans that no recorded ``missed`` count explains.
+
+    Attributes
+    ----------
+    epoch : int
+        The power-on epoch of the scans.
+    first : int
+        ``counter64`` of the first missing scan.
+    count : int
+        How many scans are missing, >= 1.
+    after_ns : int
+        Stamp of the scan before the gap, ns since the Unix epoch.
+    before_ns : int
+        Stamp of the scan after the gap, ns since the Unix epoch.
     """
 
     epoch: int
@@ -67,16 +78,39 @@ class Loss:
 class RecordingFile:
     """What one file of a recording held, and what of it could not be read.
 
-    complete: closed normally (summary and index present and intact).
-    scans: scans read from it (within the time window, duplicates dropped).
-    first_stamp_ns, last_stamp_ns: the first and last scan's stamps, or None.
-    metadata: name -> {key: value}.
-    note: how the file was read when it was not closed normally (empty for a complete one).
-    damage: the parts that could not be trusted (byte ranges, what was wrong, the time span
-        of the messages they held where known).
-    lost: scans known to be missing from the file (counter gaps no ``missed`` explains).
-    duplicates: scans that appeared more than once (each is returned once).
-    bad_messages: scan blocks or events inside intact chunks that did not decode.
+    One per file in :attr:`Recording.files <loopcal.daemon.recording.reader.Recording.files>`.
+
+    Attributes
+    ----------
+    path : pathlib.Path
+        The file.
+    complete : bool
+        Closed normally (summary and index present and intact).
+    scans : int, default 0
+        Scans read from it: within the time window, each once, without those a file read
+        before it already gave.
+    first_stamp_ns : int or None, default None
+        The first scan's stamp, ns since the Unix epoch (None: no scan).
+    last_stamp_ns : int or None, default None
+        The last scan's stamp, ns since the Unix epoch (None: no scan).
+    metadata : dict of str to dict of str to str
+        Metadata records by name (``loopcal``, ``device``, ``controller_config``), each
+        ``{key: value}`` (docs/recording.md).
+    note : str, default ""
+        How the file was read when it was not closed normally (empty for a complete one).
+    damage : list of Damage
+        The parts that could not be trusted
+        (:class:`~loopcal.daemon.recording.records.Damage`: byte ranges, what was wrong,
+        the time span of the messages they held where known).
+    lost : list of Loss
+        Scans known to be missing from the file (counter gaps no ``missed`` explains).
+    duplicates : int, default 0
+        Scans that appeared more than once in the file (each is returned once).
+    bad_messages : int, default 0
+        Scan blocks or events inside intact chunks that did not decode.
+    last_scan_chunk : int, default -1
+        Byte offset of the last intact chunk that held scans (-1: none): damage after it
+        cut the file's end off.
     """
 
     path: Path
@@ -90,22 +124,27 @@ class RecordingFile:
     lost: list[Loss] = field(default_factory=list)
     duplicates: int = 0
     bad_messages: int = 0
-    #: byte offset of the last intact chunk that held scans (-1: none)
+    # byte offset of the last intact chunk that held scans (-1: none)
     last_scan_chunk: int = -1
 
     @property
     def lost_scans(self) -> int:
-        """How many scans are known to be missing (see :attr:`lost`)."""
+        """How many scans are known to be missing (the counts of :attr:`lost`, summed)."""
         return sum(x.count for x in self.lost)
 
     @property
     def intact(self) -> bool:
-        """Nothing damaged, missing or duplicated."""
+        """Whether the file read whole (nothing damaged, missing, duplicated or undecodable)."""
         return not (self.damage or self.lost or self.duplicates or self.bad_messages)
 
     @property
     def warning(self) -> str:
-        """One line naming the file and what of it was lost, or "" if it read intact."""
+        """One line naming the file and what of it was lost, or ``""`` if it read intact.
+
+        The scans missing (counters, epoch and UTC times of up to three gaps), the scans
+        lost after damage at the end, damaged parts inside, duplicates dropped and
+        undecodable messages, separated by ``;``.
+        """
         if self.intact:
             return ""
         parts: list[str] = []
@@ -143,6 +182,19 @@ class RecordingFile:
 
 
 def utc_text(ns: int | None) -> str:
+    """A time stamp for people: ``YYYY-mm-dd HH:MM:SS.ss UTC``.
+
+    Parameters
+    ----------
+    ns : int or None
+        ns since the Unix epoch.
+
+    Returns
+    -------
+    str
+        The UTC time to the hundredth of a second (truncated); ``"?"`` for None, and
+        ``"N ns"`` for a time a datetime cannot hold.
+    """
     if ns is None:
         return "?"
     sec, rest = divmod(int(ns), NS_PER_S)
@@ -159,7 +211,19 @@ _OUR_CHANNEL_IDS = {topic: i for i, topic in enumerate(CHANNELS, start=1)}
 
 
 class FileReader:
-    """Reads the scans, events and metadata of one file, trusting only what checks out."""
+    """Reads the scans, events and metadata of one file, trusting only what checks out.
+
+    :func:`~loopcal.daemon.recording.reader.read_recordings` makes one per file; use that.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        The file.
+    since : int or None
+        Keep scans with ``since <= stamp_ns`` (ns since the Unix epoch; None: no start).
+    until : int or None
+        Keep scans with ``stamp_ns < until`` (None: no end).
+    """
 
     def __init__(self, path: Path, since: int | None, until: int | None) -> None:
         self.path = path
@@ -173,6 +237,24 @@ class FileReader:
     # -------------------------------------------------------------- whole file
 
     def read(self) -> tuple[np.ndarray, RecordingFile, list[Event]]:
+        """Read the file once.
+
+        Returns
+        -------
+        rows : ndarray of SCAN_DTYPE, shape (n,)
+            Its intact scans in the window, in (epoch, counter) order, each once.
+        info : RecordingFile
+            What it held and what could not be read.
+        events : list of Event
+            The events of the chunks it read, in file order, each once (not cut to the
+            window: the caller does that).
+
+        Raises
+        ------
+        RecordingError
+            If the file cannot be read, is not an MCAP file, is an MCAP file but not a
+            loopcal recording, or has another format version.
+        """
         try:
             with open(self.path, "rb") as f:
                 data = f.read()

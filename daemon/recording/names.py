@@ -35,7 +35,25 @@ def name_time_ns(path: str | os.PathLike) -> int | None:
 
 
 def find_recordings(directory: str | os.PathLike) -> list[Path]:
-    """The recordings in a directory (by their names), oldest first."""
+    """The recordings in a directory (by their names), oldest first.
+
+    Parameters
+    ----------
+    directory : str or os.PathLike
+        The directory (not searched recursively).
+
+    Returns
+    -------
+    list of pathlib.Path
+        Its regular files named like recordings (``loopcal-YYYYmmddTHHMMSS.ffffffZ.mcap``),
+        sorted by name, which is by the UTC time they were started; other files are
+        ignored.
+
+    Raises
+    ------
+    RecordingError
+        If ``directory`` is not a directory.
+    """
     d = Path(directory)
     if not d.is_dir():
         raise RecordingError(f"{d}: not a directory")

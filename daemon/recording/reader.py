@@ -33,15 +33,41 @@ from .schemas import BLOCK_SPAN_NS, NS_PER_S
 class Recording:
     """Scans and events of one or several recording files, oldest first.
 
-    scans: SCAN_DTYPE rows (n,), each scan once (a scan in two files is kept once).
-    events: events, in time order.
-    files: one entry per file read.
+    What :func:`read_recordings` returns. ``len(recording)`` is the number of scans.
+
+    Attributes
+    ----------
+    scans : ndarray of SCAN_DTYPE, shape (n,)
+        One row per scan (:data:`loopcal.daemon.scans.SCAN_DTYPE`), each scan once (a scan
+        in two files is kept once): files in the order of their first scan, each file's
+        scans in (epoch, counter) order.
+    events : list of Event
+        The recorded events (:class:`loopcal.daemon.events.Event`) within the time window,
+        in time order.
+    files : list of RecordingFile
+        One entry per file read, in the order of their first scan (files with no scan
+        last); files wholly outside the time window are not read and not listed.
+    since_ns : int or None, default None
+        Where the time window began, ns since the Unix epoch: ``since``, or where
+        ``last`` put it (None: no start).
+
+    Notes
+    -----
+    The fields of a scan row (docs/recording.md): ``counter64`` (uint64, scans since the
+    module's power-on, unwrapped), ``time64_us`` (uint64, device time of channel 1's
+    conversion since power-on, µs, unwrapped), ``stamp_ns`` (int64, estimated acquisition
+    time, ns since the Unix epoch, UTC), ``host_ns`` (int64, when the host received it),
+    ``epoch`` (uint32, the module's power-on as recorded), ``missed`` (uint32, scans made
+    just before this one that were never received), ``codes`` (uint16, shape (4,),
+    channel 1..4 codes 0..4095), ``status`` (uint16: bits 0-3 rail, 4-7 sensor fault, 8
+    overflow, 9 restart), and the bools ``restarted``, ``overflow``, ``time_measured``,
+    ``status_measured``, ``from_fifo``.
     """
 
     scans: np.ndarray
     events: list[Event]
     files: list[RecordingFile]
-    #: where the time window began, ns: ``since``, or where ``last`` put it (None: no start)
+    # where the time window began, ns: ``since``, or where ``last`` put it (None: no start)
     since_ns: int | None = None
 
     def __len__(self) -> int:
@@ -49,15 +75,37 @@ class Recording:
 
     @property
     def volts(self) -> np.ndarray:
-        """(n, 4) channel voltages, V (mid-code reconstruction)."""
+        """Channel voltages, V, shape (n, 4), by the datasheet's mid-code reconstruction.
+
+        ``V = (code + 0.5) * 20 / 4096 - 10`` of each scan's four codes
+        (:func:`loopcal.drivers.ldq412.code_to_volts`), float64; computed on each access.
+        """
         return scan_rows.volts(self.scans)
 
     @property
     def warnings(self) -> list[str]:
-        """One line per damaged or partly read file, naming it and what was lost."""
+        """One line per damaged or partly read file, naming it and what was lost.
+
+        A list of str: the :attr:`~loopcal.daemon.recording.filereader.RecordingFile.warning`
+        of each file that did not read intact; empty when every file read intact.
+        """
         return [f.warning for f in self.files if f.warning]
 
     def events_of(self, kind: str) -> list[Event]:
+        """The events of one kind.
+
+        Parameters
+        ----------
+        kind : str
+            An event kind, e.g. ``"gap"``, ``"restart"``, ``"offset_drift"``
+            (:data:`loopcal.daemon.events.KINDS`; docs/recording.md lists them).
+
+        Returns
+        -------
+        list of Event
+            Those of :attr:`events` with that kind, in time order (empty for a kind that
+            never happened, or is not a kind at all).
+        """
         return [e for e in self.events if e.kind == kind]
 
 
@@ -72,7 +120,19 @@ def _as_ns(t: int | float | datetime | None) -> int | None:
 
 
 def identities(rows: np.ndarray) -> list[bytes]:
-    """What makes a scan the same scan in two files: epoch, counter, device time, codes."""
+    """What makes a scan the same scan in two files: epoch, counter, device time, codes.
+
+    Parameters
+    ----------
+    rows : ndarray of SCAN_DTYPE, shape (n,)
+        Scan rows.
+
+    Returns
+    -------
+    list of bytes
+        One key per row (``epoch``, ``counter64``, ``time64_us`` and ``codes`` packed):
+        equal keys are the same scan.
+    """
     packed = np.zeros(len(rows), dtype=[("e", "<u4"), ("c", "<u8"), ("t", "<u8"),
                                         ("k", "<u2", (4,))])  # fmt: skip
     packed["e"], packed["c"] = rows["epoch"], rows["counter64"]
@@ -109,9 +169,23 @@ def _read_tail_statistics(path: Path) -> Statistics | None:
 
 
 def message_time_range(path: Path) -> tuple[int, int] | None:
-    """(first, last) message log time of a closed file from its statistics record alone
-    (footer -> summary offsets -> statistics, the summary checked by its CRC), or None if
-    the file has no intact one."""
+    """The first and last message log time of a closed file, from its statistics alone.
+
+    Reads only the file's first and last bytes: footer, then summary offsets, then the
+    statistics record, the summary checked by its CRC.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        A recording file.
+
+    Returns
+    -------
+    tuple of 2 int, or None
+        ``(first, last)`` message log times, ns since the Unix epoch; None if the file
+        has no intact statistics record (not closed, damaged, unreadable, not MCAP) or no
+        message.
+    """
     stats = _read_tail_statistics(path)
     if stats is None or not stats.message_count:
         return None
@@ -127,23 +201,52 @@ def read_recordings(
 ) -> Recording:
     """Load one or many recording files into numpy arrays.
 
-    paths: files or directories (all recordings in them). Files are put in time order by
-    their first scan. since, until: keep scans with ``since <= stamp < until`` (ns since the
-    Unix epoch, or aware datetimes); events likewise. last (instead of since): keep the last
-    ``last`` of them, from ``until - last``, or without until from ``last`` before the end
-    of the recordings (the newest scan of a file that was not closed, the last message of a
-    closed one, to the microsecond and included); :attr:`Recording.since_ns` says where.
-    Each file is read once: the closed ones' ends come from their statistics, the others
-    are read whole and cut in memory (their :class:`RecordingFile` then counts duplicates
-    and undecodable messages of the whole file).
-
     Whatever the bytes, it returns the scans that are intact, each once, and says in each
     file's :class:`RecordingFile` what could not be read (:attr:`Recording.warnings` has one
     line per damaged or partly read file). A file that was not closed (crash, power loss)
     is read up to its last intact chunk. Nothing that fails a check (a CRC, a length, an
-    index offset) is returned. Raises :class:`RecordingError` for a file that is missing or
-    unreadable, not MCAP at all, not a loopcal recording, or of another format version,
-    and ValueError for an empty time window.
+    index offset) is returned.
+
+    Parameters
+    ----------
+    paths : str, os.PathLike, or iterable of them
+        Files, or directories (all recordings in them, by their names: see
+        :func:`find_recordings`); a file named twice is read once. Files are put in time
+        order by their first scan.
+    since : int, float, datetime or None, default None
+        Keep scans (and events) with ``since <= stamp``: ns since the Unix epoch, or an
+        aware :class:`~datetime.datetime`.
+    until : int, float, datetime or None, default None
+        Keep scans (and events) with ``stamp < until``, likewise.
+    last : datetime.timedelta or None, default None
+        Instead of ``since``: keep the last ``last`` of them, from ``until - last``, or
+        without ``until`` from ``last`` before the end of the recordings (the newest scan
+        of a file that was not closed, the last message of a closed one, to the
+        microsecond and included); :attr:`Recording.since_ns` says where.
+
+    Returns
+    -------
+    Recording
+        The scans, events and files (an empty one when the paths hold no recording).
+
+    Raises
+    ------
+    RecordingError
+        For a path that is empty, a file that is missing, unreadable or not a regular
+        file, not MCAP at all, not a loopcal recording, or of another format version
+        (the message names the file), or recordings that end at an impossible time.
+    ValueError
+        For an empty time window (``until`` not after ``since``), ``since`` and ``last``
+        both given, a ``last`` that is not positive, or a datetime without a time zone.
+
+    Notes
+    -----
+    Each file is read once: the closed ones' ends come from their statistics
+    (:func:`message_time_range`; a file wholly outside the window is skipped), the
+    others are read whole and cut in memory (their :class:`RecordingFile` then counts
+    duplicates and undecodable messages of the whole file). A scan in two files (a polled
+    scan read again after a recorder restart, or a copy) is kept once, by
+    :func:`identities`.
     """
     lo, hi = _as_ns(since), _as_ns(until)
     if last is not None:

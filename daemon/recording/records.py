@@ -75,9 +75,19 @@ PARSE_ERRORS = (McapError, struct.error, ValueError, UnicodeDecodeError, Overflo
 class Damage:
     """A part of the file that could not be trusted.
 
-    offset: its first byte. length: bytes it spans (0 when unknown). what: one phrase for
-    people (e.g. "chunk CRC mismatch"). start_ns, end_ns: the log times of the messages it
-    held, when a readable chunk header or index entry says so.
+    Attributes
+    ----------
+    offset : int
+        Its first byte.
+    length : int
+        Bytes it spans (0 when unknown).
+    what : str
+        One phrase for people (e.g. ``"chunk CRC mismatch"``).
+    start_ns : int or None, default None
+        Log time of the first message it held, ns since the Unix epoch, when a readable
+        chunk header or index entry says so.
+    end_ns : int or None, default None
+        Log time of the last message it held, likewise.
     """
 
     offset: int

@@ -42,25 +42,46 @@ from loopcal.calibration.poses import pose_noise_volts
 from loopcal.calibration.residuals import loop_residuals, noise_directions, reference_points
 from loopcal.calibration.simulate import NEAR_SINGULAR_MM
 
-MIN_POSES = 30
-MIN_CHANNEL_RANGE_V = 0.5  # a channel that moves less than this over all poses is stuck
-BARELY_MOVED_V = 2.0  # every channel within this over all poses: the plate barely moved
-MIN_SINGULAR = 0.05
-NOISE_RATIO = 1.5
-HOLDOUT_EVERY = 5  # every fifth pose is kept out of the fit to validate it
-#: allowance over the chi-square bound: the predicted noise is itself estimated, and the
-#: parameters' own uncertainty adds to the held-out poses' errors
+MIN_POSES = 30  #: still poses the ``poses`` gate needs at least
+MIN_CHANNEL_RANGE_V = 0.5  #: V; a channel that moves less than this over all poses is stuck
+BARELY_MOVED_V = 2.0  #: V; every channel within this over all poses, the plate barely moved
+MIN_SINGULAR = 0.05  #: smallest minimum singular value of the scaled Jacobian
+NOISE_RATIO = 1.5  #: largest fitted noise over the noise the poses predict
+HOLDOUT_EVERY = 5  #: every fifth pose is kept out of the fit to validate it
+#: allowance over the chi-square bound, since the predicted noise is itself estimated and
+#: the parameters' own uncertainty adds to the held-out poses' errors
 HOLDOUT_MARGIN = 1.15
 #: largest believable change per parameter group (a refitted LVDT moves its offset by mm)
 CHANGE_LIMITS = {"offset": 15.0, "geometry": 3.0, "gain": 0.05}
+#: largest standard deviation of an identified parameter, by unit
 PRECISION = {"mm": 0.25, "mm/V": 0.01}
-GOOD_TILT_DEG = 25.0  # the workspace allows 45 deg; poses should reach this far every way
+GOOD_TILT_DEG = 25.0  #: deg; the workspace allows 45, poses should reach this far every way
 
 
 @dataclass(frozen=True)
 class Gate:
-    """One acceptance check. value and limit are what was compared (for people and JSON);
-    reason says why it failed and advice what to do (both empty when it passed)."""
+    """One acceptance check's result: what was compared, and if it failed, why and what to do.
+
+    Every gate function returns one; ``loopcal calibrate --json`` prints them as
+    ``{"name", "passed", "value", "limit", "reason", "advice"}`` (:meth:`as_dict`).
+
+    Attributes
+    ----------
+    name : str
+        The gate: ``"poses"``, ``"converged"``, ``"condition"``, ``"min_singular"``,
+        ``"noise"``, ``"holdout"``, ``"plausible"`` or ``"precision"``.
+    passed : bool
+        Whether the check passed.
+    value : float, int, str or None
+        What was compared, for people and JSON (a count, a ratio, or a text with its unit
+        such as ``"12.34 mV"``).
+    limit : str
+        The limit it was compared with, as text (e.g. ``"<= 1000"``).
+    reason : str, default ""
+        Why it failed, in plain words; empty when it passed.
+    advice : str, default ""
+        What the technician should do about it; empty when it passed.
+    """
 
     name: str
     passed: bool
@@ -70,9 +91,24 @@ class Gate:
     advice: str = ""
 
     def as_dict(self) -> dict:
+        """The gate as JSON-ready fields.
+
+        Returns
+        -------
+        dict
+            ``{"name", "passed", "value", "limit", "reason", "advice"}``.
+        """
         return asdict(self)
 
     def line(self) -> str:
+        """The gate for people: ``  [pass] name: value (limit ...)``.
+
+        Returns
+        -------
+        str
+            One line; a failed gate adds a ``why:`` line and a ``do:`` line. A float value
+            is shown to 4 significant digits.
+        """
         mark = "pass" if self.passed else "FAIL"
         value = f"{self.value:.4g}" if isinstance(self.value, float) else str(self.value)
         text = f"  [{mark}] {self.name}: {value} (limit {self.limit})"
@@ -93,8 +129,22 @@ def _group(name: str) -> str:
 
 
 def coverage(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
-    """(4,) the largest tilt of the plate's output axis, deg, the poses (readings (k, 4))
-    reached toward each sensor's base point (within 45 deg of its azimuth); 0 where none."""
+    """How far the poses tilted the plate toward each sensor.
+
+    Parameters
+    ----------
+    volts : ndarray of float, shape (k, 4)
+        The poses' mean readings, V.
+    params : ndarray of float, shape (20,)
+        The parameters to turn them into poses with (forward kinematics).
+
+    Returns
+    -------
+    ndarray of float, shape (4,)
+        For each sensor, the largest tilt of the plate's output axis, degrees, among the
+        poses whose axis leans within 45 deg of the azimuth of that sensor's base point;
+        0 where none does (and for no poses at all).
+    """
     if len(volts) == 0:
         return np.zeros(4)
     fk = forward_kinematics(volts_to_lengths(volts, params), params)
@@ -113,7 +163,22 @@ def coverage_advice(volts: np.ndarray, params: np.ndarray) -> str:
 
     The plate's output axis (its z axis) of each pose, by forward kinematics: for each
     sensor, the largest tilt reached towards that sensor's base point (within 45 deg of its
-    azimuth). The sensor reached least is where to go."""
+    azimuth, :func:`coverage`). The sensor reached least is where to go.
+
+    Parameters
+    ----------
+    volts : ndarray of float, shape (k, 4)
+        The poses' mean readings, V.
+    params : ndarray of float, shape (20,)
+        The parameters to turn them into poses with.
+
+    Returns
+    -------
+    str
+        The advice: tilt further toward the sensor reached least (while it is under
+        :data:`GOOD_TILT_DEG`, 25 deg), else record more positions spread over the
+        workspace; with no poses, move the plate through its whole range.
+    """
     if len(volts) == 0:
         return "move the plate by hand through its whole range, holding each position still"
     reach = coverage(volts, params)
@@ -127,13 +192,30 @@ def coverage_advice(volts: np.ndarray, params: np.ndarray) -> str:
     )
 
 
-#: advice for a failing gate: the text, or a function that makes it (called only on failure)
+#: advice for a failing gate, the text or a function that makes it (called only on failure)
 Advice = str | Callable[[], str]
 
 
 def lazy_coverage_advice(volts: np.ndarray, params: np.ndarray) -> Callable[[], str]:
-    """:func:`coverage_advice` made on the first call, and only then: forward kinematics of
-    every pose (a day's 30,000 of them) is paid for only when a gate fails and needs it."""
+    """:func:`coverage_advice`, made on the first call and only then.
+
+    Forward kinematics of every pose (a day's 30,000 of them) is paid for only when a gate
+    fails and needs it.
+
+    Parameters
+    ----------
+    volts : ndarray of float, shape (k, 4)
+        The poses' mean readings, V.
+    params : ndarray of float, shape (20,)
+        The parameters to turn them into poses with.
+
+    Returns
+    -------
+    callable
+        ``advice() -> str``, computing the advice once and then returning it again: an
+        :data:`Advice` for :func:`condition_gate`, :func:`min_singular_gate` and
+        :func:`precision_gate`.
+    """
     return cache(lambda: coverage_advice(volts, params))
 
 
@@ -145,7 +227,26 @@ def _text(advice: Advice) -> str:
 
 
 def poses_gate(volts: np.ndarray) -> Gate:
-    """Enough still poses, and no channel that never moved (stuck or disconnected)."""
+    """Enough still poses, and no channel that never moved (stuck or disconnected).
+
+    Parameters
+    ----------
+    volts : ndarray of float, shape (k, 4)
+        Mean readings of every still pose found, V.
+
+    Returns
+    -------
+    Gate
+        ``"poses"``, its value the number of poses k.
+
+    Notes
+    -----
+    Fails, in this order, when the plate barely moved (every channel's range over the
+    poses under :data:`BARELY_MOVED_V`, 2 V, about 7.5 mm of stroke at the nominal gain),
+    when some but not all channels moved less than :data:`MIN_CHANNEL_RANGE_V` (0.5 V:
+    stuck or disconnected, named), and when there are fewer than :data:`MIN_POSES` (30)
+    poses. The limits are docs/calibration.md's "poses" gate.
+    """
     n = len(volts)
     if n:
         span = np.ptp(volts, axis=0)
@@ -185,6 +286,25 @@ def poses_gate(volts: np.ndarray) -> Gate:
 
 
 def converged_gate(converged: bool, message: str) -> Gate:
+    """The identification converged.
+
+    Parameters
+    ----------
+    converged : bool
+        Whether the Levenberg-Marquardt identification converged.
+    message : str
+        The solver's own message (the gate's value, and part of the reason if it failed).
+
+    Returns
+    -------
+    Gate
+        ``"converged"``, passed exactly when ``converged``.
+
+    Notes
+    -----
+    It fails for an unobservable free set or a divergence (docs/calibration.md); the
+    worker makes a failed ``converged`` gate of its own when the identification raised.
+    """
     if converged:
         return Gate("converged", True, message, "converged")
     return Gate(
@@ -199,6 +319,30 @@ def converged_gate(converged: bool, message: str) -> Gate:
 
 
 def condition_gate(condition: float, advice: Advice) -> Gate:
+    """The poses see every combination of the free parameters: a condition number <= 1000.
+
+    Parameters
+    ----------
+    condition : float
+        Condition number ``s_1 / s_L`` of the identification's scaled Jacobian (columns
+        scaled to RMS one per pose, docs/model.md sections 6 and 7), dimensionless;
+        ``inf`` when ``s_L`` is 0.
+    advice : Advice
+        What to do if it fails: the text, or a function making it (called only then;
+        :func:`lazy_coverage_advice`).
+
+    Returns
+    -------
+    Gate
+        ``"condition"``, passed when ``condition <= CONDITION_OK``.
+
+    Notes
+    -----
+    The limit, :data:`loopcal.calibration.observability.CONDITION_OK` = 1000, is the
+    source paper's acceptable condition number (docs/model.md section 11: the seven
+    parameters reach below it, about 15 to 70 in simulation). It fails for poses bunched in
+    one part of the workspace.
+    """
     ok = condition <= CONDITION_OK
     return Gate(
         "condition",
@@ -211,6 +355,29 @@ def condition_gate(condition: float, advice: Advice) -> Gate:
 
 
 def min_singular_gate(s_min: float, advice: Advice) -> Gate:
+    """The poses tell every free parameter apart: a minimum singular value >= 0.05.
+
+    Parameters
+    ----------
+    s_min : float
+        Smallest singular value ``s_L`` of the identification's scaled Jacobian
+        (docs/model.md section 7), dimensionless.
+    advice : Advice
+        What to do if it fails: the text, or a function making it (called only then).
+
+    Returns
+    -------
+    Gate
+        ``"min_singular"``, passed when ``s_min >= MIN_SINGULAR``.
+
+    Notes
+    -----
+    With the Jacobian's columns scaled by ``sqrt(M) / ||g_j||`` (M poses), a scaled
+    parameter's standard deviation is the residual noise over ``s``, whatever M is, so
+    the limit :data:`MIN_SINGULAR` (0.05, docs/calibration.md) compares across pose sets
+    of any size. The paper judges a pose set by this value together with the condition
+    number.
+    """
     ok = s_min >= MIN_SINGULAR
     return Gate(
         "min_singular",
@@ -223,10 +390,26 @@ def min_singular_gate(s_min: float, advice: Advice) -> Gate:
 
 
 def expected_noise(scan_noise: np.ndarray, counts: np.ndarray, *, per_scan: bool = False) -> float:
-    """RMS noise of the poses' mean readings the poses themselves predict, V
-    (:func:`loopcal.calibration.poses.pose_noise_volts`). per_scan: the same as the noise of one
-    scan (times the square root of the scans averaged), as the maximum-likelihood fit
-    reports."""
+    """RMS noise of the poses' mean readings the poses themselves predict.
+
+    Parameters
+    ----------
+    scan_noise : ndarray of float, shape (k, 4)
+        Each pose's noise of one scan per channel, V (from its scan-to-scan differences).
+    counts : ndarray of int, shape (k,)
+        Scans averaged into each pose.
+    per_scan : bool, default False
+        Give it as the noise of one scan (each pose's variance times its scan count), as
+        the maximum-likelihood fit reports its noise; else as the noise of a pose's mean
+        reading, as the paper's method does.
+
+    Returns
+    -------
+    float
+        The RMS over poses and channels, V:
+        :func:`loopcal.calibration.poses.pose_noise_volts` (``sqrt(scan_noise^2 / count +
+        LSB^2 / 12)``, the 12-bit rounding included), per scan if asked.
+    """
     var = pose_noise_volts(scan_noise, counts) ** 2
     if per_scan:
         var = var * counts[:, None]
@@ -234,6 +417,29 @@ def expected_noise(scan_noise: np.ndarray, counts: np.ndarray, *, per_scan: bool
 
 
 def noise_gate(sigma_fit: float, expected: float) -> Gate:
+    """The loops close as well as the sensors allow: the fit's noise <= 1.5 x the expected.
+
+    Parameters
+    ----------
+    sigma_fit : float
+        The noise the identification's residuals imply, V (per scan for maximum
+        likelihood, per pose for the paper's method).
+    expected : float
+        The noise the poses' own scan-to-scan scatter predicts, V, on the same footing
+        (:func:`expected_noise`).
+
+    Returns
+    -------
+    Gate
+        ``"noise"``, passed when ``sigma_fit <= NOISE_RATIO * expected``; its value is
+        ``sigma_fit`` in mV, as text.
+
+    Notes
+    -----
+    :data:`NOISE_RATIO` (1.5, docs/calibration.md): 40 simulated sessions at 40 mV gave a
+    ratio of 0.93 on average and at most 1.17. It fails for a wrong gain (about 3 % or
+    more), a swapped or sticking channel, or a parameter missing from the free set.
+    """
     limit = NOISE_RATIO * expected
     ok = sigma_fit <= limit
     return Gate(
@@ -262,12 +468,30 @@ def holdout_residuals(
 ) -> np.ndarray:
     """Loop-closure error of each pose at ``params``, near-singular poses left out.
 
-    In volts of equivalent sensor noise (the residuals projected on their noise direction);
-    or, given ``noise`` (m, 4), the standard deviation of each pose's mean reading per
-    channel (:func:`loopcal.calibration.poses.pose_noise_volts`), in units of the error's own
-    predicted standard deviation, N(0, 1) each when the parameters are right. With the
-    fit's ``model`` and ``covariance`` (of its free parameters), the prediction includes the
-    parameters' own uncertainty (poses that were not in the fit: held out)."""
+    Parameters
+    ----------
+    volts : ndarray of float, shape (m, 4)
+        The poses' mean readings, V.
+    params : ndarray of float, shape (20,)
+        The parameters to close the loops with (mm, mm/V).
+    noise : ndarray of float, shape (m, 4), optional
+        The standard deviation of each pose's mean reading per channel, V
+        (:func:`loopcal.calibration.poses.pose_noise_volts`).
+    model : ParameterModel, optional
+        The fit's free parameters and ties; with ``covariance``.
+    covariance : ndarray of float, shape (n_free, n_free), optional
+        The fitted free parameters' covariance; with ``model``.
+
+    Returns
+    -------
+    ndarray of float, shape (m',)
+        One error per pose that is feasible and not near-singular (m' <= m; empty for no
+        poses): without ``noise``, in volts of equivalent sensor noise (the residuals
+        projected on their noise direction); with it, in units of the error's own
+        predicted standard deviation, N(0, 1) each when the parameters are right. With
+        ``model`` and ``covariance`` the prediction includes the parameters' own
+        uncertainty (poses that were not in the fit: held out).
+    """
     if len(volts) == 0:
         return np.zeros(0)
     ref = reference_points(volts, params)
@@ -315,10 +539,30 @@ def _log_upper_gamma(a: float, t: float) -> tuple[float, float]:
 
 
 def chi2_quantile(dof: int, tail: float) -> float:
-    """The value a chi-square variable of ``dof`` degrees of freedom exceeds with
-    probability ``tail`` (at most 0.1; ``scipy.special.chdtri(dof, tail)``, which costs a
-    fifth of a second to import): Newton's method on log Q(dof / 2, x / 2) from the
-    Wilson-Hilferty approximation (tests/test_worker_gates.py compares the two)."""
+    """The upper ``tail`` quantile of the chi-square distribution with ``dof`` degrees.
+
+    The value a chi-square variable of ``dof`` degrees of freedom exceeds with probability
+    ``tail``, as ``scipy.special.chdtri(dof, tail)`` gives it (scipy.special costs a fifth
+    of a second to import): Newton's method on log Q(dof / 2, x / 2) from the
+    Wilson-Hilferty approximation (tests/test_worker_gates.py compares the two).
+
+    Parameters
+    ----------
+    dof : int
+        Degrees of freedom, >= 1.
+    tail : float
+        The upper tail's probability, 0 < tail <= 0.1.
+
+    Returns
+    -------
+    float
+        The upper ``tail`` quantile of chi-square with ``dof`` degrees of freedom.
+
+    Raises
+    ------
+    ValueError
+        If ``dof`` < 1 or ``tail`` is outside (0, 0.1].
+    """
     if not (dof >= 1 and 0.0 < tail <= 0.1):
         raise ValueError(f"chi2_quantile needs dof >= 1 and 0 < tail <= 0.1, got {dof}, {tail}")
     a, target = dof / 2.0, math.log(tail)
@@ -340,7 +584,30 @@ def chi2_quantile(dof: int, tail: float) -> float:
 
 
 def holdout_gate(z: np.ndarray) -> Gate:
-    """z: the held-out poses' loop-closure errors over their predicted standard deviations."""
+    """Poses kept out of the fit close their loops as well as predicted.
+
+    Parameters
+    ----------
+    z : ndarray of float, shape (n,)
+        The held-out poses' loop-closure errors over their predicted standard deviations
+        (:func:`holdout_residuals` with ``noise``, ``model`` and ``covariance``),
+        dimensionless.
+
+    Returns
+    -------
+    Gate
+        ``"holdout"``: failed for fewer than 5 poses (its value n); else its value the RMS
+        of ``z``, passed when that is within the limit.
+
+    Notes
+    -----
+    The limit is ``HOLDOUT_MARGIN * sqrt(chi2_quantile(n, 0.001) / n)``: at the true
+    parameters ``z`` is N(0, 1) per pose, so ``n * rms^2`` is chi-square with n degrees
+    of freedom, and its 99.9 % bound, times :data:`HOLDOUT_MARGIN` (1.15: the predicted
+    noise is itself estimated), is about 2.0 for 9 poses. One pose in
+    :data:`HOLDOUT_EVERY` (5) is held out. It fails when the fit describes its own poses, not the
+    mechanism (docs/calibration.md).
+    """
     n = len(z)
     if n < 5:
         return Gate(
@@ -371,6 +638,31 @@ def holdout_gate(z: np.ndarray) -> Gate:
 
 
 def plausible_gate(free: list[str], previous: np.ndarray, new: np.ndarray) -> Gate:
+    """No parameter moved further than a refit, or a blueprint tolerance, can explain.
+
+    Parameters
+    ----------
+    free : list of str
+        The identified parameters' names (:data:`loopcal.calibration.parameters.NAMES`).
+    previous : ndarray of float, shape (20,)
+        The parameters before (the controller config's), mm and mm/V.
+    new : ndarray of float, shape (20,)
+        The identified parameters, likewise.
+
+    Returns
+    -------
+    Gate
+        ``"plausible"``, its value the change of the parameter closest to its limit
+        (name, change and unit; ``"no change"`` when none changed), passed when every
+        change is within its limit.
+
+    Notes
+    -----
+    :data:`CHANGE_LIMITS` (docs/calibration.md): an offset ``d0i`` may move 15 mm (a
+    refitted LVDT moves its offset by millimetres), a geometry parameter (``A..``,
+    ``k1``..``k3``) 3 mm (a blueprint tolerance), a gain ``Si`` 5 % of its previous value.
+    It fails for the wrong sensor, a broken cable, or a config for another robot.
+    """
     worst, worst_ratio = "", 0.0
     for name in free:
         i = INDEX[name]
@@ -412,6 +704,33 @@ def _limits_text() -> str:
 
 
 def precision_gate(free: list[str], std: np.ndarray, advice: Advice) -> Gate:
+    """Every identified parameter is known well enough: std <= 0.25 mm (0.01 mm/V).
+
+    Parameters
+    ----------
+    free : list of str
+        The identified parameters' names, at least one.
+    std : ndarray of float, shape (len(free),)
+        Their standard deviations, in the order of ``free`` (mm, mm/V for the gains).
+    advice : Advice
+        What to do if it fails: the text, or a function making it (called only then).
+
+    Returns
+    -------
+    Gate
+        ``"precision"``, its value the standard deviation of the parameter closest to
+        its limit (name, value and unit), passed when that is within it.
+
+    Raises
+    ------
+    ValueError
+        If ``free`` is empty (nothing to judge).
+
+    Notes
+    -----
+    :data:`PRECISION` (docs/calibration.md): 0.25 mm for lengths, 0.01 mm/V for gains.
+    About one simulated 2-minute session in 20 fails it, and is told to record more.
+    """
     ratios = [std[j] / PRECISION[UNITS[n]] for j, n in enumerate(free)]
     j = int(np.argmax(ratios))
     ok = ratios[j] <= 1.0
