@@ -2,7 +2,8 @@
 errors, as CI builds it, and every public function and class of the packages whose docstrings
 are numpy style is in it, with a Parameters, Returns or Attributes section.
 
-Those packages are docs/api/conf.py's ``NUMPY_STYLE`` (calibration/ and drivers/ for now):
+Those packages are docs/api/conf.py's ``NUMPY_STYLE`` (calibration/, drivers/, simulator/,
+the recording reader and the gates):
 adding one there is one line, and both the build's strictness and these checks follow. Public:
 a name without a leading underscore, defined in that module (not imported into it), listed in
 the module's ``__all__`` where it has one.
@@ -113,9 +114,24 @@ def test_every_public_object_is_in_the_reference(package: str, documented: set[i
     assert not missing, f"not in the API reference (no docstring, or no page): {missing}"
 
 
+def _takes_arguments(obj: object) -> bool:
+    """Whether a numpy section has anything to say: not for a function a factory made (its
+    factory's docstring does), an exception, a Protocol, or a class built with no
+    arguments (its summary and its methods' sections say it all)."""
+    if inspect.isfunction(obj):
+        return "<locals>" not in obj.__qualname__
+    if issubclass(obj, BaseException) or getattr(obj, "_is_protocol", False):
+        return False
+    try:
+        return bool(inspect.signature(obj).parameters)
+    except (TypeError, ValueError):
+        return True
+
+
 @pytest.mark.parametrize("package", NUMPY_STYLE)
 def test_every_public_object_has_a_numpy_style_docstring(package: str) -> None:
     # the object's own docstring: a class without one does not inherit its base's here
     bare = [name for name, obj in public_objects(package)
-            if not SECTION.search(inspect.cleandoc(obj.__doc__ or ""))]  # fmt: skip
+            if _takes_arguments(obj)
+            and not SECTION.search(inspect.cleandoc(obj.__doc__ or ""))]  # fmt: skip
     assert not bare, f"no Parameters, Returns or Attributes section: {bare}"

@@ -35,10 +35,10 @@ autoclass_content = "class"
 # The packages whose docstrings are numpy style. tests/test_api_docs.py checks that every
 # public function and class of each is in the reference with a Parameters, Returns or
 # Attributes section. Add a package here (one line) once its docstrings are written.
-NUMPY_STYLE = ("loopcal.calibration", "loopcal.drivers")
+NUMPY_STYLE = ("loopcal.calibration", "loopcal.drivers", "loopcal.simulator",
+               "loopcal.daemon.recording.reader", "loopcal.daemon.worker.gates")
 
-# In the packages not listed yet (simulator/, daemon/, whose docstrings are being
-# rewritten), a docstring with no numpy section is shown as written, in a literal block,
+# In the modules not listed yet (the rest of daemon/), a docstring with no numpy section is shown as written, in a literal block,
 # instead of being parsed as reStructuredText: the older, free-form ones would otherwise
 # fail the build under -W. A docstring with a section is parsed like any other, and its
 # warnings are errors, as are all of a listed package's.
