@@ -38,8 +38,9 @@ autoclass_content = "class"
 NUMPY_STYLE = ("loopcal.calibration", "loopcal.drivers", "loopcal.simulator",
                "loopcal.daemon.recording.reader", "loopcal.daemon.worker.gates")
 
-# In the modules not listed yet (the rest of daemon/), a docstring with no numpy section is shown as written, in a literal block,
-# instead of being parsed as reStructuredText: the older, free-form ones would otherwise
+# In the modules not listed yet (the rest of daemon/), a docstring with no numpy section
+# is shown as written, in a literal block, instead of being parsed as reStructuredText:
+# the older, free-form ones would otherwise
 # fail the build under -W. A docstring with a section is parsed like any other, and its
 # warnings are errors, as are all of a listed package's.
 _SECTION = re.compile(
