@@ -3,8 +3,11 @@ the Cramér-Rao bound against a Monte Carlo run, selection on its information, b
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
+from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from loopcal.calibration import implicit
@@ -195,9 +198,72 @@ def test_bad_input_is_named():
         implicit.cramer_rao(2 * ps.rotations, ps.truth, PAPER7.tie_matrix, noise_volts=0.04)
 
 
-def test_the_eliminated_step_is_the_dense_levenberg_marquardt_step():
-    """The pose blocks eliminated through closed-form Cholesky factors give the step a dense
-    solve of the damped normal equations of all unknowns gives."""
+def dense_jacobian(Jp, Jr, w):
+    """The whitened residuals' Jacobian (4 m, n + 3 m) over all unknowns: the free
+    parameters, then each pose's rotation (left increments)."""
+    m, n = Jp.shape[0], Jp.shape[2]
+    J = np.zeros((4 * m, n + 3 * m))
+    J[:, :n] = (-Jp * w[..., None]).reshape(4 * m, n)
+    for k in range(m):
+        J[4 * k : 4 * k + 4, n + 3 * k : n + 3 * k + 3] = -Jr[k] * w[k][:, None]
+    return J
+
+
+def test_the_eliminated_fit_is_the_least_squares_solution_of_all_unknowns():
+    """Levenberg-Marquardt with the pose blocks eliminated ends where a dense solver of all
+    unknowns at once (scipy's, on the same residuals, its Jacobian by finite differences)
+    ends, from rotations up to 0.3 rad off: the same misfit, the same parameters and
+    rotations to a small fraction of their standard errors; there the gradient over all
+    unknowns vanishes; near the solution it takes Gauss-Newton's few iterations. From
+    anywhere, its misfit never rises."""
+    rng = np.random.default_rng(9)
+    truth = perturbed_truth(rng)
+    m, T = 15, PAPER7.tie_matrix
+    n = T.shape[1]
+    R = poses(m, rng, truth)
+    V = implicit.predicted_volts(R, truth) + rng.normal(0.0, 0.04, (m, 4))
+    w = rng.uniform(5.0, 30.0, (m, 4))
+
+    def residuals(z):  # the free parameters' offsets from NOMINAL, the rotations' from R
+        Rz = Rotation.from_rotvec(z[n:].reshape(m, 3)).as_matrix() @ R
+        return ((V - implicit.predicted_volts(Rz, NOMINAL + T @ z[:n])) * w).ravel()
+
+    ls = least_squares(residuals, np.zeros(n + 3 * m), method="lm", xtol=1e-15, ftol=1e-15,
+                       gtol=1e-15)  # fmt: skip
+    sd = np.sqrt(np.diag(np.linalg.inv(ls.jac.T @ ls.jac)))
+    R_ls = Rotation.from_rotvec(ls.x[n:].reshape(m, 3)).as_matrix() @ R
+    for size, seed in ((0.02, 0), (0.1, 1), (0.3, 2), (0.6, 0), (0.6, 1), (0.6, 2)):
+        turned = Rotation.from_rotvec(np.random.default_rng(seed).normal(0.0, size, (m, 3)))
+        history = []
+        p, Rfit, iterations, converged, message, lin = implicit.fit_linearised(
+            V, w, turned.as_matrix() @ R, T, NOMINAL, history=history
+        )
+        assert all(b <= a for a, b in itertools.pairwise(history)), (size, seed)
+        assert len(history) <= iterations + 1
+        x = np.linalg.lstsq(T, p - NOMINAL, rcond=None)[0]
+        assert np.allclose(NOMINAL + T @ x, p, rtol=0, atol=1e-12)  # fixed parameters kept
+        assert np.allclose(Rfit @ np.swapaxes(Rfit, 1, 2), np.eye(3), atol=1e-12)
+        # the problem linearised at the end is the one at the end
+        vhat, Jp, Jr = implicit.model_jacobians(Rfit, p, T)
+        r = (V - vhat) * w
+        assert np.allclose(lin.r.T, r, rtol=0, atol=1e-12)
+        assert lin.cost == pytest.approx(np.sum(r**2), rel=1e-12)
+        assert history[-1] == pytest.approx(lin.cost, rel=1e-12)
+        assert converged, message
+        if size > 0.3:
+            continue  # far off: perhaps another minimum
+        assert iterations <= 15
+        assert lin.cost == pytest.approx(2 * ls.cost, rel=1e-7)
+        assert np.all(np.abs(x - ls.x[:n]) <= 1e-3 * sd[:n])
+        turn = Rotation.from_matrix(Rfit @ np.swapaxes(R_ls, 1, 2)).magnitude()
+        assert np.all(turn <= 1e-3 * np.linalg.norm(sd[n:].reshape(m, 3), axis=1))
+        # stationary: the gradient over every unknown, against the size of its column
+        J = dense_jacobian(Jp, Jr, w)
+        g = J.T @ r.ravel()
+        assert np.all(np.abs(g) <= 1e-4 * np.linalg.norm(J, axis=0) * np.linalg.norm(r))
+
+
+def test_information_rows_are_the_svd_loop_direction():
     rng = np.random.default_rng(9)
     truth = perturbed_truth(rng)
     m, T = 15, PAPER7.tie_matrix
@@ -206,24 +272,14 @@ def test_the_eliminated_step_is_the_dense_levenberg_marquardt_step():
     w = rng.uniform(5.0, 30.0, (m, 4))
     lin = implicit.linearise(V, w, R, NOMINAL, T)
     vhat, Jp, Jr = implicit.model_jacobians(R, NOMINAL, T)
-    r = (V - vhat) * w
-    assert np.allclose(lin.r.T, r, rtol=1e-12, atol=1e-12)
-    n = T.shape[1]
-    J = np.zeros((4 * m, n + 3 * m))
-    J[:, :n] = (-Jp * w[..., None]).reshape(4 * m, n)
-    for k in range(m):
-        J[4 * k : 4 * k + 4, n + 3 * k : n + 3 * k + 3] = -Jr[k] * w[k][:, None]
-    A, g = J.T @ J, J.T @ r.ravel()
-    for lam in (1e-3, 1.0, 1e3):
-        dense = np.linalg.solve(A + lam * np.diag(np.diag(A)), -g)
-        dx, dw = implicit._damped_step(*implicit._normal_equations(lin), lam)
-        step = np.concatenate([dx, dw.T.ravel()])
-        assert np.allclose(step, dense, rtol=1e-9, atol=1e-12 * np.abs(dense).max()), lam
+    assert np.allclose(lin.r.T, (V - vhat) * w, rtol=1e-12, atol=1e-12)
     # the information rows: the SVD's loop direction, up to each row's sign
     U = np.linalg.svd(Jr * w[..., None], full_matrices=True)[0][:, :, 3]
-    old = np.einsum("mrn,mr->mn", Jp * w[..., None], U)
-    new = lin.information()
-    sign = np.sign(np.einsum("mn,mn->m", old, new))
-    assert np.allclose(new * sign[:, None], old, rtol=1e-10, atol=1e-12 * np.abs(old).max())
+    expected = np.einsum("mrn,mr->mn", Jp * w[..., None], U)
+    got = lin.information()
+    sign = np.sign(np.einsum("mn,mn->m", expected, got))
+    assert np.allclose(
+        got * sign[:, None], expected, rtol=1e-10, atol=1e-12 * np.abs(expected).max()
+    )
     rows = implicit.weighted_information(R, NOMINAL, T, w)
-    assert np.allclose(rows.T @ rows, old.T @ old, rtol=1e-10)
+    assert np.allclose(rows.T @ rows, expected.T @ expected, rtol=1e-10)
