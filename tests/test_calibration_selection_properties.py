@@ -1,4 +1,4 @@
-"""Pose selection (calibration/selection.py) against independent references: the reported
+"""Pose selection against independent references and properties (issue #21): the chosen
 indices recomputed from the singular values of the chosen scaled rows (np.linalg.svd), the
 certified bound against every subset of a small pool (brute force), the exchange's result
 against every single swap (brute force), the relaxation against weak duality. Any correct
