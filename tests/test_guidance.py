@@ -65,7 +65,12 @@ def test_until_enough_stops_by_itself_and_calibrate_agrees(tmp_path):
     finally:
         sim.kill()
     assert rc == 0, rec.text
-    updates = [json.loads(line) for line in rec.lines if line.startswith("{")]
+    lines = [json.loads(line) for line in rec.lines if line.startswith("{")]
+    *updates, summary = lines  # the guidance updates, then record's summary (JSON lines)
+    assert summary["summary"] is True and summary["enough"] is True
+    assert summary["exit_status"] == 0 and summary["scans_written"] == len(
+        read_recordings(tmp_path / "rec").scans)  # fmt: skip
+    assert not any("summary" in u for u in updates)
     assert len(updates) >= 3 and updates[-1]["enough"] is True
     assert not any(u["enough"] for u in updates[:-1])
     assert "stopped (enough to calibrate)" in rec.text
@@ -83,7 +88,7 @@ def test_until_enough_stops_by_itself_and_calibrate_agrees(tmp_path):
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--json"], "--json and --target-mm go with --until-enough"),
+        (["--target-mm", "0.2"], "--target-mm goes with --until-enough"),
         (["--until-enough", "--target-mm", "0"], "the target must be a positive number"),
         (["--until-enough", "--controller-config", "/nonexistent.toml"], "nonexistent.toml"),
     ],

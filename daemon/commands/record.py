@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({
             "summary": True, "exit_status": status, "stopped": recorder.exit_reason,
-            "scans_written": st.scans_written, "files_written": st.files_written,
+            "scans_written": int(st.scans_written), "files_written": int(st.files_written),
             "directory": str(settings.directory),
             "enough": guide.done if guide is not None else None, "problem": problem,
         }), flush=True)  # fmt: skip
