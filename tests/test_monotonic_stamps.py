@@ -1,0 +1,95 @@
+"""Within a recording file, time never goes back (issue 21): the writer thread starts a new
+file where the host's clock was set back (the only time the recorder's stamps step back),
+keeping every scan once; events handed on late are not logged before those already
+written. Each file read with the ``mcap`` library for each topic's log times, and with ours
+for the scans' stamps and counters."""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+from fuzz_helpers import T0, make_rows
+from mcap.reader import make_reader
+
+from loopcal.daemon.config.controller import nominal_config
+from loopcal.daemon.events import Event, Level
+from loopcal.daemon.recorder.batches import Batch
+from loopcal.daemon.recorder.filewriter import FileWriter, RecorderStatus, ScanQueue, Shared
+from loopcal.daemon.recorder.settings import RecorderSettings
+from loopcal.daemon.recording import RecordingWriter, read_recordings
+from loopcal.daemon.recording.schemas import TOPIC_EVENTS, TOPIC_LOG, TOPIC_STATE
+
+
+def log_times(path: Path) -> dict[str, list[int]]:
+    """Each topic's message log times in file order (the mcap library's reading)."""
+    out: dict[str, list[int]] = collections.defaultdict(list)
+    with open(path, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages(log_time_order=False):
+            out[channel.topic].append(message.log_time)
+    return out
+
+
+def assert_in_order(path: Path) -> np.ndarray:
+    """Every topic's log times never decrease; the scans' stamps strictly increase, their
+    (epoch, counter) too, and are the per-scan views' log times. Returns the scans."""
+    times = log_times(path)
+    for topic, t in times.items():
+        back = np.flatnonzero(np.diff(np.array(t, dtype=np.int64)) < 0)
+        assert not len(back), f"{path.name}: {topic} goes back {len(back)} time(s)"
+    rows = read_recordings(path).scans
+    stamps = rows["stamp_ns"]
+    assert np.all(np.diff(stamps) > 0), f"{path.name}: stamps not strictly increasing"
+    key = rows["epoch"].astype(np.int64) * (1 << 40) + rows["counter64"].astype(np.int64)
+    assert np.all(np.diff(key) > 0), f"{path.name}: counters not increasing"
+    assert np.array_equal(np.array(times[TOPIC_STATE], dtype=np.int64), stamps)
+    return rows
+
+
+def test_a_new_file_starts_where_the_hosts_clock_was_set_back(tmp_path):
+    """Scans whose stamps step 1 h back (the acquisition's stamps after the host's clock
+    was set back) go to a new file: both files in order, every scan once. Events handed
+    on out of order are written in time order, never logged before the last one."""
+    settings = RecorderSettings(daq_url="modbus-tcp://127.0.0.1:1", directory=tmp_path)
+    queue = ScanQueue(settings.max_backlog_scans)
+    shared = Shared(settings, nominal_config())
+    done = threading.Event()
+    writer = FileWriter(queue, shared, RecorderStatus(), command="test", done=done)
+    before = make_rows(60, start=0)
+    after = make_rows(60, start=60, t0=T0 - 3600 * 10**9)  # counters go on, stamps 1 h back
+    events = [Event(T0 + k, "rail", Level.INFO, f"event {k}") for k in (5, 3, 9, 1)]
+    queue.put(Batch(before, events, None))
+    thread = threading.Thread(target=writer.run, daemon=True)
+    thread.start()
+    time.sleep(0.3)
+    queue.put(Batch(after, [], None))
+    done.set()
+    queue.wake()
+    thread.join(10)
+    assert not thread.is_alive()
+    files = sorted(tmp_path.glob("*.mcap"), key=lambda p: p.stat().st_mtime_ns)
+    assert len(files) == 2
+    parts = [assert_in_order(f) for f in files]
+    assert [len(p) for p in parts] == [60, 60]
+    assert np.array_equal(np.concatenate(parts)["counter64"], np.arange(120))
+    first_events = read_recordings(files[0]).events
+    assert [e.stamp_ns - T0 for e in first_events] == [1, 3, 5, 9]  # their own times kept
+
+
+def test_an_event_handed_on_late_is_not_logged_before_those_already_written(tmp_path):
+    """An event stamped before the last one already in the file (another thread's, handed
+    on after a flush) is logged at that last time; its own time stays in the message."""
+    path = tmp_path / "events.mcap"
+    meta = {"loopcal": {"format": "1"}, "device": {}, "controller_config": {}}
+    w = RecordingWriter(path, metadata=meta, params=nominal_config().params, fsync=False)
+    w.write(make_rows(20), [Event(T0 + 10**9, "rail", Level.INFO, "late")])
+    w.write(make_rows(20, start=20), [Event(T0 + 2, "rail", Level.INFO, "early"),
+                                      Event(T0 + 1, "rail", Level.INFO, "earlier")])  # fmt: skip
+    w.close()
+    times = log_times(path)
+    assert times[TOPIC_EVENTS] == [T0 + 10**9] * 3 and times[TOPIC_LOG] == times[TOPIC_EVENTS]
+    assert [e.stamp_ns - T0 for e in read_recordings(path).events] == [1, 2, 10**9]
+    assert_in_order(path)
