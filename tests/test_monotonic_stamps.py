@@ -1,8 +1,9 @@
 """Within a recording file, time never goes back (issue 21): the writer thread starts a new
 file where the host's clock was set back (the only time the recorder's stamps step back),
 keeping every scan once; events handed on late are not logged before those already
-written. Each file read with the ``mcap`` library for each topic's log times, and with ours
-for the scans' stamps and counters."""
+written; a time window of an older recording whose stamps went back loses nothing. Each
+file read with the ``mcap`` library for each topic's log times, and with ours for the
+scans' stamps and counters."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from fuzz_helpers import T0, make_rows
+from fuzz_helpers import T0, make_rows, write_rows
 from mcap.reader import make_reader
 
 from loopcal.daemon.config.controller import nominal_config
@@ -93,3 +94,26 @@ def test_an_event_handed_on_late_is_not_logged_before_those_already_written(tmp_
     assert times[TOPIC_EVENTS] == [T0 + 10**9] * 3 and times[TOPIC_LOG] == times[TOPIC_EVENTS]
     assert [e.stamp_ns - T0 for e in read_recordings(path).events] == [1, 2, 10**9]
     assert_in_order(path)
+
+
+def test_a_window_of_an_older_recording_whose_stamps_went_back_loses_nothing(tmp_path):
+    """Recordings made before the fix have stamps that step back (at --speed 10 each read's
+    scans started up to 2 s before the last read's end). A time window of one keeps the
+    scans stamped inside it, and reports as missing only the scans the file does not hold,
+    not those the window left out ("239 scans missing ... (20:07:49.97 to 20:07:48.24)")."""
+    rows = make_rows(400)
+    c = rows["counter64"].astype(np.int64)
+    rows["stamp_ns"] = T0 + (c // 40) * 200_000_000 + (c % 40 - 39) * 50_000_000
+    rows = rows[(c < 300) | (c >= 305)]  # five scans really lost, between 299 and 305
+    path = tmp_path / "old.mcap"
+    write_rows(path, rows, per=40)
+    until = int(np.sort(rows["stamp_ns"])[len(rows) * 4 // 5])
+    for window in ({"until": until}, {"since": T0 + 300_000_000}):
+        got = read_recordings(path, **window)
+        lo, hi = window.get("since", -(1 << 62)), window.get("until", 1 << 62)
+        inside = (rows["stamp_ns"] >= lo) & (rows["stamp_ns"] < hi)
+        assert np.array_equal(got.scans["counter64"], rows["counter64"][inside])
+        [info] = got.files
+        kept = set(rows["counter64"][inside].tolist())
+        expected = [(300, 5)] if {299, 305} <= kept else []
+        assert [(x.first, x.count) for x in info.lost] == expected, info.warning
