@@ -23,7 +23,8 @@ import numpy as np
 from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
 from loopcal.calibration.parameters import INDEX, UNITS, ParameterModel
 from loopcal.calibration.simulate import perturbed_truth
-from loopcal.simulator import Emulator, SimClock
+from loopcal.simulator import Emulator
+from loopcal.simulator.clock import HeldClock
 from loopcal.simulator.emulator import TRANSPORTS
 from loopcal.simulator.mechanism import MechanismSource
 from loopcal.simulator.scenarios import HandMoves
@@ -100,8 +101,11 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
     )
     recordings = work / "recordings"
+    # switched on by the recorder's first request: however long the recorder takes to
+    # start, its FIFO (12.8 s of scans, 1.3 s at x10) has not overflowed, and the file
+    # holds no backlog stamped before the clock map knew the module's rate
     with Emulator(
-        args.transport, source, clock=SimClock(speed), seed=args.seed, truth_limit=10_000
+        args.transport, source, clock=HeldClock(speed), seed=args.seed, truth_limit=10_000
     ) as emu:
         print(f"\n$ loopcal record --daq {emu.url} --out {recordings}   (x{speed:g})", flush=True)
         rec = _loopcal(
