@@ -4,9 +4,8 @@ Every flush period it writes what waited to the current file
 (:class:`loopcal.daemon.recording.RecordingWriter`) and fsyncs; it rotates files by age, size,
 reload and device change, and where the stamps go back (the host's clock was set back:
 within a file time never goes back), deletes the oldest recordings to stay under the disk
-budget, and
-rides out disk errors: the scans stay in memory (up to ``max_backlog_scans``), it retries
-every few seconds, and writes them all once the disk takes them again.
+budget, and rides out disk errors: the scans stay in memory (up to ``max_backlog_scans``),
+it retries every few seconds, and writes them all once the disk takes them again.
 
 What it shares with the other threads is explicit: the :class:`ScanQueue` the acquisition
 fills, and the :class:`Shared` state (settings and controller config in force, the
