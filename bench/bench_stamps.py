@@ -5,12 +5,15 @@ simulated hours (pure arithmetic: tests/timeline_helpers.py; the datasheet's ans
 Stamps (FIFO reads every 0.2 s): the recorder's stamp of every scan against the host time
 the scan was really taken, and, for the scans an answer carried as the latest, against the
 host receive time; baseline: the former map (the smallest arrival - device time of the
-last minute, reads every 0.2 s without the dither), in the same run.
+last minute, reads every 0.2 s without the dither), in the same run. And what the floor
+that keeps stamps in order costs: how many stamps it raised above the map's line, by how
+much.
 
 Polls (no FIFO, 20 Hz): polls per scan and scans missed by the phase lock; baseline: the
 former schedule (just after the next scan is due by the smallest arrival delay seen).
 
-Run: ``python bench/bench_stamps.py [--hours 6] [--ppm 200 -200 0 1000 -1000]``.
+Run: ``python bench/bench_stamps.py [--hours 6] [--ppm 200 -200 0 1000 -1000] [--rate 20]``
+(``--rate``: the module's scan rate for the stamps, Hz).
 """
 
 from __future__ import annotations
@@ -55,6 +58,26 @@ class FormerClockMap:
         return s
 
 
+class FlooredMap:
+    """The recorder's map, noting what its floor did: how many stamps it raised above the
+    line, and by how much (the accuracy the rule that keeps stamps in order costs)."""
+
+    def __init__(self) -> None:
+        self.map = ClockMap()
+        self.stamped = 0
+        self.raised_ns: list[int] = []
+
+    def observe(self, mono_s: float, arrival_ns: int, time64_us: int) -> None:
+        self.map.observe(mono_s, arrival_ns, time64_us)
+
+    def stamps(self, time64_us: np.ndarray) -> np.ndarray:
+        line = self.map.line_stamps(time64_us)
+        s = self.map.stamps(time64_us)
+        self.stamped += len(s)
+        self.raised_ns += (s - line)[s > line].tolist()
+        return s
+
+
 class FormerPollSchedule:
     """The poll schedule before issue 13: just after the next scan is due, by device time
     plus the smallest arrival delay seen (which its own polls kept where they were)."""
@@ -79,23 +102,24 @@ class FormerPollSchedule:
         return min(max(due, self._sent + 0.002), self._sent + self.period)
 
 
-def stamp_figures(hours: float, ppm: float) -> None:
+def stamp_figures(hours: float, ppm: float, rate_hz: int = 20) -> None:
     rows = []
-    for name, cm, dither in (("former", FormerClockMap(), False), ("now", ClockMap(), True)):
+    floored = FlooredMap()
+    for name, cm, dither in (("former", FormerClockMap(), False), ("now", floored, True)):
         t0 = time.perf_counter()
         run = run_stamps(
             cm,
-            Module(ppm=ppm, phase_us=1809),
+            Module(rate_hz=rate_hz, ppm=ppm, phase_us=1809),
             hours,
             datasheet_latency(np.random.default_rng(7)),
             dither=dither,
             rng=np.random.default_rng(8),
         )
-        settled = np.abs(run.errors_ms[20 * 60 :])  # after the first minute
+        settled = np.abs(run.errors_ms[rate_hz * 60 :])  # after the first minute
         rows.append((name, run, settled, time.perf_counter() - t0))
     (_, _, old, _), (_, run, new, took) = rows
     print(
-        f"stamps, {hours:g} h at {ppm:+g} ppm: max |stamp - true| {new.max():.2f} ms "
+        f"stamps, {hours:g} h at {ppm:+g} ppm, {rate_hz} Hz: max |stamp - true| {new.max():.2f} ms "
         f"(p99 {np.percentile(new, 99):.2f}, median {np.median(new):.2f}) after the first "
         f"minute, {np.abs(run.errors_ms).max():.1f} ms in it; former {old.max():.2f} ms "
         f"(p99 {np.percentile(old, 99):.2f}): ratio {old.max() / new.max():.1f}x"
@@ -105,6 +129,13 @@ def stamp_figures(hours: float, ppm: float) -> None:
         f"    receive - stamp for the latest scan of each read: min {rcv.min():.2f} ms "
         f"({run.receive_ms.min():.2f} in the first minute), median {np.median(rcv):.2f}, "
         f"max {rcv.max():.2f}; stamps not increasing: {run.backwards}; {took:.1f} s to simulate"
+    )
+    raised = np.array(floored.raised_ns, dtype=np.float64) / 1e6
+    print(
+        f"    the floor (each stamp at least 1 ns after the last) raised {len(raised)} of "
+        f"{floored.stamped:,} stamps above the line"
+        + (f", by at most {raised.max():.3f} ms (median {np.median(raised):.3f})"
+           if len(raised) else "")
     )
 
 
@@ -131,9 +162,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--hours", type=float, default=6.0)
     ap.add_argument("--ppm", type=float, nargs="+", default=[200.0, -200.0, 0.0, 1000.0, -1000.0])
+    ap.add_argument("--rate", type=int, default=20, help="scan rate for the stamps, Hz (20)")
     args = ap.parse_args()
     for ppm in args.ppm:
-        stamp_figures(args.hours, ppm)
+        stamp_figures(args.hours, ppm, args.rate)
     for ppm in args.ppm:
         poll_figures(args.hours, ppm)
 

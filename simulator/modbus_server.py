@@ -312,7 +312,9 @@ class ModbusAdapter:
         includes a request on a connection opened before the module's latest power-on: the
         rebooted module knows nothing of it (the emulator's next housekeeping tick resets
         it), and answering it, say with the scans of a FIFO read, would lose them when the
-        reset comes.
+        reset comes. A request received is noted first, dropped or not: a clock held until
+        the first request must start even if the module does not answer yet (its first scan
+        late).
 
         Parameters
         ----------
@@ -328,6 +330,7 @@ class ModbusAdapter:
         """
         if sending:
             return pdu
+        self.handle.note_request()
         with self.handle.synced() as device:
             if pdu.dev_id != self.unit or not self.handle.responsive_locked():
                 return None

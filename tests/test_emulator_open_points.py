@@ -176,3 +176,26 @@ def test_loopcal_simulate_takes_the_settings_and_names_them(tmp_path):
     assert first["time_us"] == 1809
     bad = loopcal(*args[:3], "--slow-answers", "0.1", timeout=60)
     assert bad.returncode == 2 and "--slow-answers needs --latency" in bad.stderr
+
+
+@pytest.mark.parametrize("transport", ["modbus-tcp", "ascii"])
+def test_a_held_clock_starts_at_the_first_request_though_scan_zero_is_late(transport):
+    """``--wait-for-client`` with scan 0 after power-on: the first request starts the clock
+    although the module cannot answer it yet (it used to be dropped unnoted over Modbus,
+    and the module stayed silent for ever); a driver's next tries get answers."""
+    from loopcal.drivers import DAQError, open_daq
+    from loopcal.simulator.clock import HeldClock
+
+    clock = HeldClock()
+    op = OpenPoints(scan_phase_us=1809)
+    with Emulator(transport, golden_source(), clock=clock, open_points=op) as emu:
+        answered = None
+        for _ in range(10):
+            try:
+                with open_daq(emu.url, timeout=0.1) as daq:
+                    answered = daq.read_scans()
+                break
+            except DAQError:
+                time.sleep(0.05)
+        assert clock.now_ns() > 0
+        assert answered and all(s.time64_us % 50_000 == 1809 for s in answered), answered

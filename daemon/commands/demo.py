@@ -33,7 +33,8 @@ import numpy as np
 from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
 from loopcal.calibration.parameters import INDEX, UNITS, ParameterModel
 from loopcal.calibration.simulate import perturbed_truth
-from loopcal.simulator import Emulator, SimClock
+from loopcal.simulator import Emulator
+from loopcal.simulator.clock import HeldClock
 from loopcal.simulator.mechanism import MechanismSource
 from loopcal.simulator.run import add_transport_option
 from loopcal.simulator.scenarios import HandMoves
@@ -133,7 +134,10 @@ def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
     # The emulated module's server (pymodbus, in this process) logs an ERROR with a hex dump
     # whenever the recorder hangs up before an answer goes out, as it does at --duration.
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL + 1)
-    clock = SimClock(speed)
+    # switched on by the recorder's first request: however long the recorder takes to
+    # start, its FIFO (12.8 s of scans, 1.3 s at x10) has not overflowed, and the file
+    # holds no backlog stamped before the clock map knew the module's rate
+    clock = HeldClock(speed)
     with Emulator(args.transport, source, clock=clock, seed=args.seed, truth_limit=10_000) as emu:
         pace = "in real time" if speed == 1 else f"{speed:g} times as fast as wall time"
         print(f"\nThe emulated LDQ-412 runs {pace}: recording takes {session_s / speed:g} s.")
@@ -163,7 +167,7 @@ def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
     return _end(t_start, status, verdict, report)
 
 
-def _record(emu: Emulator, clock: SimClock, session_s: float, argv: list[str]) -> int:
+def _record(emu: Emulator, clock: HeldClock, session_s: float, argv: list[str]) -> int:
     """Run ``loopcal record``, saying every PROGRESS_S how much of the session it has
     recorded (device time since the driver's first request); its log is shown at the end."""
     print(f"\n{_command_line(argv)}", flush=True)

@@ -14,7 +14,9 @@ What it adds to the driver's scans:
 - UTC time stamps: ``host_ns`` when the answer arrived, and ``stamp_ns``, the acquisition
   instant, from the module's own clock mapped to UTC by the lower envelope of
   (arrival - device time), which follows the module's clock error
-  (:mod:`loopcal.daemon.recorder.clockmap`);
+  (:mod:`loopcal.daemon.recorder.clockmap`). Stamps strictly increase over everything it
+  hands on, across restarts and reconnects (each power-on's map starts from the last
+  one's floor), and step back only when the host's clock was set back;
 - events: gaps, restarts, FIFO overflow, rail and sensor faults (onset at once, end after a
   second of clear scans, so a channel flickering at the rail does not flood the log),
   and the link going down and coming back.
@@ -42,7 +44,7 @@ from loopcal.drivers import DAQ, DAQError, Scan, ldq412, open_daq
 from ..events import Event, Level
 from ..scans import SCAN_DTYPE
 from .batches import AcquisitionStats, Batch, DeviceInfo, ResumePoint
-from .clockmap import ClockMap
+from .clockmap import ClockMap, StampFloor
 from .polling import PhaseLock
 
 log = logging.getLogger(__name__)
@@ -99,6 +101,8 @@ class Acquisition:
         self._last: ResumePoint | None = resume
         self._base_epoch: int | None = None  # recorded epoch = base + driver epoch
         self._clocks: dict[int, ClockMap] = {}
+        #: the last stamp handed on: every map starts after it (a restart, a reconnect)
+        self._floor: StampFloor | None = resume.floor if resume is not None else None
         self._rail = [_Flag() for _ in range(4)]
         self._fault = [_Flag() for _ in range(4)]
         self._down_since: float | None = None
@@ -348,7 +352,7 @@ class Acquisition:
         last = rows[-1]
         self._last = ResumePoint(
             int(last["epoch"]), int(last["counter64"]), int(last["time64_us"]),
-            self.device.serial if self.device else None,
+            self.device.serial if self.device else None, self._floor,
         )  # fmt: skip
         self.stats.scans += n
         return rows
@@ -388,8 +392,8 @@ class Acquisition:
         for e in np.unique(epochs):
             sel = epochs == e
             clock = self._clocks.get(int(e))
-            if clock is None:
-                self._clocks = {int(e): ClockMap()}  # older epochs are over
+            if clock is None:  # older epochs are over; stamps go on after theirs
+                self._clocks = {int(e): ClockMap(after=self._floor)}
                 clock = self._clocks[int(e)]
             hint = self._clock_hint
             if hint is not None and hint[0] + (self._base_epoch or 0) == int(e):
@@ -400,6 +404,7 @@ class Acquisition:
             i = measured[-1] if len(measured) else idx[-1]  # arrival was closest to the scan
             clock.observe(float(host_s[i]), int(rows["host_ns"][i]), int(rows["time64_us"][i]))
             rows["stamp_ns"][sel] = clock.stamps(rows["time64_us"][sel])
+            self._floor = clock.floor
 
     def _scan_events(self, rows: np.ndarray, *, first_ever: bool, resumed: bool) -> None:
         st = self.stats

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..events import Event
+from .clockmap import StampFloor
 
 
 @dataclass(frozen=True)
@@ -36,12 +37,16 @@ class DeviceInfo:
 
 @dataclass(frozen=True)
 class ResumePoint:
-    """The last scan already recorded (where a new recorder carries on)."""
+    """The last scan already recorded (where a new recorder carries on). floor: the last
+    stamp handed on, for an acquisition that carries on in the same process (a reload that
+    reopens the DAQ): its stamps come after it. A recorder started again opens a new file,
+    whatever the stamps of the last one, so from a recording it is None."""
 
     epoch: int
     counter64: int
     time64_us: int
     serial: int | None
+    floor: StampFloor | None = None
 
     @classmethod
     def from_row(cls, row: np.void, device_metadata: dict[str, str]) -> ResumePoint:

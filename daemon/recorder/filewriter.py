@@ -2,9 +2,10 @@
 
 Every flush period it writes what waited to the current file
 (:class:`loopcal.daemon.recording.RecordingWriter`) and fsyncs; it rotates files by age, size,
-reload and device change, deletes the oldest recordings to stay under the disk budget, and
-rides out disk errors: the scans stay in memory (up to ``max_backlog_scans``), it retries
-every few seconds, and writes them all once the disk takes them again.
+reload and device change, and where the stamps go back (the host's clock was set back:
+within a file time never goes back), deletes the oldest recordings to stay under the disk
+budget, and rides out disk errors: the scans stay in memory (up to ``max_backlog_scans``),
+it retries every few seconds, and writes them all once the disk takes them again.
 
 What it shares with the other threads is explicit: the :class:`ScanQueue` the acquisition
 fills, and the :class:`Shared` state (settings and controller config in force, the
@@ -327,16 +328,27 @@ class FileWriter:
             log.error("could not close %s properly: %s (it reads back without its index)",
                       f.path, exc)  # fmt: skip
 
-    def _write(self, f: RecordingWriter) -> None:
+    def _write(self, f: RecordingWriter, now: float) -> None:
         """Write what is pending; a backlog goes in pieces of BACKLOG_PIECE_NS of scan time,
-        each made durable, so a disk with a little room left still takes some of it."""
+        each made durable, so a disk with a little room left still takes some of it.
+
+        Within a file stamps never go back: the acquisition's only strictly increase, but
+        step back when the host's clock was set back, and a new file starts there."""
         rows = np.concatenate(self.rows) if self.rows else np.zeros(0, dtype=SCAN_DTYPE)
         stamps = rows["stamp_ns"]
         cuts = [0]
         if len(rows):
-            cuts += list(np.flatnonzero(np.diff((stamps - stamps[0]) // BACKLOG_PIECE_NS)) + 1)
+            pieces = np.flatnonzero(np.diff((stamps - stamps[0]) // BACKLOG_PIECE_NS)) + 1
+            back = np.flatnonzero(np.diff(stamps) <= 0) + 1
+            cuts += sorted({*pieces.tolist(), *back.tolist()})
         cuts.append(len(rows))
         for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+            last = f.last_stamp_ns
+            if a < b and last is not None and stamps[a] <= last:
+                log.info("rotating (stamps go back %.3f s: the host's clock was set back)",
+                         (last - int(stamps[a])) / 1e9)  # fmt: skip
+                self._close_file()
+                f = self._open_file(now)
             before = f.size
             f.write(rows[a:b], self.events)
             self.status.bytes_written += f.size - before
@@ -365,7 +377,7 @@ class FileWriter:
             f = self.file if self.file is not None else self._open_file(now)
             if self.disk_error_since is not None:
                 log.info("retrying: %d scans waiting", self.n_rows)
-            self._write(f)
+            self._write(f, now)
         except OSError as exc:
             self._disk_failed(exc, now)
             return

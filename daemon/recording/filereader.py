@@ -288,9 +288,17 @@ class FileReader:
         info.bad_messages = bad
         info.metadata = self.metadata
         info.damage += sorted(self.damage.values(), key=lambda d: d.offset)
-        rows = self._window(rows)
-        rows, info.duplicates = _unique_scans(rows)
-        info.lost = _losses(rows)
+        windowed = self._window(rows)
+        if windowed is rows:
+            rows, info.duplicates = _unique_scans(rows)
+            info.lost = _losses(rows)
+        else:
+            # a scan the file holds but stamped outside the window is not lost: the losses
+            # are the file's own gaps between two scans the window keeps (in a recording
+            # whose stamps went back, as older recorders' did at --speed 10, the window's
+            # holes would otherwise read as scans missing)
+            info.lost = losses_within(_unique_scans(rows)[0], self.since, self.until)
+            rows, info.duplicates = _unique_scans(windowed)
         info.scans = len(rows)
         if len(rows):
             info.first_stamp_ns = int(rows["stamp_ns"][0])
@@ -444,6 +452,16 @@ def _unique_scans(rows: np.ndarray) -> tuple[np.ndarray, int]:
     keep = np.ones(len(rows), dtype=bool)
     keep[1:] = (e[1:] != e[:-1]) | (c[1:] != c[:-1])
     return rows[keep], int(len(rows) - keep.sum())
+
+
+def losses_within(rows: np.ndarray, since: int | None, until: int | None) -> list[Loss]:
+    """The losses of ``rows`` (:func:`_losses`) between two scans both stamped in
+    ``since <= stamp < until``."""
+
+    def inside(ns: int) -> bool:
+        return (since is None or ns >= since) and (until is None or ns < until)
+
+    return [x for x in _losses(rows) if inside(x.after_ns) and inside(x.before_ns)]
 
 
 def _losses(rows: np.ndarray) -> list[Loss]:

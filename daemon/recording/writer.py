@@ -71,6 +71,8 @@ class RecordingWriter:
         self.scans_written = 0
         self.first_stamp_ns: int | None = None
         self.last_stamp_ns: int | None = None
+        #: log time of the last event written (events' log times never go back in a file)
+        self.last_event_ns: int | None = None
         self.durable_size = 0
         #: why the per-scan poses could not be computed ("" while they can); the raw scans
         #: are written regardless
@@ -114,6 +116,10 @@ class RecordingWriter:
     def write(self, rows: np.ndarray, events: Iterable[Event] = ()) -> None:
         """Append scans (SCAN_DTYPE rows, oldest first) and events, and make them durable.
 
+        The scans' stamps are their log times as they are: the caller keeps them in order
+        (the recorder starts a new file where they would go back). Events are written in
+        time order, none logged before the last one already written.
+
         Raises OSError if the disk refuses; the writer must then be abandoned.
         """
         if self._closed:
@@ -129,12 +135,20 @@ class RecordingWriter:
                               encode_scan_block(block), int(block["host_ns"][-1]),
                               self._blocks & 0xFFFFFFFF)  # fmt: skip
                 self._blocks += 1
-        for ev in events:
+        # Events come from several threads, each stamped when it happened, and reach a
+        # flush in the order they were handed on, not quite in time order: written in time
+        # order, each logged no earlier than the one before it in the file (its own time
+        # stays in the message and its publish time).
+        for ev in sorted(events, key=lambda e: e.stamp_ns):
             obj = ev.to_json()
-            w.add_message(ch[TOPIC_EVENTS], ev.stamp_ns, json.dumps(obj).encode(), ev.stamp_ns)
+            at = ev.stamp_ns
+            if self.last_event_ns is not None and at < self.last_event_ns:
+                at = self.last_event_ns
+            self.last_event_ns = at
+            w.add_message(ch[TOPIC_EVENTS], at, json.dumps(obj).encode(), ev.stamp_ns)
             log = {"timestamp": obj["timestamp"], "level": obj["level"], "name": "loopcal",
                    "message": f"{ev.kind}: {ev.message}", "file": "", "line": 0}  # fmt: skip
-            w.add_message(ch[TOPIC_LOG], ev.stamp_ns, json.dumps(log).encode(), ev.stamp_ns)
+            w.add_message(ch[TOPIC_LOG], at, json.dumps(log).encode(), ev.stamp_ns)
         w.flush()  # chunk 1: what a reader of the scans needs
         if len(rows):
             self._write_views(rows)
