@@ -130,3 +130,21 @@ def test_what_is_not_a_regular_file_is_refused_at_once(command: str, tmp_path: P
         assert proc.returncode == 2, (target, proc.stderr)
         assert f"loopcal {command}: error: " in proc.stderr and words in proc.stderr, proc.stderr
         assert "Traceback" not in proc.stderr
+
+
+def test_observability_json_says_what_its_text_says_and_exits_1_when_unobservable() -> None:
+    import json
+
+    ok = _loopcal("observability", "--json", "--poses", "200")
+    assert ok.returncode == 0, ok.stderr
+    doc = json.loads(ok.stdout)
+    assert doc["observable"] is True and set(doc["status"]) == set(doc["free"])
+    assert doc["poses"] == 200 and all(v == "ok" for v in doc["status"].values())
+    text = _loopcal("observability", "--poses", "200").stdout
+    for name, status in doc["status"].items():
+        assert re.search(rf"^\s*{name}: {status}\b", text, re.M), (name, text)
+    every = _loopcal("observability", "--json", "--free", "all", "--poses", "200")
+    assert every.returncode == 1, every.stderr  # k1, k2 cannot be told from the offsets
+    doc = json.loads(every.stdout)
+    assert doc["observable"] is False and doc["weak_directions"]
+    assert "unobservable" in doc["status"].values() and doc["suggested_free"]
