@@ -198,3 +198,20 @@ def test_demo_bad_options(args, message):
     proc = subprocess.run([*ENTRY, "demo", *args], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert message in proc.stderr
+
+
+def test_demo_json_is_one_object_that_matches_the_config_written(tmp_path):
+    import json
+
+    demo = run_demo("--out", str(tmp_path), "--seed", "3", "--json")
+    assert demo.returncode == 0, demo.stdout + demo.stderr
+    doc = json.loads(demo.stdout)  # stdout holds the object alone; the session went to stderr
+    assert "$ loopcal record " in demo.stderr and "verdict: " in demo.stderr
+    assert doc["exit_status"] == 0 and doc["written"] is True and doc["work"] == str(tmp_path)
+    assert doc["verdict"] == demo.stderr.rstrip("\n").splitlines()[-1].removeprefix("verdict: ")
+    written = load_controller_config(tmp_path / "controller.toml")
+    assert set(doc["parameters"]) == {"d01", "d02", "d03", "d04", "A1x", "A2x", "A2y"}
+    for name, p in doc["parameters"].items():
+        assert p["written"] == written.params[INDEX[name]], name
+        assert p["error"] == pytest.approx(p["written"] - p["truth"], abs=1e-12)
+        assert p["std"] == written.provenance["std"][name] and abs(p["error"]) < 3.5 * p["std"]
