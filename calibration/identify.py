@@ -513,61 +513,6 @@ def _identify_ml(V, model, p0, noise_volts, scans_per_pose, max_iter, max_change
     )
 
 
-def fit_fixed(
-    volts: np.ndarray,
-    ref: np.ndarray,
-    model: ParameterModel = PAPER7,
-    start: np.ndarray = NOMINAL,
-    *,
-    max_iter: int = 100,
-    xtol: float = 1e-8,
-    ftol: float = 1e-12,
-    max_change: float = 50.0,
-) -> tuple[np.ndarray, int, bool, str]:
-    """The bare solver of :func:`identify` (paper's method): Levenberg-Marquardt on fixed
-    poses with fixed branch references, no pose screening, no covariance.
-
-    For benchmarks and for callers that manage poses themselves.
-
-    Parameters
-    ----------
-    volts : array_like, shape (m, 4)
-        LVDT readings, V.
-    ref : array_like, shape (m, 2, 3)
-        Branch references, mm (:func:`~loopcal.calibration.residuals.reference_points`).
-    model : ParameterModel, default PAPER7
-        The free/tied/fixed split.
-    start : array_like, shape (20,), default NOMINAL
-        Start, and the values of the fixed parameters.
-    max_iter, xtol, ftol, max_change
-        As for :func:`identify`; a step beyond ``max_change`` is refused, but reaching it
-        raises nothing here.
-
-    Returns
-    -------
-    params : ndarray, shape (20,)
-        The estimate.
-    iterations : int
-    converged : bool
-    message : str
-        How the iteration ended.
-
-    Raises
-    ------
-    InputError, ParameterError
-        Bad readings or start.
-    UnobservableError
-        The free set is rank deficient on these poses at the start.
-    """
-    V = check_volts(volts)
-    p0 = check_vector(start)
-    p, _, _, it, converged, message = _levenberg_marquardt(
-        V, np.asarray(ref, dtype=float), model, p0, model.free_values(p0), p0, max_iter,
-        xtol, ftol, max_change, [],
-    )  # fmt: skip
-    return p, it, converged, message
-
-
 def _levenberg_marquardt(V, ref, model, p_start, x0, p0, max_iter, xtol, ftol, max_change, history):
     """LM with column scaling on poses V from p_start. The branch references ``ref`` (forward
     kinematics at p_start) stay fixed, so the objective is smooth within one call."""
