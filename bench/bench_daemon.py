@@ -13,7 +13,7 @@ process). Three figures, each against a baseline measured in the same run:
   accelerated rate (200 Hz of device time, ``--speed`` times as fast), sampled as it goes;
   baseline: its resident memory after the first 50,000 scans. Target: no growth.
 
-Run: ``python bench/bench_daemon.py [--seconds 60] [--scans 1000000] [--speed 25]``.
+Run: ``python -m bench.bench_daemon [--seconds 60] [--scans 1000000] [--speed 25]``.
 """
 
 from __future__ import annotations
@@ -29,12 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
-from recorder_helpers import cpu_seconds, hand_emulator  # noqa: E402
-
-from loopcal.daemon.recording import read_recordings  # noqa: E402
-from loopcal.simulator import Emulator, SimClock  # noqa: E402
-from loopcal.simulator.source import TestSource  # noqa: E402
+from loopcal.daemon.recording import read_recordings
+from loopcal.simulator import Emulator, SimClock
+from loopcal.simulator.source import TestSource
+from tests.support.emulator import hand_emulator
+from tests.support.processes import cpu_seconds
 
 LOOPCAL = [sys.executable, "-m", "loopcal.daemon.cli"]
 

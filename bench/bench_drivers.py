@@ -12,7 +12,7 @@ Three figures per transport, each the median over --repeats runs:
   every poll yields one new scan: polls (= scans) per wall second, the ceiling of the
   polling mode (ASCII, or Modbus with fifo=0).
 
-Run: ``python bench/bench_drivers.py [--repeats 5] [--seconds 2] [--target 1000]``.
+Run: ``python -m bench.bench_drivers [--repeats 5] [--seconds 2] [--target 1000]``.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """``loopcal fleet`` on Dask: the speed-up from one worker to two on this machine, and what
 a task costs Dask beyond its own work.
 
-    python bench/bench_fleet.py [--robots 4] [--days 3] [--minutes 120] [--repeats 3]
+    python -m bench.bench_fleet [--robots 4] [--days 3] [--minutes 120] [--repeats 3]
 
 A synthetic fleet (``--robots`` robots, ``--days`` days each of ``--minutes`` of a
 technician moving the joint, written once under bench/results/fleet) is checked
@@ -26,21 +26,19 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-
-from _timing import median_time  # noqa: E402
-from session_helpers import PAUSE_S, T0, truth_for, write_session  # noqa: E402
-
-from loopcal.daemon.config.controller import write_initial_config  # noqa: E402
-from loopcal.daemon.inspect.fleet import (  # noqa: E402
+from bench._timing import median_time
+from loopcal.daemon.config.controller import write_initial_config
+from loopcal.daemon.inspect.fleet import (
     RobotDay,
     check_task,
     info_task,
     robot_days,
     run_on_dask,
 )
-from loopcal.daemon.live.health import FALSE_ALARM  # noqa: E402
-from loopcal.simulator.scenarios import HandMoves  # noqa: E402
+from loopcal.daemon.live.health import FALSE_ALARM
+from loopcal.simulator.scenarios import HandMoves
+from tests.support.rows import T0
+from tests.support.sessions import PAUSE_S, truth_for, write_session
 
 DAY_NS = 86_400 * 10**9
 

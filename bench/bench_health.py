@@ -22,7 +22,7 @@ truth. Scans are :mod:`loopcal.simulator.offline`'s, the emulator's own, bit for
   when it was raised); baseline: the same scans fed offline. The daemon's own lag (a FIFO
   read every 0.2 s, the monitor fed every 0.25 s) is multiplied by the speed in device time.
 
-Run: ``python bench/bench_health.py [--part clean detect live] [--hours 1] [--seeds N]``.
+Run: ``python -m bench.bench_health [--part clean detect live] [--hours 1] [--seeds N]``.
 """
 
 from __future__ import annotations
@@ -38,17 +38,16 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
-from recorder_helpers import Proc, listening_url  # noqa: E402
-from session_helpers import PAUSE_S, rows_from, truth_for  # noqa: E402
-
-from loopcal.calibration.parameters import NAMES  # noqa: E402
-from loopcal.daemon.config.controller import nominal_config, write_initial_config  # noqa: E402
-from loopcal.daemon.live.health import HealthMonitor  # noqa: E402
-from loopcal.daemon.recording import read_recordings  # noqa: E402
-from loopcal.simulator.drift import OffsetDrift  # noqa: E402
-from loopcal.simulator.offline import mechanism_scans  # noqa: E402
-from loopcal.simulator.scenarios import HandMoves  # noqa: E402
+from loopcal.calibration.parameters import NAMES
+from loopcal.daemon.config.controller import nominal_config, write_initial_config
+from loopcal.daemon.live.health import HealthMonitor
+from loopcal.daemon.recording import read_recordings
+from loopcal.simulator.drift import OffsetDrift
+from loopcal.simulator.offline import mechanism_scans
+from loopcal.simulator.scenarios import HandMoves
+from tests.support.processes import Proc, listening_url
+from tests.support.rows import rows_from
+from tests.support.sessions import PAUSE_S, truth_for
 
 LOOPCAL = [sys.executable, "-m", "loopcal.daemon.cli"]
 RATE = 20

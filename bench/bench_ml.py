@@ -43,7 +43,7 @@ RMS and mean of error / reported std, and how many were accepted (``--dir`` keep
 recordings and reuses them on the next run). Targets (ml): RMS error < 0.1 mm for
 d01..d04 and < 0.15 mm for A1x, A2x, A2y.
 
-Run: ``python bench/bench_ml.py [--part mc|scale|anchor|sessions] [--sessions 200] [--jobs 2]
+Run: ``python -m bench.bench_ml [--part mc|scale|anchor|sessions] [--sessions 200] [--jobs 2]
 [--repeats 3] [--seeds 101 102 ...] [--dir DIR]``.
 """
 
@@ -63,18 +63,16 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sparse
-from _timing import median_time
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
-
-from loopcal.calibration import implicit  # noqa: E402
-from loopcal.calibration.identify import identify  # noqa: E402
-from loopcal.calibration.implicit import cramer_rao, start_rotations  # noqa: E402
-from loopcal.calibration.parameters import INDEX, NOMINAL, PAPER7  # noqa: E402
-from loopcal.calibration.pipeline import calibrate  # noqa: E402
-from loopcal.calibration.simulate import simulate_poses  # noqa: E402
+from bench._timing import median_time
+from loopcal.calibration import implicit
+from loopcal.calibration.identify import identify
+from loopcal.calibration.implicit import cramer_rao, start_rotations
+from loopcal.calibration.parameters import INDEX, NOMINAL, PAPER7
+from loopcal.calibration.pipeline import calibrate
+from loopcal.calibration.simulate import simulate_poses
 
 METHODS = ("ml", "paper")
 NOISE_VOLTS = 0.040
@@ -515,9 +513,9 @@ def run_anchor(repeats: int) -> None:
 
 
 def run_sessions(seeds: list[int], directory: Path | None) -> None:
-    from session_helpers import calibrate_json, fresh_config, live_sessions, trim, truth_for
-
     from loopcal.daemon.recording import find_recordings
+    from tests.support.processes import calibrate_json, fresh_config
+    from tests.support.sessions import live_sessions, trim, truth_for
 
     print(
         f"== sessions: {len(seeds)} technician sessions, 40 mV, recorded through loopcal "

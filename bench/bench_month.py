@@ -1,6 +1,6 @@
 """A month of recordings through ``loopcal info`` and ``loopcal check``: time and peak memory.
 
-    python bench/bench_month.py [--days 30] [--dir bench/results/month]
+    python -m bench.bench_month [--days 30] [--dir bench/results/month]
 
 Writes (once, cached) ``--days`` days of 20 Hz recording in hourly files, as the daemon
 keeps them after compaction (large chunks): a technician's hand-moved session
@@ -27,15 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-
-from fuzz_helpers import write_rows  # noqa: E402
-from session_helpers import PAUSE_S, rows_from, truth_for  # noqa: E402
-
-from loopcal.daemon import recording as rec  # noqa: E402
-from loopcal.daemon.config.controller import write_initial_config  # noqa: E402
-from loopcal.simulator.offline import mechanism_scans  # noqa: E402
-from loopcal.simulator.scenarios import HandMoves  # noqa: E402
+from loopcal.daemon import recording as rec
+from loopcal.daemon.config.controller import write_initial_config
+from loopcal.simulator.offline import mechanism_scans
+from loopcal.simulator.scenarios import HandMoves
+from tests.support.recordings import write_rows
+from tests.support.rows import rows_from
+from tests.support.sessions import PAUSE_S, truth_for
 
 RATE = 20
 HOUR = 3600 * RATE

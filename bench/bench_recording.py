@@ -15,7 +15,7 @@ into 24 files, realistic codes. Then, each the median of ``--repeats`` runs:
   second, and what a day would take at that rate if each scan were one message (the
   layout this format avoids). The ratio compares the two.
 
-Run: ``python bench/bench_recording.py [--repeats 5] [--dir bench/results/day]``.
+Run: ``python -m bench.bench_recording [--repeats 5] [--dir bench/results/day]``.
 """
 
 from __future__ import annotations
@@ -28,19 +28,16 @@ from pathlib import Path
 import numpy as np
 from mcap.reader import make_reader
 
-sys.path.insert(0, str(Path(__file__).parent))
-from _recordings import compacted_copy  # noqa: E402
-from _timing import median_time  # noqa: E402
-
-from loopcal.calibration.parameters import NOMINAL  # noqa: E402
-from loopcal.calibration.simulate import simulate_poses  # noqa: E402
-from loopcal.daemon import recording as rec  # noqa: E402
-from loopcal.daemon import scans as S  # noqa: E402
-from loopcal.drivers.ldq412 import volts_to_code  # noqa: E402
+from bench._timing import median_time
+from loopcal.calibration.parameters import NOMINAL
+from loopcal.calibration.simulate import simulate_poses
+from loopcal.daemon import recording as rec
+from loopcal.drivers.ldq412 import volts_to_code
+from tests.support.recordings import compacted_copy
+from tests.support.rows import rows_from
 
 RATE = 20
 HOUR = 3600 * RATE
-T0 = 1_795_000_000_000_000_000
 
 
 def write_day(directory: Path, hours: int) -> list[Path]:
@@ -55,15 +52,9 @@ def write_day(directory: Path, hours: int) -> list[Path]:
     files = []
     t_start = time.perf_counter()
     for h in range(hours):
-        rows = S.empty(HOUR)
-        c = np.arange(h * HOUR, (h + 1) * HOUR, dtype=np.uint64)
-        rows["counter64"] = c
-        rows["time64_us"] = c * 50_000
-        rows["stamp_ns"] = T0 + (c * 50_000_000).astype(np.int64)
-        rows["host_ns"] = rows["stamp_ns"] + 3_000_000
+        c = np.arange(h * HOUR, (h + 1) * HOUR, dtype=np.int64)
         # a technician's hand: still for ~2 s, then somewhere else
-        rows["codes"] = codes[(c // 40) % len(codes)]
-        rows["from_fifo"] = True
+        rows = rows_from(c * 50_000, codes[(c // 40) % len(codes)], counter=c)
         path = directory / rec.recording_name(int(rows["stamp_ns"][0]))
         meta = rec.metadata_records(device={"model": "LDQ412"}, controller={}, command="bench")
         w = rec.RecordingWriter(path, metadata=meta, params=NOMINAL, fsync=False)

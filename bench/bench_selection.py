@@ -1,6 +1,6 @@
 """Pose selection: choose 50 of 10,000 candidate poses for the paper's 7 parameters.
 
-    python bench/bench_selection.py [--repeats 5]
+    python -m bench.bench_selection [--repeats 5]
 
 Prints the time, the chosen set's minimum singular value as a fraction of the certified
 upper bound (see calibration/selection.py: for any trace-one Z >= 0, lambda_min of every
@@ -15,8 +15,8 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from _timing import median_time
 
+from bench._timing import median_time
 from loopcal.calibration.observability import column_scales, observability_indices
 from loopcal.calibration.parameters import NOMINAL, PAPER7
 from loopcal.calibration.selection import candidate_jacobian, select_poses

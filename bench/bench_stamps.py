@@ -1,5 +1,5 @@
 """Time stamps and poll schedule against a module whose clock is not the host's, over
-simulated hours (pure arithmetic: tests/timeline_helpers.py; the datasheet's answer times,
+simulated hours (pure arithmetic: tests/support/timeline.py; the datasheet's answer times,
 0.5-10 ms).
 
 Stamps (FIFO reads every 0.2 s): the recorder's stamp of every scan against the host time
@@ -12,7 +12,7 @@ much.
 Polls (no FIFO, 20 Hz): polls per scan and scans missed by the phase lock; baseline: the
 former schedule (just after the next scan is due by the smallest arrival delay seen).
 
-Run: ``python bench/bench_stamps.py [--hours 6] [--ppm 200 -200 0 1000 -1000] [--rate 20]``
+Run: ``python -m bench.bench_stamps [--hours 6] [--ppm 200 -200 0 1000 -1000] [--rate 20]``
 (``--rate``: the module's scan rate for the stamps, Hz).
 """
 
@@ -20,16 +20,12 @@ from __future__ import annotations
 
 import argparse
 import collections
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
-from timeline_helpers import Module, datasheet_latency, run_polls, run_stamps  # noqa: E402
-
-from loopcal.daemon.recorder.clockmap import ClockMap  # noqa: E402
+from loopcal.daemon.recorder.clockmap import ClockMap
+from tests.support.timeline import Module, datasheet_latency, run_polls, run_stamps
 
 
 class FormerClockMap:
@@ -134,8 +130,11 @@ def stamp_figures(hours: float, ppm: float, rate_hz: int = 20) -> None:
     print(
         f"    the floor (each stamp at least 1 ns after the last) raised {len(raised)} of "
         f"{floored.stamped:,} stamps above the line"
-        + (f", by at most {raised.max():.3f} ms (median {np.median(raised):.3f})"
-           if len(raised) else "")
+        + (
+            f", by at most {raised.max():.3f} ms (median {np.median(raised):.3f})"
+            if len(raised)
+            else ""
+        )
     )
 
 

@@ -1,6 +1,6 @@
 """Start-up time of the ``loopcal`` command, against importing numpy and scipy.linalg.
 
-    python bench/bench_startup.py [--repeats 15]
+    python -m bench.bench_startup [--repeats 15]
 
 Every command is a fresh process (``python -m loopcal.daemon.cli ...``), timed wall to wall, the
 runs of all commands interleaved so that a busy machine slows them alike; medians:
@@ -22,12 +22,9 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-
-from session_helpers import PAUSE_S, truth_for, write_session  # noqa: E402
-
-from loopcal.daemon.config.controller import write_initial_config  # noqa: E402
-from loopcal.simulator.scenarios import HandMoves  # noqa: E402
+from loopcal.daemon.config.controller import write_initial_config
+from loopcal.simulator.scenarios import HandMoves
+from tests.support.sessions import PAUSE_S, truth_for, write_session
 
 PY = sys.executable
 

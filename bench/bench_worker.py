@@ -18,7 +18,7 @@ calls them): the still-pose search, the held-out split and the gates, the select
 estimate's included), and the worker's total; and the command's total, with the share of it
 the read takes (the same read, timed in this process).
 
-Run: ``python bench/bench_worker.py [--repeats 3] [--dir bench/results/worker]``.
+Run: ``python -m bench.bench_worker [--repeats 3] [--dir bench/results/worker]``.
 """
 
 from __future__ import annotations
@@ -30,17 +30,15 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
-from _recordings import compacted_copy  # noqa: E402
-from session_helpers import PAUSE_S, truth_for, write_session  # noqa: E402
-
-import loopcal.calibration.pipeline as pipeline  # noqa: E402
-import loopcal.daemon.worker.run as worker_run  # noqa: E402
-from loopcal.daemon.config.controller import load_controller_config, write_initial_config  # noqa: E402
-from loopcal.daemon.recording import find_recordings, read_recordings  # noqa: E402
-from loopcal.daemon.worker.poses import poses_of_scans  # noqa: E402
-from loopcal.daemon.worker.run import run_worker  # noqa: E402
-from loopcal.simulator.scenarios import HandMoves  # noqa: E402
+import loopcal.calibration.pipeline as pipeline
+import loopcal.daemon.worker.run as worker_run
+from loopcal.daemon.config.controller import load_controller_config, write_initial_config
+from loopcal.daemon.recording import find_recordings, read_recordings
+from loopcal.daemon.worker.poses import poses_of_scans
+from loopcal.daemon.worker.run import run_worker
+from loopcal.simulator.scenarios import HandMoves
+from tests.support.recordings import compacted_copy
+from tests.support.sessions import PAUSE_S, truth_for, write_session
 
 LENGTHS = {"2 min": 120, "1 h": 3600, "24 h": 86400}
 

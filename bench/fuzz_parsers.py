@@ -1,6 +1,6 @@
 """A long fuzz run of every parser of outside input, printing counts per outcome.
 
-    python bench/fuzz_parsers.py [--cases 3000] [--seed 1] [--only recording|ascii|url|toml]
+    python -m bench.fuzz_parsers [--cases 3000] [--seed 1] [--only recording|ascii|url|toml]
 
 For each parser, random inputs near valid ones (and plain random bytes) go in, and each
 outcome is counted:
@@ -31,29 +31,25 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-
-from fuzz_helpers import (  # noqa: E402
-    ACCEPTABLE,
-    ASCII_ANSWERS,
-    DAEMON_TOML,
-    MUTATIONS,
-    T0,
-    closed_and_unclosed,
-    judge,
-    make_rows,
-)
-
-from loopcal.daemon.config.controller import (  # noqa: E402
+from loopcal.daemon.config.controller import (
     ControllerConfigError,
     load_controller_config,
     render_initial_config,
 )
-from loopcal.daemon.recorder.settings import SettingsError, load_daemon_config  # noqa: E402
-from loopcal.daemon.recording import recording_name  # noqa: E402
-from loopcal.drivers import DAQInvalidCommand, DAQProtocolError, driver_for_url  # noqa: E402
-from loopcal.drivers import ascii as ascii_proto  # noqa: E402
-from loopcal.drivers.ldq412 import ascii_checksum  # noqa: E402
+from loopcal.daemon.recorder.settings import SettingsError, load_daemon_config
+from loopcal.daemon.recording import recording_name
+from loopcal.drivers import DAQInvalidCommand, DAQProtocolError, driver_for_url
+from loopcal.drivers import ascii as ascii_proto
+from loopcal.drivers.ldq412 import ascii_checksum
+from tests.support.mutations import (
+    ACCEPTABLE,
+    ASCII_ANSWERS,
+    DAEMON_TOML,
+    MUTATIONS,
+    closed_and_unclosed,
+    judge,
+)
+from tests.support.rows import T0, make_rows
 
 HANG_S = 10
 
@@ -117,6 +113,7 @@ def recording_cases(rnd: random.Random, n: int, work: Path) -> collections.Count
 
 
 # ---------------------------------------------------------------------------- wire and text
+
 
 def _near(rnd: random.Random, good: bytes) -> bytes:
     if rnd.random() < 0.2:
@@ -199,8 +196,6 @@ def toml_case(rnd: random.Random, work: Path, daemon_text: str) -> str:
     except SettingsError:
         return "daemon: refused"
     return "daemon: loaded"
-
-
 
 
 def main() -> int:

@@ -21,7 +21,7 @@ At the end, against the module's own list of the scans it made:
 - RSS and open file descriptors of the longest-lived daemon did not grow;
 - the daemon is still recording, and exits 0 on SIGTERM.
 
-Run as root (to mount the tmpfs): ``python bench/soak.py [--minutes 30] [--seed 1]``.
+Run as root (to mount the tmpfs): ``python -m bench.soak [--minutes 30] [--seed 1]``.
 Prints the fault counts and the figures; exits 1 if a check fails.
 """
 
@@ -43,12 +43,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from recorder_helpers import hand_emulator  # noqa: E402
-
-from loopcal.daemon.recording import read_recordings  # noqa: E402
-from loopcal.simulator.clock import RealClock  # noqa: E402
-from loopcal.simulator.open_points import Latency, OpenPoints  # noqa: E402
+from loopcal.daemon.recording import read_recordings
+from loopcal.simulator.clock import RealClock
+from loopcal.simulator.open_points import Latency, OpenPoints
+from tests.support.emulator import hand_emulator
 
 RATE = 200
 PHASE_US = 1809
@@ -352,8 +350,10 @@ class Soak:
         wrong = 0
         for (b, c), r in zip(keys, rows, strict=True):
             i = key_truth.get((b, c))
-            if i is None or t64[i] != int(r["time64_us"]) or tuple(codes[i]) != tuple(
-                int(x) for x in r["codes"]
+            if (
+                i is None
+                or t64[i] != int(r["time64_us"])
+                or tuple(codes[i]) != tuple(int(x) for x in r["codes"])
             ):
                 wrong += 1
         print(f"recorded {len(rows):,} scans in {len(rec.files)} files; "
@@ -422,8 +422,10 @@ class Soak:
                     t = h - self.mono0 / 1e9
                     near = [f"{f.kind}@{f.start - self.mono0 / 1e9:.1f}" for f in self.faults
                             if f.start - 5 <= h <= f.end + 25]  # fmt: skip
-                    print(f"  gap at {t:7.1f} s: boot {b} counter {int(r['counter64'])} missed "
-                          f"{int(r['missed'])} restarted {bool(r['restarted'])} {near}")
+                    print(
+                        f"  gap at {t:7.1f} s: boot {b} counter {int(r['counter64'])} missed "
+                        f"{int(r['missed'])} restarted {bool(r['restarted'])} {near}"
+                    )
         made = len(key_truth)
         print(f"the module made {made:,} scans; not recorded:")
         for k, n in why.most_common():

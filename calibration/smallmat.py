@@ -7,7 +7,7 @@ a12)``, each (m,) (or anything broadcasting against (m,)). Each operation is the
 dozen elementwise operations over contiguous pose arrays, where the batched routines of
 ``numpy.linalg`` (``inv``, ``solve``, ``svd``, ``eigvalsh`` on (m, 3, 3)) and
 ``scipy.spatial.transform.Rotation`` pay a call per pose. The results agree with those
-routines to rounding (tests/test_calibration_smallmat.py).
+routines to rounding (tests/calibration/test_smallmat.py).
 
 Nothing here raises on a singular or indefinite matrix: the affected poses get NaN or inf,
 and callers test ``np.isfinite``.

@@ -544,7 +544,7 @@ def chi2_quantile(dof: int, tail: float) -> float:
     The value a chi-square variable of ``dof`` degrees of freedom exceeds with probability
     ``tail``, as ``scipy.special.chdtri(dof, tail)`` gives it (scipy.special costs a fifth
     of a second to import): Newton's method on log Q(dof / 2, x / 2) from the
-    Wilson-Hilferty approximation (tests/test_worker_gates.py compares the two).
+    Wilson-Hilferty approximation (tests/daemon/worker/test_gates.py compares the two).
 
     Parameters
     ----------

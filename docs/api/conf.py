@@ -1,7 +1,7 @@
 """Sphinx configuration of the API reference (docs/api.md says how to build it).
 
 The reference is built from the docstrings of the installed package (``pip install -e .``
-first), numpy style, with warnings as errors in the tests (tests/test_api_docs.py). This is
+first), numpy style, with warnings as errors in the tests (tests/project/test_api_docs.py). This is
 the only Python file under docs/; it is not package data (pyproject.toml ships docs/*.md).
 """
 
@@ -32,7 +32,7 @@ autodoc_preserve_defaults = True
 autoclass_content = "class"
 
 
-# The packages whose docstrings are numpy style. tests/test_api_docs.py checks that every
+# The packages whose docstrings are numpy style. tests/project/test_api_docs.py checks that every
 # public function and class of each is in the reference with a Parameters, Returns or
 # Attributes section. Add a package here (one line) once its docstrings are written.
 NUMPY_STYLE = ("loopcal.calibration", "loopcal.drivers", "loopcal.simulator",

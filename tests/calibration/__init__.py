@@ -1,0 +1,1 @@
+"""Tests of calibration/: the mathematics, against independent references and properties."""

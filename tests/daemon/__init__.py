@@ -1,0 +1,1 @@
+"""Tests of daemon/, one folder per sub-package; the parsers' fuzzers here."""

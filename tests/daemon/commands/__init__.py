@@ -1,0 +1,1 @@
+"""Tests of daemon/commands/ and the command line's conventions."""

@@ -1,0 +1,162 @@
+"""``loopcal info`` and ``loopcal check`` on real recording files, as subprocesses."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from datetime import UTC, datetime
+
+import numpy as np
+import pytest
+
+from loopcal.daemon import recording as rec
+from loopcal.daemon.config.controller import write_initial_config
+from loopcal.daemon.events import Event, Level
+from loopcal.simulator.drift import OffsetDrift
+from loopcal.simulator.scenarios import HandMoves
+from tests.support.emulator import hand_emulator
+from tests.support.mutations import tear_chunk
+from tests.support.processes import loopcal, record
+from tests.support.recordings import write_rows
+from tests.support.rows import T0, make_rows
+from tests.support.sessions import PAUSE_S, truth_for, write_session
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def _write(path, rows, events=()):
+    write_rows(
+        path,
+        rows,
+        events=events,
+        metadata=rec.metadata_records(
+            device={"model": "LDQ412", "serial": "12648430"},
+            controller={
+                "path": "/etc/loopcal/controller/controller.toml",
+                "sha256": "ab" * 32,
+                "provenance": json.dumps(
+                    {"written_utc": "2026-11-20T10:00:00+00:00", "method": "ml"}
+                ),
+            },  # fmt: skip
+            command="pytest",
+        ),
+        params=np.array(truth_for(1)),
+        fsync=False,
+    )
+
+
+def test_info_counts_scans_gaps_restarts_events_and_damage(tmp_path):
+    a = make_rows(1000, epoch=0)
+    a["counter64"][500:] += 3  # three scans never received
+    a["missed"][500] = 3
+    b = make_rows(600, epoch=1, t0=T0 + 60 * 10**9)  # the module restarted
+    b["restarted"][0] = True
+    evs = [
+        Event(int(a["stamp_ns"][500]), "gap", Level.WARNING, "3 missed", {"missed": 3}),
+        Event(int(b["stamp_ns"][0]), "restart", Level.WARNING, "restart", {"epoch": 1}),
+    ]
+    d = tmp_path / "rec"
+    d.mkdir()
+    fa, fb = d / rec.recording_name(T0), d / rec.recording_name(T0 + 60 * 10**9)
+    _write(fa, a, evs)
+    _write(fb, b, evs)
+    shutil.copy(fa, d / rec.recording_name(T0 + 10**6))  # a copy: counted once
+    proc = loopcal("info", d, "--json")
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout)
+    assert doc["scans"] == 1600 and len(doc["files"]) == 3
+    assert doc["missed"] == 3 and doc["gaps"] == 1
+    assert doc["restarts"] == 1 and doc["power_ons"] == 2
+    assert doc["powered_on_utc"] is None  # the first scan has no restart flag: powered on before
+    assert doc["events"] == {"gap": 1, "restart": 1}
+    assert doc["start_utc"] == datetime.fromtimestamp(T0 / 1e9, UTC).isoformat(
+        timespec="milliseconds"
+    )
+    assert doc["scan_rate_hz"] == pytest.approx(20.0)
+    assert doc["poses"] == 0 and doc["warnings"] == []  # every scan a new pose: none still
+    [cfg] = doc["controller_configs"]
+    assert cfg["calibrated_utc"].startswith("2026-11-20") and cfg["method"] == "ml"
+    # damage a file: info says what was lost, by name
+    tear_chunk(fb, 8, head=40)
+    proc = loopcal("info", d)
+    assert proc.returncode == 0
+    assert "scan(s) missing" in proc.stdout and fb.name in proc.stdout
+    assert "restarts:   1 (power-ons seen: 2)" in proc.stdout and "gap" in proc.stdout
+    assert "powered on: before the first scan" in proc.stdout
+    bad = loopcal("info", tmp_path / "nothing-here")
+    assert bad.returncode == 2 and "no such file" in bad.stderr
+
+
+@pytest.mark.parametrize("power_cycle", [False, True], ids=["never-restarted", "power-cycled"])
+def test_info_names_the_power_on_and_counts_restarts_after_it(tmp_path, power_cycle):
+    """A real recording through ``loopcal record``: the module's first scan after power-on
+    carries the restart flag; info names that the power-on and counts only the restarts
+    after it, as many as the emulated module really had (its power cycles)."""
+    out = tmp_path / "rec"
+    with hand_emulator(speed=5.0) as emu:  # switched on by the recorder's first request
+        proc = record(emu.url, out)
+        try:
+            proc.wait_for(r"connect: LDQ412", 30)
+            time.sleep(1.0)
+            if power_cycle:
+                emu.faults.restart()
+                proc.wait_for(r"restart: module restarted", 30)
+                time.sleep(1.0)
+            assert proc.stop(30)[0] == 0, proc.text
+        finally:
+            proc.kill()
+        boots = {s.boot for s in emu.truth}
+    assert len(boots) == (2 if power_cycle else 1)
+    scans = rec.read_recordings(out).scans
+    assert scans["restarted"][0] and scans["counter64"][0] == 0  # recorded from power-on
+    doc = json.loads(loopcal("info", out, "--json").stdout)
+    assert doc["restarts"] == len(boots) - 1 and doc["power_ons"] == len(boots)
+    assert doc["powered_on_utc"] == doc["start_utc"] is not None
+    text = loopcal("info", out).stdout
+    assert f"powered on: {doc['start_utc'].replace('T', ' ').replace('+00:00', ' UTC')} " in text
+    assert f"restarts:   {len(boots) - 1} since (power-ons seen: {len(boots)})" in text
+
+
+@pytest.fixture(scope="module")
+def drifting(tmp_path_factory):
+    """Eight minutes of a hand-moved session whose sensor 3 offset steps by +0.5 mm at
+    240 s, and a controller config with the mechanism's true values."""
+    d = tmp_path_factory.mktemp("drift")
+    truth = truth_for(5)
+    write_session(d / "rec", HandMoves(5, params=truth, pause_s=PAUSE_S), truth, 480, seed=5,
+                  hours_per_file=2 / 60, drifts=(OffsetDrift("step", 3, 240.0, 0.5),))  # fmt: skip
+    config = write_initial_config(d / "controller.toml", params=truth)
+    return d / "rec", config
+
+
+def test_check_names_the_sensor_when_and_how_much(drifting, tmp_path):
+    rec_dir, config = drifting
+    png = tmp_path / "check.png"
+    proc = loopcal("check", rec_dir, "--controller-config", config, "--json", "--plot", png)
+    assert proc.returncode == 1, proc.stderr
+    doc = json.loads(proc.stdout)
+    assert not doc["loops_close"] and len(doc["recordings"]) == 4
+    [change] = doc["changes"]
+    assert change["sensor"] == 3 and change["shape"] in ("step", "creep")
+    assert abs(change["shift_mm"] - 0.5) < 4 * change["std_mm"] + 0.05
+    start = datetime.fromisoformat(change["start_utc"]).timestamp()
+    assert abs(start - (T0 / 1e9 + 240)) < 30  # the first still pose it shifted
+    assert abs(change["start_offset_s"] - 240) < 30
+    assert datetime.fromisoformat(change["detected_utc"]).timestamp() > start
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
+    human = loopcal("check", rec_dir, "--controller-config", config)
+    assert human.returncode == 1 and "sensor 3: offset moved by +0." in human.stdout
+    info = json.loads(loopcal("info", rec_dir, "--json").stdout)
+    assert info["scans"] == 480 * 20 and info["poses"] >= doc["poses"] > 100
+
+
+def test_check_is_quiet_where_the_loops_close(drifting, tmp_path):
+    rec_dir, config = drifting
+    first = sorted(rec_dir.glob("*.mcap"))[:2]  # the four minutes before the step
+    proc = loopcal("check", *first, "--controller-config", config, "--json")
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout)
+    assert doc["loops_close"] and doc["changes"] == [] and doc["poses"] > 60
+    bad = loopcal("check", *first, "--controller-config", tmp_path / "none.toml")
+    assert bad.returncode == 2 and "no such file" in bad.stderr

@@ -1,0 +1,1 @@
+"""Tests of daemon/config/: the controller's config."""

@@ -1,0 +1,1 @@
+"""Tests of daemon/live/: loop-closure health and live guidance."""

@@ -1,0 +1,100 @@
+"""Live guidance: ``loopcal record --until-enough`` stops by itself on an emulated session,
+and its last prediction is what ``loopcal calibrate`` then reports."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from loopcal.calibration.parameters import INDEX, NAMES, PAPER7
+from loopcal.daemon.config.controller import nominal_config
+from loopcal.daemon.live.guidance import Guidance
+from loopcal.daemon.recording import read_recordings
+from loopcal.daemon.worker.run import run_worker
+from loopcal.simulator.offline import mechanism_scans
+from loopcal.simulator.scenarios import HandMoves
+from tests.support.processes import Proc, calibrate_json, fresh_config, listening_url, record
+from tests.support.rows import rows_from
+from tests.support.sessions import PAUSE_S, truth_for
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def test_guidance_predicts_what_the_worker_reports_and_stops_when_enough():
+    truth = truth_for(5)
+    t_us, codes = mechanism_scans(HandMoves(5, params=truth, pause_s=PAUSE_S), truth, 20 * 300,
+                                  noise_volts=0.04, seed=5)  # fmt: skip
+    rows = rows_from(t_us, codes)
+    updates = []
+    enough = []
+    g = Guidance(nominal_config(), PAPER7, target_mm=0.1, on_update=updates.append,
+                 on_enough=enough.append, period_s=0)  # fmt: skip
+    for a in range(0, len(rows), 20):
+        g.feed(rows[a : a + 20])
+        if g.done:
+            break
+    assert g.done and len(enough) == 1 and enough[0] is updates[-1]
+    last = updates[-1]
+    assert last.enough and all(last.gates.values()) and last.poses >= 30
+    assert all(last.std[n] <= 0.1 for n in ("d01", "d02", "d03", "d04"))
+    # early on, before the worker can run, the information predicts the precision
+    early = [u for u in updates if 10 <= u.poses < 30]
+    assert early and all(np.isfinite(list(u.std.values())).all() for u in early[-3:])
+    assert not any(u.enough for u in updates[:-1])
+    # the prediction is the worker's own result on the same scans
+    seen = rows[: last.scans]
+    result = run_worker(seen, nominal_config(), PAPER7)
+    assert {n: pytest.approx(s) for n, s in result.std.items()} == last.std
+    text = "\n".join(last.render())
+    assert "ENOUGH" in text and "sensor 4" in text and "d03" in text
+    assert json.loads(json.dumps(last.as_json()))["enough"] is True
+
+
+def test_until_enough_stops_by_itself_and_calibrate_agrees(tmp_path):
+    seed = 7
+    truth = truth_for(seed)
+    every = ",".join(f"{n}={float(truth[i])!r}" for i, n in enumerate(NAMES))
+    config = fresh_config(tmp_path / "controller.toml")
+    sim = Proc(["simulate", "--seed", str(seed), "--speed", "10", "--wait-for-client",
+                "--pause", f"{PAUSE_S[0]},{PAUSE_S[1]}", "--truth", every])  # fmt: skip
+    try:
+        rec = record(listening_url(sim), tmp_path / "rec", "--controller-config", str(config),
+                     "--until-enough", "--json", "--read-period", "0.05")  # fmt: skip
+        rc = rec.wait(120)
+    finally:
+        sim.kill()
+    assert rc == 0, rec.text
+    lines = [json.loads(line) for line in rec.lines if line.startswith("{")]
+    *updates, summary = lines  # the guidance updates, then record's summary (JSON lines)
+    assert summary["summary"] is True and summary["enough"] is True
+    assert summary["exit_status"] == 0 and summary["scans_written"] == len(
+        read_recordings(tmp_path / "rec").scans)  # fmt: skip
+    assert not any("summary" in u for u in updates)
+    assert len(updates) >= 3 and updates[-1]["enough"] is True
+    assert not any(u["enough"] for u in updates[:-1])
+    assert "stopped (enough to calibrate)" in rec.text
+    out = read_recordings(tmp_path / "rec")
+    assert all(f.complete for f in out.files)
+    assert out.events_of("guidance")[0].details["enough"] is True
+    predicted = updates[-1]["std"]
+    code, doc, err = calibrate_json(tmp_path / "rec", "--controller-config", config)
+    assert code == 0 and doc["accepted"], err
+    for name, p in doc["parameters"].items():
+        assert p["std"] == pytest.approx(predicted[name], rel=0.2), name
+        assert abs(p["value"] - truth[INDEX[name]]) <= 3 * p["std"], name
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--target-mm", "0.2"], "--target-mm goes with --until-enough"),
+        (["--until-enough", "--target-mm", "0"], "the target must be a positive number"),
+        (["--until-enough", "--controller-config", "/nonexistent.toml"], "nonexistent.toml"),
+    ],
+)
+def test_bad_guidance_options_are_named(tmp_path, args, message):
+    p = record("modbus-tcp://127.0.0.1:1", tmp_path, *args)
+    assert p.wait(30) == 2
+    assert message in p.text

@@ -1,0 +1,210 @@
+"""Loop-closure health: the daemon names the sensor whose offset moved (a step, a creep),
+and stays quiet on clean data; the emulator's offset faults; the [health] settings."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from loopcal.calibration.closure import drift_test, loop_closure, threshold
+from loopcal.daemon.config.controller import nominal_config
+from loopcal.daemon.live.health import HealthMonitor
+from loopcal.daemon.recorder.settings import SettingsError, load_daemon_config
+from loopcal.daemon.recording import read_recordings
+from loopcal.simulator.drift import OffsetDrift
+from loopcal.simulator.offline import mechanism_scans
+from loopcal.simulator.run import FaultEvent
+from loopcal.simulator.scenarios import HandMoves
+from tests.support.emulator import hand_emulator
+from tests.support.processes import NotifySocket, Proc, record, write_config
+from tests.support.rows import rows_from
+from tests.support.sessions import PAUSE_S, truth_for
+
+pytestmark = pytest.mark.timeout(120)
+
+TRUTH = truth_for(3)
+
+
+def monitor_run(drifts, seconds, *, seed=3, truth=TRUTH):
+    """Feed an offline session to a monitor a quarter second at a time; returns the monitor
+    and the events as (device time s, kind, details)."""
+    scenario = HandMoves(seed, params=truth, pause_s=PAUSE_S)
+    t_us, codes = mechanism_scans(
+        scenario, truth, 20 * seconds, noise_volts=0.04, seed=seed, drifts=drifts
+    )
+    rows = rows_from(t_us, codes)
+    events = []
+    clock = [0.0]
+    mon = HealthMonitor(
+        replace(nominal_config(), params=tuple(truth)),
+        lambda kind, level, msg, **d: events.append((clock[0], kind, d)),
+    )
+    for a in range(0, len(rows), 5):
+        clock[0] = t_us[min(a + 4, len(rows) - 1)] / 1e6
+        mon.feed(rows[a : a + 5])
+    return mon, events
+
+
+def test_clean_data_raises_nothing():
+    mon, events = monitor_run((), 900)
+    assert mon.state.poses > 250 and events == []
+    assert "loops close" in mon.status()
+    # the loop-closure errors at the truth are N(0, 1): the noise model is right
+    assert 0.7 < mon.state.last.chi2_rms < 1.3  # RMS of 30: +- 0.13
+
+
+@pytest.mark.parametrize("sensor", [1, 2, 3, 4])
+@pytest.mark.parametrize(("kind", "amount"), [("step", 0.5), ("creep", 1.0)])
+def test_a_moved_offset_is_attributed_to_its_sensor(sensor, kind, amount):
+    at = 120.0
+    mon, events = monitor_run((OffsetDrift(kind, sensor, at, amount),), 360)
+    alarms = [(t, d) for t, k, d in events if k == "offset_drift"]
+    assert alarms, f"no alarm for a {kind} on sensor {sensor}"
+    t, d = alarms[0]
+    assert d["sensor"] == sensor, alarms
+    assert 0 < t - at < 90, t - at
+    shift = amount if kind == "step" else amount * (t - at) / 60
+    # a step is estimated as a step, a creep as a creep (its shift at the latest pose)
+    assert d["shape"] == kind, d
+    assert abs(d["shift_mm"] - shift) < (0.15 if kind == "step" else 0.25), (d, shift)
+    assert all(d2["sensor"] == sensor for _, d2 in alarms)
+    assert f"OFFSET DRIFT sensor {sensor}" in mon.status()
+
+
+def test_a_step_that_goes_away_is_cleared():
+    drift = OffsetDrift("step", 2, 60.0, 0.8, duration=90.0)
+    _, events = monitor_run((drift,), 420)
+    kinds = [k for _, k, _ in events]
+    assert kinds[:2] == ["offset_drift", "offset_drift_cleared"], events
+
+
+def test_the_threshold_holds_its_false_alarm_rate():
+    """Pure noise at the truth: the largest of the four statistics over 30 poses exceeds
+    the 1 % threshold about 1 % of the time (Bonferroni: at most)."""
+    rng = np.random.default_rng(0)
+    from loopcal.calibration.implicit import predicted_volts
+    from loopcal.calibration.simulate import sample_workspace
+
+    R = sample_workspace(3000, rng, TRUTH)
+    clean = predicted_volts(R, TRUTH)
+    sigma = 0.04 / np.sqrt(20)
+    V = clean + rng.normal(0, sigma, clean.shape)
+    cl = loop_closure(V, TRUTH, np.full(4, sigma))
+    assert 0.95 < np.sqrt(np.mean(cl.error**2)) < 1.05
+    gamma = threshold(0.01)
+    hits = 0
+    for k in range(0, 3000, 30):
+        sl = slice(k, k + 30)
+        sub = type(cl)(cl.error[sl], cl.offset_pattern[sl], cl.information[sl], cl.usable[sl])
+        hits += drift_test(sub).statistic.max() > gamma
+    assert hits <= 4  # 100 windows at <= 1 %
+
+
+def test_offset_faults_parse_and_are_drifts():
+    e = FaultEvent.parse("offset@30:3=+0.5")
+    assert e.drift() == OffsetDrift("step", 3, 30.0, 0.5)
+    e = FaultEvent.parse("creep@10+60:2=1.5")
+    assert e.drift() == OffsetDrift("creep", 2, 10.0, 1.5, 60.0)
+    d = e.drift()
+    assert np.allclose(d.shift_mm(np.array([0.0, 10.0, 40.0, 70.0, 500.0])),
+                       [0.0, 0.0, 0.75, 1.5, 1.5])  # fmt: skip
+    for bad, msg in [("offset@30:5=1", "channel 1..4"), ("offset@30:2=x", "AMOUNT in mm"),
+                     ("creep@30:2", "AMOUNT in mm per minute")]:  # fmt: skip
+        with pytest.raises(ValueError, match=msg):
+            FaultEvent.parse(bad)
+
+
+def test_simulate_refuses_a_drift_on_a_replay(tmp_path):
+    p = Proc(["simulate", "--scenario", "replay", "--replay", str(tmp_path / "x.jsonl"),
+              "--fault", "offset@3:1=0.5"])  # fmt: skip
+    assert p.wait(30) == 2
+    assert "need a simulated mechanism" in "\n".join(p.lines)
+
+
+def test_health_settings_are_checked(tmp_path):
+    cfg = write_config(tmp_path / "d.toml", "modbus-tcp://127.0.0.1:5020", tmp_path,
+                       "\n[health]\nenabled = false\nfalse_alarm = 1e-6\n")  # fmt: skip
+    s = load_daemon_config(cfg)
+    assert s.health is False and s.health_false_alarm == 1e-6
+    for extra, msg in [("enabled = 1", r"\[health\].enabled: must be true or false"),
+                       ("false_alarm = 0.5", r"\[health\].false_alarm: must be a probability"),
+                       ("window = 3", r"\[health\].window: unknown key")]:  # fmt: skip
+        write_config(cfg, "modbus-tcp://127.0.0.1:5020", tmp_path, f"\n[health]\n{extra}\n")
+        with pytest.raises(SettingsError, match=msg):
+            load_daemon_config(cfg)
+
+
+def test_the_daemon_raises_offset_drift_in_events_log_and_status(tmp_path):
+    """An emulated module whose sensor 2 core slips 0.8 mm after 20 s of device time: the
+    daemon's event names sensor 2, in the MCAP events, the log and the STATUS line."""
+    controller = tmp_path / "controller.toml"
+    init = Proc(["init-config", str(controller)])
+    assert init.wait(60) == 0
+    drift = (OffsetDrift("step", 2, 20.0, 0.8),)
+    out = tmp_path / "rec"
+    with hand_emulator(rate=20, speed=10.0, seed=5, drifts=drift) as emu:
+        cfg = write_config(tmp_path / "daemon.toml", emu.url, out,
+                           f'\n[controller]\nconfig = "{controller}"\n')  # fmt: skip
+        notify = NotifySocket(tmp_path / "notify.sock")
+        daemon = Proc(["daemon", "--config", str(cfg)], env={"NOTIFY_SOCKET": str(notify.path)})
+        try:
+            line = daemon.lines[daemon.wait_for(r"offset_drift: .*sensor 2", timeout=60)]
+            assert "sensor 2's offset has moved by +0." in line
+            deadline = time.monotonic() + 15
+            while True:
+                status = notify.wait_for("STATUS", timeout=10)["STATUS"]
+                if "OFFSET DRIFT sensor 2" in status:
+                    break
+                assert time.monotonic() < deadline, notify.messages[-3:]
+            rc, _ = daemon.stop()
+        finally:
+            daemon.kill()
+    assert rc == 0, daemon.text
+    events = read_recordings(out).events_of("offset_drift")
+    assert events and events[0].details["sensor"] == 2
+    assert 0.5 < events[0].details["shift_mm"] < 1.1
+    assert events[0].details["statistic"] > events[0].details["threshold"]
+
+
+def test_record_without_health_raises_nothing(tmp_path):
+    drift = (OffsetDrift("step", 1, 2.0, 2.0),)
+    with hand_emulator(rate=20, speed=10.0, drifts=drift) as emu:
+        rec = record(emu.url, tmp_path, "--no-health", "--duration", "6")
+        assert rec.wait(60) == 0, rec.text
+    assert read_recordings(tmp_path).events_of("offset_drift") == []
+
+
+def test_windows_tested_together_equal_each_window_alone():
+    """step_tests (what the monitor runs, a file's windows at once) gives drift_test's
+    answer for every window: shifted and clean windows, with and without the config's
+    covariance, with unusable poses, and a window too short to split."""
+    from loopcal.calibration.closure import Closure, step_tests
+    from loopcal.calibration.implicit import predicted_volts
+    from loopcal.calibration.simulate import sample_workspace
+
+    rng = np.random.default_rng(4)
+    m, B = 30, 40
+    R = sample_workspace(m * B, rng, TRUTH)
+    V = predicted_volts(R, TRUTH) + rng.normal(0, 0.01, (m * B, 4))
+    V[m * 3 + 20 :, 2] += 0.1  # a shift of sensor 3 in the later windows
+    cl = loop_closure(V, TRUTH, np.full(4, 0.01))
+    shaped = [cl.error.reshape(B, m), cl.offset_pattern.reshape(B, m, 4),
+              cl.information.reshape(B, m, 20), cl.usable.reshape(B, m).copy()]  # fmt: skip
+    shaped[3][5, 7] = False  # an unusable pose: drift_test leaves it out
+    cov = np.diag(rng.uniform(0, 0.05, 20) ** 2)
+    for C in (None, cov):
+        for b, got in enumerate(step_tests(*shaped, C)):
+            want = drift_test(Closure(*(x[b] for x in shaped)), C, change_points=True)
+            for name in ("shift_mm", "std_mm", "statistic", "margin", "chi2_rms"):
+                np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-9,
+                                           atol=1e-12, err_msg=f"{name} of window {b}")  # fmt: skip
+            assert (got.affected, got.shape, got.poses) == (want.affected, want.shape, want.poses)
+    late = step_tests(*shaped, cov)[3]  # its last 10 poses shifted
+    assert (late.sensor, late.affected) == (3, 10), late
+    one = [x[:1, :1] for x in shaped]
+    assert step_tests(*one)[0].poses == 1
+    with pytest.raises(ValueError, match="offset_pattern"):
+        step_tests(shaped[0], shaped[1][:, :, :3], shaped[2], shaped[3])

@@ -1,0 +1,84 @@
+"""The daemon for the people who watch it: Prometheus metrics on a loopback port, and the
+controller config followed by itself when a calibration replaces it."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from loopcal.daemon.config.controller import load_controller_config, write_initial_config
+from loopcal.daemon.recording import read_recordings
+from tests.support.emulator import hand_emulator
+from tests.support.processes import Proc, free_port, record, scrape, taken_port, value, write_config
+from tests.support.sessions import truth_for
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def test_record_serves_prometheus_metrics(tmp_path):
+    port = free_port()
+    with hand_emulator(speed=4.0) as emu:
+        rec = record(emu.url, tmp_path / "rec", "--metrics", f"127.0.0.1:{port}")
+        rec.wait_for("recording to", timeout=20)
+        time.sleep(1.5)
+        first = scrape(port)
+        time.sleep(1.5)
+        m = scrape(port)
+        rc, _ = rec.stop()
+    assert rc == 0, rec.text
+    assert value(m, "loopcal_scans_recorded_total") > value(first, "loopcal_scans_recorded_total")
+    assert value(m, "loopcal_scans_recorded_total") > 20
+    assert value(m, "loopcal_bytes_written_total") > 1000
+    assert value(m, "loopcal_daq_connected") == 1.0
+    assert value(m, "loopcal_last_scan_age_seconds") < 2.0
+    assert value(m, "loopcal_events_total", kind="connect", level="info") >= 1
+    assert value(m, "loopcal_scans_missed_total") == 0 and value(m, "loopcal_disk_error") == 0
+    assert value(m, "loopcal_recording_directory_bytes") > 0
+    assert {lab["sensor"] for lab, _ in m["loopcal_offset_drift_alarm"]} == {"1", "2", "3", "4"}
+    assert value(m, "loopcal_loop_closure_threshold") > 20
+    assert value(m, "loopcal_controller_config_info", sha256="") == 1.0  # reference geometry
+    # never calibrated: a state of its own, and no age (not a NaN an alert cannot compare)
+    assert value(m, "loopcal_controller_config_calibrated") == 0.0
+    assert "loopcal_controller_config_calibration_age_seconds" not in m
+    with pytest.raises(OSError):  # closed with the recorder
+        scrape(port)
+
+
+def test_a_taken_or_bad_metrics_address_is_refused(tmp_path):
+    with taken_port() as port:
+        proc = record("modbus-tcp://127.0.0.1:1", tmp_path / "r", "--metrics",
+                      f"127.0.0.1:{port}", "--duration", "1")  # fmt: skip
+        assert proc.wait(30) == 2 and "--metrics" in proc.text and "in use" in proc.text
+    proc = record("modbus-tcp://127.0.0.1:1", tmp_path / "r", "--metrics", "9464")
+    assert proc.wait(30) == 2 and "HOST:PORT" in proc.text
+
+
+def test_the_daemon_follows_a_replaced_controller_config(tmp_path):
+    controller_dir = tmp_path / "controller"
+    controller_dir.mkdir()
+    config = write_initial_config(controller_dir / "controller.toml")
+    port = free_port()
+    with hand_emulator(speed=4.0) as emu:
+        cfg = write_config(tmp_path / "daemon.toml", emu.url, tmp_path / "rec",
+                           f'\n[controller]\nconfig = "{config}"\n\n[metrics]\n'
+                           f'listen = "127.0.0.1:{port}"\n')  # fmt: skip
+        daemon = Proc(["daemon", "--config", str(cfg)])
+        daemon.wait_for("recording to", timeout=20)
+        old_sha = load_controller_config(config).sha256
+        write_initial_config(config, force=True, params=truth_for(2))  # a calibration wrote it
+        new_sha = load_controller_config(config).sha256
+        i = daemon.wait_for("was replaced", timeout=15)
+        m = scrape(port)
+        config.write_text("[parameters]\nA1x = 'broken'\n")  # a bad edit: refused, old kept
+        daemon.wait_for("changed but does not load", timeout=15, after=i)
+        time.sleep(1.5)
+        rc, _ = daemon.stop()
+    assert rc == 0, daemon.text
+    assert value(m, "loopcal_controller_config_info", sha256=new_sha) == 1.0
+    out = read_recordings(tmp_path / "rec")
+    reloads = out.events_of("config_reload")
+    assert [e.details["ok"] for e in reloads] == [True, False]
+    assert reloads[0].details["controller_sha256"] == new_sha != old_sha
+    shas = [f.metadata["controller_config"]["sha256"] for f in out.files]
+    assert shas[0] == old_sha and shas[-1] == new_sha  # a new file from the change on

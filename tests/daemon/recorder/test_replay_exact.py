@@ -1,0 +1,90 @@
+"""``loopcal replay`` serves the recorded scans themselves, on every transport: a recording
+of the replay gives back exactly the original scans, whatever their phase, clock error,
+wraps, gaps and restarts (the finding: a recording of an independent module, first scan
+1809 µs after power-on, came back with every counter shifted by one and re-gridded times).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from loopcal.daemon.commands.replay import power_ons
+from loopcal.drivers.ldq412 import FIFO_DEPTH
+from loopcal.simulator.open_points import Latency, OpenPoints
+from loopcal.simulator.replay import FIRST_SCAN_LEAD_NS, RecordedModule, RecordedPowerOn
+from tests.support.recordings import read_scans, write_directory
+from tests.support.replay import assert_same_scans, finish, replay_and_record, replay_in_process
+from tests.support.rows import U32, synthetic_rows
+
+RATE = 50
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def test_the_recorded_module_makes_exactly_the_recorded_scans():
+    rows = synthetic_rows(RATE)
+    pos = power_ons(rows)
+    assert [len(p.counter) for p in pos] == [80, 60, 80]
+    module = RecordedModule(pos, rate_hz=RATE, now_ns=5)
+    module.sync(10**12)
+    first = [(t.counter, t.time_us) for t in module.truth]
+    n0 = len(pos[0].counter)
+    assert first == [
+        (int(c) % U32, int(t) % U32) for c, t in zip(pos[0].counter, pos[0].time_us, strict=True)
+    ]
+    assert module.fifo_level == min(n0, FIFO_DEPTH)
+    module.power_cycle(2.0)
+    module.sync(10**12 + 2 * 10**9 + 699_999)
+    assert not module.ready  # silent until its first scan, 700 µs after power-on
+    module.sync(10**12 + 2 * 10**9 + 700_000)
+    assert module.truth[-1].counter == 0 and module.truth[-1].time_us == 700
+    module.sync(10**13)
+    assert len(module.truth) == n0 + len(pos[1].counter)  # and nothing more until cycled
+    module.power_cycle(2.0)
+    module.sync(10**13 + 2 * 10**9 + FIRST_SCAN_LEAD_NS)  # one whose first scan came late
+    assert module.truth[-1].counter == pos[2].counter[0] % U32 and module.ready
+    with pytest.raises(ValueError):
+        RecordedPowerOn(np.array([1, 1]), np.array([0, 1]), np.zeros((2, 4), int))
+
+
+def test_round_trip_on_every_transport(tmp_path):
+    """All three transports at once: ASCII through ``loopcal replay`` at the recording's own
+    pace (polled once per scan, phase-locked); Modbus at twice it, served by modules that
+    answer as other makers' might (the emulator's open points): late and without filler
+    scans, truncating long reads (TCP, set by ``loopcal replay``'s options); refusing them,
+    answering across holes, only whole snapshots, with slow answers (RTU, in process)."""
+    rows = synthetic_rows(RATE)
+    src = write_directory(tmp_path / "src", rows, rate=RATE, per=25)
+    original = read_scans(src)
+    rtu = OpenPoints(latency=Latency(slow_fraction=0.02, slow_ms=(50.0, 70.0)),
+                     max_read_registers=60, holes="zero", snapshot_reads="whole")  # fmt: skip
+    runs = {
+        "ascii": replay_and_record(src, tmp_path / "ascii", "ascii", 1.0),
+        "modbus-tcp": replay_and_record(
+            src,
+            tmp_path / "tcp",
+            "modbus-tcp",
+            2.0,
+            "--latency",
+            "datasheet",
+            "--fifo-underrun",
+            "short",
+            "--max-read-registers",
+            "64",
+            "--over-limit",
+            "truncate",
+        ),  # fmt: skip
+        "modbus-rtu": replay_in_process(
+            original, tmp_path / "rtu", "modbus-rtu", RATE, 2.0, open_points=rtu
+        ),  # fmt: skip
+    }
+    for player, recorder in runs.values():
+        finish(player, recorder)
+    for t, out in (("ascii", "ascii"), ("modbus-tcp", "tcp"), ("modbus-rtu", "rtu")):
+        try:
+            assert_same_scans(original, read_scans(tmp_path / out))
+        except AssertionError as exc:
+            raise AssertionError(f"{t}: {exc}\n{runs[t][1].text}") from None
+    with pytest.raises(ValueError, match="the recording's"):
+        RecordedModule(power_ons(original), rate_hz=RATE, open_points=OpenPoints(clock_ppm=1))

@@ -1,0 +1,1 @@
+"""Tests of daemon/recording/: the format, damage, compaction, Foxglove's reader."""

@@ -1,0 +1,1 @@
+"""Tests of daemon/worker/: poses, gates, calibrate, write-back, the report."""

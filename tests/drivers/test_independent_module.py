@@ -1,0 +1,82 @@
+"""Faithful to a module we did not build: the drivers, the recorder and replay against an
+LDQ-412 written from the datasheet alone (tests/support/independent_module.py: scan 0 1809 µs after
+power-on, its clock 150 ppm fast, no filler scans, at most 64 registers a read, answers 1-4
+ms late, a power cycle of 1.75 s). Replay must give its recording back exactly: the
+finding was every counter shifted by one and device times re-gridded."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from loopcal.drivers import open_daq
+from loopcal.drivers.errors import DAQError
+from tests.support.independent_module import IndependentModule
+from tests.support.processes import record
+from tests.support.recordings import read_scans
+from tests.support.replay import assert_same_scans, finish, replay_and_record
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def _read_for(daq, seconds: float, out: list) -> None:
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        try:
+            out += daq.read_scans()
+        except DAQError:
+            pass  # a power cycle: the next call reconnects
+        time.sleep(0.01)
+
+
+@pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu", "ascii"])
+def test_the_drivers_read_it_exactly(transport):
+    with IndependentModule(transport, rate_hz=50) as mod:
+        time.sleep(0.01)
+        daq = open_daq(mod.url, timeout=0.1)
+        got: list = []
+        try:
+            _read_for(daq, 0.5, got)
+            mod.power_cycle(0.5)
+            _read_for(daq, 1.0, got)
+            time.sleep(0.5)  # 25 scans wait: more than one 64-register read holds
+            _read_for(daq, 0.5, got)
+        finally:
+            daq.close()
+        made = {(b, c): (t, codes) for b, c, t, codes, _ in mod.made}
+    epochs = [s.epoch for s in got]
+    assert epochs[0] == 0 and epochs[-1] == 1 and sorted(epochs) == epochs
+    for s in got:
+        assert made[(s.epoch, s.counter)] == (s.time_us, s.codes), s
+    if transport != "ascii":  # the FIFO: every scan once, in reads of 10 (64 registers)
+        assert sum(s.missed for s in got if not s.restarted) == 0
+        assert daq.fifo_chunk == 10
+    assert got[0].time_us == 1809 + got[0].counter * 20_000
+
+
+def test_its_recording_replays_exactly_on_every_transport(tmp_path):
+    with IndependentModule("modbus-tcp", rate_hz=20) as mod:
+        time.sleep(0.01)
+        rec = record(mod.url, tmp_path / "src", "--read-period", "0.1")
+        rec.wait_for("recording to", timeout=30)
+        time.sleep(1.2)
+        mod.power_cycle(1.75)
+        rec.wait_for("module restarted", timeout=15)
+        time.sleep(1.2)
+        rc, _ = rec.stop()
+        made = {(b, c): (t, codes) for b, c, t, codes, _ in mod.made}
+    assert rc == 0, rec.text
+    original = read_scans(tmp_path / "src")
+    assert original["restarted"][1:].sum() == 1
+    for r in original:  # the recording is the module's own scans
+        key = (int(r["epoch"] - original["epoch"][0]), int(r["counter64"]))
+        assert made[key] == (int(r["time64_us"]), tuple(int(c) for c in r["codes"]))
+    runs = {
+        t: replay_and_record(tmp_path / "src", tmp_path / t, t, 1.0 if t == "ascii" else 2.0)
+        for t in ("modbus-tcp", "modbus-rtu", "ascii")
+    }
+    for player, recorder in runs.values():
+        finish(player, recorder)
+    for t in runs:
+        assert_same_scans(original, read_scans(tmp_path / t))

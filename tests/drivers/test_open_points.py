@@ -1,0 +1,107 @@
+"""The drivers against modules that choose differently where the datasheet leaves room
+(simulator/open_points.py): when scan 0 is taken, a clock that runs fast or slow, slow
+answers, FIFO underrun and long reads, reads across holes or of part of the snapshot.
+
+On a ManualClock, every scan a driver delivers is compared with the module's own list of
+produced scans, and every gap must be accounted for by the scans' missed counts. And the
+finding of a second module: recovering from a FIFO overflow lost the scans that arrived
+while the driver was reading (it cleared the FIFO with the flag).
+"""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from loopcal.drivers import ldq412, open_daq
+from loopcal.drivers.modbus import ModbusDAQ
+from loopcal.simulator.clock import ManualClock, RealClock
+from loopcal.simulator.emulator import Emulator
+from loopcal.simulator.open_points import Latency, OpenPoints
+from tests.support.drivers import OK_TIMEOUT, PERIOD, RATE, TRANSPORTS, check_against_truth, read_ok
+
+OPEN_POINTS = {
+    "scan-0-late": OpenPoints(scan_phase_us=1809),
+    "clock-fast": OpenPoints(clock_ppm=200, scan_phase_us=700),
+    "clock-slow": OpenPoints(clock_ppm=-200),
+    "no-filler": OpenPoints(fifo_underrun="short"),
+    "refuses-long-reads": OpenPoints(max_read_registers=64),
+    "truncates-long-reads": OpenPoints(max_read_registers=64, over_limit="truncate"),
+    "strict-map": OpenPoints(holes="zero", snapshot_reads="whole"),
+    # answers of 50-70 ms among the datasheet's 0.5-10 ms (the 1 s timeout below, as in
+    # tests/drivers/test_against_emulator.py: the emulator shares this process and its CPUs,
+    # and on a
+    # loaded machine a 70 ms answer can reach the driver after 100 ms)
+    "slow-answers": OpenPoints(latency=Latency(slow_fraction=0.05, slow_ms=(50.0, 70.0))),
+}
+
+
+def _settle(clock: ManualClock, op: OpenPoints) -> None:
+    """Let a module whose scan 0 comes late take it (it answers nothing before)."""
+    clock.advance(op.scan_phase_us / 1e6)
+
+
+@pytest.mark.parametrize("name", OPEN_POINTS)
+@pytest.mark.parametrize("transport", TRANSPORTS)
+def test_every_scan_exactly_once_whatever_the_module_chose(transport: str, name: str) -> None:
+    op = OPEN_POINTS[name]
+    clock = ManualClock()
+    with Emulator(transport, clock=clock, scan_rate_hz=RATE, open_points=op) as emu:
+        _settle(clock, op)
+        daq = open_daq(emu.url, timeout=OK_TIMEOUT)
+        try:
+            got = []
+            # ASCII polls: one scan per read, or gaps the missed counts must explain
+            steps = [1] * 40 + [3] if transport == "ascii" else [1, 7, 20, 45, 3, 130, 2]
+            for step in steps * 3:
+                clock.advance(step * PERIOD)
+                got += read_ok(daq)
+            emu.faults.restart(0.5)
+            clock.advance(0.5)
+            _settle(clock, op)
+            for step in steps:
+                clock.advance(step * PERIOD)
+                got += read_ok(daq)
+        finally:
+            daq.close()
+        check_against_truth(got, emu)
+        assert [s.restarted for s in got].count(True) == 2  # at connect and the power cycle
+        truth = emu.truth
+    if transport != "ascii":  # the FIFO delivers every scan the module made
+        assert len(got) == len(truth) and sum(s.missed for s in got) == 0
+        assert not any(s.overflow for s in got)
+        if name.endswith("long-reads"):
+            assert isinstance(daq, ModbusDAQ) and daq.fifo_chunk == 10  # 60 of 64 registers
+    else:  # polling: what it missed after its first scan is counted
+        assert sum(s.missed for s in got) == len(truth) - len(got) - got[0].counter
+    assert truth[0].time_us == op.scan_phase_us  # the module's own device times
+
+
+@pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu"])
+def test_overflow_recovery_keeps_what_arrived_while_reading(transport: str) -> None:
+    """A second module's finding: after an overflow the driver read the 256 waiting scans,
+    then wrote holding register 2, which clears the FIFO as well as the flag, and threw
+    away the scans that had arrived meanwhile. At 200 Hz with the datasheet's answer time
+    (5 ms RTU, 10 ms TCP) the 14 reads of a full FIFO take longer than 70 ms, so 14 or more
+    scans arrive while the driver reads: none may be lost."""
+    fixed = ldq412.HOST_TIMEOUT_S * 1000 / 10  # 10 ms
+    ms = fixed / 2 if transport == "modbus-rtu" else fixed
+    op = OpenPoints(latency=Latency(min_ms=ms, max_ms=ms))
+    with Emulator(transport, clock=RealClock(), scan_rate_hz=200, open_points=op) as emu:
+        daq = open_daq(emu.url, timeout=OK_TIMEOUT)
+        try:
+            got = read_ok(daq)
+            time.sleep(1.6)  # nobody reads: the 1.28 s FIFO overflows
+            got += read_ok(daq)
+            drained = len(got)
+            deadline = time.monotonic() + 0.5
+            while time.monotonic() < deadline:
+                got += read_ok(daq)
+        finally:
+            daq.close()
+    check_against_truth(got, emu)
+    gaps = [s for s in got if s.missed]
+    assert len(gaps) == 1 and gaps[0].overflow, [(s.counter, s.missed) for s in gaps]
+    assert got[drained].missed == 0  # the scans that came during the drain were kept
+    assert sum(s.overflow for s in got) == 1

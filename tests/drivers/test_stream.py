@@ -1,0 +1,333 @@
+"""The scan stream, ``DAQ.scans()`` and ``for scan in daq``, against the emulated LDQ-412.
+
+Real transports (Modbus TCP on 127.0.0.1, Modbus RTU and ASCII on pseudo-terminals) on a
+real clock at the datasheet's 20 Hz, through the pytest plugin's ``ldq412`` fixture; the
+README's example is run as it stands in a process of its own. The pacers' logic is also
+run against a simulated module's edges (no transport) over minutes of scans.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import selectors
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from loopcal.drivers import DAQDisconnected, DAQError, DAQTimeout, Scan, ldq412, open_daq
+from loopcal.drivers.pacing import FIFO_READ_PERIOD_S, FifoPacer, PollPacer
+from loopcal.simulator.open_points import OpenPoints
+from tests.support import ROOT
+
+TRANSPORTS = ["modbus-tcp", "modbus-rtu", "ascii"]
+MODBUS = ["modbus-tcp", "modbus-rtu"]
+RATE = 20  # the datasheet's default, the fixture's
+# Driver timeouts: generous where none is expected (an RTU answer over the emulator's pty
+# relay can take 150 ms on a loaded machine, tests/drivers/test_against_emulator.py), short where
+# a stall provokes them.
+OK_TIMEOUT = 1.0
+STALL_TIMEOUT = 0.25
+
+
+def url_of(ldq412, polled: bool = False) -> str:
+    """The fixture's URL; with ``polled``, Modbus read by polling (``fifo=0``)."""
+    return ldq412.url + ("&fifo=0" if polled else "")
+
+
+def assert_every_scan_once(scans: list[Scan], ldq412) -> None:
+    """Consecutive counters, none missed or repeated, each equal to the module's own."""
+    counters = [s.counter64 for s in scans]
+    assert counters == list(range(counters[0], counters[0] + len(counters))), counters
+    assert all(s.missed == 0 for s in scans[1:])
+    produced = {t.counter: t.codes for t in ldq412.scans if t.boot == 0}
+    assert all(tuple(s.codes) == tuple(produced[s.counter]) for s in scans)
+
+
+# --------------------------------------------------------------------------- the stream
+
+
+@pytest.mark.parametrize(
+    ("ldq412", "polled"),
+    [("modbus-tcp", False), ("modbus-tcp", True), ("modbus-rtu", False), ("ascii", False)],
+    indirect=["ldq412"],
+)
+def test_stream_yields_every_scan_once_until_duration(ldq412, polled: bool) -> None:
+    duration = 3.0
+    with open_daq(url_of(ldq412, polled), timeout=OK_TIMEOUT) as daq:
+        assert daq.has_fifo is not (polled or ldq412.transport == "ascii")
+        t0 = time.monotonic()
+        scans = list(daq.scans(timeout=1.0, duration=duration))
+        elapsed = time.monotonic() - t0
+        newest = ldq412.scans[-1].counter
+    assert duration <= elapsed < duration + 0.5  # the duration ended it
+    assert len(scans) >= 0.9 * duration * RATE
+    assert_every_scan_once(scans, ldq412)
+    assert newest - scans[-1].counter <= 1  # a last read at the end: nothing left behind
+
+
+@pytest.mark.parametrize(
+    "ldq412",
+    [{"transport": "ascii", "open_points": OpenPoints(clock_ppm=ppm)} for ppm in (1000, -1000)],
+    indirect=True,
+    ids=["1000ppm-fast", "1000ppm-slow"],
+)
+def test_polls_follow_a_module_whose_clock_is_off(ldq412) -> None:
+    with open_daq(ldq412.url, timeout=OK_TIMEOUT) as daq:
+        scans = list(daq.scans(timeout=1.0, duration=4.0))
+        answers = ldq412.emulator.wire.answers_sent
+    assert_every_scan_once(scans, ldq412)
+    assert answers <= 1.1 * len(scans) + 5  # one poll per scan, and a few to find the edges
+
+
+@pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
+def test_iterating_the_daq_is_the_stream(ldq412) -> None:
+    with open_daq(ldq412.url, timeout=OK_TIMEOUT) as daq:
+        scans: list[Scan] = []
+        t0 = time.monotonic()
+        for scan in daq:
+            scans.append(scan)
+            if time.monotonic() - t0 > 1.5:
+                break
+    assert len(scans) >= 0.9 * 1.5 * RATE
+    assert_every_scan_once(scans, ldq412)
+
+
+@pytest.mark.parametrize("ldq412", MODBUS, indirect=True)
+def test_a_stream_left_mid_batch_keeps_the_rest_for_the_next_read(ldq412) -> None:
+    with open_daq(ldq412.url, timeout=OK_TIMEOUT) as daq:
+        ldq412.wait_scans(30)  # the first FIFO read brings at least 30 scans at once
+        stream = daq.scans(timeout=1.0)
+        first = [next(stream), next(stream), next(stream)]
+        stream.close()
+        rest = daq.read_scans()
+        again = list(daq.scans(timeout=1.0, duration=0.5))
+    assert len(rest) >= 27
+    assert_every_scan_once(first + rest + again, ldq412)
+
+
+@pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
+def test_a_stalled_module_raises_daqtimeout_after_the_timeout(ldq412) -> None:
+    timeout = 0.6
+    with open_daq(ldq412.url, timeout=STALL_TIMEOUT) as daq:
+        scans: list[Scan] = []
+        stalled_at = math.inf
+        with pytest.raises(DAQTimeout, match=r"no scan within 0\.6 s") as raised:
+            for scan in daq.scans(timeout=timeout):
+                scans.append(scan)
+                if len(scans) == 10:
+                    ldq412.stall(5.0)
+                    stalled_at = time.monotonic()
+        waited = time.monotonic() - stalled_at
+    # the newest scan arrived just before the stall; the last read that failed took up to
+    # a driver timeout and a reconnect
+    assert timeout - 0.05 <= waited <= timeout + 2 * STALL_TIMEOUT + 0.3
+    assert isinstance(raised.value.__cause__, DAQError)  # the driver's own error
+    assert len(scans) >= 10
+    assert_every_scan_once(scans, ldq412)
+
+
+@pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
+def test_a_stall_shorter_than_the_timeout_is_ridden_out(ldq412) -> None:
+    with open_daq(ldq412.url, timeout=STALL_TIMEOUT) as daq:
+        scans: list[Scan] = []
+        stalled = False
+        for scan in daq.scans(timeout=2.0, duration=2.5):
+            scans.append(scan)
+            if len(scans) == 10 and not stalled:
+                ldq412.stall(0.5)
+                stalled = True
+    span = scans[-1].counter64 - scans[0].counter64 + 1
+    assert len(scans) + sum(s.missed for s in scans[1:]) == span  # every scan accounted
+    if ldq412.transport == "ascii":
+        assert sum(s.missed for s in scans) >= 5  # no FIFO: the stall's scans are missed
+    else:
+        assert_every_scan_once(scans, ldq412)  # the FIFO held them
+
+
+@pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
+@pytest.mark.ldq412(clock="manual")
+def test_a_module_that_answers_but_makes_no_scans_raises_daqtimeout(ldq412) -> None:
+    ldq412.advance(0.5)
+    with open_daq(ldq412.url, timeout=OK_TIMEOUT) as daq:
+        scans: list[Scan] = []
+        t0 = time.monotonic()
+        with pytest.raises(DAQTimeout, match="no scan within 0.3 s") as raised:
+            for scan in daq.scans(timeout=0.3):
+                scans.append(scan)
+        waited = time.monotonic() - t0
+    assert 0.3 <= waited < 0.3 + 0.3
+    assert raised.value.__cause__ is None  # every read answered
+    assert scans and scans[-1].counter == ldq412.scans[-1].counter
+
+
+@pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
+@pytest.mark.ldq412(speed=4)  # a power cycle's 2 s dark take 0.5 s
+def test_a_power_cycle_in_the_stream(ldq412) -> None:
+    with open_daq(ldq412.url, timeout=STALL_TIMEOUT) as daq:
+        scans: list[Scan] = []
+        for scan in daq.scans(timeout=2.0, duration=2.0):
+            scans.append(scan)
+            if len(scans) == 20:
+                ldq412.power_cycle()
+    # (over ASCII the first scan may carry the power-on restart flag the module had at connect)
+    restarted = [s for s in scans[1:] if s.restarted]
+    assert len(restarted) == 1 and restarted[0].epoch == 1
+    for prev, s in zip(scans, scans[1:], strict=False):
+        if s.epoch == prev.epoch:
+            assert s.counter64 - prev.counter64 == s.missed + 1
+    assert scans[-1].epoch == 1 and scans[-1].counter64 >= 10
+
+
+@pytest.mark.ldq412(transport="ascii")
+def test_a_closed_driver_ends_the_stream_at_once(ldq412) -> None:
+    daq = open_daq(ldq412.url, timeout=OK_TIMEOUT)
+    daq.close()
+    t0 = time.monotonic()
+    with pytest.raises(DAQDisconnected, match="closed"):
+        next(daq.scans(timeout=5.0))
+    assert time.monotonic() - t0 < 0.5
+
+
+@pytest.mark.ldq412(clock="manual")
+@pytest.mark.parametrize(
+    ("kwargs", "error", "message"),
+    [
+        ({"timeout": 0}, ValueError, "timeout must be a finite number of seconds > 0"),
+        ({"timeout": -1.0}, ValueError, "timeout must be .* got -1.0"),
+        ({"timeout": math.nan}, ValueError, "timeout must be .* got nan"),
+        ({"timeout": math.inf}, ValueError, r"timeout must be .*\(or None\), got inf"),
+        ({"timeout": "1"}, TypeError, "timeout must be a number of seconds or None, got '1'"),
+        ({"timeout": True}, TypeError, "timeout must be a number .* got True"),
+        ({"duration": 0.0}, ValueError, "duration must be a finite number of seconds > 0"),
+        ({"duration": np.array([1.0])}, TypeError, "duration must be a number"),
+    ],
+)
+def test_bad_timeouts_and_durations_are_refused_at_the_call(ldq412, kwargs, error, message):
+    with open_daq(ldq412.url, timeout=OK_TIMEOUT) as daq:
+        with pytest.raises(error, match=message):
+            daq.scans(**kwargs)  # not iterated: the check does not wait for the first scan
+        assert isinstance(next(daq.scans(timeout=1.0, duration=1.0)), Scan)
+
+
+# --------------------------------------------------------------------------- the README
+
+
+def readme_drivers_example() -> str:
+    """The code block of the README's "Drivers" section, as it stands."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = text.split("\n## Drivers\n", 1)[1]
+    lines = []
+    for line in section.splitlines()[1:]:
+        if line and not line.startswith("    "):
+            break
+        lines.append(line[4:])
+    return "\n".join(lines).strip() + "\n"
+
+
+@pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
+def test_the_readme_example_streams_scans(ldq412) -> None:
+    code = readme_drivers_example()
+    urls = re.findall(r'open_daq\("([^"]+)"\)', code)
+    assert urls == ["modbus-tcp://127.0.0.1:5020?unit=1"] and "daq.scans(" in code
+    code = code.replace(urls[0], ldq412.url)
+    proc = subprocess.Popen(
+        [sys.executable, "-u", "-c", code],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        sel = selectors.DefaultSelector()
+        sel.register(proc.stdout, selectors.EVENT_READ)
+        assert sel.select(timeout=20.0), "the example printed nothing"
+        identity = proc.stdout.readline()
+        made_at_connect = len(ldq412.scans)  # the first read brings at most these (and 1)
+        time.sleep(2.0)
+        proc.send_signal(signal.SIGINT)  # the example's Ctrl-C
+        out, err = proc.communicate(timeout=10.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert identity.startswith("Identity(model='LDQ412'"), (identity, proc.stderr)
+    assert "KeyboardInterrupt" in err and "DAQ" not in err, err
+    counters = [int(line.split()[0]) for line in out.splitlines()]
+    assert len(counters) >= 1.5 * RATE
+    assert counters == list(range(counters[0], counters[0] + len(counters)))
+    # more than one batch's worth: scans made a second and more after the first read
+    assert counters[-1] >= made_at_connect + RATE
+
+
+# --------------------------------------------------------------------------- the pacers
+
+
+class SimulatedModule:
+    """Scan edges on a clock of its own (``ppm`` fast), a poll answered ``latency`` s after
+    it is sent with the latest scan: what a PollPacer sees, without a transport."""
+
+    def __init__(self, rate_hz: int, ppm: float, phase_s: float, seed: int = 0) -> None:
+        self.period = 1 / rate_hz / (1 + ppm * 1e-6)
+        self.phase = phase_s
+        self.rng = np.random.default_rng(seed)
+        self.last: int | None = None
+
+    def poll(self, sent: float) -> tuple[float, list[Scan]]:
+        received = sent + self.rng.uniform(0.0003, 0.003)
+        counter = math.floor((sent + 0.0002 - self.phase) / self.period)  # read on arrival
+        if counter == self.last:
+            return received, []
+        missed = 0 if self.last is None else counter - self.last - 1
+        self.last = counter
+        scan = Scan(counter, 0, (0, 0, 0, 0), 0, counter, 0, missed=missed, host_time=received)
+        return received, [scan]
+
+
+@pytest.mark.parametrize("ppm", [0.0, 200.0, -200.0, 1000.0, -1000.0])
+@pytest.mark.parametrize("rate", [20, 100])
+def test_poll_pacer_reads_every_scan_once_with_one_poll_per_scan(rate: int, ppm: float) -> None:
+    module = SimulatedModule(rate, ppm, phase_s=0.0123)
+    pacer = PollPacer(rate)
+    now, polls, scans = 0.0, 0, []
+    while now < 120.0:
+        received, got = module.poll(now)
+        polls += 1
+        pacer.observe(now, received, got)
+        scans += got
+        now = pacer.next_read(received + 0.0001)
+    assert sum(s.missed for s in scans) == 0
+    assert [s.counter for s in scans] == list(range(scans[0].counter, scans[-1].counter + 1))
+    assert polls <= 1.06 * len(scans)  # searches cost a few polls, tracking one per scan
+    assert pacer.late == 0
+
+
+def test_poll_pacer_searches_again_after_a_restart() -> None:
+    pacer = PollPacer(RATE)
+    module = SimulatedModule(RATE, 0.0, phase_s=0.010)
+    now = 0.0
+    while now < 2.0:
+        received, got = module.poll(now)
+        pacer.observe(now, received, got)
+        now = pacer.next_read(received)
+    assert pacer.locked
+    restarted = Scan(0, 0, (0, 0, 0, 0), 0, 0, 0, epoch=1, restarted=True)
+    pacer.observe(now, now + 0.001, [restarted])
+    assert not pacer.locked and pacer.edge is None
+    assert pacer.next_read(now + 0.001) == pytest.approx(now + 0.001 + pacer.step_s)
+
+
+def test_fifo_pacer_reads_every_period_and_at_once_when_behind() -> None:
+    pacer = FifoPacer()
+    scan = Scan(0, 0, (0, 0, 0, 0), 0, 0, 0)
+    pacer.observe(10.0, 10.01, [scan] * 4)
+    assert pacer.next_read(10.02) == pytest.approx(10.0 + FIFO_READ_PERIOD_S)
+    pacer.observe(11.0, 11.05, [scan] * (ldq412.FIFO_DEPTH // 2))
+    assert pacer.next_read(11.05) == 11.05  # half full: the reader fell behind
+    with pytest.raises(ValueError, match="FIFO read period must be > 0 s"):
+        FifoPacer(0.0)
+    with pytest.raises(ValueError, match="scan rate 0 Hz outside 1..200"):
+        PollPacer(0)

@@ -1,0 +1,150 @@
+"""Technician sessions for the worker tests: recorded live through ``loopcal record``, or
+written straight from the simulator's offline scans (the same scans, much faster)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from loopcal.calibration.parameters import PAPER7
+from loopcal.calibration.simulate import perturbed_truth
+from loopcal.daemon import recording as rec
+from loopcal.simulator.offline import mechanism_scans
+from loopcal.simulator.scenarios import Scenario
+
+from .processes import Proc, listening_url, record
+from .recordings import write_directory
+from .rows import T0, rows_from
+
+#: a technician pausing about a second between moves
+PAUSE_S = (0.8, 1.5)
+
+
+@dataclass
+class Session:
+    directory: Path
+    truth: np.ndarray
+    seed: int
+
+
+def truth_for(seed: int) -> np.ndarray:
+    """A shoulder joint whose LVDTs were refitted (offsets up to 3 mm off) and whose
+    geometry differs from the blueprint by up to 0.5 mm."""
+    return perturbed_truth(np.random.default_rng([seed, 7]), model=PAPER7)
+
+
+def live_sessions(root: Path, seeds: list[int], *, minutes: float = 2.0, speed: float = 10.0,
+                  attempts: int = 2):  # fmt: skip
+    """Record technician sessions through ``loopcal record`` over Modbus TCP, all at once:
+    each emulated module is a ``loopcal simulate`` process of its own (the same scans as
+    in-process, with no Python thread of this process between the module and its reader),
+    running ``speed`` times as fast as wall time from the recorder's first request.
+
+    Each recorder is stopped once its recording holds every scan of ``minutes`` (not after
+    a fixed sleep: on a loaded machine a recorder may lag behind its module). A session
+    whose recording misses scans (its FIFO overflowed while the machine was too busy to
+    let the recorder read: an ``overflow``/``gap`` in the recording, never silent) is
+    recorded again, up to ``attempts`` times in all.
+    """
+    wanted = int(minutes * 60 * 20)
+    todo = list(seeds)
+    done: dict[int, Session] = {}
+    for attempt in range(attempts):
+        for s in _record_sessions(root / f"attempt-{attempt}", todo, wanted, speed):
+            scans = rec.read_recordings(s.directory).scans
+            c = scans["counter64"][scans["counter64"] < wanted].astype(np.int64)
+            if len(c) and c[-1] - c[0] + 1 == len(c) and c[0] <= 600:
+                done[s.seed] = s
+        todo = [seed for seed in seeds if seed not in done]
+        if not todo:
+            break
+    assert not todo, f"sessions {todo} lost scans in every attempt"
+    return [done[seed] for seed in seeds]
+
+
+def _record_sessions(root: Path, seeds: list[int], wanted: int, speed: float) -> list[Session]:
+    from loopcal.calibration.parameters import NAMES
+
+    sessions, sims, procs = [], [], []
+    try:
+        for seed in seeds:
+            truth = truth_for(seed)
+            every = ",".join(f"{n}={float(truth[i])!r}" for i, n in enumerate(NAMES))
+            sim = Proc(
+                [
+                    "simulate",
+                    "--seed",
+                    str(seed),
+                    "--speed",
+                    f"{speed:g}",
+                    "--pause",
+                    f"{PAUSE_S[0]},{PAUSE_S[1]}",
+                    "--noise-mv",
+                    "40",
+                    "--truth",
+                    every,
+                    "--wait-for-client",
+                ]
+            )
+            sims.append(sim)
+            out = root / f"session-{seed}"
+            procs.append(record(listening_url(sim), out, "--read-period", "0.05"))
+            sessions.append(Session(out, truth, seed))
+        for p in procs:
+            p.wait_for("recording to")
+        time.sleep(wanted / 20 / speed)
+        pending = list(zip(sessions, procs, strict=True))
+        deadline = time.monotonic() + 120
+        while pending:  # each recorder stops once it has recorded the last wanted scan
+            for s, p in list(pending):
+                scans = rec.read_recordings(s.directory).scans
+                if len(scans) and scans["counter64"][-1] >= wanted:
+                    rc, _ = p.stop()
+                    assert rc == 0, p.text
+                    pending.remove((s, p))
+            assert time.monotonic() < deadline, "recorders did not catch up in 120 s"
+            time.sleep(0.5)
+    finally:
+        for p in [*procs, *sims]:
+            p.kill()
+    return sessions
+
+
+def trim(src: Path, dst: Path, first: int, stop: int) -> Path:
+    """Copy the scans with counters first..stop-1 of a recording into a new one (so that a
+    test calibrates the same scans every run, whenever its recorder happened to start)."""
+    scans = rec.read_recordings(src).scans
+    keep = scans[(scans["counter64"] >= first) & (scans["counter64"] < stop)]
+    assert len(keep) == stop - first, f"{src}: scans {first}..{stop - 1} not all recorded"
+    return write_directory(dst, keep, command="trim")
+
+
+def write_session(
+    path: Path,
+    scenario: Scenario,
+    truth: np.ndarray,
+    seconds: float,
+    *,
+    seed: int = 0,
+    rate: int = 20,
+    hours_per_file: float = 1.0,
+    edit=None,
+    drifts=(),
+    t0: int = T0,
+) -> int:
+    """Write an offline-simulated session as recording files in ``path``; returns scans.
+
+    edit: called with the codes (n, 4) to change them (a stuck sensor, say). drifts:
+    :class:`loopcal.simulator.drift.OffsetDrift` of the sensors' offsets. t0: the first scan's
+    stamp, ns since the Unix epoch."""
+    n = round(seconds * rate)
+    time_us, codes = mechanism_scans(scenario, truth, n, rate_hz=rate, noise_volts=0.04,
+                                     seed=seed, drifts=drifts)  # fmt: skip
+    if edit is not None:
+        edit(codes)
+    rows = rows_from(time_us, codes, t0=t0)
+    write_directory(path, rows, rate=rate, scans_per_file=round(hours_per_file * 3600 * rate))
+    return n
