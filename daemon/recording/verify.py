@@ -70,7 +70,7 @@ _DATA_END_BYTES = RECORD_HEAD + 4
 _CRC_PIECE = 1 << 24
 #: intact chunks are checked through their message indexes with numpy in batches of this many
 #: bytes (decompressed): a file as written has two chunks of some 20 messages each a second
-_BATCH_BYTES = 1 << 22  # bytes given to zlib.crc32 at once over the mapped file
+_BATCH_BYTES = 1 << 20  # bytes given to zlib.crc32 at once over the mapped file
 _COMPRESSIONS = ("", "zstd", "lz4")
 _SUMMARY_OPCODES = {Opcode.SCHEMA, Opcode.CHANNEL, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT_INDEX,
                     Opcode.METADATA_INDEX, Opcode.STATISTICS, Opcode.SUMMARY_OFFSET}  # fmt: skip
@@ -223,7 +223,7 @@ class Verification:
 # ---------------------------------------------------------------------------- records
 
 
-@dataclass
+@dataclass(slots=True)
 class _ChunkIndex:
     """A chunk index record of the summary, and where it lies."""
 
@@ -266,7 +266,7 @@ def _chunk_index(at: int, length: int, body: memoryview) -> _ChunkIndex:
                        csize, usize)  # fmt: skip
 
 
-@dataclass
+@dataclass(slots=True)
 class _MessageIndex:
     """A message index record after a chunk: its channel and (log time, offset) entries."""
 
@@ -298,7 +298,7 @@ def _message_index(at: int, length: int, body: memoryview) -> _MessageIndex:
     return _MessageIndex(at, length, cid, nbytes // 16, bytes(body[6:]))
 
 
-@dataclass
+@dataclass(slots=True)
 class _Chunk:
     """A chunk record of the data section, what it held and the message indexes after it."""
 
@@ -826,6 +826,8 @@ class _Verifier:
         self.out.records += records
         for c, _ in batch:
             c.counts = {mi.channel: mi.count for mi in c.indexes}
+            for mi in c.indexes:
+                mi.body = b""  # checked: its channel, place and count are what is kept
         return True
 
     def other_records(self, raw: bytes, lo: int, hi: int) -> int | None:
@@ -957,6 +959,8 @@ class _Verifier:
                         start_ns=c.start_ns, end_ns=c.end_ns, messages=messages)  # fmt: skip
             if indexed:  # what the damaged chunk held, by its indexes (for the statistics)
                 c.counts = Counter({mi.channel: mi.count for mi in indexed})
+        for mi in c.indexes:
+            mi.body = b""  # checked: its channel, place and count are what is kept
 
     def chunk_topics(self, c: _Chunk) -> tuple[str, ...]:
         """The topics of a chunk whose content cannot be trusted: its chunk index entry's
