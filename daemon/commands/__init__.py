@@ -28,6 +28,8 @@ COMMANDS: tuple[tuple[str, str], ...] = (
      "identify new parameters from recordings; --write puts them in the controller config"),
     ("info",
      "what recordings hold: time span, scans, gaps, restarts, events, poses, config, damage"),
+    ("verify",
+     "check every record of recordings (views, indexes, statistics): name each damaged part"),
     ("check", "did the loops close at a controller config: which sensor moved, when, by how much"),
     ("fleet", "info or check over a fleet's archives, per robot and day, on Dask (loopcal[fleet])"),
     ("compact", "rewrite closed recordings with large chunks, for fast reading (verified, atomic)"),

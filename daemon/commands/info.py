@@ -4,7 +4,11 @@ What ``mcap info`` and ``ros2 bag info`` give, for the shoulder joint: the files
 span (UTC), the scans and the scan rate, missed scans and gaps, when the module was powered
 on and its restarts since, events by kind, the still poses a calibration would find, the
 controller config in force (path, sha256, when and how it was calibrated) and anything
-damaged. ``--json`` prints one object (docs/tools.md lists its keys).
+damaged: every record of every file is checked, the views' chunks, the indexes and the
+statistics included (as ``loopcal verify`` does), and each damaged item is named with its byte
+offset, the topics of its messages and their time span. ``damaged: none`` only when every
+record checked out. ``--json`` prints one object (docs/tools.md lists its keys). Exit status
+0 (damage is reported, not judged: ``loopcal verify`` exits 1 on it), 2 for bad input.
 
 Files are read one at a time (memory stays that of one file, whatever the span); a scan in
 two files (a copy, or a recorder that restarted) is counted once.
@@ -41,5 +45,3 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print("\n".join(render(doc)))
     return 0
-
-

@@ -36,7 +36,10 @@ CONFIG_NAME = "controller.toml"
 #: the table's columns, in order (docs/fleet.md says what each holds)
 INFO_COLUMNS = ("robot", "day", "files", "bytes", "scans", "start_utc", "end_utc",
                 "scan_rate_hz", "missed", "gaps", "restarts", "events", "poses",
-                "warnings")  # fmt: skip
+                "warnings", "damaged_files", "damaged_topics", "scans_lost",
+                "damage")  # fmt: skip
+#: damaged items a ``fleet info`` row's ``damage`` names (``loopcal info`` lists every one)
+DAMAGE_ITEMS = 3
 CHECK_COLUMNS = ("robot", "day", "files", "poses", "loops_close", "changes", "sensors",
                  "shifts_mm", "first_change_utc", "warnings")  # fmt: skip
 
@@ -101,8 +104,27 @@ def info_task(task: RobotDay) -> dict[str, Any]:
         "end_utc": doc["end_utc"], "scan_rate_hz": doc["scan_rate_hz"],
         "missed": doc["missed"], "gaps": doc["gaps"], "restarts": doc["restarts"],
         "events": sum(doc["events"].values()), "poses": doc["poses"],
-        "warnings": len(doc["warnings"]),
+        "warnings": len(doc["warnings"]), **damage_columns(doc),
     }  # fmt: skip
+
+
+def damage_columns(doc: dict[str, Any]) -> dict[str, Any]:
+    """What of a robot-day was damaged, for its row: ``damaged_files`` (files with a damaged
+    item or a reader's warning), ``damaged_topics`` (the topics of the damaged items,
+    space-separated, sorted; "?" for an item no index names the topics of),
+    ``scans_lost`` (scans known to be missing) and ``damage`` (the first
+    :data:`DAMAGE_ITEMS` items, ``FILE: ITEM``, separated by `` | ``, with how many more)."""
+    files = [f for f in doc["files"] if f.get("damage") or f.get("warning")]
+    topics = set()
+    for d in doc["damaged"]:
+        topics |= set(d["topics"] or ["?"])
+    items = [f"{Path(f['path']).name}: {text}" for f in files for text in f.get("damage", [])]
+    items += [f["warning"] for f in files if f.get("warning") and not f.get("damage")]
+    text = " | ".join(items[:DAMAGE_ITEMS])
+    if len(items) > DAMAGE_ITEMS:
+        text += f" | {len(items) - DAMAGE_ITEMS} more"
+    return {"damaged_files": len(files), "damaged_topics": " ".join(sorted(topics)),
+            "scans_lost": doc["scans_lost"], "damage": text}  # fmt: skip
 
 
 def check_task(task: RobotDay, false_alarm: float) -> dict[str, Any]:

@@ -3,6 +3,12 @@ time span, scans counted once, rate, missed scans and gaps, the module's power-o
 restarts, events by kind, still poses, the controller configs in force, damage. Memory stays
 that of one file.
 
+Damage is what the reader found (scans missing, damaged parts it read around) and what
+checking every record of the file found (:func:`~loopcal.daemon.recording.verify.verify_file`:
+the views' chunks too, the indexes, the statistics): each damaged item is named with its byte
+offset, the topics of its messages and their time span. ``damaged: none`` only when every
+record of every file checked out and the reader lost nothing.
+
 A module's first scan after power-on carries the restart flag. On the recordings' first scan,
 in the first power-on the recorder saw (epoch 0), it says when the module was powered on, not
 that it restarted while recorded: restarts are counted after it."""
@@ -23,6 +29,7 @@ from numpy.lib.recfunctions import repack_fields
 from ..recording import RecordingError, read_recordings
 from ..recording.names import recording_paths
 from ..recording.reader import identities
+from ..recording.verify import verify_file
 from ..scans import scan_rate_hz
 from ..worker.poses import poses_of_scans
 
@@ -48,6 +55,9 @@ class Summary:
     configs: dict[str, dict[str, Any]] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    #: every damaged item of every file (its path under "file"), as verify_file found them
+    damaged: list[dict[str, Any]] = field(default_factory=list)
+    scans_lost: int = 0  # scans known to be missing (counter gaps no ``missed`` explains)
     _seen_events: set[tuple[int, str, str]] = field(default_factory=set)
     _last_key: tuple[int, int] | None = None  # (epoch, counter64) of the last scan counted
     _tail: set[bytes] = field(default_factory=set)  # the identities of the last file's tail
@@ -75,11 +85,17 @@ class Summary:
             self._last_key = (int(rows["epoch"][-1]), int(rows["counter64"][-1]))
             self._tail = set(identities(rows[-_TAIL:]))
         size = path.stat().st_size
+        checked = verify_file(path)
+        damaged = [d.as_json() for d in checked.damaged]
+        self.damaged += [{"file": str(path), **d} for d in damaged]
+        self.scans_lost += info.lost_scans
         self.files.append({
             "path": str(path), "bytes": size, "complete": info.complete,
             "scans": len(rows),
             "start_utc": utc_iso(info.first_stamp_ns), "end_utc": utc_iso(info.last_stamp_ns),
             "note": info.note or None, "warning": info.warning or None,
+            "records_checked": checked.records, "damaged": damaged,
+            "damage": [d.text() for d in checked.damaged], "scans_lost": info.lost_scans,
         })  # fmt: skip
         if info.warning:
             self.warnings.append(info.warning)
@@ -143,6 +159,8 @@ class Summary:
             "controller_configs": list(self.configs.values()),
             "warnings": self.warnings,
             "notes": self.notes,
+            "damaged": self.damaged,
+            "scans_lost": self.scans_lost,
         }
 
 
@@ -205,14 +223,39 @@ def render(doc: dict[str, Any]) -> list[str]:
                else ", never calibrated by loopcal")  # fmt: skip
         lines.append(f"controller config: {c['path'] or 'reference geometry'} "
                      f"sha256 {(c['sha256'] or '-')[:12]}{how}; {c['files']} file(s)")  # fmt: skip
-    lines.append("damaged:    " + ("none" if not doc["warnings"] else ""))
-    lines += [f"  {w}" for w in doc["warnings"]]
+    lines += damage_lines(doc)
     lines.append("files:")
     for f in doc["files"]:
         state = "closed" if f["complete"] else "not closed"
         lines.append(f"  {Path(f['path']).name}  {_short(f['start_utc'])} to "
                      f"{_short(f['end_utc'])}  {f['scans']:,} scans  {f['bytes'] / 1e6:.1f} MB  "
                      f"{state}")  # fmt: skip
+    return lines
+
+
+#: damaged items listed per file by ``render`` (``--json`` lists every one)
+_ITEMS_PER_FILE = 10
+
+
+def damage_lines(doc: dict[str, Any]) -> list[str]:
+    """The ``damaged:`` line and one line per damaged item (per file, at most
+    ``_ITEMS_PER_FILE``) and per reader warning; ``damaged:    none`` only when every record
+    of every file checked out and the reader lost nothing."""
+    damaged = [f for f in doc["files"] if f.get("damage")]
+    if not damaged and not doc["warnings"]:
+        return ["damaged:    none"]
+    items = sum(len(f["damage"]) for f in damaged)
+    lines = [
+        f"damaged:    {items} item(s) in {len(damaged)} file(s)"
+        + (f", {doc['scans_lost']:,} scan(s) lost" if doc.get("scans_lost") else "")
+    ]
+    for f in damaged:
+        name = Path(f["path"]).name
+        lines += [f"  {name}: {text}" for text in f["damage"][:_ITEMS_PER_FILE]]
+        if len(f["damage"]) > _ITEMS_PER_FILE:
+            lines.append(f"  {name}: {len(f['damage']) - _ITEMS_PER_FILE} more (--json lists "
+                         "every one)")  # fmt: skip
+    lines += [f"  {w}" for w in doc["warnings"]]
     return lines
 
 
