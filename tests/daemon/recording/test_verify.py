@@ -16,17 +16,19 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from fuzz_helpers import T0, chunk_spans, flip_bits, make_rows, write_recording, zero_run
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from js_helpers import mcap_reader, run_node
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
-from session_helpers import loopcal
 
 from loopcal.daemon import recording as rec
 from loopcal.daemon.inspect.fleet import RobotDay, info_task
 from loopcal.daemon.recording.verify import span_text, verify_file
+from tests.support.js import run_node
+from tests.support.mutations import chunk_spans, flip_bits, zero_run
+from tests.support.processes import loopcal
+from tests.support.recordings import write_recording
+from tests.support.rows import T0, make_rows
 
 N, PER = 200, 20  # scans, scans per flush: two chunks a flush (raw block and events, views)
 VIEWS = ("/joint/state", "/plate/transform")  # the topics of every views chunk but the first
@@ -52,11 +54,6 @@ def original(tmp_path_factory) -> Original:
              if {topic[i] for i in c.message_index_offsets} == set(VIEWS)]  # fmt: skip
     assert len(views) == N // PER - 1  # the first views chunk also holds /plate/scene
     return Original(path, data, views)
-
-
-@pytest.fixture(scope="module")
-def node_reader() -> list[str]:
-    return mcap_reader()
 
 
 # ---------------------------------------------------------------------------- byte edits
