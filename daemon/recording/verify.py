@@ -28,9 +28,10 @@ message indexes, or the chunk's own records; empty when nothing says) and their 
 A file not closed (no data end, no footer: a crash, or the file being written) is no damage
 in itself; a last record cut off by the end of the file is.
 
-What no check can see: MCAP gives metadata records and the header no CRC (and our writer, as
-the mcap library by default, writes no data section CRC), so a flipped character in a
-metadata value that keeps the record's shape reads as a different value. The header's library
+MCAP gives metadata records and the header no CRC of their own: only the data section's
+CRC (in the data end record) covers them. Files written since format 1's recorders turned
+it on have one; in older files a flipped character in a metadata value that keeps the
+record's shape reads as a different value. The header's library
 is checked against the ``loopcal`` metadata's version and that record's format against the
 format version; other metadata values are taken as they are.
 """
@@ -621,8 +622,11 @@ class _Verifier:
             crc = 0
             for p in range(0, pos, _CRC_PIECE):
                 crc = zlib.crc32(self.buf[p : min(p + _CRC_PIECE, pos)], crc)
-            if crc != rec.data_section_crc:
-                self.damage(0, pos, "data section", "data section CRC mismatch")
+            # damage already named in the data section explains a mismatch; alone, it is
+            # damage no other check sees (the header, a metadata value)
+            if crc != rec.data_section_crc and not any(d.offset < pos for d in self.damaged):
+                self.damage(0, pos, "data section", "data section CRC mismatch (the header or "
+                            "a metadata record changed: no other check covers them)")
 
     def bad_bytes(self, pos: int, limit: int, *, cut: bool) -> tuple[int, _Chunk | None]:
         """Name the stretch from ``pos`` where no record can be read; returns where to go on

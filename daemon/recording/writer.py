@@ -82,9 +82,10 @@ class RecordingWriter:
         self._closed = False
         self._file = _DirectFile(self.path)
         try:
-            self._writer = Writer(
-                self._file, chunk_size=_CHUNK_SIZE, compression=compression, enable_crcs=True
-            )
+            # the data section's CRC (in the DataEnd record) covers what no other CRC does:
+            # the header and the metadata records (loopcal verify checks it)
+            self._writer = Writer(self._file, chunk_size=_CHUNK_SIZE, compression=compression,
+                                  enable_crcs=True, enable_data_crcs=True)  # fmt: skip
             self._writer.start(profile="", library=f"loopcal {loopcal_version()}")
             self._channels: dict[str, int] = {}
             for topic, (schema, schema_enc, msg_enc) in CHANNELS.items():

@@ -380,3 +380,15 @@ def test_any_changed_byte_is_named_or_changes_no_message(original, tmp_path, at,
     except Exception as exc:  # noqa: BLE001 - the mcap library refusing is the finding
         pytest.fail(f"byte {at} ^ {xor:#x}: verify found nothing, the mcap library: {exc!r}")
     assert got == want, f"byte {at} ^ {xor:#x}: verify found nothing, the messages differ"
+
+
+def test_a_changed_metadata_value_is_named_by_the_data_section_crc(original, tmp_path):
+    """A metadata value changed in place keeps the record's shape and no CRC of its own
+    covers it: the data section's CRC (written since this change) does."""
+    assert original.data.count(b"12648430") == 1  # the device's serial, in its metadata
+    path = tmp_path / "serial.mcap"
+    path.write_bytes(original.data.replace(b"12648430", b"12648431"))
+    items = verify_file(path).damaged
+    assert [(d.record, d.offset) for d in items] == [("data section", 0)]
+    assert "metadata" in items[0].what
+    assert verify_file(original.path).damaged == []
