@@ -23,6 +23,7 @@ MCAP specification says.
 
 from __future__ import annotations
 
+import mmap
 import struct
 import zlib
 from collections.abc import Callable, Iterator
@@ -351,6 +352,12 @@ def _chunk_header(body: memoryview) -> tuple[int, int, int, int, str, memoryview
     return start, end, usize, crc, compression, body[pos:]
 
 
+def is_chunk_body(body: memoryview) -> bool:
+    """Whether ``body`` is a chunk record's body whose header fields are consistent with
+    its length (a chunk, whatever its opcode byte now says)."""
+    return _chunk_header(body) is not None
+
+
 def _decompress(compression: str, data: memoryview, size: int) -> bytes:
     if compression == "":
         return bytes(data)
@@ -502,7 +509,8 @@ def _damage_at(buf: memoryview, pos: int, cut_off: bool) -> Damage:
 def _resync(buf: memoryview, lo: int, bad: int, strict: bool) -> int | None:
     """The offset of the first chunk at or after ``lo`` (but not the record at ``bad``
     itself) that reads back intact, or None."""
-    data = buf.obj if isinstance(buf.obj, bytes) else bytes(buf)
+    whole = isinstance(buf.obj, (bytes, mmap.mmap)) and len(buf.obj) == len(buf)
+    data = buf.obj if whole else bytes(buf)
     n = len(buf)
     p = lo
     limit = min(n, bad + _RESYNC_WINDOW)
@@ -526,6 +534,7 @@ __all__ = [
     "ChunkRecords",
     "Damage",
     "Summary",
+    "is_chunk_body",
     "is_ours",
     "parse_record",
     "read_chunk",
