@@ -240,6 +240,12 @@ def utc_text(ns: int | None) -> str:
 _OUR_CHANNEL_IDS = {topic: i for i, topic in enumerate(CHANNELS, start=1)}
 
 
+#: what :func:`~loopcal.daemon.recording.records.walk` calls a file's damaged start
+_NO_MAGIC = "no MCAP magic at the start"
+#: what it calls a stretch of bytes that is no record (it may have held anything)
+_STRETCHES = ("zeros where records should be", "no valid record")
+
+
 class FileReader:
     """Reads the scans, events and metadata of one file, trusting only what checks out.
 
@@ -272,6 +278,7 @@ class FileReader:
         # message indexes after it or the chunk index
         self._held: dict[int, dict[int, int | None]] = {}
         self._no_messages: set[int] = set()  # offsets of damaged records that hold none
+        self._index_chunks: set[int] = set()  # offsets of damaged chunks the index names
 
     # -------------------------------------------------------------- whole file
 
@@ -394,6 +401,11 @@ class FileReader:
 
     def _take(self, got: ChunkRecords | Damage) -> None:
         if isinstance(got, Damage):
+            old = self.damage.get(got.offset)
+            if old is not None and old.what == _NO_MAGIC != got.what:  # what follows it too
+                got = Damage(0, max(old.length, got.length), f"{old.what}, then {got.what}",
+                             got.start_ns, got.end_ns)  # fmt: skip
+                self.damage[0] = got
             self.damage.setdefault(got.offset, got)
             return
         for ch in got.channels:
@@ -457,11 +469,15 @@ class FileReader:
         elsewhere = {(span, _length_at(buf, off)) for off, span in found.items()}
         for off, d in told.items():
             ci = by_offset.get(off)
-            if ci is not None and ((ci.message_start_time, ci.message_end_time),
-                                   ci.chunk_length) in elsewhere:  # fmt: skip
+            if ci is None:  # a metadata record: what the walk found there, if anything
+                if off in self.damage:
+                    self._no_messages.discard(off)
+                self.damage.setdefault(off, d)
+            elif ((ci.message_start_time, ci.message_end_time), ci.chunk_length) in elsewhere:
                 continue  # the chunk it names is intact, elsewhere
-            if off not in found:
-                self.damage[off] = d
+            elif off not in found:
+                self.damage[off] = d  # the index's account: a chunk, and its time span
+                self._index_chunks.add(off)
         moved = sorted(off for off, span in found.items()
                        if not _described(buf, off, span, by_offset.get(off)))  # fmt: skip
         if moved:
@@ -556,6 +572,8 @@ class FileReader:
         seen = None
         if holders or (expected is not None and expected != len(rows)):
             seen = view_keys([d for _o, cid, d in self._messages if cid in self._ids(TOPIC_STATE)])
+        if not len(rows) and (seen is None or not len(seen)):
+            holders = list(self.damage.values())  # nothing read: any damage may have held all
         if self._windowed:
             info.lost = losses_within(rows, self.since, self.until, seen)
         else:
@@ -572,25 +590,31 @@ class FileReader:
 
     def _statistics_count(self, topic: str) -> int | None:
         """Messages of ``topic`` in the whole file by its statistics record (None: not
-        trusted, not our writer's, or only part of the file was read)."""
-        if self.statistics is None or not self.ours or self._windowed:
+        trusted, not our layout (raw scans and a view per scan), or only part of the file
+        was read)."""
+        if self.statistics is None or self._windowed:
+            return None
+        topics = {c.topic for c in self.channels.values()}
+        if not {TOPIC_SCANS, TOPIC_STATE} <= topics:  # not our layout: one view per scan
             return None
         ids = self._ids(topic)
-        if not ids:
-            return None
         counts = self.statistics.channel_message_counts
         return sum(counts.get(i, 0) for i in ids)
 
     def _may_hold(self, buf: memoryview, d: Damage) -> bool:
         """Whether a damaged part may have held messages: a chunk (even one whose opcode
         was hit) or a stretch of bytes that is no record, not a damaged small record."""
-        if d.offset in self._no_messages or d.offset >= len(buf) or d.offset == 0:
+        if d.offset in self._no_messages or d.offset >= len(buf) or d.what == _NO_MAGIC:
             return False
         if self._windowed and d.start_ns is not None and d.end_ns is not None:
             if not self._in_window(d.start_ns, d.end_ns):
                 return False
-        if buf[d.offset] == Opcode.CHUNK or d.what.startswith(("zeros", "no valid record")):
+        if d.offset in self._index_chunks or buf[d.offset] == Opcode.CHUNK:
             return True
+        if any(w in d.what for w in _STRETCHES):
+            return True
+        if "cut off" in d.what and d.offset + d.length < len(buf):
+            return True  # not the end: a length that overran good chunks, skipped to them
         at = record_at(buf, d.offset, len(buf))
         return at is not None and is_chunk_body(buf[d.offset + RECORD_HEAD :
                                                     d.offset + RECORD_HEAD + at[1]])  # fmt: skip
@@ -633,6 +657,8 @@ class FileReader:
         """Events the damaged parts held, by the message indexes after them; and whether
         any may have held events that nothing counts."""
         ids = self._ids(TOPIC_EVENTS)
+        if not ids:  # no channel known to be the events': whatever the damage held
+            return 0, bool(holders)
         n, unknown = 0, False
         for d in holders:
             held = self._held.get(d.offset)

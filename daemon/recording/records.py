@@ -450,8 +450,9 @@ def walk(
     Yields each intact chunk as :class:`ChunkRecords` (messages of the channels
     ``wanted()`` names at that moment), each other record the mcap library's record object,
     and a :class:`Damage` for each stretch that cannot be trusted. Stops at the data end,
-    the footer or the end of the bytes. After damage it resumes at the next intact chunk,
-    looking from the end of the last chunk that checked out (a bad length may have carried
+    the footer (of their size, in a file that ends in MCAP magic: anything else with their
+    opcode is damage) or the end of the bytes. After damage it resumes at the next intact
+    chunk, looking from the end of the last chunk that checked out (a bad length may have carried
     the walk past good chunks). A record cut off by the end of the file is reported as
     damage ("cut off").
     """
@@ -482,13 +483,27 @@ def walk(
                 trusted_end = end
             yield got
         elif op in (Opcode.DATA_END, Opcode.FOOTER):
-            return
+            if _is_end(buf, pos, op, length):
+                return
+            # a chunk whose opcode was hit, or junk: not the end of the data
+            yield Damage(pos, end - pos, f"a {Opcode(op).name.lower()} record that is not the end")
         elif op in _PARSERS:
             try:
                 yield parse_record(op, buf[pos + RECORD_HEAD : end])
             except PARSE_ERRORS:
                 yield Damage(pos, end - pos, f"damaged {Opcode(op).name.lower()} record")
         pos = end
+
+
+def _is_end(buf: memoryview, pos: int, op: int, length: int) -> bool:
+    """Whether a data end or footer record at ``pos`` ends the data section: of its size,
+    in a file that ends in MCAP magic (a footer: right before it)."""
+    n = len(buf)
+    if n < 8 or bytes(buf[n - 8 :]) != MAGIC:
+        return False
+    if op == Opcode.FOOTER:
+        return length == FOOTER_BYTES - RECORD_HEAD and pos + FOOTER_BYTES + 8 == n
+    return length == 4
 
 
 def _damage_at(buf: memoryview, pos: int, cut_off: bool) -> Damage:
