@@ -571,7 +571,8 @@ class FileReader:
         expected = self._statistics_count(TOPIC_STATE)
         seen = None
         if holders or (expected is not None and expected != len(rows)):
-            seen = view_keys([d for _o, cid, d in self._messages if cid in self._ids(TOPIC_STATE)])
+            state = self._ids(TOPIC_STATE)
+            seen = view_keys([d for _o, cid, d in self._messages if cid in state])
         if not len(rows) and (seen is None or not len(seen)):
             holders = list(self.damage.values())  # nothing read: any damage may have held all
         if self._windowed:
@@ -627,13 +628,13 @@ class FileReader:
         if not holders:
             return ""
         ids = self._ids(TOPIC_SCANS, TOPIC_STATE)
-        offsets = [off for off, cid, _d in self._messages if cid in ids]
+        offsets = np.fromiter((off for off, cid, _d in self._messages if cid in ids), np.int64)
         stamps = [rows["stamp_ns"]] + ([] if seen is None else [seen["stamp_ns"]])
         known = np.concatenate(stamps)
-        if not offsets or not len(known):
+        if not len(offsets) or not len(known):
             return f"no scan could be read, how many are lost is unknown (damage at byte " \
                    f"{holders[0].offset})"  # fmt: skip
-        lo, hi = min(offsets), max(offsets)
+        lo, hi = int(offsets.min()), int(offsets.max())
         first, last = int(known.min()), int(known.max())
         before, after = [], []
         for d in holders:

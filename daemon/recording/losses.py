@@ -18,6 +18,14 @@ from .schemas import CDR_LE, NS_PER_S
 
 #: fields of a scan's key, as :func:`view_keys` returns them
 KEY_DTYPE = np.dtype([("epoch", "<u4"), ("counter64", "<u8"), ("stamp_ns", "<i8")])
+#: a whole ``/joint/state`` message: the CDR encapsulation header, then the fields
+_VIEW = np.dtype({
+    "names": ["sec", "nanosec", "epoch", "counter"],
+    "formats": [JOINT_STATE_DTYPE.fields[f][0] for f in ("sec", "nanosec", "epoch", "counter")],
+    "offsets": [len(CDR_LE) + JOINT_STATE_DTYPE.fields[f][1]
+                for f in ("sec", "nanosec", "epoch", "counter")],
+    "itemsize": len(CDR_LE) + JOINT_STATE_DTYPE.itemsize,
+})  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -63,9 +71,9 @@ def view_keys(messages: list[bytes]) -> np.ndarray:
     ndarray of KEY_DTYPE, shape (n,)
         Epoch, counter and stamp of each well-formed message, in the order given.
     """
-    size = len(CDR_LE) + JOINT_STATE_DTYPE.itemsize
-    good = [m[len(CDR_LE) :] for m in messages if len(m) == size and m[:4] == CDR_LE]
-    arr = np.frombuffer(b"".join(good), dtype=JOINT_STATE_DTYPE)
+    if not all(len(m) == _VIEW.itemsize and m[:4] == CDR_LE for m in messages):
+        messages = [m for m in messages if len(m) == _VIEW.itemsize and m[:4] == CDR_LE]
+    arr = np.frombuffer(b"".join(messages), dtype=_VIEW)
     keys = np.zeros(len(arr), dtype=KEY_DTYPE)
     keys["epoch"], keys["counter64"] = arr["epoch"], arr["counter"]
     keys["stamp_ns"] = arr["sec"].astype(np.int64) * NS_PER_S + arr["nanosec"]

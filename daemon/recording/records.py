@@ -487,12 +487,34 @@ def walk(
                 return
             # a chunk whose opcode was hit, or junk: not the end of the data
             yield Damage(pos, end - pos, f"a {Opcode(op).name.lower()} record that is not the end")
+        elif op == Opcode.MESSAGE_INDEX:  # one per channel and chunk: parsed in C
+            try:
+                yield _message_index(buf[pos + RECORD_HEAD : end])
+            except PARSE_ERRORS:
+                yield Damage(pos, end - pos, "damaged message_index record")
         elif op in _PARSERS:
             try:
                 yield parse_record(op, buf[pos + RECORD_HEAD : end])
             except PARSE_ERRORS:
                 yield Damage(pos, end - pos, f"damaged {Opcode(op).name.lower()} record")
         pos = end
+
+
+_MESSAGE_INDEX_HEAD = struct.Struct("<HI")  # channel id, byte length of the entries
+_MESSAGE_INDEX_ENTRY = struct.Struct("<QQ")  # log time, offset in the chunk
+
+
+def _message_index(body: memoryview) -> MessageIndex:
+    """A message index record's body, parsed with its length checked (what the mcap
+    library's reader gives, without its field-by-field reads). Raises ValueError if the
+    entries do not fill the body exactly."""
+    if len(body) < _MESSAGE_INDEX_HEAD.size:
+        raise ValueError("short message index")
+    channel, size = _MESSAGE_INDEX_HEAD.unpack_from(body, 0)
+    if size % _MESSAGE_INDEX_ENTRY.size or _MESSAGE_INDEX_HEAD.size + size != len(body):
+        raise ValueError("message index entries do not fill the record")
+    entries = body[_MESSAGE_INDEX_HEAD.size :]
+    return MessageIndex(channel_id=channel, records=list(_MESSAGE_INDEX_ENTRY.iter_unpack(entries)))
 
 
 def _is_end(buf: memoryview, pos: int, op: int, length: int) -> bool:
