@@ -86,6 +86,8 @@ def _union(
     """Epoch, counter, stamp, missed and "read" of the scans of ``rows`` and of ``seen``
     (keys only: missed 0, not read), each key once and in (epoch, counter) order."""
     n, m = len(rows), len(seen)
+    if not m:  # rows alone are in order already, each key once
+        return rows["epoch"], rows["counter64"], rows["stamp_ns"], rows["missed"], np.ones(n, bool)
     e = np.concatenate([rows["epoch"], seen["epoch"]])
     c = np.concatenate([rows["counter64"], seen["counter64"]])
     s = np.concatenate([rows["stamp_ns"], seen["stamp_ns"]])
