@@ -4,23 +4,36 @@ The records come from :mod:`~loopcal.daemon.recording.records` (every length, of
 checked); this module turns them into scan rows and events: each scan once (within a file a
 scan is its power-on epoch and counter), the counter gaps no recorded ``missed`` explains
 reported as lost scans, and every damaged part named (:class:`RecordingFile`).
+
+What a damaged file lost is counted from the file's own records: in a closed file, by its
+statistics record (one ``/joint/state`` message per scan written, and the events), whose
+CRC the summary's covers; in any file, placed by counter gaps and by the views of scans
+whose raw chunk was lost (:mod:`~loopcal.daemon.recording.losses`); where neither can
+count what a damaged part held (before the first scan known, or after the last, in a file
+without trusted statistics), the count is given as "at least" and the place named.
 """
 
 from __future__ import annotations
 
+import gc
 import json
+import mmap
+import os
+import stat
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 from mcap.opcode import Opcode
-from mcap.records import Channel, Metadata
+from mcap.records import Channel, ChunkIndex, MessageIndex, Metadata, Statistics
 
 from .. import scans as scan_rows
 from ..events import Event
 from .cdr import decode_scan_blocks_checked
 from .errors import RecordingError
+from .losses import Loss, losses, losses_within, view_keys
 from .names import NAME_RE
 from .records import (
     MAGIC,
@@ -29,6 +42,7 @@ from .records import (
     ChunkRecords,
     Damage,
     Summary,
+    is_chunk_body,
     is_ours,
     parse_record,
     read_chunk,
@@ -44,34 +58,8 @@ from .schemas import (
     NS_PER_S,
     TOPIC_EVENTS,
     TOPIC_SCANS,
+    TOPIC_STATE,
 )
-
-
-@dataclass(frozen=True)
-class Loss:
-    """Scans a file should hold and does not (a damaged or missing chunk).
-
-    A counter gap between two of its scans that no recorded ``missed`` count explains.
-
-    Attributes
-    ----------
-    epoch : int
-        The power-on epoch of the scans.
-    first : int
-        ``counter64`` of the first missing scan.
-    count : int
-        How many scans are missing, >= 1.
-    after_ns : int
-        Stamp of the scan before the gap, ns since the Unix epoch.
-    before_ns : int
-        Stamp of the scan after the gap, ns since the Unix epoch.
-    """
-
-    epoch: int
-    first: int
-    count: int
-    after_ns: int
-    before_ns: int
 
 
 @dataclass
@@ -85,7 +73,8 @@ class RecordingFile:
     path : pathlib.Path
         The file.
     complete : bool
-        Closed normally (summary and index present and intact).
+        Closed normally (summary and index present and intact, the index matching the
+        chunks).
     scans : int, default 0
         Scans read from it: within the time window, each once, without those a file read
         before it already gave.
@@ -103,14 +92,28 @@ class RecordingFile:
         (:class:`~loopcal.daemon.recording.records.Damage`: byte ranges, what was wrong,
         the time span of the messages they held where known).
     lost : list of Loss
-        Scans known to be missing from the file (counter gaps no ``missed`` explains).
+        Scans known to be missing from the file, by counter
+        (:class:`~loopcal.daemon.recording.losses.Loss`: counter gaps no ``missed``
+        explains, and scans whose views the file holds but not their raw scans).
+    lost_unplaced : int, default 0
+        Scans missing that :attr:`lost` does not place: the file's statistics record
+        counts them (one ``/joint/state`` message per scan written), their counters are
+        unknown.
+    lost_unknown : str, default ""
+        Where an unknown number of scans more may be missing (damage before the first or
+        after the last scan known, in a file without trusted statistics); empty when
+        :attr:`lost_scans` is the exact count.
+    lost_events : int, default 0
+        Events known to be missing (by the statistics record, or the message indexes
+        after a damaged chunk).
+    lost_events_unknown : bool, default False
+        Damaged parts may have held events that nothing in the file counts.
     duplicates : int, default 0
         Scans that appeared more than once in the file (each is returned once).
     bad_messages : int, default 0
         Scan blocks or events inside intact chunks that did not decode.
     last_scan_chunk : int, default -1
-        Byte offset of the last intact chunk that held scans (-1: none): damage after it
-        cut the file's end off.
+        Byte offset of the last intact chunk that held scans (-1: none).
     """
 
     path: Path
@@ -122,6 +125,10 @@ class RecordingFile:
     note: str = ""
     damage: list[Damage] = field(default_factory=list)
     lost: list[Loss] = field(default_factory=list)
+    lost_unplaced: int = 0
+    lost_unknown: str = ""
+    lost_events: int = 0
+    lost_events_unknown: bool = False
     duplicates: int = 0
     bad_messages: int = 0
     # byte offset of the last intact chunk that held scans (-1: none)
@@ -129,56 +136,79 @@ class RecordingFile:
 
     @property
     def lost_scans(self) -> int:
-        """How many scans are known to be missing (the counts of :attr:`lost`, summed)."""
-        return sum(x.count for x in self.lost)
+        """How many scans are known to be missing: :attr:`lost`'s counts and
+        :attr:`lost_unplaced`; the exact count unless :attr:`lost_unknown` says where more
+        may be."""
+        return sum(x.count for x in self.lost) + self.lost_unplaced
 
     @property
     def intact(self) -> bool:
         """Whether the file read whole (nothing damaged, missing, duplicated or undecodable)."""
-        return not (self.damage or self.lost or self.duplicates or self.bad_messages)
+        return not (self.damage or self.lost_scans or self.lost_unknown or self.lost_events
+                    or self.lost_events_unknown or self.duplicates
+                    or self.bad_messages)  # fmt: skip
 
     @property
     def warning(self) -> str:
         """One line naming the file and what of it was lost, or ``""`` if it read intact.
 
-        The scans missing (counters, epoch and UTC times of up to three gaps), the scans
-        lost after damage at the end, damaged parts inside, duplicates dropped and
-        undecodable messages, separated by ``;``.
+        The scans missing (how many, exactly or "at least"; counters, epoch and UTC times of
+        up to three runs; where an unknown number more may be), the damaged parts, the
+        events lost, duplicates dropped and undecodable messages, separated by ``;``.
         """
         if self.intact:
             return ""
-        parts: list[str] = []
+        parts = [self._scans_text(), self._damage_text(), self._events_text()]
+        if self.duplicates:
+            parts.append(f"{self.duplicates} duplicated scan(s) dropped (each kept once)")
+        if self.bad_messages:
+            parts.append(f"{self.bad_messages} undecodable message(s) skipped")
+        return f"{self.path}: " + "; ".join(p for p in parts if p)
+
+    def _scans_text(self) -> str:
+        n = self.lost_scans
+        if not n and not self.lost_unknown:
+            return ""
+        if not self.lost_unknown:
+            head = f"{n} scan(s) missing"
+        else:
+            head = f"at least {n} scan(s) missing" if n else "an unknown number of scans missing"
+        pieces = []
         if self.lost:
             spans = ", ".join(
                 f"counters {x.first}-{x.first + x.count - 1} of epoch {x.epoch} "
                 f"({utc_text(x.after_ns)} to {utc_text(x.before_ns)})"
                 for x in self.lost[:3]
             )
-            more = f" and {len(self.lost) - 3} more gap(s)" if len(self.lost) > 3 else ""
-            parts.append(f"{self.lost_scans} scan(s) missing: {spans}{more}")
-        tail = [d for d in self.damage if self._after_last_scan(d)]
-        if tail:
-            d = tail[0]
-            span = ""
-            if d.end_ns:
-                span = f" (messages of {utc_text(d.start_ns)} to {utc_text(d.end_ns)})"
-            parts.append(f"the scans after {utc_text(self.last_stamp_ns)} are lost: {d.what} at "
-                         f"byte {d.offset}{span}" if self.last_stamp_ns is not None else
-                         f"no scan could be read: {d.what} at byte {d.offset}{span}")  # fmt: skip
-        inner = [d for d in self.damage if d not in tail]
-        if inner:
-            what = "; ".join(f"{d.what} at byte {d.offset}" for d in inner[:3])
-            more = f"; {len(inner) - 3} more" if len(inner) > 3 else ""
-            cost = "" if self.lost else " (no scan missing around them)"
-            parts.append(f"{len(inner)} damaged part(s): {what}{more}{cost}")
-        if self.duplicates:
-            parts.append(f"{self.duplicates} duplicated scan(s) dropped (each kept once)")
-        if self.bad_messages:
-            parts.append(f"{self.bad_messages} undecodable message(s) skipped")
-        return f"{self.path}: " + "; ".join(parts)
+            more = f" and {len(self.lost) - 3} more run(s)" if len(self.lost) > 3 else ""
+            pieces.append(spans + more)
+        if self.lost_unplaced:
+            more = f"{self.lost_unplaced} more" if self.lost else f"{self.lost_unplaced}"
+            pieces.append(f"{more} whose counters are unknown (the file's statistics count "
+                          "them)")  # fmt: skip
+        if self.lost_unknown:
+            pieces.append(self.lost_unknown)
+        return head + (": " + ", ".join(pieces) if pieces else "")
 
-    def _after_last_scan(self, d: Damage) -> bool:
-        return d.offset > self.last_scan_chunk
+    def _damage_text(self) -> str:
+        if not self.damage:
+            return ""
+        what = "; ".join(f"{d.what} at byte {d.offset}{_span_text(d)}" for d in self.damage[:3])
+        more = f"; {len(self.damage) - 3} more" if len(self.damage) > 3 else ""
+        cost = " (no scan lost)" if not self.lost_scans and not self.lost_unknown else ""
+        return f"{len(self.damage)} damaged part(s): {what}{more}{cost}"
+
+    def _events_text(self) -> str:
+        n = self.lost_events
+        if self.lost_events_unknown:
+            return f"at least {n} event(s) lost" if n else "an unknown number of events lost"
+        return f"{n} event(s) lost" if n else ""
+
+
+def _span_text(d: Damage) -> str:
+    if d.start_ns is None or d.end_ns is None:
+        return ""
+    return f" (messages of {utc_text(d.start_ns)} to {utc_text(d.end_ns)})"
 
 
 def utc_text(ns: int | None) -> str:
@@ -210,6 +240,12 @@ def utc_text(ns: int | None) -> str:
 _OUR_CHANNEL_IDS = {topic: i for i, topic in enumerate(CHANNELS, start=1)}
 
 
+#: what :func:`~loopcal.daemon.recording.records.walk` calls a file's damaged start
+_NO_MAGIC = "no MCAP magic at the start"
+#: what it calls a stretch of bytes that is no record (it may have held anything)
+_STRETCHES = ("zeros where records should be", "no valid record")
+
+
 class FileReader:
     """Reads the scans, events and metadata of one file, trusting only what checks out.
 
@@ -230,14 +266,27 @@ class FileReader:
         self.since, self.until = since, until
         self.metadata: dict[str, dict[str, str]] = {}
         self.channels: dict[int, Channel] = {}
+        #: damaged parts of the data section, by offset
         self.damage: dict[int, Damage] = {}
+        #: what is wrong with the summary or the index (no data lost with it)
+        self.index_damage: list[Damage] = []
+        #: the statistics record of a summary whose CRC matched
+        self.statistics: Statistics | None = None
         self.ours = True
         self._messages: list[tuple[int, int, bytes]] = []  # (chunk offset, channel, data)
+        # damaged chunk offset -> {channel id: messages it held (None: not counted)}, from the
+        # message indexes after it or the chunk index
+        self._held: dict[int, dict[int, int | None]] = {}
+        self._no_messages: set[int] = set()  # offsets of damaged records that hold none
+        self._index_chunks: set[int] = set()  # offsets of damaged chunks the index names
 
     # -------------------------------------------------------------- whole file
 
     def read(self) -> tuple[np.ndarray, RecordingFile, list[Event]]:
-        """Read the file once.
+        """Read the file once, with memory bounded by its size at opening.
+
+        A file that ends in MCAP magic (closed: nothing appends to it or cuts it any more)
+        is mapped read-only, not copied; any other is read up to its size when opened.
 
         Returns
         -------
@@ -252,58 +301,75 @@ class FileReader:
         Raises
         ------
         RecordingError
-            If the file cannot be read, is not an MCAP file, is an MCAP file but not a
-            loopcal recording, or has another format version.
+            If the file cannot be read, is not a regular file, is not an MCAP file, is an
+            MCAP file but not a loopcal recording, or has another format version.
         """
         try:
             with open(self.path, "rb") as f:
-                data = f.read()
+                st = os.fstat(f.fileno())
+                if not stat.S_ISREG(st.st_mode):
+                    raise RecordingError(f"{self.path}: not a regular file: a recording is a file")
+                data = _contents(f, st.st_size)
         except OSError as exc:
             raise RecordingError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
+        try:
+            buf = memoryview(data)
+            try:
+                return self._read_bytes(buf)
+            finally:
+                buf.release()
+        finally:
+            if isinstance(data, mmap.mmap):
+                _unmap(data)
+
+    def _read_bytes(self, buf: memoryview) -> tuple[np.ndarray, RecordingFile, list[Event]]:
         info = RecordingFile(self.path, complete=False)
-        if not data:
+        start = bytes(buf[:8])
+        if not start:
             info.note = "empty file (created, nothing written)"
             return scan_rows.empty(), info, []
-        buf = memoryview(data)
-        if not data.startswith(MAGIC):
-            if MAGIC.startswith(data):
-                info.note = f"only {len(data)} bytes (created, nothing written)"
+        if start != MAGIC:
+            if MAGIC.startswith(start) and len(buf) < len(MAGIC):
+                info.note = f"only {len(buf)} bytes (created, nothing written)"
                 return scan_rows.empty(), info, []
             if NAME_RE.match(self.path.name) is None and not _has_intact_chunk(buf):
                 raise RecordingError(f"{self.path}: not an MCAP file (no MCAP magic bytes)")
-        header = read_header(buf)
-        self.ours = is_ours(header)
-        summary, why = read_summary(buf, strict=self.ours)
-        if summary is not None and (summary.chunk_indexes or summary.statistics is not None):
-            self._read_indexed(buf, summary)
-            info.complete = True
-        else:
-            self._read_stream(buf)
-            info.note = (f"no summary ({why}): read record by record up to its last intact "
-                         "chunk")  # fmt: skip
-            if why not in ("no footer (the file was not closed)", "no summary section"):
-                info.damage.append(Damage(len(buf), 0, f"index unusable ({why})"))
+        self._read_records(buf, info)
         self._check_is_recording()
         rows, events, bad, info.last_scan_chunk = self._decode()
         info.bad_messages = bad
         info.metadata = self.metadata
-        info.damage += sorted(self.damage.values(), key=lambda d: d.offset)
+        info.damage = self.index_damage + sorted(self.damage.values(), key=lambda d: d.offset)
+        unique, duplicates = _unique_scans(rows)
+        self._account(buf, info, unique, events)
         windowed = self._window(rows)
         if windowed is rows:
-            rows, info.duplicates = _unique_scans(rows)
-            info.lost = _losses(rows)
+            rows, info.duplicates = unique, duplicates
         else:
-            # a scan the file holds but stamped outside the window is not lost: the losses
-            # are the file's own gaps between two scans the window keeps (in a recording
-            # whose stamps went back, as older recorders' did at --speed 10, the window's
-            # holes would otherwise read as scans missing)
-            info.lost = losses_within(_unique_scans(rows)[0], self.since, self.until)
             rows, info.duplicates = _unique_scans(windowed)
         info.scans = len(rows)
         if len(rows):
             info.first_stamp_ns = int(rows["stamp_ns"][0])
             info.last_stamp_ns = int(rows["stamp_ns"][-1])
         return rows, info, events
+
+    def _read_records(self, buf: memoryview, info: RecordingFile) -> None:
+        """Through the summary's index if it checks out and matches the chunks, else record
+        by record."""
+        self.ours = is_ours(read_header(buf))
+        summary, why = read_summary(buf, strict=self.ours)
+        if summary is not None and (summary.chunk_indexes or summary.statistics is not None):
+            self.statistics = summary.statistics
+            info.complete = self._read_indexed(buf, summary)
+            if not info.complete:
+                info.note = ("closed, but its chunk index does not match the chunks: read "
+                             "record by record")  # fmt: skip
+            return
+        self._read_stream(buf)
+        info.note = (f"no summary ({why}): read record by record up to its last intact "
+                     "chunk")  # fmt: skip
+        if why not in ("no footer (the file was not closed)", "no summary section"):
+            self.index_damage.append(Damage(len(buf), 0, f"index unusable ({why})"))
 
     def _check_is_recording(self) -> None:
         topics = {c.topic for c in self.channels.values()}
@@ -335,17 +401,22 @@ class FileReader:
 
     def _take(self, got: ChunkRecords | Damage) -> None:
         if isinstance(got, Damage):
+            old = self.damage.get(got.offset)
+            if old is not None and old.what == _NO_MAGIC != got.what:  # what follows it too
+                got = Damage(0, max(old.length, got.length), f"{old.what}, then {got.what}",
+                             got.start_ns, got.end_ns)  # fmt: skip
+                self.damage[0] = got
             self.damage.setdefault(got.offset, got)
             return
         for ch in got.channels:
             self.channels.setdefault(ch.id, ch)
         self._messages += [(got.offset, cid, data) for cid, _t, data in got.messages]
 
-    def _read_indexed(self, buf: memoryview, summary: Summary) -> None:
-        self.channels = dict(summary.channels)
+    def _read_metadata(self, buf: memoryview, summary: Summary) -> None:
         for idx in summary.metadata_indexes:
             at = record_at(buf, idx.offset, len(buf))
             if at is None or at[0] != Opcode.METADATA or idx.length != RECORD_HEAD + at[1]:
+                self._no_messages.add(idx.offset)
                 self.damage.setdefault(idx.offset, Damage(idx.offset, idx.length,
                                                           "no metadata where the index says"))
                 continue
@@ -353,11 +424,20 @@ class FileReader:
                 rec = parse_record(Opcode.METADATA, buf[idx.offset + RECORD_HEAD :
                                                          idx.offset + idx.length])
             except PARSE_ERRORS:
+                self._no_messages.add(idx.offset)
                 self.damage.setdefault(idx.offset, Damage(idx.offset, idx.length,
                                                           "damaged metadata record"))
                 continue
             self.metadata[rec.name] = dict(rec.metadata)
+
+    def _read_indexed(self, buf: memoryview, summary: Summary) -> bool:
+        """The chunks the index names that hold scans or events. Where one does not check
+        out, the file is read record by record instead (every intact chunk, wherever it
+        is); False if that found chunks the index does not describe (moved)."""
+        self.channels = dict(summary.channels)
+        self._read_metadata(buf, summary)
         wanted = self._ids(TOPIC_SCANS, TOPIC_EVENTS)
+        damaged = False
         for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
             offsets = ci.message_index_offsets
             if offsets and wanted.isdisjoint(offsets):
@@ -366,16 +446,61 @@ class FileReader:
                 continue
             got = read_chunk(buf, ci.chunk_start_offset, strict=self.ours, wanted=wanted,
                              expected_length=ci.chunk_length)  # fmt: skip
-            if isinstance(got, Damage) and got.end_ns is None:
+            if isinstance(got, Damage):
+                damaged = True
                 got = Damage(got.offset, got.length, got.what, ci.message_start_time,
                              ci.message_end_time)  # fmt: skip
+                self._held[got.offset] = dict.fromkeys(offsets)
+            elif (got.start_ns, got.end_ns) != (ci.message_start_time, ci.message_end_time):
+                damaged = True  # another chunk than the index says
             self._take(got)
+        return not (damaged and self._read_unindexed(buf, summary))
 
-    def _read_stream(self, buf: memoryview) -> None:
+    def _read_unindexed(self, buf: memoryview, summary: Summary) -> bool:
+        """A closed file with a chunk that is not what its index says: every intact chunk
+        read wherever it is (chunks moved, or a torn one), the views included. Where no
+        intact chunk is where the index says, the index's account of it (its time span)
+        stands. Returns whether intact chunks were found that the index does not describe
+        (the index does not match the chunks: that is said as damage, no scan lost)."""
+        told = dict(self.damage)
+        self.damage, self._messages, self._held = {}, [], {}
+        found = self._read_stream(buf)
+        by_offset = {ci.chunk_start_offset: ci for ci in summary.chunk_indexes}
+        elsewhere = {(span, _length_at(buf, off)) for off, span in found.items()}
+        for off, d in told.items():
+            ci = by_offset.get(off)
+            if ci is None:  # a metadata record: what the walk found there, if anything
+                if off in self.damage:
+                    self._no_messages.discard(off)
+                self.damage.setdefault(off, d)
+            elif ((ci.message_start_time, ci.message_end_time), ci.chunk_length) in elsewhere:
+                continue  # the chunk it names is intact, elsewhere
+            elif off not in found:
+                self.damage[off] = d  # the index's account: a chunk, and its time span
+                self._index_chunks.add(off)
+        moved = sorted(off for off, span in found.items()
+                       if not _described(buf, off, span, by_offset.get(off)))  # fmt: skip
+        if moved:
+            what = "the chunk index does not match the chunks (each intact chunk read where it is)"
+            self.index_damage.append(Damage(moved[0], 0, what))
+        return bool(moved)
+
+    def _read_stream(self, buf: memoryview) -> dict[int, tuple[int, int]]:
         """Every chunk in file order (the message indexes after a chunk are not trusted to
-        say what it holds: a flipped channel id there would hide scans)."""
+        say what it holds: a flipped channel id there would hide scans; they only count
+        what a damaged chunk held). Returns the intact chunks' offsets and time spans."""
+        found: dict[int, tuple[int, int]] = {}
+        after: int | None = None  # a damaged record whose message indexes may follow
         for rec in walk(buf, strict=self.ours, wanted=lambda: None):
+            if isinstance(rec, MessageIndex):
+                if after is not None:
+                    self._held.setdefault(after, {})[rec.channel_id] = len(rec.records)
+                continue
+            if isinstance(rec, Damage) and after is not None:
+                self._held.pop(after, None)  # its message indexes are not all there
+            after = rec.offset if isinstance(rec, Damage) else None
             if isinstance(rec, ChunkRecords):
+                found[rec.offset] = (rec.start_ns, rec.end_ns)
                 if self._in_window(rec.start_ns, rec.end_ns):
                     self._take(rec)
                 else:
@@ -386,6 +511,7 @@ class FileReader:
                 self.metadata.setdefault(rec.name, dict(rec.metadata))
             elif isinstance(rec, Channel):
                 self.channels.setdefault(rec.id, rec)
+        return found
 
     def _decode(self) -> tuple[np.ndarray, list[Event], int, int]:
         """Scan rows, events, how many messages did not decode, and the offset of the last
@@ -427,6 +553,170 @@ class FileReader:
             mask &= s < self.until
         return rows[mask]
 
+    # -------------------------------------------------------------- what was lost
+
+    @property
+    def _windowed(self) -> bool:
+        return self.since is not None or self.until is not None
+
+    def _account(
+        self, buf: memoryview, info: RecordingFile, rows: np.ndarray, events: list[Event]
+    ) -> None:
+        """The scans and events lost: counted by the statistics record where it is trusted
+        and the whole file was read, else placed by counter gaps and views, and where
+        damage may have held more than that, said to be unknown.
+
+        rows: every scan read (not cut to the window), in order, each once."""
+        holders = [d for d in self.damage.values() if self._may_hold(buf, d)]
+        expected = self._statistics_count(TOPIC_STATE)
+        seen = None
+        if holders or (expected is not None and expected != len(rows)):
+            state = self._ids(TOPIC_STATE)
+            seen = view_keys([d for _o, cid, d in self._messages if cid in state])
+        if not len(rows) and (seen is None or not len(seen)):
+            holders = list(self.damage.values())  # nothing read: any damage may have held all
+        if self._windowed:
+            info.lost = losses_within(rows, self.since, self.until, seen)
+        else:
+            info.lost = losses(rows, seen)
+        if expected is not None:
+            info.lost_unplaced = max(0, expected - len(rows) - info.lost_scans)
+            if info.lost_unplaced and not self.damage and not self.index_damage:
+                # every chunk read and intact: the count, not the data, is wrong
+                info.damage.append(Damage(len(buf), 0, (
+                    f"the statistics record counts {info.lost_unplaced} scan(s) more than "
+                    "its intact chunks hold (no chunk is damaged: the count is wrong, no "
+                    "scan lost)")))  # fmt: skip
+                info.lost_unplaced = 0
+        else:
+            info.lost_unknown = self._unknown_scans(holders, rows, seen)
+        expected_events = self._statistics_count(TOPIC_EVENTS)
+        if expected_events is not None:
+            info.lost_events = max(0, expected_events - len(events))
+        else:
+            info.lost_events, info.lost_events_unknown = self._events_held(holders)
+
+    def _statistics_count(self, topic: str) -> int | None:
+        """Messages of ``topic`` in the whole file by its statistics record (None: not
+        trusted, not our layout (raw scans and a view per scan), or only part of the file
+        was read)."""
+        if self.statistics is None or self._windowed:
+            return None
+        topics = {c.topic for c in self.channels.values()}
+        if not {TOPIC_SCANS, TOPIC_STATE} <= topics:  # not our layout: one view per scan
+            return None
+        ids = self._ids(topic)
+        counts = self.statistics.channel_message_counts
+        return sum(counts.get(i, 0) for i in ids)
+
+    def _may_hold(self, buf: memoryview, d: Damage) -> bool:
+        """Whether a damaged part may have held messages: a chunk (even one whose opcode
+        was hit) or a stretch of bytes that is no record, not a damaged small record."""
+        if d.offset in self._no_messages or d.offset >= len(buf) or d.what == _NO_MAGIC:
+            return False
+        if self._windowed and d.start_ns is not None and d.end_ns is not None:
+            if not self._in_window(d.start_ns, d.end_ns):
+                return False
+        if d.offset in self._index_chunks or buf[d.offset] == Opcode.CHUNK:
+            return True
+        if any(w in d.what for w in _STRETCHES):
+            return True
+        if "cut off" in d.what and d.offset + d.length < len(buf):
+            return True  # not the end: a length that overran good chunks, skipped to them
+        at = record_at(buf, d.offset, len(buf))
+        return at is not None and is_chunk_body(buf[d.offset + RECORD_HEAD :
+                                                    d.offset + RECORD_HEAD + at[1]])  # fmt: skip
+
+    def _unknown_scans(
+        self, holders: list[Damage], rows: np.ndarray, seen: np.ndarray | None
+    ) -> str:
+        """Where damage may have held scans that no counter gap or view counts: before the
+        first scan known or after the last ("" if nowhere)."""
+        if not holders:
+            return ""
+        ids = self._ids(TOPIC_SCANS, TOPIC_STATE)
+        offsets = np.fromiter((off for off, cid, _d in self._messages if cid in ids), np.int64)
+        stamps = [rows["stamp_ns"]] + ([] if seen is None else [seen["stamp_ns"]])
+        known = np.concatenate(stamps)
+        if not len(offsets) or not len(known):
+            return f"no scan could be read, how many are lost is unknown (damage at byte " \
+                   f"{holders[0].offset})"  # fmt: skip
+        lo, hi = int(offsets.min()), int(offsets.max())
+        first, last = int(known.min()), int(known.max())
+        before, after = [], []
+        for d in holders:
+            spanned = d.start_ns is not None and d.end_ns is not None
+            if lo < d.offset < hi or (spanned and first <= d.start_ns and d.end_ns <= last):
+                continue  # between scans known: counter gaps count what it held
+            if (d.start_ns < first) if d.start_ns is not None else d.offset < lo:
+                before.append(d)
+            else:
+                after.append(d)
+        texts = []
+        if before:
+            texts.append(f"an unknown number before {utc_text(first)} (damage at byte "
+                         f"{before[0].offset})")  # fmt: skip
+        if after:
+            texts.append(f"the scans after {utc_text(last)} are lost, how many is unknown "
+                         f"(damage at byte {after[0].offset})")  # fmt: skip
+        return ", ".join(texts)
+
+    def _events_held(self, holders: list[Damage]) -> tuple[int, bool]:
+        """Events the damaged parts held, by the message indexes after them; and whether
+        any may have held events that nothing counts."""
+        ids = self._ids(TOPIC_EVENTS)
+        if not ids:  # no channel known to be the events': whatever the damage held
+            return 0, bool(holders)
+        n, unknown = 0, False
+        for d in holders:
+            held = self._held.get(d.offset)
+            if held is None:
+                unknown = True
+                continue
+            for cid in ids & held.keys():
+                count = held[cid]
+                unknown |= count is None
+                n += count or 0
+        return n, unknown
+
+
+def _contents(f: BinaryIO, size: int) -> mmap.mmap | bytes:
+    """A file's bytes: mapped read-only if it ends in MCAP magic (closed: never appended to
+    or cut back again, so the mapping cannot lose pages under the reader), else read, at
+    most the ``size`` it had when opened (a file being written may grow, or be cut back
+    to its last durable flush)."""
+    if size >= 2 * len(MAGIC):
+        f.seek(size - len(MAGIC))
+        if f.read(len(MAGIC)) == MAGIC:
+            return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        f.seek(0)
+    return f.read(size)
+
+
+def _unmap(data: mmap.mmap) -> None:
+    """Close a mapping; a view of it still alive (in a traceback) is let go first."""
+    try:
+        data.close()
+    except BufferError:
+        gc.collect()
+        try:
+            data.close()
+        except BufferError:  # still referenced: unmapped when the last view goes
+            pass
+
+
+def _length_at(buf: memoryview, off: int) -> int:
+    """The length (head included) of the record at ``off`` (0 if it does not fit)."""
+    at = record_at(buf, off, len(buf))
+    return 0 if at is None else RECORD_HEAD + at[1]
+
+
+def _described(buf: memoryview, off: int, span: tuple[int, int], ci: ChunkIndex | None) -> bool:
+    """Whether the chunk index entry ``ci`` describes the intact chunk at ``off``."""
+    if ci is None or (ci.message_start_time, ci.message_end_time) != span:
+        return False
+    return _length_at(buf, off) == ci.chunk_length
+
 
 def _has_intact_chunk(buf: memoryview) -> bool:
     """Whether a file without MCAP magic still holds a chunk that checks out (a damaged
@@ -452,30 +742,3 @@ def _unique_scans(rows: np.ndarray) -> tuple[np.ndarray, int]:
     keep = np.ones(len(rows), dtype=bool)
     keep[1:] = (e[1:] != e[:-1]) | (c[1:] != c[:-1])
     return rows[keep], int(len(rows) - keep.sum())
-
-
-def losses_within(rows: np.ndarray, since: int | None, until: int | None) -> list[Loss]:
-    """The losses of ``rows`` (:func:`_losses`) between two scans both stamped in
-    ``since <= stamp < until``."""
-
-    def inside(ns: int) -> bool:
-        return (since is None or ns >= since) and (until is None or ns < until)
-
-    return [x for x in _losses(rows) if inside(x.after_ns) and inside(x.before_ns)]
-
-
-def _losses(rows: np.ndarray) -> list[Loss]:
-    """Counter gaps between consecutive scans of a file that their ``missed`` counts do not
-    explain: within an epoch, ``counter - previous - 1 > missed``; at a new epoch's first
-    scan in the file, ``counter > missed``."""
-    if len(rows) < 2:
-        return []
-    e, c, m = rows["epoch"], rows["counter64"], rows["missed"].astype(np.uint64)
-    same = e[1:] == e[:-1]
-    step = np.where(same, c[1:] - c[:-1] - np.uint64(1), c[1:])
-    out = []
-    for i in np.flatnonzero(step > m[1:]):
-        first = int(c[i]) + 1 if same[i] else int(m[i + 1])
-        out.append(Loss(int(e[i + 1]), first, int(step[i] - m[i + 1]),
-                        int(rows["stamp_ns"][i]), int(rows["stamp_ns"][i + 1])))  # fmt: skip
-    return out

@@ -16,7 +16,7 @@ from mcap.records import Statistics
 from .. import scans as scan_rows
 from ..events import Event
 from .errors import RecordingError
-from .filereader import FileReader, RecordingFile, losses_within, utc_text
+from .filereader import FileReader, RecordingFile, utc_text
 from .names import recording_paths
 from .records import (
     FOOTER_BYTES,
@@ -331,7 +331,8 @@ def _cut(
     others')."""
     if since_ns is None:
         return rows, info, events
-    info.lost = losses_within(rows, since_ns, None)  # the file's own gaps, not the cut's
+    # the file's own losses between two scans the cut keeps, not the cut's
+    info.lost = [x for x in info.lost if x.after_ns >= since_ns and x.before_ns >= since_ns]
     rows = rows[rows["stamp_ns"] >= since_ns]
     info.scans = len(rows)
     info.first_stamp_ns = int(rows["stamp_ns"][0]) if len(rows) else None

@@ -23,6 +23,7 @@ MCAP specification says.
 
 from __future__ import annotations
 
+import mmap
 import struct
 import zlib
 from collections.abc import Callable, Iterator
@@ -351,6 +352,12 @@ def _chunk_header(body: memoryview) -> tuple[int, int, int, int, str, memoryview
     return start, end, usize, crc, compression, body[pos:]
 
 
+def is_chunk_body(body: memoryview) -> bool:
+    """Whether ``body`` is a chunk record's body whose header fields are consistent with
+    its length (a chunk, whatever its opcode byte now says)."""
+    return _chunk_header(body) is not None
+
+
 def _decompress(compression: str, data: memoryview, size: int) -> bytes:
     if compression == "":
         return bytes(data)
@@ -443,8 +450,9 @@ def walk(
     Yields each intact chunk as :class:`ChunkRecords` (messages of the channels
     ``wanted()`` names at that moment), each other record the mcap library's record object,
     and a :class:`Damage` for each stretch that cannot be trusted. Stops at the data end,
-    the footer or the end of the bytes. After damage it resumes at the next intact chunk,
-    looking from the end of the last chunk that checked out (a bad length may have carried
+    the footer (of their size, in a file that ends in MCAP magic: anything else with their
+    opcode is damage) or the end of the bytes. After damage it resumes at the next intact
+    chunk, looking from the end of the last chunk that checked out (a bad length may have carried
     the walk past good chunks). A record cut off by the end of the file is reported as
     damage ("cut off").
     """
@@ -475,13 +483,49 @@ def walk(
                 trusted_end = end
             yield got
         elif op in (Opcode.DATA_END, Opcode.FOOTER):
-            return
+            if _is_end(buf, pos, op, length):
+                return
+            # a chunk whose opcode was hit, or junk: not the end of the data
+            yield Damage(pos, end - pos, f"a {Opcode(op).name.lower()} record that is not the end")
+        elif op == Opcode.MESSAGE_INDEX:  # one per channel and chunk: parsed in C
+            try:
+                yield _message_index(buf[pos + RECORD_HEAD : end])
+            except PARSE_ERRORS:
+                yield Damage(pos, end - pos, "damaged message_index record")
         elif op in _PARSERS:
             try:
                 yield parse_record(op, buf[pos + RECORD_HEAD : end])
             except PARSE_ERRORS:
                 yield Damage(pos, end - pos, f"damaged {Opcode(op).name.lower()} record")
         pos = end
+
+
+_MESSAGE_INDEX_HEAD = struct.Struct("<HI")  # channel id, byte length of the entries
+_MESSAGE_INDEX_ENTRY = struct.Struct("<QQ")  # log time, offset in the chunk
+
+
+def _message_index(body: memoryview) -> MessageIndex:
+    """A message index record's body, parsed with its length checked (what the mcap
+    library's reader gives, without its field-by-field reads). Raises ValueError if the
+    entries do not fill the body exactly."""
+    if len(body) < _MESSAGE_INDEX_HEAD.size:
+        raise ValueError("short message index")
+    channel, size = _MESSAGE_INDEX_HEAD.unpack_from(body, 0)
+    if size % _MESSAGE_INDEX_ENTRY.size or _MESSAGE_INDEX_HEAD.size + size != len(body):
+        raise ValueError("message index entries do not fill the record")
+    entries = body[_MESSAGE_INDEX_HEAD.size :]
+    return MessageIndex(channel_id=channel, records=list(_MESSAGE_INDEX_ENTRY.iter_unpack(entries)))
+
+
+def _is_end(buf: memoryview, pos: int, op: int, length: int) -> bool:
+    """Whether a data end or footer record at ``pos`` ends the data section: of its size,
+    in a file that ends in MCAP magic (a footer: right before it)."""
+    n = len(buf)
+    if n < 8 or bytes(buf[n - 8 :]) != MAGIC:
+        return False
+    if op == Opcode.FOOTER:
+        return length == FOOTER_BYTES - RECORD_HEAD and pos + FOOTER_BYTES + 8 == n
+    return length == 4
 
 
 def _damage_at(buf: memoryview, pos: int, cut_off: bool) -> Damage:
@@ -502,7 +546,8 @@ def _damage_at(buf: memoryview, pos: int, cut_off: bool) -> Damage:
 def _resync(buf: memoryview, lo: int, bad: int, strict: bool) -> int | None:
     """The offset of the first chunk at or after ``lo`` (but not the record at ``bad``
     itself) that reads back intact, or None."""
-    data = buf.obj if isinstance(buf.obj, bytes) else bytes(buf)
+    whole = isinstance(buf.obj, (bytes, mmap.mmap)) and len(buf.obj) == len(buf)
+    data = buf.obj if whole else bytes(buf)
     n = len(buf)
     p = lo
     limit = min(n, bad + _RESYNC_WINDOW)
@@ -526,6 +571,7 @@ __all__ = [
     "ChunkRecords",
     "Damage",
     "Summary",
+    "is_chunk_body",
     "is_ours",
     "parse_record",
     "read_chunk",
