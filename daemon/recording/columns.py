@@ -294,3 +294,26 @@ def column_msgdef() -> str:
         f"uint8 codec  # {CODEC}: differences, zigzag, byte planes, zstd\n"
         "uint8[] data  # header and compressed planes\n"
     )
+
+
+def decode_scan_messages(messages: list[bytes | memoryview]) -> tuple[np.ndarray, int]:
+    """The rows (SCAN_DTYPE) of ``/daq/scans`` messages of either layout (ScanBlock as
+    written, ScanColumns as compacted), in order, and how many did not check out
+    (skipped). Each run of messages of one layout is decoded at once."""
+    from .cdr import decode_scan_blocks_checked
+
+    parts, bad = [], 0
+    run: list[bytes | memoryview] = []
+    columns = False
+    for m in [*messages, None]:
+        kind = m is not None and is_columns(m)
+        if m is None or (run and kind != columns):
+            rows, b = decode_columns_many(run) if columns else decode_scan_blocks_checked(run)
+            parts.append(rows)
+            bad += b
+            run = []
+        if m is not None:
+            run.append(m)
+            columns = kind
+    rows = np.concatenate(parts) if len(parts) > 1 else parts[0]
+    return rows, bad

@@ -31,7 +31,7 @@ from mcap.records import Channel, ChunkIndex, MessageIndex, Metadata, Statistics
 
 from .. import scans as scan_rows
 from ..events import Event
-from .cdr import decode_scan_blocks_checked
+from .columns import decode_scan_messages
 from .errors import RecordingError
 from .losses import Loss, losses, losses_within, view_keys
 from .names import NAME_RE
@@ -531,7 +531,7 @@ class FileReader:
                     events.append(Event.from_json(json.loads(data)))
                 except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
                     bad += 1
-        rows, bad_blocks = decode_scan_blocks_checked(blocks)
+        rows, bad_blocks = decode_scan_messages(blocks)
         bad += bad_blocks
         seen: set[tuple[int, str, str]] = set()
         unique = []

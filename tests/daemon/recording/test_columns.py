@@ -15,6 +15,7 @@ from loopcal.daemon.recording.cdr import encode_scan_block
 from loopcal.daemon.recording.columns import (
     decode_columns,
     decode_columns_many,
+    decode_scan_messages,
     encode_columns,
     is_columns,
 )
@@ -110,3 +111,13 @@ def test_a_technicians_hour_takes_under_6_bytes_a_scan(hour):
     assert size <= 6.0, f"{size:.2f} B/scan"
     got, bad = decode_columns_many(messages)
     assert bad == 0 and fields(got) == fields(hour)
+
+
+def test_both_layouts_in_one_file_read_in_order():
+    """Rows as written and columns as compacted, mixed, a damaged one among them."""
+    rows = make_rows(100)
+    messages = [encode_scan_block(rows[:10]), encode_columns(rows[10:50]), b"not a block",
+                encode_columns(rows[50:60]), encode_scan_block(rows[60:])]  # fmt: skip
+    got, bad = decode_scan_messages(messages)
+    assert bad == 1 and fields(got) == fields(rows)
+    assert len(decode_scan_messages([])[0]) == 0
