@@ -45,6 +45,7 @@ import contextlib
 import fcntl
 import logging
 import os
+import stat
 import threading
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -57,6 +58,7 @@ from numpy.lib.recfunctions import repack_fields
 from ..config import durable
 from .errors import RecordingError
 from .reader import read_recordings
+from .records import MAGIC
 from .schemas import (
     BLOCK_SPAN_NS,
     FORMAT_VERSION,
@@ -83,7 +85,9 @@ _RAW_TOPICS = (TOPIC_SCANS, TOPIC_EVENTS, TOPIC_LOG)
 class Compacted:
     """What :func:`compact` did: ``done`` (the file was rewritten) or why not (``failed``:
     because of something wrong with the file or its copy, not because it needs no
-    compaction); the chunk counts and sizes before and after."""
+    compaction; ``not_recording``, with ``failed``: the file is not a recording this
+    loopcal reads, the reader's RecordingError in ``reason``); the chunk counts and sizes
+    before and after."""
 
     path: Path
     done: bool
@@ -93,6 +97,32 @@ class Compacted:
     bytes_before: int = 0
     bytes_after: int = 0
     failed: bool = False
+    not_recording: bool = False
+
+
+def refuse_non_recording(path: Path) -> None:
+    """Raise :class:`RecordingError`, saying why, if ``path`` is plainly not a recording:
+    not a regular file (told without blocking on a FIFO), or bytes without MCAP's magic that
+    the reader refuses (``/etc/passwd``). Cheap: a file that starts like MCAP (or is
+    empty, or holds only the start of the magic: a recording just created) is left to
+    :func:`compact` to judge, and only a file without the magic is read whole."""
+    path = Path(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except FileNotFoundError:
+        raise RecordingError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise RecordingError(f"{path}: not a regular file: a recording is a file")
+        head = os.read(fd, len(MAGIC))
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    finally:
+        os.close(fd)
+    if not MAGIC.startswith(head) and not head.startswith(MAGIC):
+        read_recordings(path)  # raises unless it is a recording whose start was damaged
 
 
 def _tmp_of(path: Path) -> Path:
@@ -105,7 +135,7 @@ def _compacting(path: Path):
     holds nothing, when another process holds it. A missing original yields True (its
     temporary, if any, has no writer left)."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)  # a FIFO: no wait
     except FileNotFoundError:
         yield True
         return
@@ -139,6 +169,13 @@ def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compac
     deleted or replaced meanwhile: the recorder's retention holds the same lock) and
     replaced."""
     path = Path(path)
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        return Compacted(path, False, "deleted before it was compacted")
+    if not stat.S_ISREG(mode):  # a FIFO would block the reader, a device never end
+        return Compacted(path, False, f"{path}: not a regular file: a recording is a file",
+                         failed=True, not_recording=True)  # fmt: skip
     if _says_compacted(path):
         return Compacted(path, False, "already compact")
     with _compacting(path) as ours:
@@ -151,7 +188,9 @@ def _compact_locked(path: Path, replace_lock: threading.Lock | None) -> Compacte
     try:
         original = read_recordings(path)
     except RecordingError as exc:
-        return Compacted(path, False, f"not readable: {exc}", failed=True)
+        if not path.exists():  # the retention's, say: nothing wrong with the file
+            return Compacted(path, False, "deleted before it was compacted")
+        return Compacted(path, False, str(exc), failed=True, not_recording=True)
     info = original.files[0]
     if not info.intact:
         return Compacted(path, False, "damaged: left as it is", failed=True)
@@ -371,5 +410,6 @@ __all__ = [
     "CHUNK_SPAN_NS",
     "Compacted",
     "compact",
+    "refuse_non_recording",
     "remove_stale_temporaries",
 ]
