@@ -1,14 +1,19 @@
-"""``loopcal compact REC|DIR ... [--json]``: rewrite closed recordings with large chunks, for
-fast reading (:mod:`loopcal.daemon.recording.compact`).
+"""``loopcal compact REC|DIR ... [--json]``: rewrite closed recordings in chunks of a minute,
+for fast reading (:mod:`loopcal.daemon.recording.compact`).
 
 The daemon compacts every file it closes by itself (``[recording].compact``); this command
 is for archives recorded before it did, or copied from elsewhere. Each file is verified scan
 for scan against the original before it replaces it atomically; files not closed, damaged
 or already compact are left as they are. Exit status 0 when every file is compact or left
-for a good reason, 1 when a file could not be compacted (unreadable, its copy failed
-verification, an I/O error; each kept as it was), 2 for bad input.
+for a good reason, 1 when a file could not be compacted (damaged, its copy failed
+verification, an I/O error; each kept as it was), 2 for bad input, with a line
+``loopcal compact: error: ...`` naming it: an empty path, a path that does not exist, one
+that is not a regular file (a FIFO, a device), a directory holding no recordings, a file
+that is not a recording (not MCAP, an MCAP file of something else, another format). Bad
+input named on the command line is refused before any file is touched; a file found in a
+directory that turns out not to be a recording is reported so, and the exit status is 2.
 
-``--json``: one object, ``{"files": [{"path", "compacted", "failed", "reason",
+``--json``: one object, ``{"files": [{"path", "compacted", "failed", "not_recording", "reason",
 "chunks_before", "chunks_after", "bytes_before", "bytes_after"}], "bytes_before",
 "bytes_after", "failed"}``.
 """
@@ -21,8 +26,13 @@ import sys
 
 from ..arguments import path_argument
 from ..recording import RecordingError
-from ..recording.compact import Compacted, compact, remove_stale_temporaries
-from ..recording.names import recording_paths
+from ..recording.compact import (
+    Compacted,
+    compact,
+    refuse_non_recording,
+    remove_stale_temporaries,
+)
+from ..recording.names import find_recordings, recording_paths
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -32,14 +42,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="one JSON object on stdout: what was done to each file")  # fmt: skip
 
 
+def _error(message: object) -> None:
+    print(f"loopcal compact: error: {message}", file=sys.stderr)
+
+
 def run(args: argparse.Namespace) -> int:
     try:
+        files = recording_paths(args.recordings)
+        for p in args.recordings:
+            if p.is_dir():
+                if not find_recordings(p):
+                    raise RecordingError(f"{p}: no recordings (loopcal-*.mcap) in this directory")
+            else:
+                refuse_non_recording(p)
         for p in args.recordings:
             if p.is_dir():
                 remove_stale_temporaries(p)  # left by compactions that were killed
-        files = recording_paths(args.recordings)
     except (RecordingError, OSError) as exc:
-        print(f"loopcal compact: error: {exc}", file=sys.stderr)
+        _error(exc)
         return 2
     results: list[Compacted] = []
     for f in files:
@@ -53,6 +73,8 @@ def run(args: argparse.Namespace) -> int:
         if r.done:
             print(f"{f}: {r.chunks_before} chunks -> {r.chunks_after}, "
                   f"{r.bytes_before:,} -> {r.bytes_after:,} bytes")  # fmt: skip
+        elif r.not_recording:
+            print(f"{f}: not compacted: not a recording")
         elif r.failed:
             print(f"{f}: not compacted: {r.reason}")
         else:
@@ -63,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({
             "files": [{"path": str(r.path), "compacted": r.done, "failed": r.failed,
+                       "not_recording": r.not_recording,
                        "reason": r.reason, "chunks_before": r.chunks_before,
                        "chunks_after": r.chunks_after, "bytes_before": r.bytes_before,
                        "bytes_after": r.bytes_after} for r in results],
@@ -70,7 +93,10 @@ def run(args: argparse.Namespace) -> int:
         }, indent=1))  # fmt: skip
     elif before:
         print(f"{before:,} -> {after:,} bytes")
-    if failed and not args.json:
-        print(f"loopcal compact: {failed} file(s) could not be compacted (kept as they were)",
-              file=sys.stderr)  # fmt: skip
-    return 1 if failed else 0
+    strangers = [r for r in results if r.not_recording]
+    for r in strangers:
+        _error(r.reason)
+    if failed > len(strangers) and not args.json:
+        print(f"loopcal compact: {failed - len(strangers)} file(s) could not be compacted "
+              "(kept as they were)", file=sys.stderr)  # fmt: skip
+    return 2 if strangers else 1 if failed else 0

@@ -2,12 +2,13 @@
 (:mod:`loopcal.daemon.recording.compact`).
 
 The writer hands every file it closes (a rotation) to the :class:`Compactor`, which rewrites
-it with large chunks in a thread of its own at a low CPU priority, so that reading the
-archive later is fast (a day in well under a second) while the file being written keeps its
+it in chunks of a minute in a thread of its own at a low CPU priority, so that reading the
+archive later is fast (a day in under a second) while the file being written keeps its
 crash-safe one-second chunks. At start it also takes every closed file of the directory
-that is not compact yet. The file being written is never touched; the retention and the
-compactor share :attr:`Compactor.lock`, so a file the retention deletes is not renamed back
-into existence by a compaction that was reading it.
+that is not compact yet (files an older loopcal compacted into chunks of 4 MiB, an hour's
+scans in one, included: they are compacted again, once). The file being written is never
+touched; the retention and the compactor share :attr:`Compactor.lock`, so a file the
+retention deletes is not renamed back into existence by a compaction that was reading it.
 """
 
 from __future__ import annotations

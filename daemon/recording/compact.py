@@ -1,13 +1,22 @@
-"""Compacting a closed recording: the same records in a few large chunks instead of two per
+"""Compacting a closed recording: the same records in chunks of a minute instead of two per
 second.
 
 While a file is written, every flush (about once a second) closes two small chunks, so that
 a crash loses at most that second; a day is 86,400 of them, and reading spends its time per
 chunk. Once a file is closed (rotated), nothing will be appended to it, and it can be
-rewritten for reading: the raw scans and events in chunks of a few MiB, the per-scan views
-in chunks of their own (so a reader of the scans still skips them), the same channels with
-the same ids, the same metadata (the ``loopcal`` record gains ``compacted_utc``). Every
-reader reads it as before (ours, Python ``mcap``, Foxglove's).
+rewritten for reading: the raw scans and events in chunks of at most :data:`CHUNK_SPAN_NS`
+(60 s) of scan time, each followed by a chunk of the per-scan views of the same minute (so a
+reader of the scans still skips them), the same channels with the same ids, the same
+metadata (the ``loopcal`` record gains ``compacted_utc`` and ``chunk_span_s``). Every reader
+reads it as before (ours, Python ``mcap``, Foxglove's).
+
+Why a minute, not a few MiB: a chunk is the unit of damage (one CRC over it: one flipped bit
+and the reader drops the chunk whole), so the chunk's span is what one damaged byte costs.
+Chunks of 4 MiB held a whole hour's scans and lost them all to one bit; a minute's chunks
+lose at most a minute, and a day's scans are 1,440 chunks, still few enough to read in under a
+second. The views' chunk of each minute lies between two scans' chunks, so a run of zeros
+shorter than it (a torn sector, a 4 KiB page) cannot reach two minutes of scans.
+(``bench/fuzz_compacted.py`` measures both layouts.)
 
 Nothing can be lost doing it: the new version goes to a temporary file beside the original
 (``.NAME.compact.tmp``), is read back with :func:`~loopcal.daemon.recording.read_recordings` and
@@ -16,7 +25,9 @@ count with the original's own statistics record (every chunk's CRC checked as it
 the mcap library would skip a chunk it cannot read, or copy a corrupted one, without a word),
 fsynced, and only then renamed over it (atomic), and the directory fsynced. A file that is
 not closed, has any record that does not check out, or is already compact is left as it
-is (already compact is told from its metadata record alone, without reading its chunks).
+is (already compact is told from its metadata record alone, without reading its chunks; a
+file compacted by an older loopcal into chunks of 4 MiB, whose record has no
+``chunk_span_s``, is compacted again, into chunks of a minute).
 Killed at any step, the original is there, whole, or the compacted copy is; a temporary
 file left behind is removed by the next compaction of the directory.
 
@@ -34,6 +45,7 @@ import contextlib
 import fcntl
 import logging
 import os
+import stat
 import threading
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -46,11 +58,24 @@ from numpy.lib.recfunctions import repack_fields
 from ..config import durable
 from .errors import RecordingError
 from .reader import read_recordings
-from .schemas import FORMAT_VERSION, TOPIC_EVENTS, TOPIC_LOG, TOPIC_SCANS
+from .records import MAGIC
+from .schemas import (
+    BLOCK_SPAN_NS,
+    FORMAT_VERSION,
+    NS_PER_S,
+    TOPIC_EVENTS,
+    TOPIC_LOG,
+    TOPIC_SCANS,
+)
 
 log = logging.getLogger(__name__)
 
-#: uncompressed bytes per chunk of a compacted file (a reader decompresses a chunk whole)
+#: the longest span of time one chunk of a compacted file holds, ns: from its first scan to
+#: the end of its last (a block's scans lie within BLOCK_SPAN_NS of its log time), and from
+#: its first message to its last; a damaged chunk costs at most this much of the recording
+CHUNK_SPAN_NS = 60 * NS_PER_S
+#: uncompressed bytes per chunk at most, whatever its span (a minute of scans at 20 Hz is
+#: about 70 KB: this bounds a module scanning much faster; a reader decompresses a chunk whole)
 CHUNK_BYTES = 4 << 20
 #: the topics whose messages a reader of the scans needs (the rest are views)
 _RAW_TOPICS = (TOPIC_SCANS, TOPIC_EVENTS, TOPIC_LOG)
@@ -60,7 +85,9 @@ _RAW_TOPICS = (TOPIC_SCANS, TOPIC_EVENTS, TOPIC_LOG)
 class Compacted:
     """What :func:`compact` did: ``done`` (the file was rewritten) or why not (``failed``:
     because of something wrong with the file or its copy, not because it needs no
-    compaction); the chunk counts and sizes before and after."""
+    compaction; ``not_recording``, with ``failed``: the file is not a recording this
+    loopcal reads, the reader's RecordingError in ``reason``); the chunk counts and sizes
+    before and after."""
 
     path: Path
     done: bool
@@ -70,6 +97,32 @@ class Compacted:
     bytes_before: int = 0
     bytes_after: int = 0
     failed: bool = False
+    not_recording: bool = False
+
+
+def refuse_non_recording(path: Path) -> None:
+    """Raise :class:`RecordingError`, saying why, if ``path`` is plainly not a recording:
+    not a regular file (told without blocking on a FIFO), or bytes without MCAP's magic that
+    the reader refuses (``/etc/passwd``). Cheap: a file that starts like MCAP (or is
+    empty, or holds only the start of the magic: a recording just created) is left to
+    :func:`compact` to judge, and only a file without the magic is read whole."""
+    path = Path(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except FileNotFoundError:
+        raise RecordingError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise RecordingError(f"{path}: not a regular file: a recording is a file")
+        head = os.read(fd, len(MAGIC))
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    finally:
+        os.close(fd)
+    if not MAGIC.startswith(head) and not head.startswith(MAGIC):
+        read_recordings(path)  # raises unless it is a recording whose start was damaged
 
 
 def _tmp_of(path: Path) -> Path:
@@ -82,7 +135,7 @@ def _compacting(path: Path):
     holds nothing, when another process holds it. A missing original yields True (its
     temporary, if any, has no writer left)."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)  # a FIFO: no wait
     except FileNotFoundError:
         yield True
         return
@@ -116,6 +169,13 @@ def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compac
     deleted or replaced meanwhile: the recorder's retention holds the same lock) and
     replaced."""
     path = Path(path)
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        return Compacted(path, False, "deleted before it was compacted")
+    if not stat.S_ISREG(mode):  # a FIFO would block the reader, a device never end
+        return Compacted(path, False, f"{path}: not a regular file: a recording is a file",
+                         failed=True, not_recording=True)  # fmt: skip
     if _says_compacted(path):
         return Compacted(path, False, "already compact")
     with _compacting(path) as ours:
@@ -128,13 +188,15 @@ def _compact_locked(path: Path, replace_lock: threading.Lock | None) -> Compacte
     try:
         original = read_recordings(path)
     except RecordingError as exc:
-        return Compacted(path, False, f"not readable: {exc}", failed=True)
+        if not path.exists():  # the retention's, say: nothing wrong with the file
+            return Compacted(path, False, "deleted before it was compacted")
+        return Compacted(path, False, str(exc), failed=True, not_recording=True)
     info = original.files[0]
     if not info.intact:
         return Compacted(path, False, "damaged: left as it is", failed=True)
     if not info.complete:
         return Compacted(path, False, "not closed: left as it is")
-    if "compacted_utc" in info.metadata.get("loopcal", {}):
+    if _compact_enough(info.metadata.get("loopcal", {})):
         return Compacted(path, False, "already compact")
     before = path.stat()
     size = before.st_size
@@ -189,7 +251,19 @@ def _says_compacted(path: Path) -> bool:
                     record = dict(m.metadata)  # the last one, as read_recordings keeps it
     except Exception:  # noqa: BLE001 - any damage: the careful read below decides
         return False
-    return "compacted_utc" in record and record.get("format", FORMAT_VERSION) == FORMAT_VERSION
+    return _compact_enough(record) and record.get("format", FORMAT_VERSION) == FORMAT_VERSION
+
+
+def _compact_enough(record: dict[str, str]) -> bool:
+    """Whether a ``loopcal`` metadata record says its file was compacted into chunks of at
+    most :data:`CHUNK_SPAN_NS` (an older loopcal's compaction, into chunks of 4 MiB that
+    held an hour, did not write ``chunk_span_s``: such a file is compacted again)."""
+    if "compacted_utc" not in record:
+        return False
+    try:
+        return int(record.get("chunk_span_s", "")) * NS_PER_S <= CHUNK_SPAN_NS
+    except ValueError:
+        return False
 
 
 class _Damaged(Exception):
@@ -228,25 +302,30 @@ def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
                 if new != cid:  # our writer numbers channels from 1 in order: so does this one
                     raise RecordingError(f"{path}: channel ids are not consecutive")
             stamp = datetime.now(UTC).isoformat(timespec="seconds")
+            span_s = str(CHUNK_SPAN_NS // NS_PER_S)
             for name, record in metadata:
                 if name == "loopcal":
-                    record = {**record, "compacted_utc": stamp}
+                    record = {**record, "compacted_utc": stamp, "chunk_span_s": span_s}
                 w.add_metadata(name, record)
+            raw = {cid for cid, c in summary.channels.items() if c.topic in _RAW_TOPICS}
+            scans = {cid for cid, c in summary.channels.items() if c.topic == TOPIC_SCANS}
+            pair = _ChunkPair(w)
             counts: dict[int, int] = {}
-            views = {c.topic for c in summary.channels.values()} - set(_RAW_TOPICS)
-            for topics in (_RAW_TOPICS, views):  # the scans' chunks first, then the views' own
-                # topics: the chunks holding none of them are skipped, not decompressed
-                try:
-                    for _, channel, message in reader.iter_messages(topics,
-                                                                    log_time_order=False):
-                        counts[channel.id] = counts.get(channel.id, 0) + 1
-                        w.add_message(channel.id, message.log_time, message.data,
-                                      message.publish_time, message.sequence)  # fmt: skip
-                except OSError:
-                    raise
-                except Exception as exc:  # noqa: BLE001 - any record that does not check out
-                    raise _Damaged(f"{type(exc).__name__}: {exc}") from None
-                w.flush()
+            try:
+                # every message once, in file order (the original's raw chunk of a second,
+                # then its views' chunk): each minute's raw messages into one chunk, its
+                # views into the next
+                for _, channel, message in reader.iter_messages(log_time_order=False):
+                    cid = channel.id
+                    counts[cid] = counts.get(cid, 0) + 1
+                    t = message.log_time
+                    m = (cid, t, message.data, message.publish_time, message.sequence)
+                    pair.add(cid in raw, m, cid in scans)
+            except OSError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - any record that does not check out
+                raise _Damaged(f"{type(exc).__name__}: {exc}") from None
+            pair.write()
             if counts != recorded:
                 lost = {summary.channels[c].topic: recorded[c] - counts.get(c, 0)
                         for c in recorded if counts.get(c, 0) != recorded[c]}  # fmt: skip
@@ -256,6 +335,42 @@ def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
             out.flush()
             os.fsync(out.fileno())
     return len(summary.chunk_indexes), recorded
+
+
+class _ChunkPair:
+    """The messages of the chunks being gathered, raw (scans, events) and views, each group
+    within :data:`CHUNK_SPAN_NS` as the copy's chunk index will tell it (from its first log
+    time to its last, plus a block's span if it holds scans: see :func:`_chunk_span`);
+    written as a raw chunk then a views chunk whenever a message would stretch either group
+    beyond it."""
+
+    def __init__(self, writer: Writer) -> None:
+        self.writer = writer
+        self.parts: dict[bool, list[tuple[int, int, bytes, int, int]]] = {True: [], False: []}
+        self.spans: dict[bool, tuple[int, int, bool] | None] = {True: None, False: None}
+
+    def add(self, raw: bool, message: tuple[int, int, bytes, int, int], scans: bool) -> None:
+        """Add a message (channel id, log time, data, publish time, sequence), a raw one
+        when ``raw``, a block of scans when ``scans``."""
+        t = message[1]
+        span = self.spans[raw]
+        grown = (t, t, scans) if span is None else (min(span[0], t), max(span[1], t),
+                                                    span[2] or scans)  # fmt: skip
+        if span is not None and _chunk_span(*grown) > CHUNK_SPAN_NS:
+            self.write()
+            grown = (t, t, scans)
+        self.spans[raw] = grown
+        self.parts[raw].append(message)
+
+    def write(self) -> None:
+        """Write what was gathered: the raw chunk, then the views' (the writer also closes a
+        chunk at CHUNK_BYTES)."""
+        for raw in (True, False):
+            for cid, log_time, data, publish_time, sequence in self.parts[raw]:
+                self.writer.add_message(cid, log_time, data, publish_time, sequence)
+            self.writer.flush()
+            self.parts[raw] = []
+            self.spans[raw] = None
 
 
 def _verify(tmp: Path, original, counts: dict[int, int]) -> tuple[int, str]:
@@ -274,7 +389,27 @@ def _verify(tmp: Path, original, counts: dict[int, int]) -> tuple[int, str]:
     got = dict(summary.statistics.channel_message_counts) if summary.statistics else {}
     if {k: v for k, v in got.items() if v} != counts:  # against the original's statistics
         return 0, f"message counts differ: {got} against the original's {counts}"
+    scans = {cid for cid, c in summary.channels.items() if c.topic == TOPIC_SCANS}
+    for ci in summary.chunk_indexes:
+        span = _chunk_span(ci.message_start_time, ci.message_end_time,
+                           bool(scans & set(ci.message_index_offsets)))  # fmt: skip
+        if span > CHUNK_SPAN_NS:
+            return 0, f"a chunk spans {span / NS_PER_S:.1f} s, over {CHUNK_SPAN_NS / NS_PER_S} s"
     return len(summary.chunk_indexes), ""
 
 
-__all__ = ["CHUNK_BYTES", "Compacted", "compact", "remove_stale_temporaries"]
+def _chunk_span(first_ns: int, last_ns: int, scans: bool) -> int:
+    """The time a chunk holds, ns, from its first message's log time to its last's, and to
+    the end of its last block's scans if it holds scans (a block's scans lie within
+    BLOCK_SPAN_NS of its log time)."""
+    return last_ns - first_ns + (BLOCK_SPAN_NS if scans else 0)
+
+
+__all__ = [
+    "CHUNK_BYTES",
+    "CHUNK_SPAN_NS",
+    "Compacted",
+    "compact",
+    "refuse_non_recording",
+    "remove_stale_temporaries",
+]
