@@ -272,6 +272,8 @@ class FileReader:
         self.index_damage: list[Damage] = []
         #: the statistics record of a summary whose CRC matched
         self.statistics: Statistics | None = None
+        #: the loopcal record's format, when it is not this loopcal's
+        self.other_format: str | None = None
         self.ours = True
         self._messages: list[tuple[int, int, bytes]] = []  # (chunk offset, channel, data)
         # damaged chunk offset -> {channel id: messages it held (None: not counted)}, from the
@@ -340,6 +342,7 @@ class FileReader:
         info.bad_messages = bad
         info.metadata = self.metadata
         info.damage = self.index_damage + sorted(self.damage.values(), key=lambda d: d.offset)
+        self._judge_format(rows, bad, info)
         unique, duplicates = _unique_scans(rows)
         self._account(buf, info, unique, events)
         windowed = self._window(rows)
@@ -382,9 +385,22 @@ class FileReader:
                 )
         fmt = self.metadata.get("loopcal", {}).get("format")
         if fmt is not None and fmt != FORMAT_VERSION:
+            self.other_format = fmt  # judged once the scans are decoded (_judge_format)
+
+    def _judge_format(self, rows: np.ndarray, bad: int, info: RecordingFile) -> None:
+        """A ``format`` other than this loopcal's: another format, refused, unless every scan
+        block decodes in this format's layout, when it is one damaged byte of an unchecked
+        metadata record (7 of the 8 bits of "1" make another character), named as such."""
+        fmt = self.other_format
+        if fmt is None:
+            return
+        if not len(rows) or bad:
             raise RecordingError(
                 f"{self.path}: recording format {fmt}, this loopcal reads format {FORMAT_VERSION}"
             )
+        info.damage.append(Damage(0, 0, (
+            f"its loopcal record says format {fmt!r}, but every scan block is format "
+            f"{FORMAT_VERSION}'s: the record is damaged")))  # fmt: skip
 
     # -------------------------------------------------------------- records
 

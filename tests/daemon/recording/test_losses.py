@@ -13,12 +13,13 @@ import pytest
 from mcap.exceptions import EndOfFile
 from mcap.records import MessageIndex
 from mcap.stream_reader import StreamReader
+from mcap.writer import Writer
 
 from loopcal.daemon import recording as rec
 from loopcal.daemon.recording.filereader import FileReader
 from loopcal.daemon.recording.records import walk
 from tests.support.mutations import chunk_spans, flip_bits, swap_chunks, zero_run
-from tests.support.recordings import write_recording
+from tests.support.recordings import write_recording, write_rows
 from tests.support.rows import T0, make_rows
 
 N, PER = 1457, 75  # 20 flushes (a raw chunk, then a views chunk, each), the last of 32
@@ -146,12 +147,33 @@ def test_a_closed_file_is_mapped_and_unmapped_before_the_read_returns(tmp_path, 
         path.write_bytes(mutant)
         rec.read_recordings(path)
         assert not _mapped(path)
+    other = tmp_path / "other.mcap"  # closed, so mapped, and refused: unmapped too
+    with open(other, "wb") as f:
+        w = Writer(f)
+        w.start()
+        w.add_message(w.register_channel("/other", "json", 0), 0, b"{}", 0)
+        w.finish()
+    with pytest.raises(rec.RecordingError, match="not a loopcal recording"):
+        rec.read_recordings(other)
+    assert not _mapped(other)
+
+
+def test_a_damaged_format_byte_is_damage_but_another_format_is_refused(tmp_path, rows):
+    """7 of the 8 bits of the format's "1" make another character in a record no CRC but
+    the data section's covers: when every scan block is this format's, that is one damaged
+    byte (every scan read, the damage named); a file of another format is refused."""
+    path, data = _written(tmp_path, rows[:300], closed=True)
     fmt = b"\x06\x00\x00\x00format\x01\x00\x00\x00"  # the loopcal record's format field
     assert data.count(fmt + b"1") == 1
     path.write_bytes(data.replace(fmt + b"1", fmt + b"9"))
-    with pytest.raises(rec.RecordingError, match="recording format 9"):  # unmapped too
-        rec.read_recordings(path)
-    assert not _mapped(path)
+    out = rec.read_recordings(path)
+    assert len(out.scans) == 300 and not out.files[0].intact
+    assert any("says format '9'" in d.what for d in out.files[0].damage)
+    empty = tmp_path / "empty.mcap"  # nothing in this format's layout: another format
+    write_rows(empty, rows[:0], metadata={"loopcal": {"format": "9"}, "device": {},
+                                          "controller_config": {}})  # fmt: skip
+    with pytest.raises(rec.RecordingError, match="recording format 9"):
+        rec.read_recordings(empty)
 
 
 def test_an_empty_or_tiny_file_is_read_without_mapping(tmp_path):
