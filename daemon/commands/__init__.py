@@ -32,7 +32,7 @@ COMMANDS: tuple[tuple[str, str], ...] = (
      "check every record of recordings (views, indexes, statistics): name each damaged part"),
     ("check", "did the loops close at a controller config: which sensor moved, when, by how much"),
     ("fleet", "info or check over a fleet's archives, per robot and day, on Dask (loopcal[fleet])"),
-    ("compact", "rewrite closed recordings with large chunks, for fast reading (verified, atomic)"),
+    ("compact", "rewrite closed recordings in chunks of a minute, for fast reading (verified)"),
     ("replay", "serve a recording through the emulated DAQ, scan for scan"),
     ("simulate", "serve an emulated LDQ-412 driven by a simulated shoulder joint"),
     ("observability", "which of the chosen free parameters the workspace can identify"),

@@ -12,7 +12,7 @@
 - :mod:`~loopcal.daemon.recorder.settings`: the recorder's settings and the daemon's TOML config;
 - :mod:`~loopcal.daemon.recorder.filewriter`, :mod:`~loopcal.daemon.recorder.resume`: the writer
   thread (flushes, rotation, retention, a full disk) and where a new recorder carries on;
-- :mod:`~loopcal.daemon.recorder.compactor`: closed files rewritten with large chunks after
+- :mod:`~loopcal.daemon.recorder.compactor`: closed files rewritten in chunks of a minute after
   rotation;
 - :mod:`~loopcal.daemon.recorder.metrics`: the Prometheus endpoint;
 - :mod:`~loopcal.daemon.recorder.sdnotify`, :mod:`~loopcal.daemon.recorder.process`: systemd

@@ -124,7 +124,7 @@ class RecorderSettings:
              "30 MB); the oldest are dropped beyond, with an event")  # fmt: skip
     compact: bool = _setting(
         True, kind="switch", key="[recording].compact", option="--no-compact",
-        help="rewrite each closed file with large chunks, for fast reading (off: the "
+        help="rewrite each closed file in chunks of a minute, for fast reading (off: the "
              "one-second chunks stay as written)")  # fmt: skip
     controller_config: Path | None = _setting(
         None, kind="path", key="[controller].config", option="--controller-config",

@@ -162,7 +162,7 @@ def remove_stale_temporaries(directory: Path) -> None:
 
 
 def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compacted:
-    """Rewrite the closed recording ``path`` with large chunks, verified, atomically (see the
+    """Rewrite the closed recording ``path`` in chunks of a minute, verified, atomically (see the
     module docstring). Raises OSError if the disk refuses (the original is then as it was).
 
     replace_lock: held while the original is checked to be the file that was read (not
