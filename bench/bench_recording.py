@@ -26,15 +26,14 @@ import time
 from pathlib import Path
 
 import numpy as np
+import zstandard
 from mcap.reader import make_reader
 
 from bench._timing import median_time
-from loopcal.calibration.parameters import NOMINAL
-from loopcal.calibration.simulate import simulate_poses
 from loopcal.daemon import recording as rec
-from loopcal.drivers.ldq412 import volts_to_code
-from tests.support.recordings import compacted_copy
-from tests.support.rows import rows_from
+from loopcal.daemon.recording.cdr import encode_scan_block
+from tests.support.recordings import compacted_copy, write_rows
+from tests.support.sessions import hand_rows
 
 RATE = 20
 HOUR = 3600 * RATE
@@ -47,24 +46,42 @@ def write_day(directory: Path, hours: int) -> list[Path]:
         return existing
     for p in existing:
         p.unlink()
-    ps = simulate_poses(2000, seed=3)
-    codes = volts_to_code(ps.volts)
     files = []
     t_start = time.perf_counter()
     for h in range(hours):
-        c = np.arange(h * HOUR, (h + 1) * HOUR, dtype=np.int64)
-        # a technician's hand: still for ~2 s, then somewhere else
-        rows = rows_from(c * 50_000, codes[(c // 40) % len(codes)], counter=c)
+        # a technician moving the plate by hand, an hour's motion of its own
+        rows = hand_rows(HOUR, seed=h + 1, first=h * HOUR)
         path = directory / rec.recording_name(int(rows["stamp_ns"][0]))
         meta = rec.metadata_records(device={"model": "LDQ412"}, controller={}, command="bench")
-        w = rec.RecordingWriter(path, metadata=meta, params=NOMINAL, fsync=False)
-        for k in range(0, HOUR, RATE):
-            w.write(rows[k : k + RATE])
-        w.close()
+        write_rows(path, rows, per=RATE, metadata=meta, fsync=False)
         files.append(path)
         print(f"  wrote {path.name} ({path.stat().st_size / 1e6:.1f} MB), "
               f"{time.perf_counter() - t_start:.0f} s so far", flush=True)  # fmt: skip
     return files
+
+
+def bytes_by_kind(files: list[Path]) -> dict[str, int]:
+    """Bytes on disk of the chunks holding raw scans (with the events), of the views'
+    chunks, and of everything else (header, metadata, indexes, summary)."""
+    out = {"raw": 0, "views": 0, "rest": 0}
+    for path in files:
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+        scans = {i for i, c in summary.channels.items() if c.topic == rec.TOPIC_SCANS}
+        for ci in summary.chunk_indexes:
+            raw = bool(scans & set(ci.message_index_offsets))
+            out["raw" if raw else "views"] += ci.chunk_length
+        out["rest"] += path.stat().st_size - sum(c.chunk_length for c in summary.chunk_indexes)
+    return out
+
+
+def rows_layout_bytes(scans: np.ndarray) -> int:
+    """The raw scans as the former compaction kept them (ScanBlock rows, a minute to a
+    zstd chunk at the mcap writer's level), measured here as the baseline."""
+    zc = zstandard.ZstdCompressor()
+    step = 60 * RATE
+    return sum(len(zc.compress(encode_scan_block(scans[a : a + step])))
+               for a in range(0, len(scans), step))  # fmt: skip
 
 
 def iterate_all(path: Path) -> int:
@@ -110,6 +127,13 @@ def main() -> int:
     t_iter, n_msgs = median_time(lambda: iterate_all(files[0]), max(1, args.repeats // 2))
     per_s = n_msgs / t_iter
 
+    kinds = bytes_by_kind(compacted)
+    baseline = rows_layout_bytes(out.scans)
+    print(f"on disk, compacted: {size_c / n_scans:.1f} B/scan in all; raw scans (and events) "
+          f"{kinds['raw'] / n_scans:.2f} B/scan (packed in columns; as rows, the former "
+          f"layout, {baseline / n_scans:.2f} B/scan: {baseline / kinds['raw']:.1f}x); views "
+          f"{kinds['views'] / n_scans:.1f} B/scan; the rest {kinds['rest'] / n_scans:.2f} "
+          "B/scan")  # fmt: skip
     print()
     print(f"read day           {t_day:6.2f} s   {n_scans / t_day:10,.0f} scans/s  "
           f"(target 1.7 M scans in < 1 s: {'met' if t_day < 1 else 'NOT met'})")  # fmt: skip

@@ -284,18 +284,6 @@ def decode_columns(message: bytes | memoryview) -> np.ndarray:
     return decode_columns_many([message])[0]
 
 
-def column_msgdef() -> str:
-    """The ROS 2 message definition of a ``/daq/scans`` ScanColumns message."""
-    return (
-        "# LDQ-412 scans, raw and lossless, packed column by column (docs/recording.md):\n"
-        "# the same scans a ScanBlock holds. Every scan of the recording is in exactly one\n"
-        "# block.\n"
-        "uint32 count  # scans in the block\n"
-        f"uint8 codec  # {CODEC}: differences, zigzag, byte planes, zstd\n"
-        "uint8[] data  # header and compressed planes\n"
-    )
-
-
 def decode_scan_messages(messages: list[bytes | memoryview]) -> tuple[np.ndarray, int]:
     """The rows (SCAN_DTYPE) of ``/daq/scans`` messages of either layout (ScanBlock as
     written, ScanColumns as compacted), in order, and how many did not check out

@@ -56,16 +56,19 @@ from mcap.writer import CompressionType, Writer
 from numpy.lib.recfunctions import repack_fields
 
 from ..config import durable
+from .columns import decode_scan_messages, encode_columns
 from .errors import RecordingError
 from .reader import read_recordings
 from .records import MAGIC
 from .schemas import (
     BLOCK_SPAN_NS,
-    FORMAT_VERSION,
+    COMPACT_FORMAT,
     NS_PER_S,
+    SCAN_COLUMNS_SCHEMA,
     TOPIC_EVENTS,
     TOPIC_LOG,
     TOPIC_SCANS,
+    schema_bytes,
 )
 
 log = logging.getLogger(__name__)
@@ -251,15 +254,15 @@ def _says_compacted(path: Path) -> bool:
                     record = dict(m.metadata)  # the last one, as read_recordings keeps it
     except Exception:  # noqa: BLE001 - any damage: the careful read below decides
         return False
-    return _compact_enough(record) and record.get("format", FORMAT_VERSION) == FORMAT_VERSION
+    return _compact_enough(record)
 
 
 def _compact_enough(record: dict[str, str]) -> bool:
     """Whether a ``loopcal`` metadata record says its file was compacted into chunks of at
     most :data:`CHUNK_SPAN_NS` (an older loopcal's compaction, into chunks of 4 MiB that
     held an hour, did not write ``chunk_span_s``: such a file is compacted again)."""
-    if "compacted_utc" not in record:
-        return False
+    if "compacted_utc" not in record or record.get("format") != COMPACT_FORMAT:
+        return False  # not compacted, or compacted before the scans were packed in columns
     try:
         return int(record.get("chunk_span_s", "")) * NS_PER_S <= CHUNK_SPAN_NS
     except ValueError:
@@ -295,9 +298,11 @@ def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
             for sid in sorted(summary.schemas):
                 s = summary.schemas[sid]
                 schema_ids[sid] = w.register_schema(s.name, s.encoding, s.data)
+            columns_sid = w.register_schema(SCAN_COLUMNS_SCHEMA, "ros2msg",
+                                            schema_bytes(SCAN_COLUMNS_SCHEMA))  # fmt: skip
             for cid in sorted(summary.channels):
                 c = summary.channels[cid]
-                sid = schema_ids.get(c.schema_id, 0)
+                sid = columns_sid if c.topic == TOPIC_SCANS else schema_ids.get(c.schema_id, 0)
                 new = w.register_channel(c.topic, c.message_encoding, sid, dict(c.metadata))
                 if new != cid:  # our writer numbers channels from 1 in order: so does this one
                     raise RecordingError(f"{path}: channel ids are not consecutive")
@@ -305,11 +310,12 @@ def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
             span_s = str(CHUNK_SPAN_NS // NS_PER_S)
             for name, record in metadata:
                 if name == "loopcal":
-                    record = {**record, "compacted_utc": stamp, "chunk_span_s": span_s}
+                    record = {**record, "format": COMPACT_FORMAT, "compacted_utc": stamp,
+                              "chunk_span_s": span_s}  # fmt: skip
                 w.add_metadata(name, record)
             raw = {cid for cid, c in summary.channels.items() if c.topic in _RAW_TOPICS}
             scans = {cid for cid, c in summary.channels.items() if c.topic == TOPIC_SCANS}
-            pair = _ChunkPair(w)
+            pair = _ChunkPair(w, scans)
             counts: dict[int, int] = {}
             try:
                 # every message once, in file order (the original's raw chunk of a second,
@@ -344,8 +350,9 @@ class _ChunkPair:
     written as a raw chunk then a views chunk whenever a message would stretch either group
     beyond it."""
 
-    def __init__(self, writer: Writer) -> None:
+    def __init__(self, writer: Writer, scans: set[int]) -> None:
         self.writer = writer
+        self.scans = scans
         self.parts: dict[bool, list[tuple[int, int, bytes, int, int]]] = {True: [], False: []}
         self.spans: dict[bool, tuple[int, int, bool] | None] = {True: None, False: None}
 
@@ -363,14 +370,30 @@ class _ChunkPair:
         self.parts[raw].append(message)
 
     def write(self) -> None:
-        """Write what was gathered: the raw chunk, then the views' (the writer also closes a
-        chunk at CHUNK_BYTES)."""
+        """Write what was gathered: the raw chunk (its scan blocks packed into one block of
+        columns, logged at the last one's time, then the events), then the views' (the
+        writer also closes a chunk at CHUNK_BYTES)."""
         for raw in (True, False):
-            for cid, log_time, data, publish_time, sequence in self.parts[raw]:
+            parts = self.parts[raw]
+            if raw:
+                parts = self._pack(parts)
+            for cid, log_time, data, publish_time, sequence in parts:
                 self.writer.add_message(cid, log_time, data, publish_time, sequence)
             self.writer.flush()
             self.parts[raw] = []
             self.spans[raw] = None
+
+
+    def _pack(self, parts: list[tuple[int, int, bytes, int, int]]) -> list:
+        blocks = [m for m in parts if m[0] in self.scans]
+        if not blocks:
+            return parts
+        rows, bad = decode_scan_messages([m[2] for m in blocks])
+        if bad:
+            raise _Damaged(f"{bad} scan block(s) that do not decode")
+        cid, log_time, _, publish_time, _ = blocks[-1]
+        packed = (cid, log_time, encode_columns(rows), publish_time, blocks[0][4])
+        return [packed, *(m for m in parts if m[0] not in self.scans)]
 
 
 def _verify(tmp: Path, original, counts: dict[int, int]) -> tuple[int, str]:
@@ -387,9 +410,11 @@ def _verify(tmp: Path, original, counts: dict[int, int]) -> tuple[int, str]:
     with open(tmp, "rb") as fh:
         summary = make_reader(fh).get_summary()
     got = dict(summary.statistics.channel_message_counts) if summary.statistics else {}
-    if {k: v for k, v in got.items() if v} != counts:  # against the original's statistics
-        return 0, f"message counts differ: {got} against the original's {counts}"
     scans = {cid for cid, c in summary.channels.items() if c.topic == TOPIC_SCANS}
+    # against the original's statistics (its scan blocks are packed: compared scan by scan)
+    want = {k: v for k, v in counts.items() if k not in scans}
+    if {k: v for k, v in got.items() if v and k not in scans} != want:
+        return 0, f"message counts differ: {got} against the original's {counts}"
     for ci in summary.chunk_indexes:
         span = _chunk_span(ci.message_start_time, ci.message_end_time,
                            bool(scans & set(ci.message_index_offsets)))  # fmt: skip

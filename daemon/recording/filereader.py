@@ -54,8 +54,9 @@ from .records import (
 from .schemas import (
     BLOCK_SPAN_NS,
     CHANNELS,
-    FORMAT_VERSION,
+    COLUMNS_SPAN_NS,
     NS_PER_S,
+    READ_FORMATS,
     TOPIC_EVENTS,
     TOPIC_SCANS,
     TOPIC_STATE,
@@ -384,7 +385,7 @@ class FileReader:
                     f"{TOPIC_SCANS} channel (its topics: {listed})"
                 )
         fmt = self.metadata.get("loopcal", {}).get("format")
-        if fmt is not None and fmt != FORMAT_VERSION:
+        if fmt is not None and fmt not in READ_FORMATS:
             self.other_format = fmt  # judged once the scans are decoded (_judge_format)
 
     def _judge_format(self, rows: np.ndarray, bad: int, info: RecordingFile) -> None:
@@ -396,11 +397,12 @@ class FileReader:
             return
         if not len(rows) or bad:
             raise RecordingError(
-                f"{self.path}: recording format {fmt}, this loopcal reads format {FORMAT_VERSION}"
+                f"{self.path}: recording format {fmt}, this loopcal reads formats "
+                f"{' and '.join(READ_FORMATS)}"
             )
         info.damage.append(Damage(0, 0, (
-            f"its loopcal record says format {fmt!r}, but every scan block is format "
-            f"{FORMAT_VERSION}'s: the record is damaged")))  # fmt: skip
+            f"its loopcal record says format {fmt!r}, but every scan block is in the layout "
+            "of a format this loopcal reads: the record is damaged")))  # fmt: skip
 
     # -------------------------------------------------------------- records
 
@@ -413,7 +415,8 @@ class FileReader:
     def _in_window(self, start: int, end: int) -> bool:
         if self.since is not None and end + BLOCK_SPAN_NS < self.since:
             return False
-        return not (self.until is not None and start >= self.until)
+        # a block's scans lie before its log time: by a second as written, a minute packed
+        return not (self.until is not None and start - COLUMNS_SPAN_NS >= self.until)
 
     def _take(self, got: ChunkRecords | Damage) -> None:
         if isinstance(got, Damage):

@@ -8,7 +8,12 @@ from typing import Any
 
 from ..scans import SCAN_FIELDS
 
+#: the format of files as the recorder writes them (raw scans as ScanBlock rows)
 FORMAT_VERSION = "1"
+#: the format of compacted files (raw scans as ScanColumns, docs/recording.md)
+COMPACT_FORMAT = "2"
+#: the formats this loopcal reads
+READ_FORMATS = (FORMAT_VERSION, COMPACT_FORMAT)
 
 TOPIC_SCANS = "/daq/scans"
 TOPIC_EVENTS = "/loopcal/events"
@@ -18,6 +23,7 @@ TOPIC_TRANSFORM = "/plate/transform"
 TOPIC_SCENE = "/plate/scene"
 
 SCAN_BLOCK_SCHEMA = "loopcal_msgs/msg/ScanBlock"
+SCAN_COLUMNS_SCHEMA = "loopcal_msgs/msg/ScanColumns"
 JOINT_STATE_SCHEMA = "loopcal_msgs/msg/JointState"
 FRAME_TRANSFORM_SCHEMA = "foxglove_msgs/msg/FrameTransform"
 BASE_FRAME, PLATE_FRAME = "base", "plate"
@@ -25,6 +31,9 @@ BASE_FRAME, PLATE_FRAME = "base", "plate"
 CDR_LE = b"\x00\x01\x00\x00"  # CDR encapsulation header: little endian, no options
 #: a raw block never spans more stamp time than this (readers widen time windows by it)
 BLOCK_SPAN_NS = 1_000_000_000
+#: a compacted file's block of columns holds at most this much stamp time, all before its
+#: log time (a chunk of a compacted file spans at most as much)
+COLUMNS_SPAN_NS = 60_000_000_000
 NS_PER_S = 1_000_000_000
 
 # ---------------------------------------------------------------------------- schemas
@@ -191,9 +200,24 @@ CHANNELS: dict[str, tuple[str, str, str]] = {
 }
 
 
+def scan_columns_msgdef() -> str:
+    """The ROS 2 message definition of ``/daq/scans`` in a compacted file (``ros2msg``
+    schema text): the scans packed column by column (:mod:`.columns`)."""
+    return (
+        "# LDQ-412 scans, raw and lossless, packed column by column (docs/recording.md):\n"
+        "# the same scans a ScanBlock holds. Every scan of the recording is in exactly one\n"
+        "# block.\n"
+        "uint32 count  # scans in the block\n"
+        "uint8 codec  # 1: differences, zigzag, byte planes, zstd\n"
+        "uint8[] data  # header and compressed planes\n"
+    )
+
+
 def schema_bytes(name: str) -> bytes:
     if name == SCAN_BLOCK_SCHEMA:
         return scan_block_msgdef().encode()
+    if name == SCAN_COLUMNS_SCHEMA:
+        return scan_columns_msgdef().encode()
     if name in _MSGDEFS:
         return _MSGDEFS[name].encode()
     return json.dumps(JSON_SCHEMAS[name], indent=1).encode()

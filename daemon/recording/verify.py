@@ -56,7 +56,7 @@ from mcap.records import Channel, Footer, Header, Schema, Statistics
 
 from .errors import RecordingError
 from .records import MAGIC, MAX_CHUNK_BYTES, PARSE_ERRORS, RECORD_HEAD, parse_record, record_at
-from .schemas import CHANNELS, FORMAT_VERSION
+from .schemas import CHANNELS, READ_FORMATS
 
 _HEAD = struct.Struct("<BQ")  # opcode, record length
 _CHUNK_FIXED = struct.Struct("<QQQII")  # start, end, uncompressed size, CRC, compression length
@@ -1180,8 +1180,9 @@ class _Verifier:
             return
         at, (length, _, values) = own[0]
         fmt = values.get("format")
-        if fmt is not None and fmt != FORMAT_VERSION:
-            self.damage(at, length, "metadata", f"loopcal format {fmt!r}, not {FORMAT_VERSION!r}")
+        if fmt is not None and fmt not in READ_FORMATS:
+            self.damage(at, length, "metadata", f"loopcal format {fmt!r}, not one of "
+                        f"{', '.join(READ_FORMATS)}")  # fmt: skip
         version = values.get("version")
         if version and self.header is not None and self.header.library != f"loopcal {version}":
             self.damage(8, 0, "header", f"library {self.header.library!r}, while the loopcal "

@@ -13,7 +13,7 @@ from loopcal.calibration.parameters import PAPER7
 from loopcal.calibration.simulate import perturbed_truth
 from loopcal.daemon import recording as rec
 from loopcal.simulator.offline import mechanism_scans
-from loopcal.simulator.scenarios import Scenario
+from loopcal.simulator.scenarios import HandMoves, Scenario
 
 from .processes import Proc, listening_url, record
 from .recordings import write_directory
@@ -148,3 +148,20 @@ def write_session(
     rows = rows_from(time_us, codes, t0=t0)
     write_directory(path, rows, rate=rate, scans_per_file=round(hours_per_file * 3600 * rate))
     return n
+
+
+def hand_rows(n: int, *, seed: int = 1, first: int = 0, read_every: int = 4) -> np.ndarray:
+    """``n`` scans of a technician's hand-moved session at 20 Hz (the motion of ``seed``),
+    counters (and device times) from ``first`` on, as the recorder stamps them: the offline
+    mechanism's codes (40 mV of noise), one host receive time per read of ``read_every``
+    scans, 1 to 3 ms after the last one's stamp."""
+    truth = truth_for(seed)
+    time_us, codes = mechanism_scans(HandMoves(seed, params=truth, pause_s=PAUSE_S), truth,
+                                     n, rate_hz=20, noise_volts=0.04, seed=seed)  # fmt: skip
+    rows = rows_from(time_us + first * 50_000, codes, counter=np.arange(first, first + n))
+    last = rows["stamp_ns"][read_every - 1 :: read_every]
+    latency = np.random.default_rng([seed, 3]).integers(1_000_000, 3_000_000, len(last))
+    host = np.repeat(last + latency, read_every)[:n]
+    rows["host_ns"][: len(host)] = host
+    rows["host_ns"][len(host) :] = rows["stamp_ns"][len(host) :] + 2_000_000
+    return rows

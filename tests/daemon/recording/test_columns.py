@@ -19,10 +19,8 @@ from loopcal.daemon.recording.columns import (
     encode_columns,
     is_columns,
 )
-from loopcal.simulator.offline import mechanism_scans
-from loopcal.simulator.scenarios import HandMoves
-from tests.support.rows import make_rows, rows_from, synthetic_rows
-from tests.support.sessions import PAUSE_S, truth_for
+from tests.support.rows import make_rows, synthetic_rows
+from tests.support.sessions import hand_rows
 
 
 def fields(rows: np.ndarray) -> bytes:
@@ -38,16 +36,8 @@ def any_rows(data: bytes) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def hour() -> np.ndarray:
-    """An hour of a technician's session at 20 Hz, as the recorder stamps it: one host
-    receive time per read of four scans, 1 to 3 ms after the last one's stamp."""
-    truth = truth_for(1)
-    time_us, codes = mechanism_scans(HandMoves(1, params=truth, pause_s=PAUSE_S), truth,
-                                     72_000, rate_hz=20, noise_volts=0.04, seed=1)  # fmt: skip
-    rows = rows_from(time_us, codes)
-    last = rows["stamp_ns"][3::4]
-    latency = np.random.default_rng(0).integers(1_000_000, 3_000_000, len(last))
-    rows["host_ns"] = np.repeat(last + latency, 4)[: len(rows)]
-    return rows
+    """An hour of a technician's session at 20 Hz, as the recorder stamps it."""
+    return hand_rows(72_000, seed=1)
 
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])

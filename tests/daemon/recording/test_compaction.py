@@ -47,12 +47,22 @@ def test_a_compacted_file_holds_the_same_and_reads_everywhere(tmp_path, node_rea
     assert "compacted_utc" in after.files[0].metadata["loopcal"]
     assert {k: v for k, v in after.files[0].metadata["device"].items()} == \
         before.files[0].metadata["device"]  # fmt: skip
+    assert after.files[0].metadata["loopcal"]["format"] == rec.COMPACT_FORMAT
     with open(path, "rb") as f:  # the mcap library: every message, every channel
         reader = make_reader(f)
-        assert reader.get_summary().statistics.channel_message_counts == counts
+        summary = reader.get_summary()
+        scans_id = next(i for i, c in summary.channels.items() if c.topic == rec.TOPIC_SCANS)
+        assert summary.schemas[summary.channels[scans_id].schema_id].name == \
+            rec.SCAN_COLUMNS_SCHEMA  # fmt: skip
+        got = summary.statistics.channel_message_counts
+        # the same messages, but the scans' blocks: one block of columns a minute (150 s)
+        assert {k: v for k, v in got.items() if k != scans_id} == \
+            {k: v for k, v in counts.items() if k != scans_id}  # fmt: skip
+        assert got[scans_id] == 3
         n = sum(1 for _ in reader.iter_messages(log_time_order=True))
-    assert n == sum(counts.values())
-    read_ts(node_reader, path)  # Foxglove's TypeScript reader: it must read it
+    assert n == sum(got.values())
+    ts = read_ts(node_reader, path)  # Foxglove's TypeScript reader: it must read it
+    assert ts["packedScans"] == 3000 and ts["counts"]["/daq/scans"] == 3
     assert not compact(path).done  # already compact
 
 
@@ -222,3 +232,18 @@ def test_damage_in_the_views_is_never_laundered(tmp_path, damage):
     assert not list(tmp_path.glob(".*.tmp"))
     proc = loopcal("compact", path)
     assert proc.returncode == 1 and "damaged" in proc.stdout, proc.stdout + proc.stderr
+
+
+def test_a_time_window_of_a_compacted_file_holds_every_scan_inside_it(tmp_path):
+    """A block of columns holds a minute, all before its log time: a window that ends
+    inside it or starts inside it still gets every scan stamped in it, and only those."""
+    path = _recording(tmp_path, n=6600)  # 5.5 minutes
+    whole = rec.read_recordings(path).scans
+    assert compact(path).done
+    stamps = whole["stamp_ns"].astype(np.int64)
+    for since_s, until_s in [(0, 10), (30, 95), (59.5, 60.5), (61, 62), (200, 400), (299, 330)]:
+        since, until = T0 + int(since_s * 1e9), T0 + int(until_s * 1e9)
+        got = rec.read_recordings(path, since=since, until=until)
+        want = whole[(stamps >= since) & (stamps < until)]
+        assert identities(got.scans) == identities(want), (since_s, until_s)
+        assert not got.warnings

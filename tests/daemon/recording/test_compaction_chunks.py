@@ -17,7 +17,7 @@ from mcap.writer import CompressionType, Writer
 from loopcal.calibration.parameters import NOMINAL
 from loopcal.daemon import recording as rec
 from loopcal.daemon.events import Event, Level
-from loopcal.daemon.recording.cdr import decode_scan_blocks
+from loopcal.daemon.recording.columns import decode_columns, is_columns
 from loopcal.daemon.recording.compact import CHUNK_SPAN_NS, compact
 from tests.support.mutations import chunk_spans, flip_bits
 from tests.support.recordings import write_recording
@@ -62,7 +62,9 @@ def test_every_chunk_of_a_compacted_file_spans_at_most_the_bound(tmp_path):
         times = [m.log_time for _, m in messages]
         assert max(times) - min(times) <= CHUNK_SPAN_NS, topics  # every chunk, views too
         if rec.TOPIC_SCANS in topics:
-            rows = decode_scan_blocks(m.data for t, m in messages if t == rec.TOPIC_SCANS)
+            blocks = [m.data for t, m in messages if t == rec.TOPIC_SCANS]
+            assert len(blocks) == 1 and is_columns(blocks[0])  # a minute, packed
+            rows = decode_columns(blocks[0])
             stamps = rows["stamp_ns"].astype(np.int64)
             assert stamps[-1] - stamps[0] < CHUNK_SPAN_NS and len(rows) <= BOUND_SCANS
             scans_seen += len(rows)

@@ -95,7 +95,12 @@ function onMessage(m) {
   } catch (err) {
     throw new Error(`${topic}: message ${out.counts[topic]} does not decode: ${err.message}`);
   }
-  if (topic === "/daq/scans") {
+  if (topic === "/daq/scans" && msg.scans === undefined) {
+    // a compacted file's block of columns (loopcal_msgs/msg/ScanColumns): decoded by its
+    // schema as Foxglove does, its packed scans counted
+    out.packedScans = (out.packedScans ?? 0) + msg.count;
+    out.packedBytes = (out.packedBytes ?? 0) + msg.data.length;
+  } else if (topic === "/daq/scans") {
     for (const scan of plain(msg.scans)) out.scans.push(scan);
   } else if (topic === "/joint/state" || topic === "/plate/transform") {
     const views = topic === "/joint/state" ? out.states : out.transforms;
