@@ -331,7 +331,7 @@ def _chunk_index(body: memoryview) -> ChunkIndex:
 # ---------------------------------------------------------------------------- chunks
 
 
-def _chunk_header(body: memoryview) -> tuple[int, int, int, int, str, memoryview] | None:
+def chunk_header(body: memoryview) -> tuple[int, int, int, int, str, memoryview] | None:
     """(start, end, uncompressed size, CRC, compression, compressed data) of a chunk body
     whose fields are consistent with its length, else None."""
     if len(body) < _CHUNK_FIXED.size + 8:
@@ -355,7 +355,7 @@ def _chunk_header(body: memoryview) -> tuple[int, int, int, int, str, memoryview
 def is_chunk_body(body: memoryview) -> bool:
     """Whether ``body`` is a chunk record's body whose header fields are consistent with
     its length (a chunk, whatever its opcode byte now says)."""
-    return _chunk_header(body) is not None
+    return chunk_header(body) is not None
 
 
 def _decompress(compression: str, data: memoryview, size: int) -> bytes:
@@ -395,7 +395,7 @@ def read_chunk(
     if expected_length is not None and expected_length != RECORD_HEAD + length:
         return Damage(pos, expected_length, "chunk length differs from the index")
     body = buf[pos + RECORD_HEAD : pos + RECORD_HEAD + length]
-    head = _chunk_header(body)
+    head = chunk_header(body)
     if head is None:
         return Damage(pos, RECORD_HEAD + length, "damaged chunk header")
     start, end, usize, crc, compression, data = head
@@ -557,7 +557,7 @@ def _resync(buf: memoryview, lo: int, bad: int, strict: bool) -> int | None:
             return None
         if p != bad:
             at = record_at(buf, p, n)
-            if at is not None and _chunk_header(buf[p + RECORD_HEAD : p + RECORD_HEAD + at[1]]):
+            if at is not None and chunk_header(buf[p + RECORD_HEAD : p + RECORD_HEAD + at[1]]):
                 got = read_chunk(buf, p, strict=strict, wanted=set())
                 if isinstance(got, ChunkRecords):
                     return p

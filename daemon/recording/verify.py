@@ -55,11 +55,18 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Footer, Header, Schema, Statistics
 
 from .errors import RecordingError
-from .records import MAGIC, MAX_CHUNK_BYTES, PARSE_ERRORS, RECORD_HEAD, parse_record, record_at
+from .records import (
+    MAGIC,
+    MAX_CHUNK_BYTES,
+    PARSE_ERRORS,
+    RECORD_HEAD,
+    chunk_header,
+    parse_record,
+    record_at,
+)
 from .schemas import CHANNELS, READ_FORMATS
 
 _HEAD = struct.Struct("<BQ")  # opcode, record length
-_CHUNK_FIXED = struct.Struct("<QQQII")  # start, end, uncompressed size, CRC, compression length
 _MESSAGE_FIXED = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # a message record's opcode, length and fixed fields
 _INDEX_FIXED = struct.Struct("<QQQQI")  # start, end, chunk offset, chunk length, map bytes
@@ -72,7 +79,6 @@ _CRC_PIECE = 1 << 24
 #: intact chunks are checked through their message indexes with numpy in batches of this many
 #: bytes (decompressed): a file as written has two chunks of some 20 messages each a second
 _BATCH_BYTES = 1 << 20  # bytes given to zlib.crc32 at once over the mapped file
-_COMPRESSIONS = ("", "zstd", "lz4")
 _SUMMARY_OPCODES = {Opcode.SCHEMA, Opcode.CHANNEL, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT_INDEX,
                     Opcode.METADATA_INDEX, Opcode.STATISTICS, Opcode.SUMMARY_OFFSET}  # fmt: skip
 #: channel ids our writer gives the topics (CHANNELS order, from 1): the topics of a damaged
@@ -701,7 +707,7 @@ class _Verifier:
         if at is None or at[0] != Opcode.CHUNK:
             return False
         body = self.buf[p + RECORD_HEAD : p + RECORD_HEAD + at[1]]
-        head = _chunk_header(body)
+        head = chunk_header(body)
         if head is None or head[2] > MAX_CHUNK_BYTES:
             return False
         start, end, usize, crc, compression, data = head
@@ -715,7 +721,7 @@ class _Verifier:
 
     def check_chunk(self, pos: int, whole: int, body: memoryview) -> _Chunk:
         c = _Chunk(pos, whole)
-        head = _chunk_header(body)
+        head = chunk_header(body)
         if head is None:
             c.problem = "damaged chunk header (its fields do not fit the record)"
             if len(body) >= 16:
@@ -1198,27 +1204,6 @@ def _library(buf: memoryview) -> str:
         return parse_record(Opcode.HEADER, buf[8 + RECORD_HEAD : 8 + RECORD_HEAD + at[1]]).library
     except PARSE_ERRORS:
         return ""
-
-
-def _chunk_header(body: memoryview) -> tuple[int, int, int, int, str, memoryview] | None:
-    """(start, end, uncompressed size, CRC, compression, compressed data) of a chunk body
-    whose fields are consistent with its length, else None."""
-    if len(body) < _CHUNK_FIXED.size + 8:
-        return None
-    start, end, usize, crc, clen = _CHUNK_FIXED.unpack_from(body, 0)
-    pos = _CHUNK_FIXED.size
-    if clen > 8 or pos + clen + 8 > len(body):
-        return None
-    try:
-        compression = bytes(body[pos : pos + clen]).decode("ascii")
-    except UnicodeDecodeError:
-        return None
-    pos += clen
-    (dlen,) = _U64.unpack_from(body, pos)
-    pos += 8
-    if compression not in _COMPRESSIONS or dlen != len(body) - pos or end < start:
-        return None
-    return start, end, usize, crc, compression, body[pos:]
 
 
 def _gather(a: np.ndarray, offsets: np.ndarray, dtype: str) -> np.ndarray:
