@@ -36,32 +36,47 @@ def truth_for(seed: int) -> np.ndarray:
     return perturbed_truth(np.random.default_rng([seed, 7]), model=PAPER7)
 
 
-def live_sessions(root: Path, seeds: list[int], *, minutes: float = 2.0, speed: float = 10.0,
-                  attempts: int = 2):  # fmt: skip
+def live_sessions(root: Path, seeds: list[int], *, minutes: float = 2.7, speed: float = 10.0,
+                  keep: tuple[int, int] = (600, 3000), attempts: int = 3):  # fmt: skip
     """Record technician sessions through ``loopcal record`` over Modbus TCP, all at once:
     each emulated module is a ``loopcal simulate`` process of its own (the same scans as
     in-process, with no Python thread of this process between the module and its reader),
-    running ``speed`` times as fast as wall time from the recorder's first request.
+    running ``speed`` times as fast as wall time from the recorder's first request. The
+    recorders run without live health (``--no-health``): these sessions are for the worker,
+    and a recorder at ten times the scan rate should spend its CPU on reading.
 
     Each recorder is stopped once its recording holds every scan of ``minutes`` (not after
     a fixed sleep: on a loaded machine a recorder may lag behind its module). A session
-    whose recording misses scans (its FIFO overflowed while the machine was too busy to
-    let the recorder read: an ``overflow``/``gap`` in the recording, never silent) is
-    recorded again, up to ``attempts`` times in all.
+    whose recording misses any of the scans the tests use (counters ``keep[0]`` to
+    ``keep[1] - 1``: its FIFO overflowed while the machine was too busy to let the recorder
+    read, an ``overflow``/``gap`` in the recording, never silent) is recorded again, up to
+    ``attempts`` times in all, each at half the speed of the one before (twice the time the
+    module's FIFO covers: the same scans, as the emulator's scans depend on its clock, not on
+    the wall's); the assertion that ends the last says what each one missed.
     """
     wanted = int(minutes * 60 * 20)
+    assert keep[1] <= wanted, f"keep {keep} beyond the {wanted} scans recorded"
     todo = list(seeds)
     done: dict[int, Session] = {}
+    missed: dict[int, list[str]] = {seed: [] for seed in seeds}
     for attempt in range(attempts):
-        for s in _record_sessions(root / f"attempt-{attempt}", todo, wanted, speed):
+        pace = speed / 2**attempt
+        for s in _record_sessions(root / f"attempt-{attempt}", todo, wanted, pace):
             scans = rec.read_recordings(s.directory).scans
-            c = scans["counter64"][scans["counter64"] < wanted].astype(np.int64)
-            if len(c) and c[-1] - c[0] + 1 == len(c) and c[0] <= 600:
+            c = scans["counter64"].astype(np.int64)
+            used = np.unique(c[(c >= keep[0]) & (c < keep[1])])
+            if len(used) == keep[1] - keep[0]:
                 done[s.seed] = s
+            else:
+                lost = np.setdiff1d(np.arange(*keep), used)
+                missed[s.seed].append(f"{len(lost)} scans from counter {lost[0]} to "
+                                      f"{lost[-1]} at --speed {pace:g}")
         todo = [seed for seed in seeds if seed not in done]
         if not todo:
             break
-    assert not todo, f"sessions {todo} lost scans in every attempt"
+    assert not todo, "sessions lost scans the tests use in every attempt: " + "; ".join(
+        f"seed {seed}: " + ", ".join(missed[seed]) for seed in todo
+    )
     return [done[seed] for seed in seeds]
 
 
@@ -91,7 +106,7 @@ def _record_sessions(root: Path, seeds: list[int], wanted: int, speed: float) ->
             )
             sims.append(sim)
             out = root / f"session-{seed}"
-            procs.append(record(listening_url(sim), out, "--read-period", "0.05"))
+            procs.append(record(listening_url(sim), out, "--read-period", "0.05", "--no-health"))
             sessions.append(Session(out, truth, seed))
         for p in procs:
             p.wait_for("recording to")
