@@ -1,5 +1,5 @@
-"""``loopcal compact REC|DIR ... [--json]``: rewrite closed recordings in chunks of a minute,
-for fast reading (:mod:`loopcal.daemon.recording.compact`).
+"""``loopcal compact REC|DIR ... [--drop-views] [--json]``: rewrite closed recordings in chunks
+of a minute, for fast reading (:mod:`loopcal.daemon.recording.compact`).
 
 The daemon compacts every file it closes by itself (``[recording].compact``); this command
 is for archives recorded before it did, or copied from elsewhere. Each file is verified scan
@@ -12,6 +12,11 @@ that is not a regular file (a FIFO, a device), a directory holding no recordings
 that is not a recording (not MCAP, an MCAP file of something else, another format). Bad
 input named on the command line is refused before any file is touched; a file found in a
 directory that turns out not to be a recording is reported so, and the exit status is 2.
+
+``--drop-views``: leave out the per-scan views (/joint/state, /plate/transform), nine tenths of
+a compacted file: what stays is every raw scan, bit for bit, the events and the metadata
+(about 6 bytes a scan against 120). ``loopcal export`` makes a file with every view again.
+The daemon does this by itself to files older than ``[recording].keep_views_days``.
 
 ``--json``: one object, ``{"files": [{"path", "compacted", "failed", "not_recording", "reason",
 "chunks_before", "chunks_after", "bytes_before", "bytes_after"}], "bytes_before",
@@ -38,6 +43,9 @@ from ..recording.names import find_recordings, recording_paths
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("recordings", nargs="+", type=path_argument, metavar="REC.mcap|DIR",
                    help="recording files or directories of them")  # fmt: skip
+    p.add_argument("--drop-views", action="store_true",
+                   help="leave out the per-scan views (/joint/state, /plate/transform): every "
+                        "raw scan and event stays; loopcal export makes them again")  # fmt: skip
     p.add_argument("--json", action="store_true",
                    help="one JSON object on stdout: what was done to each file")  # fmt: skip
 
@@ -64,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     results: list[Compacted] = []
     for f in files:
         try:
-            r = compact(f)
+            r = compact(f, drop_views=args.drop_views)
         except OSError as exc:
             r = Compacted(f, False, f"{exc.strerror or exc} (kept as it was)", failed=True)
         results.append(r)

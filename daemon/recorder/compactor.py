@@ -9,36 +9,60 @@ that is not compact yet (files an older loopcal compacted into chunks of 4 MiB, 
 scans in one, included: they are compacted again, once). The file being written is never
 touched; the retention and the compactor share :attr:`Compactor.lock`, so a file the
 retention deletes is not renamed back into existence by a compaction that was reading it.
+
+Views: a file started ``keep_views_days`` ago or more (by the UTC time in its name) is
+compacted without its per-scan views (``compact(..., drop_views=True)``: every raw scan and
+event stays, about a twentieth of the bytes). Files cross that age while the daemon runs for
+months, so after each file it is handed the compactor looks over the directory again for
+files whose views have expired (their names alone: a file it has already thinned, or given
+up on, is not opened again).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import queue
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 from ..recording import RecordingError, find_recordings
 from ..recording.compact import compact, remove_stale_temporaries
+from ..recording.names import name_time_ns
+from ..recording.schemas import NS_PER_S
 
 log = logging.getLogger(__name__)
 
 NICE = 10  # the compaction thread's CPU priority (lower than the acquisition's)
 
 
-class Compactor:
-    """A thread that compacts the files given to :meth:`submit`, one at a time."""
+#: seconds in a day
+DAY_S = 86_400.0
 
-    def __init__(self) -> None:
+
+class Compactor:
+    """A thread that compacts the files given to :meth:`submit`, one at a time.
+
+    keep_views_days: called for the age in days (by a file's name) from which its views are
+    left out (``math.inf``: never); a callable, so that a reload's new value holds."""
+
+    def __init__(self, keep_views_days: Callable[[], float] = lambda: math.inf) -> None:
         self.lock = threading.Lock()  # held while a file is replaced, and by the retention
         self._queue: queue.Queue[Path | None] = queue.Queue()
         self._thread = threading.Thread(target=self._run, name="loopcal-compact", daemon=True)
+        self._keep_views_days = keep_views_days
+        self._directory: Path | None = None
+        #: files whose views are gone, or that could not be thinned: not looked at again
+        self._settled: set[Path] = set()
         self.done: list[Path] = []
 
     def start(self, directory: Path | None = None) -> Compactor:
         """Start the thread; queue the closed files of ``directory`` not compact yet."""
         if directory is not None and directory.is_dir():
+            self._directory = directory
             remove_stale_temporaries(directory)
             try:
                 for path in find_recordings(directory):
@@ -47,6 +71,26 @@ class Compactor:
                 pass
         self._thread.start()
         return self
+
+    def views_expired(self, path: Path, now_ns: int | None = None) -> bool:
+        """Whether ``path`` started ``keep_views_days`` ago or more (by its name; a name
+        without a time never expires)."""
+        days = self._keep_views_days()
+        started = name_time_ns(path)
+        if started is None or not math.isfinite(days):
+            return False
+        now = time.time_ns() if now_ns is None else now_ns
+        return now - started >= days * DAY_S * NS_PER_S
+
+    def _expired_in_directory(self) -> list[Path]:
+        if self._directory is None or not math.isfinite(self._keep_views_days()):
+            return []
+        try:
+            paths = find_recordings(self._directory)
+        except (RecordingError, OSError):
+            return []
+        # the newest file is the one being written: never touched (it is not closed)
+        return [p for p in paths[:-1] if p not in self._settled and self.views_expired(p)]
 
     def submit(self, path: Path) -> None:
         """Compact ``path`` (a closed recording) when the thread gets to it."""
@@ -64,13 +108,25 @@ class Compactor:
         except (OSError, AttributeError):
             pass
         while (path := self._queue.get()) is not None:
-            try:
-                result = compact(path, replace_lock=self.lock)
-            except Exception:  # noqa: BLE001 - compaction is an optimisation: never fatal
-                log.exception("compacting %s failed; the file is kept as it was", path)
-                continue
-            if result.done:
-                self.done.append(path)
-                log.info("compacted %s: %d chunks -> %d, %d -> %d bytes", path.name,
-                         result.chunks_before, result.chunks_after, result.bytes_before,
-                         result.bytes_after)  # fmt: skip
+            self._compact(path)
+            if self._queue.empty():  # files whose views expired since the last look
+                for old in self._expired_in_directory():
+                    if not self._queue.empty():  # a new file, or stop: that first
+                        break
+                    self._compact(old)
+
+    def _compact(self, path: Path) -> None:
+        drop = self.views_expired(path)
+        try:
+            result = compact(path, drop_views=drop, replace_lock=self.lock)
+        except Exception:  # noqa: BLE001 - compaction is an optimisation: never fatal
+            log.exception("compacting %s failed; the file is kept as it was", path)
+            self._settled.add(path)
+            return
+        if drop and result.reason != "being compacted by another process":
+            self._settled.add(path)  # thinned, or nothing more to do to it
+        if result.done:
+            self.done.append(path)
+            log.info("compacted %s%s: %d chunks -> %d, %d -> %d bytes", path.name,
+                     " without its views" if drop else "", result.chunks_before,
+                     result.chunks_after, result.bytes_before, result.bytes_after)  # fmt: skip

@@ -110,7 +110,8 @@ class Recorder:
         self.followed = ""  # what the status line says after following a replaced config
         #: when the newest scan arrived, ns since the Unix epoch (None before the first)
         self.last_scan_ns: int | None = None
-        self.compactor = Compactor() if settings.compact else None
+        self.compactor = Compactor(lambda: self.settings.keep_views_days) \
+            if settings.compact else None  # fmt: skip
         self.metrics: MetricsServer | None = None
         if settings.metrics_listen:
             self.metrics = MetricsServer(self, settings.metrics_listen)

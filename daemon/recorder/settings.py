@@ -55,7 +55,7 @@ class SettingsError(ValueError):
 class Setting:
     """How a setting is written and checked.
 
-    kind: url, path, seconds, size, count, switch, probability or listen. help: what it
+    kind: url, path, seconds, size, count, switch, probability, listen or days. help: what it
     means (the option's help and the docs' table). key: ``[table].key`` in the daemon's
     config (None: command line only). option: ``loopcal record``'s option (None: config
     only; for a switch, the option that turns it off). shown_default: the default as the
@@ -126,6 +126,12 @@ class RecorderSettings:
         True, kind="switch", key="[recording].compact", option="--no-compact",
         help="rewrite each closed file in chunks of a minute, for fast reading (off: the "
              "one-second chunks stay as written)")  # fmt: skip
+    keep_views_days: float = _setting(
+        7.0, kind="days", key="[recording].keep_views_days", option="--keep-views-days",
+        help="compaction leaves out the per-scan views (/joint/state, /plate/transform) of "
+             "files started this many days ago or more: every raw scan and event stays, about "
+             "6 bytes a scan against 120, and loopcal export makes the views again; 0: at "
+             "once, inf: never (needs [recording].compact)")  # fmt: skip
     controller_config: Path | None = _setting(
         None, kind="path", key="[controller].config", option="--controller-config",
         shown_default="none",
@@ -162,6 +168,10 @@ class RecorderSettings:
                 _seconds(value, name, bad, lo=spec.lo, hi=spec.hi)
             elif spec.kind == "switch" and not isinstance(value, bool):
                 raise bad(name, f"must be true or false, got {value!r}")
+            elif spec.kind == "days" and (isinstance(value, bool)
+                                          or not isinstance(value, (int, float))
+                                          or not value >= 0):  # fmt: skip
+                raise bad(name, f"must be a number of days >= 0 (inf: never), got {value!r}")
         if not isinstance(self.rotate_bytes, int) or self.rotate_bytes < 64 << 10:
             raise bad("rotate_bytes", f"must be at least 64 KiB, got {self.rotate_bytes!r}")
         if not isinstance(self.disk_budget_bytes, int) or self.disk_budget_bytes < 0:
@@ -322,6 +332,10 @@ def _convert(p: Path, name: str, v: Any) -> Any:
         if isinstance(v, bool) or not isinstance(v, int):
             raise bad(f"must be an integer, got {v!r}")
         return v
+    if kind == "days":
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise bad(f"must be a number of days (inf: never), got {v!r}")
+        return float(v)
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise bad(f"must be a number of seconds, got {v!r}")
     return float(v)
@@ -336,7 +350,7 @@ def _size_option(text: str) -> int:
 
 _OPTION_TYPES: dict[str, Callable[[str], Any]] = {
     "url": str, "listen": str, "path": path_argument, "seconds": float, "size": _size_option,
-    "count": int, "probability": float,
+    "count": int, "probability": float, "days": float,
 }  # fmt: skip
 
 
@@ -357,7 +371,8 @@ def add_options(p: argparse.ArgumentParser) -> None:
 
 
 def _metavar(kind: str) -> str:
-    return {"seconds": "S", "size": "SIZE", "count": "N", "path": "PATH"}.get(kind, "VALUE")
+    return {"seconds": "S", "size": "SIZE", "count": "N", "path": "PATH",
+            "days": "DAYS"}.get(kind, "VALUE")  # fmt: skip
 
 
 def settings_from_args(args: argparse.Namespace) -> RecorderSettings:

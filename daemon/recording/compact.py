@@ -56,7 +56,7 @@ from mcap.writer import CompressionType, Writer
 from numpy.lib.recfunctions import repack_fields
 
 from ..config import durable
-from .columns import decode_scan_messages, encode_columns
+from .columns import decode_columns, decode_scan_messages, encode_columns, is_columns
 from .errors import RecordingError
 from .reader import read_recordings
 from .records import MAGIC
@@ -68,6 +68,8 @@ from .schemas import (
     TOPIC_EVENTS,
     TOPIC_LOG,
     TOPIC_SCANS,
+    TOPIC_STATE,
+    TOPIC_TRANSFORM,
     schema_bytes,
 )
 
@@ -82,6 +84,10 @@ CHUNK_SPAN_NS = 60 * NS_PER_S
 CHUNK_BYTES = 4 << 20
 #: the topics whose messages a reader of the scans needs (the rest are views)
 _RAW_TOPICS = (TOPIC_SCANS, TOPIC_EVENTS, TOPIC_LOG)
+#: the per-scan views a compaction with ``drop_views`` leaves out (``loopcal export`` makes
+#: them again from the scans and the file's controller config); the scene, one message a
+#: file, stays
+DROPPED_VIEWS = (TOPIC_STATE, TOPIC_TRANSFORM)
 
 
 @dataclass(frozen=True)
@@ -164,10 +170,17 @@ def remove_stale_temporaries(directory: Path) -> None:
                 tmp.unlink(missing_ok=True)
 
 
-def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compacted:
+def compact(
+    path: Path, *, drop_views: bool = False, replace_lock: threading.Lock | None = None
+) -> Compacted:
     """Rewrite the closed recording ``path`` in chunks of a minute, verified, atomically (see the
     module docstring). Raises OSError if the disk refuses (the original is then as it was).
 
+    drop_views: leave out the per-scan views (:data:`DROPPED_VIEWS`), about nine tenths of a
+    compacted file: what is left is the raw scans, the events, the scene and the metadata,
+    the ``loopcal`` record saying ``views = "dropped"`` and how many scans the file holds
+    (``scans``, which a reader counts lost scans against, as it counts them against the
+    views otherwise). A compact file that still has its views is rewritten without them.
     replace_lock: held while the original is checked to be the file that was read (not
     deleted or replaced meanwhile: the recorder's retention holds the same lock) and
     replaced."""
@@ -179,15 +192,17 @@ def compact(path: Path, *, replace_lock: threading.Lock | None = None) -> Compac
     if not stat.S_ISREG(mode):  # a FIFO would block the reader, a device never end
         return Compacted(path, False, f"{path}: not a regular file: a recording is a file",
                          failed=True, not_recording=True)  # fmt: skip
-    if _says_compacted(path):
+    if _says_compacted(path, drop_views):
         return Compacted(path, False, "already compact")
     with _compacting(path) as ours:
         if not ours:
             return Compacted(path, False, "being compacted by another process")
-        return _compact_locked(path, replace_lock)
+        return _compact_locked(path, drop_views, replace_lock)
 
 
-def _compact_locked(path: Path, replace_lock: threading.Lock | None) -> Compacted:
+def _compact_locked(
+    path: Path, drop_views: bool, replace_lock: threading.Lock | None
+) -> Compacted:
     try:
         original = read_recordings(path)
     except RecordingError as exc:
@@ -199,7 +214,7 @@ def _compact_locked(path: Path, replace_lock: threading.Lock | None) -> Compacte
         return Compacted(path, False, "damaged: left as it is", failed=True)
     if not info.complete:
         return Compacted(path, False, "not closed: left as it is")
-    if _compact_enough(info.metadata.get("loopcal", {})):
+    if _compact_enough(info.metadata.get("loopcal", {}), drop_views):
         return Compacted(path, False, "already compact")
     before = path.stat()
     size = before.st_size
@@ -207,13 +222,14 @@ def _compact_locked(path: Path, replace_lock: threading.Lock | None) -> Compacte
     tmp.unlink(missing_ok=True)
     try:
         try:
-            chunks_before, counts = _rewrite(path, tmp)
+            chunks_before, counts = _rewrite(path, tmp, len(original.scans) if drop_views
+                                             else None)  # fmt: skip
         except _Damaged as exc:
             tmp.unlink(missing_ok=True)
             log.error("not compacting %s: damaged: %s; left as it is", path, exc)
             return Compacted(path, False, f"damaged: {exc}: left as it is", failed=True)
         durable.step("compact-written")
-        chunks_after, problem = _verify(tmp, original, counts)
+        chunks_after, problem = _verify(tmp, original, counts, drop_views)
         if problem:
             tmp.unlink(missing_ok=True)
             log.error("compacting %s: %s; the original is kept", path, problem)
@@ -236,12 +252,13 @@ def _compact_locked(path: Path, replace_lock: threading.Lock | None) -> Compacte
     return Compacted(path, True, "", chunks_before, chunks_after, size, path.stat().st_size)
 
 
-def _says_compacted(path: Path) -> bool:
+def _says_compacted(path: Path, drop_views: bool = False) -> bool:
     """Whether a closed file's ``loopcal`` metadata record says it was compacted (with this
-    loopcal's format), read through the summary's metadata index: the footer, the summary
-    and one small record, no chunk. False whenever that cannot be told so cheaply (no
-    summary, anything unreadable): the file is then read whole and judged as before. A file
-    this finds compact is left alone without that read, damaged or not."""
+    loopcal's format, and without its views if ``drop_views``), read through the summary's
+    metadata index: the footer, the summary and one small record, no chunk. False whenever
+    that cannot be told so cheaply (no summary, anything unreadable): the file is then read
+    whole and judged as before. A file this finds compact is left alone without that read,
+    damaged or not."""
     try:
         with open(path, "rb") as f:
             reader = make_reader(f)
@@ -254,15 +271,18 @@ def _says_compacted(path: Path) -> bool:
                     record = dict(m.metadata)  # the last one, as read_recordings keeps it
     except Exception:  # noqa: BLE001 - any damage: the careful read below decides
         return False
-    return _compact_enough(record)
+    return _compact_enough(record, drop_views)
 
 
-def _compact_enough(record: dict[str, str]) -> bool:
+def _compact_enough(record: dict[str, str], drop_views: bool = False) -> bool:
     """Whether a ``loopcal`` metadata record says its file was compacted into chunks of at
     most :data:`CHUNK_SPAN_NS` (an older loopcal's compaction, into chunks of 4 MiB that
-    held an hour, did not write ``chunk_span_s``: such a file is compacted again)."""
+    held an hour, did not write ``chunk_span_s``: such a file is compacted again), and
+    without its views if ``drop_views``."""
     if "compacted_utc" not in record or record.get("format") != COMPACT_FORMAT:
         return False  # not compacted, or compacted before the scans were packed in columns
+    if drop_views and record.get("views") != "dropped":
+        return False
     try:
         return int(record.get("chunk_span_s", "")) * NS_PER_S <= CHUNK_SPAN_NS
     except ValueError:
@@ -274,11 +294,13 @@ class _Damaged(Exception):
     library could not read, fewer messages than its statistics record)."""
 
 
-def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
+def _rewrite(path: Path, tmp: Path, scans_if_dropping: int | None) -> tuple[int, dict[int, int]]:
     """Write the compacted copy; returns the original's chunk count and its message count
     per channel id as its own statistics record them. Raises :class:`_Damaged` when the
     original's messages do not all read back (checked against those statistics, every
-    chunk's CRC validated: the library skips what it cannot read without a word)."""
+    chunk's CRC validated: the library skips what it cannot read without a word).
+
+    scans_if_dropping: the original's scan count, to leave the views out (None: keep them)."""
     with open(path, "rb") as src:
         reader = make_reader(src, validate_crcs=True)
         header = reader.get_header()
@@ -312,9 +334,15 @@ def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
                 if name == "loopcal":
                     record = {**record, "format": COMPACT_FORMAT, "compacted_utc": stamp,
                               "chunk_span_s": span_s}  # fmt: skip
+                    if scans_if_dropping is not None:
+                        record.update(views="dropped", views_dropped_utc=stamp,
+                                      scans=str(scans_if_dropping))  # fmt: skip
                 w.add_metadata(name, record)
             raw = {cid for cid, c in summary.channels.items() if c.topic in _RAW_TOPICS}
             scans = {cid for cid, c in summary.channels.items() if c.topic == TOPIC_SCANS}
+            dropped = set()
+            if scans_if_dropping is not None:
+                dropped = {cid for cid, c in summary.channels.items() if c.topic in DROPPED_VIEWS}
             pair = _ChunkPair(w, scans)
             counts: dict[int, int] = {}
             try:
@@ -324,9 +352,12 @@ def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
                 for _, channel, message in reader.iter_messages(log_time_order=False):
                     cid = channel.id
                     counts[cid] = counts.get(cid, 0) + 1
+                    if cid in dropped:
+                        continue
                     t = message.log_time
                     m = (cid, t, message.data, message.publish_time, message.sequence)
-                    pair.add(cid in raw, m, cid in scans)
+                    pair.add(cid in raw, m, _scan_span(message.data, t) if cid in scans
+                             else (t, t))  # fmt: skip
             except OSError:
                 raise
             except Exception as exc:  # noqa: BLE001 - any record that does not check out
@@ -345,27 +376,25 @@ def _rewrite(path: Path, tmp: Path) -> tuple[int, dict[int, int]]:
 
 class _ChunkPair:
     """The messages of the chunks being gathered, raw (scans, events) and views, each group
-    within :data:`CHUNK_SPAN_NS` as the copy's chunk index will tell it (from its first log
-    time to its last, plus a block's span if it holds scans: see :func:`_chunk_span`);
-    written as a raw chunk then a views chunk whenever a message would stretch either group
-    beyond it."""
+    within :data:`CHUNK_SPAN_NS` of scan time (from the earliest time a message holds to the
+    latest: see :func:`_scan_span`); written as a raw chunk then a views chunk whenever a
+    message would stretch either group beyond it."""
 
     def __init__(self, writer: Writer, scans: set[int]) -> None:
         self.writer = writer
         self.scans = scans
         self.parts: dict[bool, list[tuple[int, int, bytes, int, int]]] = {True: [], False: []}
-        self.spans: dict[bool, tuple[int, int, bool] | None] = {True: None, False: None}
+        self.spans: dict[bool, tuple[int, int] | None] = {True: None, False: None}
 
-    def add(self, raw: bool, message: tuple[int, int, bytes, int, int], scans: bool) -> None:
+    def add(self, raw: bool, message: tuple[int, int, bytes, int, int],
+            span: tuple[int, int]) -> None:  # fmt: skip
         """Add a message (channel id, log time, data, publish time, sequence), a raw one
-        when ``raw``, a block of scans when ``scans``."""
-        t = message[1]
-        span = self.spans[raw]
-        grown = (t, t, scans) if span is None else (min(span[0], t), max(span[1], t),
-                                                    span[2] or scans)  # fmt: skip
-        if span is not None and _chunk_span(*grown) > CHUNK_SPAN_NS:
+        when ``raw``, holding scan time ``span`` (first, last) ns."""
+        have = self.spans[raw]
+        grown = span if have is None else (min(have[0], span[0]), max(have[1], span[1]))
+        if have is not None and grown[1] - grown[0] > CHUNK_SPAN_NS:
             self.write()
-            grown = (t, t, scans)
+            grown = span
         self.spans[raw] = grown
         self.parts[raw].append(message)
 
@@ -396,8 +425,9 @@ class _ChunkPair:
         return [packed, *(m for m in parts if m[0] not in self.scans)]
 
 
-def _verify(tmp: Path, original, counts: dict[int, int]) -> tuple[int, str]:
-    """(chunks of the copy, "" or what differs from the original)."""
+def _verify(tmp: Path, original, counts: dict[int, int], drop_views: bool) -> tuple[int, str]:
+    """(chunks of the copy, "" or what differs from the original; with ``drop_views``, the
+    copy must hold none of the views it leaves out and say how many scans it holds)."""
     copy = read_recordings(tmp)
     f = copy.files[0]
     if not f.complete or not f.intact:
@@ -411,8 +441,12 @@ def _verify(tmp: Path, original, counts: dict[int, int]) -> tuple[int, str]:
         summary = make_reader(fh).get_summary()
     got = dict(summary.statistics.channel_message_counts) if summary.statistics else {}
     scans = {cid for cid, c in summary.channels.items() if c.topic == TOPIC_SCANS}
+    dropped = {cid for cid, c in summary.channels.items()
+               if drop_views and c.topic in DROPPED_VIEWS}  # fmt: skip
+    if drop_views and f.metadata.get("loopcal", {}).get("scans") != str(len(b)):
+        return 0, "the copy's loopcal record does not count its scans"
     # against the original's statistics (its scan blocks are packed: compared scan by scan)
-    want = {k: v for k, v in counts.items() if k not in scans}
+    want = {k: v for k, v in counts.items() if k not in scans | dropped}
     if {k: v for k, v in got.items() if v and k not in scans} != want:
         return 0, f"message counts differ: {got} against the original's {counts}"
     for ci in summary.chunk_indexes:
@@ -421,6 +455,20 @@ def _verify(tmp: Path, original, counts: dict[int, int]) -> tuple[int, str]:
         if span > CHUNK_SPAN_NS:
             return 0, f"a chunk spans {span / NS_PER_S:.1f} s, over {CHUNK_SPAN_NS / NS_PER_S} s"
     return len(summary.chunk_indexes), ""
+
+
+def _scan_span(data: bytes, log_time: int) -> tuple[int, int]:
+    """The scan time a ``/daq/scans`` message holds, ns: a block as written lies within
+    BLOCK_SPAN_NS of its log time; a block of columns (a file compacted before) is decoded
+    for its first and last stamps (it may start up to a minute before its log time)."""
+    if is_columns(data):
+        try:
+            stamps = decode_columns(data)["stamp_ns"]
+        except Exception as exc:  # noqa: BLE001 - any damage: the file is left as it is
+            raise _Damaged(f"a block of columns that does not decode: {exc}") from None
+        if len(stamps):
+            return min(int(stamps[0]), log_time), max(int(stamps[-1]), log_time)
+    return log_time, log_time + BLOCK_SPAN_NS
 
 
 def _chunk_span(first_ns: int, last_ns: int, scans: bool) -> int:
