@@ -33,6 +33,8 @@ COMMANDS: tuple[tuple[str, str], ...] = (
     ("check", "did the loops close at a controller config: which sensor moved, when, by how much"),
     ("fleet", "info or check over a fleet's archives, per robot and day, on Dask (loopcal[fleet])"),
     ("compact", "rewrite closed recordings in chunks of a minute, for fast reading (verified)"),
+    ("export",
+     "a recording for Foxglove with every view, made again from the raw scans (views dropped)"),
     ("replay", "serve a recording through the emulated DAQ, scan for scan"),
     ("simulate", "serve an emulated LDQ-412 driven by a simulated shoulder joint"),
     ("observability", "which of the chosen free parameters the workspace can identify"),

@@ -136,6 +136,29 @@ class ControllerConfig:
         return out
 
 
+def params_from_metadata(record: dict[str, str] | None) -> tuple[np.ndarray | None, str]:
+    """The 20-vector a recording's ``controller_config`` metadata record gives (what
+    :meth:`ControllerConfig.as_metadata` wrote: each parameter as ``repr(float)``, read back
+    bit for bit), or None and why not (no record, a parameter missing or not a number, a
+    geometry no mechanism has)."""
+    if not record:
+        return None, "the file has no controller_config metadata record"
+    missing = [n for n in NAMES if n not in record]
+    if missing:
+        return None, f"its controller_config record lacks {', '.join(missing)}"
+    values = []
+    for name in NAMES:
+        try:
+            values.append(float(record[name]))
+        except ValueError:
+            return None, f"its controller_config record has {name} = {record[name]!r}"
+    try:
+        params = check_geometry(np.array(values))
+    except ParameterError as exc:
+        return None, f"its controller_config record describes no mechanism: {exc}"
+    return params, ""
+
+
 def nominal_config() -> ControllerConfig:
     """The reference geometry (``loopcal.calibration.parameters.NOMINAL``), for when no controller
     config is given; path None, free None (so the model is paper7), no ties."""
