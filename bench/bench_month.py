@@ -1,12 +1,14 @@
 """A month of recordings through ``loopcal info`` and ``loopcal check``: time and peak memory.
 
-    python -m bench.bench_month [--days 30] [--dir bench/results/month]
+    python -m bench.bench_month [--days 30] [--keep-views-days 7] [--dir bench/results/month]
 
 Writes (once, cached) ``--days`` days of 20 Hz recording in hourly files, as the daemon
-keeps them after compaction (large chunks): a technician's hand-moved session
-(:mod:`loopcal.simulator.offline`, 40 mV), one simulated day repeated with the counters and stamps
-running on, so every day's scans are distinct. Then runs the real commands in
-subprocesses and reports wall time and peak RSS (the processes' ``ru_maxrss``):
+keeps them: each compacted (chunks of a minute), the newest ``--keep-views-days`` days with
+their per-scan views and the older ones without (``[recording].keep_views_days``): a
+technician's hand-moved session (:mod:`loopcal.simulator.offline`, 40 mV), one simulated
+day repeated with the counters and stamps running on, so every day's scans are distinct.
+Then runs the real commands in subprocesses and reports wall time and peak RSS (the
+processes' ``ru_maxrss``):
 
 * ``loopcal info DIR --json`` (every file read, still poses searched);
 * ``loopcal check DIR --controller-config C --json`` (loop closure over every pose).
@@ -29,6 +31,7 @@ import numpy as np
 
 from loopcal.daemon import recording as rec
 from loopcal.daemon.config.controller import write_initial_config
+from loopcal.daemon.recording.compact import compact
 from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.scenarios import HandMoves
 from tests.support.recordings import write_rows
@@ -40,9 +43,10 @@ HOUR = 3600 * RATE
 DAY = 24 * HOUR
 
 
-def make_month(directory: Path, days: int, seed: int = 7) -> tuple[Path, Path]:
+def make_month(directory: Path, days: int, keep_views_days: int,
+               seed: int = 7) -> tuple[Path, Path]:  # fmt: skip
     config = directory / "controller.toml"
-    marker = directory / f".made-{days}"
+    marker = directory / f".made-{days}-views-{keep_views_days}"
     rec_dir = directory / "recordings"
     if marker.exists():
         return rec_dir, config
@@ -66,8 +70,10 @@ def make_month(directory: Path, days: int, seed: int = 7) -> tuple[Path, Path]:
             path = rec_dir / rec.recording_name(int(part["stamp_ns"][0]))
             if path.exists():
                 continue
-            # ten minutes a write: large chunks
+            # ten minutes a write (quick to write), then compacted as the daemon does
             write_rows(path, part, per=600 * RATE, metadata=meta, fsync=False)
+            if not compact(path, drop_views=d < days - keep_views_days).done:
+                raise SystemExit(f"could not compact {path}")
         print(f"  day {d + 1}/{days} written, {time.perf_counter() - t:.0f} s so far", flush=True)
     write_initial_config(config, force=True, params=truth)
     marker.touch()
@@ -77,9 +83,10 @@ def make_month(directory: Path, days: int, seed: int = 7) -> tuple[Path, Path]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--days", type=int, default=30)
+    ap.add_argument("--keep-views-days", type=int, default=7)
     ap.add_argument("--dir", type=Path, default=Path(__file__).parent / "results" / "month")
     args = ap.parse_args()
-    rec_dir, config = make_month(args.dir, args.days)
+    rec_dir, config = make_month(args.dir, args.days, args.keep_views_days)
     files = rec.find_recordings(rec_dir)
     size = sum(f.stat().st_size for f in files)
     print(f"{len(files)} files, {size / 1e9:.2f} GB, {args.days * DAY / 1e6:.1f} M scans")

@@ -6,8 +6,11 @@ into 24 files, realistic codes. Then, each the median of ``--repeats`` runs:
 
 * ``read day``: :func:`loopcal.daemon.recording.read_recordings` of the 24 files as the daemon
   keeps them: each compacted after its rotation (:mod:`loopcal.daemon.recording.compact`; target
-  < 1 s); ``read day as written``: the same files before compaction (one chunk a second,
-  what an unclosed file and recordings of older versions hold);
+  < 0.5 s); ``read day without views``: the same day as the daemon keeps it once its files
+  are older than ``[recording].keep_views_days`` (compacted with ``drop_views``: target
+  <= 12 B/scan on disk in all, raw scans <= 6); ``read day as written``: the same files
+  before compaction (one chunk a second, what an unclosed file and recordings of older
+  versions hold);
 * ``read hour window``: one hour out of the day, by time window over all 24 files;
 * ``read crashed hour``: one file cut short (no summary), read record by record;
 * baseline, measured in the same run: the mcap library's message iterator
@@ -21,6 +24,7 @@ Run: ``python -m bench.bench_recording [--repeats 5] [--dir bench/results/day]``
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -32,6 +36,7 @@ from mcap.reader import make_reader
 from bench._timing import median_time
 from loopcal.daemon import recording as rec
 from loopcal.daemon.recording.cdr import encode_scan_block
+from loopcal.daemon.recording.compact import compact
 from tests.support.recordings import compacted_copy, write_rows
 from tests.support.sessions import hand_rows
 
@@ -112,7 +117,20 @@ def main() -> int:
     print(f"compacted as the daemon does after each rotation: {t_compact:.1f} s a file, "
           f"{size_c / 1e6:.0f} MB")  # fmt: skip
 
+    thin_dir = args.dir.parent / "day-thin"  # the compacted day, older than keep_views_days
+    shutil.rmtree(thin_dir, ignore_errors=True)
+    shutil.copytree(kept, thin_dir)
+    thin = rec.find_recordings(thin_dir)
+    t = time.perf_counter()
+    for f in thin:
+        if not compact(f, drop_views=True).done:
+            raise SystemExit(f"could not leave out the views of {f}")
+    t_thin_each = (time.perf_counter() - t) / len(thin)
+    size_t = sum(p.stat().st_size for p in thin)
+
     t_day, out = median_time(lambda: rec.read_recordings(compacted), args.repeats)
+    t_thin, out_t = median_time(lambda: rec.read_recordings(thin), args.repeats)
+    assert out_t.scans.tobytes() == out.scans.tobytes()
     assert len(out) == n_scans and np.all(np.diff(out.scans["counter64"].astype(np.int64)) == 1)
     h0 = int(out.scans["stamp_ns"][HOUR * (args.hours // 2)])
     t_win, win = median_time(
@@ -134,9 +152,23 @@ def main() -> int:
           f"layout, {baseline / n_scans:.2f} B/scan: {baseline / kinds['raw']:.1f}x); views "
           f"{kinds['views'] / n_scans:.1f} B/scan; the rest {kinds['rest'] / n_scans:.2f} "
           "B/scan")  # fmt: skip
+    kinds_t = bytes_by_kind(thin)
+    per_scan_t = size_t / n_scans
+    print(f"on disk, compacted without views ({t_thin_each:.1f} s a file): {per_scan_t:.2f} "
+          f"B/scan in all (target <= 12: {'met' if per_scan_t <= 12 else 'NOT met'}); raw "
+          f"scans (and events) {kinds_t['raw'] / n_scans:.2f} B/scan (target <= 6: "
+          f"{'met' if kinds_t['raw'] / n_scans <= 6 else 'NOT met'}); the scene and the rest "
+          f"{(kinds_t['views'] + kinds_t['rest']) / n_scans:.2f} B/scan")  # fmt: skip
+    day_mb, thin_mb = size_c / 1e6 * 24 / args.hours, size_t / 1e6 * 24 / args.hours
+    year = 7 * day_mb + 358 * thin_mb
+    print(f"a year on the robot at keep_views_days = 7: 7 days of {day_mb:.0f} MB and 358 of "
+          f"{thin_mb:.1f} MB: {year / 1e3:.1f} GB (all with views: "
+          f"{365 * day_mb / 1e3:.0f} GB)")  # fmt: skip
     print()
     print(f"read day           {t_day:6.2f} s   {n_scans / t_day:10,.0f} scans/s  "
-          f"(target 1.7 M scans in < 1 s: {'met' if t_day < 1 else 'NOT met'})")  # fmt: skip
+          f"(target 1.7 M scans in < 0.5 s: {'met' if t_day < 0.5 else 'NOT met'})")  # fmt: skip
+    print(f"read day w/o views {t_thin:6.2f} s   {n_scans / t_thin:10,.0f} scans/s  "
+          f"(target < 0.5 s: {'met' if t_thin < 0.5 else 'NOT met'})")  # fmt: skip
     print(f"read day as written {t_written:5.2f} s   {n_scans / t_written:10,.0f} scans/s  "
           f"(uncompacted; compaction makes it {t_written / t_day:.1f}x faster)")  # fmt: skip
     print(f"read hour window   {t_win:6.2f} s   {len(win) / t_win:10,.0f} scans/s")
