@@ -34,10 +34,9 @@ from ..recording import RecordingError
 from ..recording.compact import (
     Compacted,
     compact,
-    refuse_non_recording,
+    recordings_named,
     remove_stale_temporaries,
 )
-from ..recording.names import find_recordings, recording_paths
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -56,13 +55,7 @@ def _error(message: object) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        files = recording_paths(args.recordings)
-        for p in args.recordings:
-            if p.is_dir():
-                if not find_recordings(p):
-                    raise RecordingError(f"{p}: no recordings (loopcal-*.mcap) in this directory")
-            else:
-                refuse_non_recording(p)
+        files = recordings_named(args.recordings)
         for p in args.recordings:
             if p.is_dir():
                 remove_stale_temporaries(p)  # left by compactions that were killed

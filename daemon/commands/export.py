@@ -67,8 +67,7 @@ from ..recording import (
     RecordingWriter,
     read_recordings,
 )
-from ..recording.compact import refuse_non_recording
-from ..recording.names import find_recordings, recording_paths
+from ..recording.compact import recordings_named
 from ..version import loopcal_version
 
 #: scan time fed to the writer at a time (one write: one chunk of scans, one of views)
@@ -241,13 +240,7 @@ def export_file(path: Path, target: Path, config: ControllerConfig | None) -> Ex
 
 def run(args: argparse.Namespace) -> int:
     try:
-        files = recording_paths(args.recordings)
-        for p in args.recordings:
-            if p.is_dir():
-                if not find_recordings(p):
-                    raise RecordingError(f"{p}: no recordings (loopcal-*.mcap) in this directory")
-            else:
-                refuse_non_recording(p)
+        files = recordings_named(args.recordings)
         out: Path = args.out
         if os.path.lexists(out) and not out.is_dir():
             raise RecordingError(f"--out {out}: exists and is not a directory")

@@ -58,6 +58,7 @@ from numpy.lib.recfunctions import repack_fields
 from ..config import durable
 from .columns import decode_columns, decode_scan_messages, encode_columns, is_columns
 from .errors import RecordingError
+from .names import find_recordings, recording_paths
 from .reader import read_recordings
 from .records import MAGIC
 from .schemas import (
@@ -132,6 +133,20 @@ def refuse_non_recording(path: Path) -> None:
         os.close(fd)
     if not MAGIC.startswith(head) and not head.startswith(MAGIC):
         read_recordings(path)  # raises unless it is a recording whose start was damaged
+
+
+def recordings_named(paths: list[Path]) -> list[Path]:
+    """The recording files ``paths`` name (files, and directories of them), each plainly
+    bad one refused first (:class:`RecordingError`, naming it: see
+    :func:`refuse_non_recording`; a directory without recordings), before any is touched."""
+    files = recording_paths(paths)
+    for p in paths:
+        if p.is_dir():
+            if not find_recordings(p):
+                raise RecordingError(f"{p}: no recordings (loopcal-*.mcap) in this directory")
+        else:
+            refuse_non_recording(p)
+    return files
 
 
 def _tmp_of(path: Path) -> Path:
@@ -483,6 +498,7 @@ __all__ = [
     "CHUNK_SPAN_NS",
     "Compacted",
     "compact",
+    "recordings_named",
     "refuse_non_recording",
     "remove_stale_temporaries",
 ]

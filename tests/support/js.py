@@ -3,6 +3,7 @@ TypeScript MCAP reader; headless Chromium through playwright-core): tests/suppor
 
 from __future__ import annotations
 
+import fcntl
 import json
 import shutil
 import subprocess
@@ -22,14 +23,17 @@ def npm_installed() -> str:
             "node and npm are required: recordings are checked with Foxglove's TypeScript MCAP "
             "reader and pages in Chromium (install Node.js 20 or newer with npm; .ci/run does)"
         )
-    if not (JS / "node_modules" / "playwright-core").is_dir():
-        try:
-            subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=JS, check=True,
-                           timeout=300, capture_output=True, text=True)  # fmt: skip
-        except subprocess.CalledProcessError as exc:
-            pytest.fail(f"npm ci in {JS} failed:\n{exc.stdout}\n{exc.stderr}")
-        except subprocess.TimeoutExpired:
-            pytest.fail(f"npm ci in {JS} took more than 300 s")
+    # one install at a time: the suite's workers (pytest-xdist) share this folder
+    with open(JS / ".npm-ci.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (JS / "node_modules" / "playwright-core").is_dir():
+            try:
+                subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=JS, check=True,
+                               timeout=300, capture_output=True, text=True)  # fmt: skip
+            except subprocess.CalledProcessError as exc:
+                pytest.fail(f"npm ci in {JS} failed:\n{exc.stdout}\n{exc.stderr}")
+            except subprocess.TimeoutExpired:
+                pytest.fail(f"npm ci in {JS} took more than 300 s")
     return node
 
 

@@ -1,15 +1,18 @@
 """Real recordings, written by the daemon's own writer: a file of scan rows
 (:func:`write_rows`, :func:`write_recording`), a directory of them as a recorder leaves it
-(:func:`write_directory`), and a copy compacted as the daemon keeps closed files
-(:func:`compacted_copy`)."""
+(:func:`write_directory`), a copy compacted as the daemon keeps closed files
+(:func:`compacted_copy`), and a file in an older loopcal's layout (:func:`in_large_chunks`)."""
 
 from __future__ import annotations
 
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
 
 from loopcal.calibration.parameters import NOMINAL
 from loopcal.daemon import recording as rec
@@ -114,3 +117,26 @@ def compacted_copy(
         if not compact(f).done:
             raise SystemExit(f"could not compact {f}")
     return kept, time.perf_counter() - t
+
+
+def in_large_chunks(src: Path, dst: Path, edit: Callable[[dict[str, str]], None]) -> None:
+    """``src`` rewritten as the first loopcal that compacted did: the same schemas, channels
+    and messages in file order, in chunks of 4 MiB, its ``loopcal`` metadata record changed
+    by ``edit`` (in place)."""
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        reader = make_reader(f)
+        header, summary = reader.get_header(), reader.get_summary()
+        w = Writer(out, chunk_size=4 << 20, compression=CompressionType.ZSTD)
+        w.start(profile=header.profile, library=header.library)
+        sids = {sid: w.register_schema(s.name, s.encoding, s.data)
+                for sid, s in sorted(summary.schemas.items())}  # fmt: skip
+        for _, c in sorted(summary.channels.items()):
+            w.register_channel(c.topic, c.message_encoding, sids[c.schema_id], dict(c.metadata))
+        for m in reader.iter_metadata():
+            record = dict(m.metadata)
+            if m.name == "loopcal":
+                edit(record)
+            w.add_metadata(m.name, record)
+        for _, c, m in reader.iter_messages(log_time_order=False):
+            w.add_message(c.id, m.log_time, m.data, m.publish_time, m.sequence)
+        w.finish()

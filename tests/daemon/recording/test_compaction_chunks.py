@@ -12,7 +12,6 @@ from mcap.data_stream import ReadDataStream
 from mcap.reader import make_reader
 from mcap.records import Chunk, Message
 from mcap.stream_reader import breakup_chunk
-from mcap.writer import CompressionType, Writer
 
 from loopcal.calibration.parameters import NOMINAL
 from loopcal.daemon import recording as rec
@@ -20,7 +19,7 @@ from loopcal.daemon.events import Event, Level
 from loopcal.daemon.recording.columns import decode_columns, is_columns
 from loopcal.daemon.recording.compact import CHUNK_SPAN_NS, compact
 from tests.support.mutations import chunk_spans, flip_bits
-from tests.support.recordings import write_recording
+from tests.support.recordings import in_large_chunks, write_recording
 from tests.support.rows import T0, make_rows
 
 pytestmark = pytest.mark.timeout(120)
@@ -129,22 +128,7 @@ def test_a_file_compacted_into_chunks_of_4_mib_is_compacted_again(tmp_path):
     them again (their loopcal record has no chunk_span_s)."""
     path, original = _compacted(tmp_path, minutes=3)
     old = tmp_path / "old.mcap"
-    with open(path, "rb") as f, open(old, "wb") as out:
-        reader = make_reader(f)
-        header, summary = reader.get_header(), reader.get_summary()
-        w = Writer(out, chunk_size=4 << 20, compression=CompressionType.ZSTD)
-        w.start(profile=header.profile, library=header.library)
-        sids = {sid: w.register_schema(s.name, s.encoding, s.data)
-                for sid, s in sorted(summary.schemas.items())}  # fmt: skip
-        for _, c in sorted(summary.channels.items()):
-            w.register_channel(c.topic, c.message_encoding, sids[c.schema_id], dict(c.metadata))
-        for m in reader.iter_metadata():
-            record = dict(m.metadata)
-            record.pop("chunk_span_s", None)
-            w.add_metadata(m.name, record)
-        for _, c, m in reader.iter_messages(log_time_order=False):
-            w.add_message(c.id, m.log_time, m.data, m.publish_time, m.sequence)
-        w.finish()
+    in_large_chunks(path, old, lambda record: record.pop("chunk_span_s", None))
     old.replace(path)
     assert len([t for _, _, t, _ in _chunks(path) if rec.TOPIC_SCANS in t]) == 1
     r = compact(path)

@@ -22,7 +22,7 @@ from tests.support.emulator import hand_emulator
 from tests.support.js import read_ts
 from tests.support.mutations import chunk_spans, flip_bits, identities, swap_chunks, zero_run
 from tests.support.processes import loopcal, record
-from tests.support.recordings import write_recording
+from tests.support.recordings import in_large_chunks, write_recording
 from tests.support.rows import T0
 from tests.support.sessions import hand_rows
 
@@ -221,32 +221,6 @@ def test_a_bad_age_is_refused_naming_the_option(tmp_path, value):
     assert proc.returncode == 2 and "--keep-views-days" in proc.stderr, proc.stderr
 
 
-def _as_an_older_loopcal_compacted(src, dst) -> None:
-    """``src`` (as written) rewritten as loopcal's first compaction did: the same messages,
-    the scans as rows (format 1), in chunks of 4 MiB, its loopcal record with
-    ``compacted_utc`` and no ``chunk_span_s``."""
-    from mcap.writer import CompressionType, Writer
-
-    with open(src, "rb") as f, open(dst, "wb") as out:
-        reader = make_reader(f)
-        header, summary = reader.get_header(), reader.get_summary()
-        w = Writer(out, chunk_size=4 << 20, compression=CompressionType.ZSTD)
-        w.start(profile=header.profile, library=header.library)
-        sids = {sid: w.register_schema(s.name, s.encoding, s.data)
-                for sid, s in sorted(summary.schemas.items())}  # fmt: skip
-        for _, c in sorted(summary.channels.items()):
-            w.register_channel(c.topic, c.message_encoding, sids[c.schema_id], dict(c.metadata))
-        for m in reader.iter_metadata():
-            record = dict(m.metadata)
-            if m.name == "loopcal":
-                assert record["format"] == rec.FORMAT_VERSION
-                record["compacted_utc"] = "2026-11-20T00:00:00+00:00"
-            w.add_metadata(m.name, record)
-        for _, c, m in reader.iter_messages(log_time_order=True):
-            w.add_message(c.id, m.log_time, m.data, m.publish_time, m.sequence)
-        w.finish()
-
-
 def test_every_older_layout_reads_and_thins(thinned, tmp_path):
     """Files as written (format 1), compacted by the first loopcal that compacted (format 1,
     rows in chunks of 4 MiB), compacted with views (format 2) and without: the same scans
@@ -254,7 +228,8 @@ def test_every_older_layout_reads_and_thins(thinned, tmp_path):
     rows, written, thin = thinned
     old = tmp_path / "old" / written.name
     old.parent.mkdir()
-    _as_an_older_loopcal_compacted(written, old)
+    assert rec.read_recordings(written).files[0].metadata["loopcal"]["format"] == "1"
+    in_large_chunks(written, old, lambda r: r.update(compacted_utc="2026-11-20T00:00:00+00:00"))
     with_views = tmp_path / "views" / written.name
     with_views.parent.mkdir()
     shutil.copy(written, with_views)
