@@ -50,6 +50,10 @@ KINDS: dict[str, str] = {
     "moved (details: sensor 1..4, shift_mm, std_mm, statistic, threshold, margin, poses, "
     "false_alarm)",
     "offset_drift_cleared": "that sensor's loops close again (details: sensor, poses)",
+    "loops_open": "the loops have not closed at the controller config since the recording "
+    "began: the config does not describe the robot, calibrate; no offset_drift follows "
+    "(details: poses, since_ns, detected_ns, statistic, threshold, largest_sensor, "
+    "largest_shift_mm, false_alarm)",
     "guidance": "the live guidance's verdict while recording (details: enough, reason)",
 }
 

@@ -6,10 +6,15 @@ false-alarm rate) run offline over archived recordings, file by file in time ord
 stays that of one file). For every change it finds: the sensor, when the change began (the
 first still pose it shifted; UTC and seconds into the recordings), when it was detected,
 the shift in mm with its standard deviation, whether it was a step or is still creeping,
-and when the loops closed again, if they did. ``--plot`` draws each sensor's estimated
+and when the loops closed again, if they did. Loops that do not close from the first poses
+on are not a change: the config does not describe the robot (a sensor replaced before the
+recordings, a config never calibrated), and that is said instead, once ("loops_open" in
+``--json``). Still poses are counted as ``loopcal info`` counts them, the one the
+recordings end in included. ``--plot`` draws each sensor's estimated
 offset shift over time and the test statistic against the alarm threshold.
 
-Exit status: 0 the loops close (no change found), 1 a change was found, 2 bad input.
+Exit status: 0 the loops close (no change found), 1 a change was found or the loops never
+closed, 2 bad input.
 """
 
 from __future__ import annotations
@@ -77,11 +82,19 @@ def run(args: argparse.Namespace) -> int:
               f"against {doc['config']['path']}")  # fmt: skip
         if doc["loops_close"]:
             print("The loops close: no sensor's offset moved.")
+        if (o := doc["loops_open"]) is not None:
+            print(f"The loops do not close at this config since the recordings began (all "
+                  f"{o['poses']} poses from {o['since_utc']} on disagree with it; nothing "
+                  f"moved during the recordings): the config does not describe this robot, "
+                  f"calibrate (loopcal calibrate). Largest apparent difference: sensor "
+                  f"{o['largest_sensor']}'s offset, {o['largest_shift_mm']:+.3f} mm, though "
+                  "a config never calibrated is off in every parameter.")  # fmt: skip
         for c in doc["changes"]:
-            still = " and is still moving" if c["shape"] == "creep" else ""
-            end = f"; the loops closed again at {c['end_utc']}" if c["end_utc"] else ""
+            shape = "a creep, still moving" if c["shape"] == "creep" else "a step"
+            end = (f"; the loops closed again at {c['end_utc']}" if c["end_utc"] else
+                   "; the loops have not closed again")  # fmt: skip
             print(f"sensor {c['sensor']}: offset moved by {c['shift_mm']:+.3f} mm "
-                  f"(+- {c['std_mm']:.3f}){still}, from {c['start_utc']} "
+                  f"(+- {c['std_mm']:.3f}, {shape}), from {c['start_utc']} "
                   f"({c['start_offset_s']:,.0f} s into the recordings), detected "
                   f"{c['detected_utc']}{end}")  # fmt: skip
         if args.plot is not None:

@@ -40,8 +40,8 @@ INFO_COLUMNS = ("robot", "day", "files", "bytes", "scans", "start_utc", "end_utc
                 "damage")  # fmt: skip
 #: damaged items a ``fleet info`` row's ``damage`` names (``loopcal info`` lists every one)
 DAMAGE_ITEMS = 3
-CHECK_COLUMNS = ("robot", "day", "files", "poses", "loops_close", "changes", "sensors",
-                 "shifts_mm", "first_change_utc", "warnings")  # fmt: skip
+CHECK_COLUMNS = ("robot", "day", "files", "poses", "loops_close", "loops_open", "changes",
+                 "sensors", "shifts_mm", "first_change_utc", "warnings")  # fmt: skip
 
 
 class FleetError(ValueError):
@@ -133,14 +133,16 @@ def check_task(task: RobotDay, false_alarm: float) -> dict[str, Any]:
 
     if task.config is None:
         return {"robot": task.robot, "day": task.day, "files": len(task.files), "poses": 0,
-                "loops_close": None, "changes": 0, "sensors": "", "shifts_mm": "",
+                "loops_close": None, "loops_open": None, "changes": 0, "sensors": "",
+                "shifts_mm": "",
                 "first_change_utc": "", "warnings": 0,
                 "error": "no controller config"}  # fmt: skip
     doc = check(list(task.files), task.config, false_alarm)
     changes = doc["changes"]
     return {
         "robot": task.robot, "day": task.day, "files": len(task.files), "poses": doc["poses"],
-        "loops_close": doc["loops_close"], "changes": len(changes),
+        "loops_close": doc["loops_close"], "loops_open": doc["loops_open"] is not None,
+        "changes": len(changes),
         "sensors": " ".join(str(c["sensor"]) for c in changes),
         "shifts_mm": " ".join(f"{c['shift_mm']:+.3f}" for c in changes),
         "first_change_utc": changes[0]["start_utc"] if changes else "",

@@ -16,6 +16,7 @@ from loopcal.calibration.closure import DriftTest
 from ..config.controller import load_controller_config
 from ..live.health import HealthMonitor
 from ..recording import read_recordings
+from ..scans import SCAN_DTYPE
 from .summary import utc_iso
 
 
@@ -59,6 +60,7 @@ def check(files: list[Path], config_path: Path, false_alarm: float, *,
     latest = [0]  # the newest pose's stamp when the monitor last tested
     changes: list[dict[str, Any]] = []
     first_ns: list[int] = []
+    opened: list[dict[str, Any]] = []  # the loops did not close from the first poses on
 
     def on_test(stamp_ns: int, test: DriftTest) -> None:
         latest[0] = stamp_ns
@@ -81,6 +83,13 @@ def check(files: list[Path], config_path: Path, false_alarm: float, *,
             })  # fmt: skip
         elif kind == "offset_drift_cleared" and changes:
             changes[-1]["end_utc"] = utc_iso(now)
+        elif kind == "loops_open":
+            opened.append({
+                "since_utc": utc_iso(d["since_ns"]), "detected_utc": utc_iso(d["detected_ns"]),
+                "poses": d["poses"], "statistic": d["statistic"],
+                "largest_sensor": d["largest_sensor"], "largest_shift_mm": d["largest_shift_mm"],
+                "message": message,
+            })  # fmt: skip
 
     monitor = HealthMonitor(config, emit, false_alarm=false_alarm, on_test=on_test)
     warnings: list[str] = []
@@ -93,9 +102,11 @@ def check(files: list[Path], config_path: Path, false_alarm: float, *,
                 first_ns.append(int(rec.scans["stamp_ns"][0]))
             last_ns = int(rec.scans["stamp_ns"][-1])
             monitor.feed(rec.scans)
+    monitor.feed(np.zeros(0, dtype=SCAN_DTYPE), final=True)  # the pose the recordings end in
     return {
         "changes": changes,
-        "loops_close": not changes,
+        "loops_open": opened[0] if opened else None,
+        "loops_close": not changes and not opened,
         "poses": monitor.state.poses,
         "threshold": round(monitor.threshold, 3),
         "false_alarm": false_alarm,

@@ -31,9 +31,10 @@ from ..recording.names import recording_paths
 from ..recording.reader import identities
 from ..recording.verify import verify_file
 from ..scans import scan_rate_hz
-from ..worker.poses import poses_of_scans
+from ..worker.poses import LONGEST_POSE_S, poses_of_scans
 
 _TAIL = 512  # scans of a file's end compared with the next file's start
+POSE_BUFFER_S = 3 * LONGEST_POSE_S  # scans kept for the next file's pose search, at most
 
 
 @dataclass
@@ -62,6 +63,9 @@ class Summary:
     _last_key: tuple[int, int] | None = None  # (epoch, counter64) of the last scan counted
     _tail: set[bytes] = field(default_factory=set)  # the identities of the last file's tail
     _digests: set[str] = field(default_factory=set)  # of every file's scans: copies count once
+    #: the scans after the last still pose counted, searched again with the next file's (a
+    #: pose across a file boundary is one pose, as the health monitor sees it)
+    _pose_tail: np.ndarray | None = None
 
     def add(self, path: Path, *, poses: bool) -> None:
         rec = read_recordings(path)
@@ -129,7 +133,19 @@ class Summary:
         self.power_ons |= {(serial, int(e)) for e in np.unique(rows["epoch"])}
         self.rates.append((len(rows), scan_rate_hz(rows)))
         if poses and self.poses is not None:
-            self.poses += len(poses_of_scans(rows))
+            buf = rows if self._pose_tail is None else np.concatenate([self._pose_tail, rows])
+            P = poses_of_scans(buf)
+            done = [k for k in range(len(P)) if P.rows[k][1] < len(buf)]  # the plate moved on
+            self.poses += len(done)
+            keep_from = int(P.rows[done[-1]][1]) if done else 0
+            keep_from = max(keep_from, len(buf) - int(POSE_BUFFER_S * P.scan_rate_hz))
+            self._pose_tail = buf[keep_from:].copy()
+
+    def finish(self) -> None:
+        """The recordings end: the still pose they end in counts too."""
+        if self.poses is not None and self._pose_tail is not None and len(self._pose_tail):
+            self.poses += len(poses_of_scans(self._pose_tail))
+        self._pose_tail = None
 
     @property
     def scan_rate_hz(self) -> float | None:
@@ -196,6 +212,7 @@ def collect(paths: list[Path], *, poses: bool = True) -> Summary:
     out = Summary(poses=0 if poses else None)
     for f in files:
         out.add(f, poses=poses)
+    out.finish()
     return out
 
 

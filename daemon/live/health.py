@@ -19,10 +19,24 @@ runner-up's, and the same sensor when a creep is tested too). It is raised again
 estimated shift grows by :data:`REPORT_STEP_MM` (a creep; at most every
 :data:`REPORT_EVERY_S` of recording), and cleared (event ``offset_drift_cleared``) once that
 sensor's statistic falls below :data:`CLEAR_STATISTIC`.
+
+Two cases are not a drift, and are not told as one:
+
+- **No controller config.** The daemon without one records at the reference geometry,
+  which no real robot matches: its loops never close there, and nothing moved. Health then
+  watches nothing, and its status line says it needs the robot's config
+  (``require_config``, as the recorder runs it).
+- **Loops that never closed.** When the poses already disagree with the config from the
+  first one the monitor saw (a sensor replaced before the daemon started, a config never
+  calibrated), no offset moved during the recording: the event is ``loops_open`` ("the
+  loops do not close at the controller config since the recording began: calibrate"),
+  once, and no ``offset_drift`` is raised while it stands (every later window disagrees
+  too, and would name whichever sensor fits best). A reload starts over.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -52,11 +66,16 @@ CHANGE_POINTS = WINDOW
 ATTRIBUTION_MARGIN = threshold(1e-6, tests=1)  # 23.9: the sensor is 1.5e5x likelier
 CLEAR_STATISTIC = threshold(1e-2, tests=CHANGE_POINTS)  # 12.9
 REPORT_STEP_MM = 0.5
+#: a disagreement that reaches back into the first poses seen is no drift: the loops never
+#: closed (a change within them is told the same way: "since the recording began")
+EARLY_POSES = 3
 REPORT_EVERY_S = 60.0  # a growing shift of the same sensor is reported at most this often
 #: the offsets' standard deviation assumed for a config without a calibration's provenance
 DEFAULT_CONFIG_STD_MM = 0.05
 FALSE_ALARM = 1e-8
 BUFFER_S = 3 * LONGEST_POSE_S  # scans kept while no pose is found (the plate moving)
+
+log = logging.getLogger(__name__)
 
 _BATCH = 512  # windows tested at once (memory: about 30 kB each)
 
@@ -89,13 +108,17 @@ class _Poses:
 
 @dataclass
 class HealthState:
-    """What the status line shows: poses checked, the latest test, the active alarm."""
+    """What the status line shows: poses checked, the latest test, the active alarm, and
+    whether the loops have not closed since the first pose (``open_since_start``)."""
 
     poses: int = 0
     last: DriftTest | None = None
     alarm_sensor: int | None = None
     alarm_shift_mm: float = 0.0
     alarm_stamp_ns: int = 0
+    open_since_start: bool = False
+    #: the stamps of the first :data:`EARLY_POSES` poses since the (re)start, ns
+    early_ns: tuple[int, ...] = ()
 
 
 def config_covariance(controller: ControllerConfig) -> np.ndarray:
@@ -120,6 +143,8 @@ class HealthMonitor:
     controller: the config in force. false_alarm: probability per pose of an alarm when
     nothing moved. on_test: called with the newest pose's stamp (ns) and the test's result
     after every test (``loopcal check`` draws them; the metrics export them).
+    require_config: watch nothing while the config is the reference geometry (no file:
+    ``controller.path`` None), as the recorder runs it.
     """
 
     name = "loop-closure health"
@@ -131,8 +156,10 @@ class HealthMonitor:
         *,
         false_alarm: float = FALSE_ALARM,
         on_test: Callable[[int, DriftTest], None] | None = None,
+        require_config: bool = False,
     ) -> None:
         self.emit = emit
+        self.require_config = require_config
         self.on_test = on_test
         self.false_alarm = false_alarm
         self.threshold = threshold(false_alarm, tests=4 * CHANGE_POINTS)
@@ -144,6 +171,8 @@ class HealthMonitor:
         """Start over at a new controller config (a reload): earlier poses no longer count."""
         self.params = np.array(controller.params, dtype=float)
         self.covariance = config_covariance(controller)
+        #: False while there is no controller config to check the loops against
+        self.watching = not (self.require_config and controller.path is None)
         # the last WINDOW poses' mean volts (4,), scan noise (4,), scans averaged, stamp ns,
         # and what the config predicts for them (PoseModels)
         self._window: _Poses | None = None
@@ -151,17 +180,21 @@ class HealthMonitor:
 
     # ------------------------------------------------------------------ input
 
-    def feed(self, rows: np.ndarray) -> None:
-        """New scans (SCAN_DTYPE rows, in order); tests every still pose they complete."""
-        if len(rows) == 0:
+    def feed(self, rows: np.ndarray, *, final: bool = False) -> None:
+        """New scans (SCAN_DTYPE rows, in order); tests every still pose they complete.
+        final: no scan will follow (the end of a recording read offline): a pose the plate
+        was still held in at the end counts too, as ``loopcal info`` counts it."""
+        if (len(rows) == 0 and not final) or not self.watching:
             return
         buf = rows if self._buf is None else np.concatenate([self._buf, rows])
+        if not len(buf):
+            return
         P = poses_of_scans(buf)
         keep_from = 0
         new = []  # the poses this feed completes (the plate has moved on from them)
         for k in range(len(P)):
             a, b = P.rows[k]
-            if b >= len(buf):  # still growing: the plate has not moved on yet
+            if b >= len(buf) and not final:  # still growing: the plate has not moved on yet
                 break
             key = (int(buf["epoch"][a]), int(buf["counter64"][a]))
             if key <= self._last_key:
@@ -185,6 +218,9 @@ class HealthMonitor:
         (:func:`loopcal.calibration.closure.step_tests`); what they mean is judged in order."""
         old = 0 if self._window is None else len(self._window)
         poses = fresh if self._window is None else self._window.join(fresh)
+        if len(self.state.early_ns) < EARLY_POSES:
+            early = self.state.early_ns + tuple(int(t) for t in fresh.stamps)
+            self.state.early_ns = early[:EARLY_POSES]
         ends = np.arange(old, len(poses)) + 1  # each new pose closes the window ending at it
         self.state.poses += len(fresh)
         ends = ends[ends >= MIN_AFFECTED]
@@ -228,6 +264,11 @@ class HealthMonitor:
                 st.alarm_sensor = None
                 return
         T = float(np.max(best.statistic))
+        if st.open_since_start:
+            return  # told once; every later window disagrees too
+        if T >= self.threshold and int(stamps[-best.affected]) <= st.early_ns[-1]:
+            self._open_since_start(best, int(stamps[-1]), T)
+            return
         if T < self.threshold or best.affected < MIN_AFFECTED or best.margin < ATTRIBUTION_MARGIN:
             return
         # a creep fits a step of the wrong sensor now and then, and a step a creep: both
@@ -258,6 +299,23 @@ class HealthMonitor:
             since_ns=int(stamps[-best.affected]),
             statistic=round(T, 2), threshold=round(self.threshold, 2),
             margin=round(best.margin, 2), poses=best.affected, shape=best.shape,
+            false_alarm=self.false_alarm,
+        )  # fmt: skip
+
+    def _open_since_start(self, best: DriftTest, now: int, statistic: float) -> None:
+        """The poses disagree with the config from the first one on: not a drift."""
+        st = self.state
+        st.open_since_start = True
+        sensor = best.sensor
+        self.emit(
+            "loops_open", Level.WARNING,
+            "the loops do not close at the controller config since the recording began "
+            f"(all {best.affected} poses so far disagree with it; nothing moved during the "
+            "recording): the config does not describe this robot, calibrate "
+            "(loopcal calibrate)",
+            poses=best.affected, since_ns=st.early_ns[0], detected_ns=now,
+            statistic=round(statistic, 2), threshold=round(self.threshold, 2),
+            largest_sensor=sensor, largest_shift_mm=round(float(best.shift_mm[sensor - 1]), 4),
             false_alarm=self.false_alarm,
         )  # fmt: skip
 
@@ -300,6 +358,11 @@ class HealthMonitor:
     def status(self) -> str:
         """A few words for the STATUS line."""
         st = self.state
+        if not self.watching:
+            return ("loop closure not watched: it needs the robot's controller config "
+                    "(--controller-config, [controller].config)")  # fmt: skip
+        if st.open_since_start:
+            return "LOOPS DO NOT CLOSE at the controller config since the start: calibrate"
         if st.alarm_sensor is not None:
             return f"OFFSET DRIFT sensor {st.alarm_sensor} {st.alarm_shift_mm:+.2f} mm"
         if st.last is None:
@@ -317,6 +380,11 @@ def watch_health(recorder: Recorder) -> HealthMonitor | None:
     s = recorder.settings
     if not s.health:
         return None
-    monitor = HealthMonitor(recorder.controller, recorder.emit, false_alarm=s.health_false_alarm)
+    monitor = HealthMonitor(recorder.controller, recorder.emit, false_alarm=s.health_false_alarm,
+                            require_config=True)  # fmt: skip
+    if not monitor.watching:
+        log.warning("loop-closure health watches nothing: it needs the robot's controller "
+                    "config (--controller-config, [controller].config); at the reference "
+                    "geometry the loops of a real robot never close")  # fmt: skip
     recorder.add_observer(monitor)
     return monitor

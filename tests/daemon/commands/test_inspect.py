@@ -160,3 +160,30 @@ def test_check_is_quiet_where_the_loops_close(drifting, tmp_path):
     assert doc["loops_close"] and doc["changes"] == [] and doc["poses"] > 60
     bad = loopcal("check", *first, "--controller-config", tmp_path / "none.toml")
     assert bad.returncode == 2 and "no such file" in bad.stderr
+
+
+def test_check_tells_loops_that_never_closed_from_a_drift(drifting, tmp_path):
+    """A config never calibrated (the reference geometry: every offset and the geometry
+    off) is no sensor moving: check says the loops never closed, once, names no sensor
+    as moved, and counts the still poses as info does."""
+    rec_dir, _ = drifting
+    first = sorted(rec_dir.glob("*.mcap"))[:2]
+    never = write_initial_config(tmp_path / "never.toml")  # the reference geometry
+    proc = loopcal("check", *first, "--controller-config", never, "--json")
+    assert proc.returncode == 1, proc.stderr
+    doc = json.loads(proc.stdout)
+    assert doc["changes"] == [] and not doc["loops_close"], doc["changes"]
+    assert doc["loops_open"]["poses"] >= 6 and "calibrate" in doc["loops_open"]["message"]
+    info = json.loads(loopcal("info", *first, "--json").stdout)
+    assert doc["poses"] == info["poses"]
+    text = loopcal("check", *first, "--controller-config", never).stdout
+    assert "The loops do not close at this config since the recordings began" in text
+    assert "offset moved" not in text
+
+
+def test_check_says_the_shape_and_whether_the_loops_closed_again(drifting):
+    rec_dir, config = drifting
+    text = loopcal("check", rec_dir, "--controller-config", config).stdout
+    line = next(x for x in text.splitlines() if x.startswith("sensor 3: offset moved"))
+    assert ", a step)" in line or ", a creep, still moving)" in line, line
+    assert "the loops have not closed again" in line or "closed again at" in line, line

@@ -208,3 +208,90 @@ def test_windows_tested_together_equal_each_window_alone():
     assert step_tests(*one)[0].poses == 1
     with pytest.raises(ValueError, match="offset_pattern"):
         step_tests(shaped[0], shaped[1][:, :, :3], shaped[2], shaped[3])
+
+
+def _config_off(by: dict[str, float]):
+    from loopcal.calibration.parameters import INDEX
+
+    params = np.array(TRUTH, dtype=float)
+    for name, mm in by.items():
+        params[INDEX[name]] += mm
+    return tuple(params)
+
+
+@pytest.mark.parametrize(
+    "config",
+    [
+        pytest.param(_config_off({"d04": -3.14}), id="sensor 4 replaced before the start"),
+        pytest.param(tuple(nominal_config().params), id="never calibrated"),
+    ],
+)
+def test_loops_that_never_closed_are_told_so_not_as_a_drift(config):
+    scenario = HandMoves(3, params=TRUTH, pause_s=PAUSE_S)
+    t_us, codes = mechanism_scans(scenario, TRUTH, 20 * 600, noise_volts=0.04, seed=3)
+    rows = rows_from(t_us, codes)
+    events = []
+    mon = HealthMonitor(replace(nominal_config(), params=config, path="controller.toml"),
+                        lambda kind, level, msg, **d: events.append((kind, msg, d)),
+                        require_config=True)  # fmt: skip
+    for a in range(0, len(rows), 5):
+        mon.feed(rows[a : a + 5])
+    kinds = [k for k, _, _ in events]
+    assert kinds == ["loops_open"], events
+    _, message, details = events[0]
+    assert "do not close at the controller config since the recording began" in message
+    assert "calibrate" in message and details["poses"] >= 6
+    assert "LOOPS DO NOT CLOSE" in mon.status() and mon.state.poses > 150
+
+
+def test_without_a_controller_config_health_watches_nothing_and_says_why():
+    drift = (OffsetDrift("step", 2, 60.0, 2.0),)  # even a real step: nothing to hold it to
+    scenario = HandMoves(3, params=TRUTH, pause_s=PAUSE_S)
+    t_us, codes = mechanism_scans(scenario, TRUTH, 20 * 300, noise_volts=0.04, seed=3,
+                                  drifts=drift)  # fmt: skip
+    events = []
+    mon = HealthMonitor(nominal_config(), lambda *a, **d: events.append(a), require_config=True)
+    mon.feed(rows_from(t_us, codes))
+    assert events == [] and mon.state.poses == 0 and not mon.watching
+    assert "needs the robot's controller config" in mon.status()
+    mon.reload(replace(nominal_config(), params=tuple(TRUTH), path="controller.toml"))
+    assert mon.watching  # a reload that brings a config starts watching
+
+
+def _robot_not_at_the_reference(tmp_path, *record_args: str) -> tuple[Proc, list]:
+    """``loopcal record`` of an emulated robot whose geometry and offsets are not the
+    reference's (as no real robot's are), nothing moving, for 200 s of device time at ten
+    times wall time; returns the recorder (stopped) and the recording's events."""
+    from loopcal.calibration.parameters import NAMES
+
+    truth = truth_for(11)
+    every = ",".join(f"{n}={float(truth[i])!r}" for i, n in enumerate(NAMES))
+    sim = Proc(["simulate", "--seed", "11", "--speed", "10", "--pause", "0.8,1.5",
+                "--noise-mv", "40", "--truth", every, "--wait-for-client"])  # fmt: skip
+    from tests.support.processes import listening_url
+
+    try:
+        proc = record(listening_url(sim), tmp_path / "rec", "--read-period", "0.05",
+                      "--duration", "20", *record_args)  # fmt: skip
+        assert proc.wait(90) == 0, proc.text
+    finally:
+        sim.kill()
+    return proc, read_recordings(tmp_path / "rec").events
+
+
+def test_a_recorder_without_a_controller_config_raises_no_alarm(tmp_path):
+    proc, events = _robot_not_at_the_reference(tmp_path)
+    assert "loop-closure health watches nothing: it needs the robot's controller config" \
+        in proc.text  # fmt: skip
+    kinds = {e.kind for e in events}
+    assert not kinds & {"offset_drift", "loops_open"}, kinds
+
+
+def test_a_recorder_whose_config_never_fitted_says_so_not_a_drift(tmp_path):
+    never = tmp_path / "controller.toml"
+    assert Proc(["init-config", str(never)]).wait(60) == 0  # the reference geometry
+    proc, events = _robot_not_at_the_reference(tmp_path, "--controller-config", str(never))
+    kinds = [e.kind for e in events if e.kind in ("offset_drift", "loops_open")]
+    assert kinds == ["loops_open"], [e.message for e in events]
+    assert "the loops do not close at the controller config since the recording began" \
+        in proc.text  # fmt: skip
