@@ -95,6 +95,7 @@ class Summary:
         self.scans_lost += info.lost_scans
         self.files.append({
             "path": str(path), "bytes": size, "complete": info.complete,
+            "views": info.metadata.get("loopcal", {}).get("views") != "dropped",
             "scans": len(rows),
             "start_utc": utc_iso(info.first_stamp_ns), "end_utc": utc_iso(info.last_stamp_ns),
             "note": info.note or None, "warning": info.warning or None,
@@ -244,6 +245,8 @@ def render(doc: dict[str, Any]) -> list[str]:
     lines.append("files:")
     for f in doc["files"]:
         state = "closed" if f["complete"] else "not closed"
+        if not f.get("views", True):
+            state += ", views left out (loopcal export makes them)"
         lines.append(f"  {Path(f['path']).name}  {_short(f['start_utc'])} to "
                      f"{_short(f['end_utc'])}  {f['scans']:,} scans  {f['bytes'] / 1e6:.1f} MB  "
                      f"{state}")  # fmt: skip

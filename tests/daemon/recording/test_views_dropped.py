@@ -81,6 +81,10 @@ def test_every_scan_and_event_stays_in_a_twentieth_of_the_bytes(thinned, node_re
     assert proc.returncode == 0, proc.stdout + proc.stderr
     again = compact(thin, drop_views=True)
     assert not again.done and again.reason == "already compact"
+    info = json.loads(loopcal("info", thin, "--json").stdout)
+    assert info["files"][0]["views"] is False and info["scans"] == N
+    assert "views left out (loopcal export makes them)" in loopcal("info", thin).stdout
+    assert json.loads(loopcal("info", written, "--json").stdout)["files"][0]["views"]
 
 
 def test_a_compact_file_with_views_is_thinned_again_and_the_command_says_so(thinned, tmp_path):
