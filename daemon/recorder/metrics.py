@@ -10,15 +10,21 @@ rules). Observers add their own (the loop-closure health: per sensor).
 
 from __future__ import annotations
 
+import ipaddress
+import logging
 import math
+import socket
+import threading
 import time
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Protocol
+from wsgiref.simple_server import WSGIRequestHandler, make_server
 
-from prometheus_client import CollectorRegistry, start_http_server
+from prometheus_client import CollectorRegistry, make_wsgi_app
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.exposition import ThreadingWSGIServer
 from prometheus_client.registry import Collector
 
 from ..config.controller import ControllerConfig
@@ -165,22 +171,68 @@ def _age_s(written_utc: object) -> float | None:
         return None
 
 
+#: the listen backlog of the metrics server: connections waiting for their thread (the
+#: socketserver default of 5 timed out 16 of 600 concurrent scrapes)
+LISTEN_BACKLOG = 1024
+
+log = logging.getLogger(__name__)
+
+
+class _Server(ThreadingWSGIServer):
+    """prometheus-client's thread-per-request server, with a backlog for many scrapers."""
+
+    request_queue_size = LISTEN_BACKLOG
+
+
+class _Quiet(WSGIRequestHandler):
+    def log_message(self, format: str, *args: object) -> None:  # noqa: A002 - the base's name
+        pass  # a scrape every few seconds is no news
+
+
+def exposed(host: str) -> str:
+    """"" when ``host`` is a loopback address (only this machine reaches it), else what
+    binding it exposes, in words ("every interface", "the interface of 10.0.0.5")."""
+    try:
+        infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except OSError:
+        return f"whatever {host} resolves to"
+    addrs = {ipaddress.ip_address(i[4][0].split("%")[0]) for i in infos}
+    if all(a.is_loopback for a in addrs):
+        return ""
+    if any(a.is_unspecified for a in addrs):
+        return "every interface of this machine"
+    return "the interface of " + ", ".join(sorted(map(str, addrs)))
+
+
 class MetricsServer:
-    """prometheus-client's HTTP server for a recorder's metrics, on ``listen``
-    ("HOST:PORT"). Binds at once: a port that is taken is a SettingsError naming
-    ``[metrics].listen``."""
+    """prometheus-client's WSGI app for a recorder's metrics on ``listen`` ("HOST:PORT"),
+    served by a thread per request behind a backlog of :data:`LISTEN_BACKLOG`. Binds at
+    once: a port that is taken is a SettingsError naming ``[metrics].listen``. An address
+    that is not loopback is served, with a warning in the log saying what it exposes."""
 
     def __init__(self, recorder: Recorder, listen: str) -> None:
         host, port = parse_listen(listen)
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(RecorderCollector(recorder))
         try:
-            self._server, self._thread = start_http_server(port, host, registry=self.registry)
+            family, _, _, _, sockaddr = socket.getaddrinfo(
+                host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)[0]  # fmt: skip
+            server = type("_ServerOf", (_Server,), {"address_family": family})
+            self._server = make_server(sockaddr[0], port, make_wsgi_app(self.registry), server,
+                                       handler_class=_Quiet)  # fmt: skip
         except OSError as exc:
             raise SettingsError(
                 f"cannot serve metrics on {listen}: {exc.strerror or exc}", "metrics_listen"
             ) from None
+        self._thread = threading.Thread(target=self._server.serve_forever,
+                                        name="loopcal-metrics", daemon=True)  # fmt: skip
+        self._thread.start()
         self.url = f"http://{listen}/metrics"
+        if what := exposed(host):
+            log.warning("metrics on %s are served to %s, not only to this machine: anyone who "
+                        "reaches it reads the recorder's state (files, scans, DAQ, health); "
+                        "bind 127.0.0.1 and reach it through an SSH tunnel (docs/daemon.md)",
+                        listen, what)  # fmt: skip
 
     def close(self) -> None:
         self._server.shutdown()

@@ -27,6 +27,7 @@ def test_record_serves_prometheus_metrics(tmp_path):
         m = scrape(port)
         rc, _ = rec.stop()
     assert rc == 0, rec.text
+    assert "not only to this machine" not in rec.text  # loopback: nothing exposed
     assert value(m, "loopcal_scans_recorded_total") > value(first, "loopcal_scans_recorded_total")
     assert value(m, "loopcal_scans_recorded_total") > 20
     assert value(m, "loopcal_bytes_written_total") > 1000
@@ -82,3 +83,29 @@ def test_the_daemon_follows_a_replaced_controller_config(tmp_path):
     assert reloads[0].details["controller_sha256"] == new_sha != old_sha
     shas = [f.metadata["controller_config"]["sha256"] for f in out.files]
     assert shas[0] == old_sha and shas[-1] == new_sha  # a new file from the change on
+
+
+def test_metrics_on_every_interface_warn_and_answer_200_scrapes_at_once(tmp_path):
+    """``--metrics 0:PORT`` binds every interface: served, with a warning naming that; and
+    200 scrapers at once are all answered (the socketserver backlog of 5 timed out 16 of
+    600). The scrapes go to 127.0.0.1 only."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    port = free_port()
+    with hand_emulator(speed=4.0) as emu:
+        rec = record(emu.url, tmp_path / "rec", "--metrics", f"0:{port}")
+        try:
+            rec.wait_for("recording to", timeout=20)
+            line = rec.lines[rec.wait_for("not only to this machine", timeout=5)]
+            assert f"metrics on 0:{port} are served to every interface" in line, line
+
+            def one(_: int) -> bool:
+                return value(scrape(port), "loopcal_daq_connected") == 1.0
+
+            with ThreadPoolExecutor(200) as pool:
+                answered = list(pool.map(one, range(200)))
+            rc, _ = rec.stop()
+        finally:
+            rec.kill()
+    assert rc == 0, rec.text
+    assert answered == [True] * 200
