@@ -14,6 +14,7 @@ import sys
 from ..arguments import path_argument
 from ..config.controller import ControllerConfigError
 from ..live.health import watch_health
+from ..live.view import watch_live
 from ..recorder.engine import Recorder
 from ..recorder.process import run_recorder, setup_logging
 from ..recorder.settings import SettingsError, load_daemon_config
@@ -39,8 +40,12 @@ def run(args: argparse.Namespace) -> int:
             command=f"loopcal daemon --config {args.config}",
             reload_settings=lambda: load_daemon_config(args.config),
         )
-        watch_health(recorder)
+        live = watch_live(recorder, settings.live_listen, health=watch_health(recorder))
     except (SettingsError, ControllerConfigError) as exc:
         print(f"loopcal daemon: error: {exc}", file=sys.stderr)
         return 2
-    return run_recorder(recorder)
+    try:
+        return run_recorder(recorder)
+    finally:
+        if live is not None:
+            live.close()

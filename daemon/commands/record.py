@@ -22,6 +22,7 @@ from ..config.controller import ControllerConfigError
 from ..events import Level
 from ..live.guidance import OFFSETS, TARGET_MM, Guidance, GuidanceUpdate
 from ..live.health import watch_health
+from ..live.view import watch_live
 from ..recorder.engine import Recorder
 from ..recorder.process import run_recorder, setup_logging
 from ..recorder.settings import SettingsError, add_options, option_name, settings_from_args
@@ -59,14 +60,21 @@ def run(args: argparse.Namespace) -> int:
             raise SettingsError("--target-mm goes with --until-enough")
         settings = settings_from_args(args)
         recorder = Recorder(settings, command="loopcal record " + " ".join(sys.argv[2:]))
-        watch_health(recorder)
+        monitor = watch_health(recorder)
+        live = watch_live(recorder, settings.live_listen, health=monitor)
         if args.until_enough:
             controller = recorder.controller
+            display = Display(json_lines=args.json).update
+
+            def update(u: GuidanceUpdate) -> None:
+                display(u)
+                if live is not None:
+                    live.guidance(u)
+
             guide = Guidance(
                 controller, controller.model(),
                 target_mm=TARGET_MM if args.target_mm is None else args.target_mm,
-                on_update=Display(json_lines=args.json).update,
-                on_enough=lambda u: _enough(recorder, u),
+                on_update=update, on_enough=lambda u: _enough(recorder, u),
             )  # fmt: skip
             recorder.add_observer(guide)
     except SettingsError as exc:
@@ -75,7 +83,11 @@ def run(args: argparse.Namespace) -> int:
     except (ControllerConfigError, ParameterError, ValueError) as exc:
         print(f"loopcal record: error: {exc}", file=sys.stderr)
         return 2
-    status = run_recorder(recorder)
+    try:
+        status = run_recorder(recorder)
+    finally:
+        if live is not None:
+            live.close()
     st = recorder.status
     log = logging.getLogger(__name__)
     log.info(

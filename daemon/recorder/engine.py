@@ -110,6 +110,9 @@ class Recorder:
         self.followed = ""  # what the status line says after following a replaced config
         #: when the newest scan arrived, ns since the Unix epoch (None before the first)
         self.last_scan_ns: int | None = None
+        #: called with every event as it is emitted, from the emitting thread (the live
+        #: view); each must return at once
+        self.event_listeners: list[Callable[[Event], None]] = []
         self.compactor = Compactor(lambda: self.settings.keep_views_days) \
             if settings.compact else None  # fmt: skip
         self.metrics: MetricsServer | None = None
@@ -156,6 +159,11 @@ class Recorder:
         ev.log(log)
         self.shared.record(ev)
         self._queue.wake()
+        for listener in self.event_listeners:
+            try:
+                listener(ev)
+            except Exception:  # noqa: BLE001 - a listener (the live view) never stops recording
+                log.exception("an event listener failed")
 
     def event_counts(self) -> Counter[tuple[str, str]]:
         """How many events of each (kind, level) the recorder has recorded so far (its own,

@@ -151,6 +151,12 @@ class RecorderSettings:
         metavar="HOST:PORT", shown_default="off",
         help="serve Prometheus metrics on http://HOST:PORT/metrics, e.g. "
              "127.0.0.1:9464")  # fmt: skip
+    live_listen: str | None = _setting(
+        None, kind="listen", key="[live].listen", option="--live", metavar="HOST:PORT",
+        shown_default="off",
+        help="serve the session live to Foxglove (WebSocket, read-only) on HOST:PORT, e.g. "
+             "127.0.0.1:8765 (docs/tools.md: connecting, and what another address "
+             "exposes)")  # fmt: skip
 
     def checked(self, where: str = "") -> RecorderSettings:
         """Validate every value; raises SettingsError naming the key."""
@@ -191,11 +197,12 @@ class RecorderSettings:
         fa = self.health_false_alarm
         if isinstance(fa, bool) or not isinstance(fa, (int, float)) or not 0 < fa < 1e-2:
             raise bad("health_false_alarm", f"must be a probability in (0, 0.01), got {fa!r}")
-        if self.metrics_listen is not None:
-            try:
-                parse_listen(self.metrics_listen)
-            except ValueError as exc:
-                raise bad("metrics_listen", str(exc)) from None
+        for name in ("metrics_listen", "live_listen"):
+            if getattr(self, name) is not None:
+                try:
+                    parse_listen(getattr(self, name))
+                except ValueError as exc:
+                    raise bad(name, str(exc)) from None
         return self
 
 

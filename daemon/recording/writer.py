@@ -147,9 +147,7 @@ class RecordingWriter:
                 at = self.last_event_ns
             self.last_event_ns = at
             w.add_message(ch[TOPIC_EVENTS], at, json.dumps(obj).encode(), ev.stamp_ns)
-            log = {"timestamp": obj["timestamp"], "level": obj["level"], "name": "loopcal",
-                   "message": f"{ev.kind}: {ev.message}", "file": "", "line": 0}  # fmt: skip
-            w.add_message(ch[TOPIC_LOG], at, json.dumps(log).encode(), ev.stamp_ns)
+            w.add_message(ch[TOPIC_LOG], at, json.dumps(log_entry(ev, obj)).encode(), ev.stamp_ns)
         w.flush()  # chunk 1: what a reader of the scans needs
         if len(rows):
             self._write_views(rows)
@@ -231,6 +229,14 @@ class _DirectFile:
             except OSError:
                 pass
             self._fd = -1
+
+
+def log_entry(ev: Event, obj: dict | None = None) -> dict:
+    """An event as a ``foxglove.Log`` message (``/loopcal/log``; ``obj``: its ``to_json()``
+    if already made)."""
+    obj = ev.to_json() if obj is None else obj
+    return {"timestamp": obj["timestamp"], "level": obj["level"], "name": "loopcal",
+            "message": f"{ev.kind}: {ev.message}", "file": "", "line": 0}  # fmt: skip
 
 
 def metadata_records(

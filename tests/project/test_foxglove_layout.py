@@ -11,29 +11,12 @@ from mcap_ros2.decoder import DecoderFactory
 
 from loopcal.daemon import recording as rec
 from tests.support import ROOT
+from tests.support.layouts import PATH as _PATH
+from tests.support.layouts import layout_paths, value_at
 from tests.support.recordings import write_recording
 from tests.support.rows import T0, make_rows
 
 LAYOUT = ROOT / "docs" / "foxglove" / "loopcal-layout.json"
-_PATH = re.compile(r"^(?P<topic>/[\w/]+)(?P<fields>(?:\.\w+(?:\[\d+\])?)*)$")
-
-
-def layout_paths(layout: dict) -> list[str]:
-    """Every topic or message path the panels of a layout use."""
-    paths = []
-    for panel_id, cfg in layout["configById"].items():
-        kind = panel_id.split("!")[0]
-        if kind == "Plot":
-            paths += [p["value"] for p in cfg["paths"]]
-        elif kind == "3D":
-            paths += list(cfg.get("topics", {}))
-        elif kind == "RosOut":
-            paths.append(cfg["topicToRender"])
-        elif kind == "RawMessages":
-            paths.append(cfg["topicPath"])
-        else:
-            raise AssertionError(f"a panel this test does not know: {panel_id}")
-    return paths
 
 
 def test_every_path_in_the_layout_exists_in_a_recording(tmp_path):
@@ -57,12 +40,7 @@ def test_every_path_in_the_layout_exists_in_a_recording(tmp_path):
         m = _PATH.match(p)
         assert m, f"not a message path: {p}"
         assert m["topic"] in first, f"{p}: no topic {m['topic']} in a recording"
-        value = first[m["topic"]]
-        for name, index in re.findall(r"\.(\w+)(?:\[(\d+)\])?", m["fields"]):
-            value = value[name] if isinstance(value, dict) else getattr(value, name)
-            if index:
-                assert int(index) < len(value), f"{p}: {name} has {len(value)} elements"
-                value = value[int(index)]
+        value = value_at(first[m["topic"]], m["fields"], p)
         if m["fields"]:
             assert isinstance(value, float | int), f"{p} is not a number to plot: {value!r}"
     assert {"/joint/state", "/plate/scene", "/plate/transform", "/loopcal/log"} <= {

@@ -26,7 +26,8 @@ def npm_installed() -> str:
     # one install at a time: the suite's workers (pytest-xdist) share this folder
     with open(JS / ".npm-ci.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        if not (JS / "node_modules" / "playwright-core").is_dir():
+        wanted = json.loads((JS / "package.json").read_text())["dependencies"]
+        if not all((JS / "node_modules" / name).is_dir() for name in wanted):
             try:
                 subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=JS, check=True,
                                timeout=300, capture_output=True, text=True)  # fmt: skip

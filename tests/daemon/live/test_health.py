@@ -260,7 +260,7 @@ def test_without_a_controller_config_health_watches_nothing_and_says_why():
 
 def _robot_not_at_the_reference(tmp_path, *record_args: str) -> tuple[Proc, list]:
     """``loopcal record`` of an emulated robot whose geometry and offsets are not the
-    reference's (as no real robot's are), nothing moving, for 200 s of device time at ten
+    reference's (as no real robot's are), nothing moving, for 120 s of device time at ten
     times wall time; returns the recorder (stopped) and the recording's events."""
     from loopcal.calibration.parameters import NAMES
 
@@ -272,7 +272,7 @@ def _robot_not_at_the_reference(tmp_path, *record_args: str) -> tuple[Proc, list
 
     try:
         proc = record(listening_url(sim), tmp_path / "rec", "--read-period", "0.05",
-                      "--duration", "20", *record_args)  # fmt: skip
+                      "--duration", "12", *record_args)  # fmt: skip
         assert proc.wait(90) == 0, proc.text
     finally:
         sim.kill()

@@ -1,0 +1,258 @@
+"""The live view: a running recorder's channels served to Foxglove (or Lichtblick) over the
+Foxglove WebSocket protocol (``foxglove.websocket.v1``), with the vendor's ``foxglove-sdk``.
+
+What a viewer gets, with the recording's own topics and schemas (docs/recording.md), so the
+layout that opens a recording opens the live session too:
+
+- ``/joint/state``, ``/plate/transform``: every scan's view, at the scan rate;
+- ``/plate/scene``: the mechanism, again every :data:`SCENE_EVERY_S` (a viewer that joins
+  late sees it);
+- ``/loopcal/events``, ``/loopcal/log``: every event as it is emitted;
+- ``/loopcal/health``: the loop-closure test after each still pose (statistic, shift and
+  its standard deviation per sensor, the threshold, the alarm);
+- ``/loopcal/guidance`` (``record --until-enough``): what has been collected, the predicted
+  standard deviation of each parameter, the instruction, ``enough``; and
+  ``/loopcal/guidance/tilt``: the next direction to tilt, an arrow in the 3D scene.
+
+Read-only: the server advertises no capability (no parameters, services, publishing or
+client channels). It runs in threads of its own (the SDK's); the observer hands each
+message to it and returns: a client that cannot keep up has its oldest messages dropped by
+the server (:data:`BACKLOG` per client), never the recording's, and the views are computed
+only while someone subscribes. The live view is an observer (the analysis thread): reading
+the DAQ and writing the recording never wait for it.
+
+Imports: foxglove-sdk, the recording format's views and schemas, the recorder's settings
+(the address) and metrics (what a bound address exposes).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from typing import Any
+
+import foxglove
+import numpy as np
+
+from ..config.controller import ControllerConfig
+from ..events import Event
+from ..recorder.metrics import exposed
+from ..recorder.settings import SettingsError, parse_listen
+from ..recording.schemas import (
+    CHANNELS,
+    NS_PER_S,
+    TOPIC_EVENTS,
+    TOPIC_LOG,
+    TOPIC_SCENE,
+    TOPIC_STATE,
+    TOPIC_TRANSFORM,
+    schema_bytes,
+)
+from ..recording.views import joint_states, scene_message, state_messages, transform_messages
+from ..recording.writer import log_entry
+from .guidance import GuidanceUpdate
+from .health import HealthMonitor
+
+log = logging.getLogger(__name__)
+
+#: messages the server keeps per client before it drops the oldest (about 25 s of views at
+#: 20 Hz: two a scan)
+BACKLOG = 1024
+#: seconds between two /plate/scene messages (a viewer that joins sees it within this)
+SCENE_EVERY_S = 2.0
+TOPIC_HEALTH = "/loopcal/health"
+TOPIC_GUIDANCE = "/loopcal/guidance"
+TOPIC_TILT = "/loopcal/guidance/tilt"
+
+_NUMBERS = {"type": "array", "items": {"type": "number"}}
+_JSON_SCHEMAS: dict[str, dict[str, Any]] = {
+    TOPIC_HEALTH: {
+        "type": "object",
+        "title": "loopcal.Health",
+        "properties": {
+            "timestamp": {"type": "object", "properties": {
+                "sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
+            "poses": {"type": "integer"},
+            "statistic": _NUMBERS,
+            "shift_mm": _NUMBERS,
+            "std_mm": _NUMBERS,
+            "threshold": {"type": "number"},
+            "alarm_sensor": {"type": "integer"},
+            "loops_open": {"type": "boolean"},
+            "status": {"type": "string"},
+        },
+    },
+    TOPIC_GUIDANCE: {
+        "type": "object",
+        "title": "loopcal.Guidance",
+        "properties": {
+            "elapsed_s": {"type": "number"},
+            "scans": {"type": "integer"},
+            "poses": {"type": "integer"},
+            "reach_deg": _NUMBERS,
+            "std": {"type": "object", "additionalProperties": {"type": "number"}},
+            "target_mm": {"type": "number"},
+            "enough": {"type": "boolean"},
+            "instruction": {"type": "string"},
+        },
+    },
+}  # fmt: skip
+
+
+def _stamp(ns: int) -> dict[str, int]:
+    sec, nsec = divmod(int(ns), NS_PER_S)
+    return {"sec": sec, "nsec": nsec}
+
+
+class LiveView:
+    """An observer serving the recorder's channels on ``listen`` ("HOST:PORT"; port 0: any
+    free port, :attr:`port` says which). Raises SettingsError naming ``[live].listen`` if
+    it cannot listen there. Call :meth:`close` when the recorder stops."""
+
+    name = "live view"
+
+    def __init__(self, listen: str, controller: ControllerConfig, *,
+                 health: HealthMonitor | None = None) -> None:  # fmt: skip
+        host, port = parse_listen(listen)
+        self.params = np.array(controller.params, dtype=float)
+        self.health = health
+        self.context = foxglove.Context()
+        try:
+            self.server = foxglove.start_server(
+                name="loopcal", host=host, port=port, context=self.context, capabilities=[],
+                message_backlog_size=BACKLOG,
+            )  # fmt: skip
+        except Exception as exc:  # noqa: BLE001 - the SDK's bind errors have no common type
+            raise SettingsError(f"cannot serve the live view on {listen}: {exc}",
+                                "live_listen") from None  # fmt: skip
+        self.port = self.server.port
+        self.url = f"ws://{host}:{self.port}"
+        self._lock = threading.Lock()  # events come from any thread
+        self._channels: dict[str, foxglove.Channel] = {}
+        for topic in (TOPIC_STATE, TOPIC_TRANSFORM, TOPIC_SCENE, TOPIC_EVENTS, TOPIC_LOG):
+            name, encoding, message_encoding = CHANNELS[topic]
+            schema = foxglove.Schema(name=name, encoding=encoding, data=schema_bytes(name))
+            self._channels[topic] = foxglove.Channel(topic, schema=schema, context=self.context,
+                                                     message_encoding=message_encoding)
+        for topic, js in _JSON_SCHEMAS.items():
+            self._channels[topic] = self._json_channel(topic, js["title"], js)
+        self._channels[TOPIC_TILT] = self._json_channel(
+            TOPIC_TILT, "foxglove.SceneUpdate", json.loads(schema_bytes("foxglove.SceneUpdate")))
+        self._last_scene = 0.0
+        self._health_poses = -1
+        self.messages = 0  # handed to the server
+        if what := exposed(host):
+            log.warning("the live view on %s is served to %s, not only to this machine: "
+                        "anyone who reaches it watches the session (read-only); bind "
+                        "127.0.0.1 and reach it through an SSH tunnel (docs/tools.md)",
+                        self.url, what)  # fmt: skip
+        log.info("live view: %s (Foxglove: open a connection, Foxglove WebSocket)", self.url)
+
+    def _json_channel(self, topic: str, name: str, js: dict[str, Any]) -> foxglove.Channel:
+        schema = foxglove.Schema(name=name, encoding="jsonschema", data=json.dumps(js).encode())
+        return foxglove.Channel(topic, schema=schema, context=self.context,
+                                message_encoding="json")  # fmt: skip
+
+    def _log(self, topic: str, data: bytes | str, log_time: int) -> None:
+        self._channels[topic].log(data, log_time=int(log_time))
+        self.messages += 1
+
+    # ------------------------------------------------------------------ observer
+
+    def feed(self, rows: np.ndarray) -> None:
+        """The views of new scans, to whoever subscribes (nothing is computed otherwise)."""
+        ch = self._channels
+        state, transform = ch[TOPIC_STATE].has_sinks(), ch[TOPIC_TRANSFORM].has_sinks()
+        if len(rows) and (state or transform):
+            js = joint_states(rows, self.params)
+            stamps = rows["stamp_ns"]
+            if state:
+                for t, data in zip(stamps, state_messages(rows, js), strict=True):
+                    self._log(TOPIC_STATE, data, t)
+            if transform:
+                good = np.flatnonzero(js.pose_ok)
+                for t, data in zip(stamps[good], transform_messages(stamps[good], js.quat[good]),
+                                   strict=True):  # fmt: skip
+                    self._log(TOPIC_TRANSFORM, data, t)
+        now = time.monotonic()
+        if len(rows) and now - self._last_scene >= SCENE_EVERY_S and ch[TOPIC_SCENE].has_sinks():
+            t = int(rows["stamp_ns"][-1])
+            self._log(TOPIC_SCENE, scene_message(t, self.params), t)
+            self._last_scene = now
+        self._publish_health()
+
+    def _publish_health(self) -> None:
+        h = self.health
+        if h is None or h.state.poses == self._health_poses:
+            return
+        self._health_poses = h.state.poses
+        st, now = h.state, time.time_ns()
+        doc: dict[str, Any] = {"timestamp": _stamp(now), "poses": st.poses,
+                               "threshold": float(h.threshold),
+                               "alarm_sensor": st.alarm_sensor or 0,
+                               "loops_open": st.open_since_start, "status": h.status()}
+        if st.last is not None:
+            doc.update(statistic=[float(x) for x in st.last.statistic],
+                       shift_mm=[float(x) for x in st.last.shift_mm],
+                       std_mm=[float(x) for x in st.last.std_mm])  # fmt: skip
+        self._log(TOPIC_HEALTH, json.dumps(doc), now)
+
+    def status(self) -> str:
+        return f"live view {self.url}"
+
+    def reload(self, controller: ControllerConfig) -> None:
+        self.params = np.array(controller.params, dtype=float)
+
+    # ------------------------------------------------------------------ other sources
+
+    def event(self, ev: Event) -> None:
+        """An event as the recorder emits it (any thread): /loopcal/events and /loopcal/log."""
+        obj = ev.to_json()
+        with self._lock:
+            self._log(TOPIC_EVENTS, json.dumps(obj), ev.stamp_ns)
+            self._log(TOPIC_LOG, json.dumps(log_entry(ev, obj)), ev.stamp_ns)
+
+    def guidance(self, update: GuidanceUpdate) -> None:
+        """A guidance update: the collection so far, and the next tilt drawn as an arrow from
+        the plate's centre towards the sensor whose side is least reached (none once
+        enough)."""
+        now = time.time_ns()
+        doc = update.as_json()
+        self._log(TOPIC_GUIDANCE, json.dumps({k: doc.get(k) for k in _JSON_SCHEMAS[
+            TOPIC_GUIDANCE]["properties"]}), now)  # fmt: skip
+        entities = []
+        if not update.enough and update.reach_deg:
+            sensor = int(np.argmin(update.reach_deg))
+            angle = np.pi / 4 + sensor * np.pi / 2  # the sensors' sides, a quarter turn apart
+            entities.append({
+                "timestamp": _stamp(now), "frame_id": "base", "id": "next-tilt",
+                "lifetime": {"sec": 0, "nsec": 0}, "frame_locked": False,
+                "metadata": [{"key": "sensor", "value": str(sensor + 1)}],
+                "arrows": [{
+                    "pose": {"position": {"x": 0, "y": 0, "z": 0},
+                             "orientation": {"x": 0, "y": 0, "z": float(np.sin(angle / 2)),
+                                             "w": float(np.cos(angle / 2))}},
+                    "shaft_length": 80.0, "shaft_diameter": 6.0, "head_length": 25.0,
+                    "head_diameter": 16.0, "color": {"r": 1, "g": 0.5, "b": 0, "a": 1},
+                }],
+            })  # fmt: skip
+        scene = {"deletions": [{"timestamp": _stamp(now), "type": 1, "id": ""}],
+                 "entities": entities}  # fmt: skip
+        self._log(TOPIC_TILT, json.dumps(scene), now)
+
+    def close(self) -> None:
+        self.server.stop()
+
+
+def watch_live(recorder: Any, listen: str | None, *, health: HealthMonitor | None = None
+               ) -> LiveView | None:  # fmt: skip
+    """Serve the recorder's live view on ``listen`` (None: no live view): an observer of its
+    scans and a listener of its events; returns it (close it when the recorder stops)."""
+    if listen is None:
+        return None
+    view = LiveView(listen, recorder.controller, health=health)
+    recorder.add_observer(view)
+    recorder.event_listeners.append(view.event)
+    return view

@@ -1,0 +1,124 @@
+"""The live view: a recorder's session served to Foxglove over its WebSocket protocol, watched
+here by the protocol's own client (@foxglove/ws-protocol under node), which decodes every
+message with the schema the server advertised; and viewers that stall, or come twenty at
+once, cost the recording no scan."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+
+import numpy as np
+import pytest
+
+from loopcal.daemon.config.controller import write_initial_config
+from loopcal.daemon.recording import read_recordings
+from tests.support import ROOT
+from tests.support.emulator import hand_emulator
+from tests.support.js import JS, npm_installed
+from tests.support.layouts import PATH, layout_paths, value_at
+from tests.support.processes import free_port, record
+
+pytestmark = pytest.mark.timeout(180)
+
+SPEED = 10.0  # the module's clock: 200 scans a second of wall time
+TOPICS = {
+    "/joint/state": "cdr", "/plate/transform": "cdr", "/plate/scene": "json",
+    "/loopcal/events": "json", "/loopcal/log": "json", "/loopcal/health": "json",
+    "/loopcal/guidance": "json", "/loopcal/guidance/tilt": "json",
+}  # fmt: skip
+
+
+def watch(port: int, seconds: float, clients: int = 1, stalled: int = 0) -> dict:
+    """What the protocol's client saw of the live view on ``port`` in ``seconds``."""
+    proc = subprocess.run(
+        [npm_installed(), str(JS / "live_client.mjs"), f"ws://127.0.0.1:{port}", str(seconds),
+         str(clients), str(stalled)],
+        capture_output=True, text=True, timeout=seconds + 60,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout)
+
+
+def test_a_foxglove_client_sees_every_channel_decoded_at_the_scan_rate(tmp_path):
+    config = write_initial_config(tmp_path / "controller.toml")  # the emulator's geometry
+    port = free_port()
+    with hand_emulator(speed=SPEED) as emu:
+        rec = record(emu.url, tmp_path / "rec", "--read-period", "0.05", "--live",
+                     f"127.0.0.1:{port}", "--controller-config", str(config),
+                     "--until-enough")  # fmt: skip
+        try:
+            rec.wait_for("recording to", timeout=20)
+            seen = watch(port, 6.0)
+            rc, _ = rec.stop()
+        finally:
+            rec.kill()
+    assert rc in (0, 1), rec.text  # 1: stopped before enough, as it may be
+    assert seen["errors"] == [], seen["errors"][:5]
+    assert seen["serverInfo"]["capabilities"] == []  # read-only: nothing a client may do
+    assert {c["topic"]: c["encoding"] for c in seen["channels"]} == TOPICS
+    topics = seen["topics"]
+    assert all(t["decoded"] == t["received"] for t in topics.values()), topics
+    state = topics["/joint/state"]
+    # at the scan rate: every scan's view, one scan period apart in log time (UTC stamps of
+    # a module whose clock runs SPEED times as fast: 5 ms)
+    spacing = (int(state["last_ns"]) - int(state["first_ns"])) / (state["received"] - 1)
+    assert abs(spacing - 50e6 / SPEED) < 0.3 * 50e6 / SPEED, spacing
+    assert state["received"] > 0.6 * 6.0 * 20 * SPEED, state["received"]
+    assert state["sample"]["pose_ok"] in (True, False) and len(state["sample"]["volts"]) == 4
+    assert topics["/plate/transform"]["received"] > 0.5 * state["received"]
+    assert topics["/plate/scene"]["received"] >= 1
+    assert topics["/loopcal/health"]["received"] >= 1
+    health = topics["/loopcal/health"]["last"]
+    assert len(health["statistic"]) == 4 and health["poses"] >= 6, health
+    guidance = topics["/loopcal/guidance"]
+    assert guidance["received"] >= 1 and guidance["last"]["instruction"], guidance["last"]
+    assert topics["/loopcal/guidance/tilt"]["received"] == guidance["received"]
+    # the live layout plots and shows only what a live session serves
+    layout = json.loads((ROOT / "docs" / "foxglove" / "loopcal-live-layout.json").read_text())
+    for path in layout_paths(layout):
+        m = PATH.match(path)
+        assert m and m["topic"] in topics, path
+        if m["fields"]:
+            assert isinstance(value_at(topics[m["topic"]]["last"], m["fields"], path),
+                              float | int), path  # fmt: skip
+
+
+def test_stalled_and_many_viewers_cost_the_recording_no_scan(tmp_path):
+    port = free_port()
+    with hand_emulator(speed=SPEED) as emu:
+        rec = record(emu.url, tmp_path / "rec", "--read-period", "0.05", "--live",
+                     f"127.0.0.1:{port}", "--duration", "12")  # fmt: skip
+        try:
+            rec.wait_for("recording to", timeout=20)
+            seen = watch(port, 8.0, clients=20, stalled=5)
+            assert rec.wait(60) == 0, rec.text
+        finally:
+            rec.kill()
+    assert seen["errors"] == [], seen["errors"][:5]
+    assert seen["topics"]["/joint/state"]["received"] > 0.6 * 8.0 * 20 * SPEED
+    assert seen["others"]["received"] > 10 * seen["topics"]["/joint/state"]["received"]
+    out = read_recordings(tmp_path / "rec")
+    c = out.scans["counter64"].astype(np.int64)
+    assert len(c) > 0.8 * 12 * 20 * SPEED
+    assert np.all(np.diff(c) == 1) and out.scans["missed"].sum() == 0
+    assert not out.events_of("gap") and not out.events_of("overflow")
+
+
+def test_another_address_than_loopback_warns_what_it_exposes(tmp_path):
+    port = free_port()
+    with hand_emulator(speed=SPEED) as emu:
+        rec = record(emu.url, tmp_path / "rec", "--live", f"0.0.0.0:{port}", "--duration", "2")
+        assert rec.wait(60) == 0, rec.text
+    assert f"the live view on ws://0.0.0.0:{port} is served to every interface" in rec.text
+
+
+def test_a_bad_or_taken_live_address_is_refused(tmp_path):
+    proc = record("modbus-tcp://127.0.0.1:1", tmp_path / "r", "--live", "8765")
+    assert proc.wait(30) == 2 and "--live" in proc.text and "HOST:PORT" in proc.text
+    from tests.support.processes import taken_port
+
+    with taken_port() as port:
+        proc = record("modbus-tcp://127.0.0.1:1", tmp_path / "r", "--live", f"127.0.0.1:{port}",
+                      "--duration", "1")  # fmt: skip
+        assert proc.wait(30) == 2 and "--live" in proc.text, proc.text
