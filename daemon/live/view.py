@@ -36,11 +36,14 @@ from typing import Any
 import foxglove
 import numpy as np
 
+from loopcal.calibration.kinematics import base_points
+
 from ..config.controller import ControllerConfig
 from ..events import Event
 from ..recorder.metrics import exposed
 from ..recorder.settings import SettingsError, parse_listen
 from ..recording.schemas import (
+    BASE_FRAME,
     CHANNELS,
     NS_PER_S,
     TOPIC_EVENTS,
@@ -215,29 +218,33 @@ class LiveView:
             self._log(TOPIC_LOG, json.dumps(log_entry(ev, obj)), ev.stamp_ns)
 
     def guidance(self, update: GuidanceUpdate) -> None:
-        """A guidance update: the collection so far, and the next tilt drawn as an arrow from
-        the plate's centre towards the sensor whose side is least reached (none once
-        enough)."""
+        """A guidance update: the collection so far, and the next tilt drawn in the 3D scene
+        as an arrow from the base's centre towards the base point of the sensor whose side
+        the plate has reached least (none once enough)."""
         now = time.time_ns()
-        doc = update.as_json()
-        self._log(TOPIC_GUIDANCE, json.dumps({k: doc.get(k) for k in _JSON_SCHEMAS[
-            TOPIC_GUIDANCE]["properties"]}), now)  # fmt: skip
+        doc = {k: v for k, v in update.as_json().items()
+               if k in _JSON_SCHEMAS[TOPIC_GUIDANCE]["properties"]}  # fmt: skip
+        doc["reach_deg"] = [round(float(r), 1) for r in update.reach_deg]
+        self._log(TOPIC_GUIDANCE, json.dumps(doc), now)
         entities = []
-        if not update.enough and update.reach_deg:
+        if not update.enough and len(update.reach_deg):
             sensor = int(np.argmin(update.reach_deg))
-            angle = np.pi / 4 + sensor * np.pi / 2  # the sensors' sides, a quarter turn apart
-            entities.append({
-                "timestamp": _stamp(now), "frame_id": "base", "id": "next-tilt",
-                "lifetime": {"sec": 0, "nsec": 0}, "frame_locked": False,
-                "metadata": [{"key": "sensor", "value": str(sensor + 1)}],
-                "arrows": [{
-                    "pose": {"position": {"x": 0, "y": 0, "z": 0},
-                             "orientation": {"x": 0, "y": 0, "z": float(np.sin(angle / 2)),
-                                             "w": float(np.cos(angle / 2))}},
-                    "shaft_length": 80.0, "shaft_diameter": 6.0, "head_length": 25.0,
-                    "head_diameter": 16.0, "color": {"r": 1, "g": 0.5, "b": 0, "a": 1},
-                }],
-            })  # fmt: skip
+            x, y = base_points(self.params)[sensor][:2]
+            half = float(np.arctan2(y, x)) / 2  # the arrow's +x turned towards A(sensor)
+            arrow = {
+                "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0},
+                         "orientation": {"x": 0.0, "y": 0.0, "z": float(np.sin(half)),
+                                         "w": float(np.cos(half))}},
+                "shaft_length": 0.08, "shaft_diameter": 0.006, "head_length": 0.025,
+                "head_diameter": 0.016, "color": {"r": 1.0, "g": 0.5, "b": 0.0, "a": 1.0},
+            }  # fmt: skip
+            entity = {"timestamp": _stamp(now), "frame_id": BASE_FRAME, "id": "next-tilt",
+                      "lifetime": {"sec": 0, "nsec": 0}, "frame_locked": False,
+                      "metadata": [{"key": "sensor", "value": str(sensor + 1)}]}  # fmt: skip
+            for kind in ("arrows", "cubes", "spheres", "cylinders", "lines", "triangles",
+                         "texts", "models"):  # fmt: skip
+                entity[kind] = [arrow] if kind == "arrows" else []
+            entities.append(entity)
         scene = {"deletions": [{"timestamp": _stamp(now), "type": 1, "id": ""}],
                  "entities": entities}  # fmt: skip
         self._log(TOPIC_TILT, json.dumps(scene), now)

@@ -74,6 +74,13 @@ def test_a_foxglove_client_sees_every_channel_decoded_at_the_scan_rate(tmp_path)
     guidance = topics["/loopcal/guidance"]
     assert guidance["received"] >= 1 and guidance["last"]["instruction"], guidance["last"]
     assert topics["/loopcal/guidance/tilt"]["received"] == guidance["received"]
+    assert len(guidance["last"]["reach_deg"]) == 4
+    tilt = topics["/loopcal/guidance/tilt"]["last"]
+    for entity in tilt["entities"]:  # none once the recording is enough
+        [arrow] = entity["arrows"]
+        assert entity["frame_id"] == "base" and 0.01 < arrow["shaft_length"] < 0.2  # metres
+        q = arrow["pose"]["orientation"]
+        assert abs(q["z"] ** 2 + q["w"] ** 2 - 1) < 1e-9
     # the live layout plots and shows only what a live session serves
     layout = json.loads((ROOT / "docs" / "foxglove" / "loopcal-live-layout.json").read_text())
     for path in layout_paths(layout):
