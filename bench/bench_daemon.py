@@ -9,11 +9,16 @@ process). Three figures, each against a baseline measured in the same run:
 * ``jitter``: the recorder's read periods (arrival times of its FIFO reads, from the
   recording itself) against the nominal 0.2 s: percentiles of the deviation; and for the
   ASCII transport (no FIFO, one poll per scan), the deviation from the 50 ms scan period.
+* ``features``: the recorder's share of one core at 20 Hz with each feature added in turn
+  (none: ``--no-health``; health, with a controller config; metrics, scraped every 5 s; the
+  live view with one Foxglove client subscribed to everything), medians of ``--repeats``
+  windows of ``--feature-seconds``. Target (issue 23): all on <= 1.5 %.
 * ``memory``: resident memory of the recorder while it records 1,000,000 scans at an
   accelerated rate (200 Hz of device time, ``--speed`` times as fast), sampled as it goes;
   baseline: its resident memory after the first 50,000 scans. Target: no growth.
 
-Run: ``python -m bench.bench_daemon [--seconds 60] [--scans 1000000] [--speed 25]``.
+Run: ``python -m bench.bench_daemon [--seconds 60] [--scans 1000000] [--speed 25]
+[--feature-seconds 30] [--repeats 3]``.
 """
 
 from __future__ import annotations
@@ -97,6 +102,56 @@ def bench_cpu_and_jitter(seconds: float, transport: str) -> dict:
             "missed": int(rows["missed"].sum())}  # fmt: skip
 
 
+def bench_features(seconds: float, repeats: int) -> list[tuple[str, float]]:
+    """(what is on, median share of one core) for each feature added in turn."""
+    from loopcal.daemon.config.controller import write_initial_config
+    from tests.support.js import JS, npm_installed
+    from tests.support.processes import free_port, scrape
+
+    tmp = Path(tempfile.mkdtemp(prefix="loopcal-bench-"))
+    config = write_initial_config(tmp / "controller.toml")  # the emulator's geometry
+    metrics, live = free_port(), free_port()
+    steps = [
+        ("recording alone (--no-health)", ["--no-health"], False, False),
+        ("+ loop-closure health", ["--controller-config", str(config)], False, False),
+        ("+ metrics (scraped every 5 s)", ["--controller-config", str(config), "--metrics",
+                                           f"127.0.0.1:{metrics}"], True, False),
+        ("+ live view, one client", ["--controller-config", str(config), "--metrics",
+                                     f"127.0.0.1:{metrics}", "--live", f"127.0.0.1:{live}"],
+         True, True),
+    ]  # fmt: skip
+    out = []
+    for name, extra, scraped, watched in steps:
+        shares = []
+        for r in range(repeats):
+            with hand_emulator(rate=20) as emu:
+                rec = subprocess.Popen([*LOOPCAL, "record", "--daq", emu.url, "--out",
+                                        str(tmp / f"{len(out)}-{r}"), *extra],
+                                       stdout=subprocess.DEVNULL,
+                                       stderr=subprocess.DEVNULL)  # fmt: skip
+                client = None
+                if watched:
+                    time.sleep(3.0)
+                    client = subprocess.Popen([npm_installed(), str(JS / "live_client.mjs"),
+                                               f"ws://127.0.0.1:{live}", str(seconds + 10)],
+                                              stdout=subprocess.DEVNULL)  # fmt: skip
+                time.sleep(5.0)
+                c0, t0 = cpu_seconds(rec.pid), time.monotonic()
+                while time.monotonic() - t0 < seconds:
+                    time.sleep(5.0)
+                    if scraped:
+                        scrape(metrics)
+                shares.append((cpu_seconds(rec.pid) - c0) / (time.monotonic() - t0))
+                stop(rec)
+                if client is not None:
+                    client.kill()
+                    client.wait()
+        out.append((name, float(np.median(shares))))
+        print(f"  {name:34} {100 * out[-1][1]:5.2f} % of one core (median of {repeats})",
+              flush=True)  # fmt: skip
+    return out
+
+
 def bench_memory(n_scans: int, speed: float) -> list[tuple[int, float]]:
     out = Path(tempfile.mkdtemp(prefix="loopcal-bench-"))
     rate = 200
@@ -133,6 +188,9 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=60.0, help="CPU measurement window")
     ap.add_argument("--scans", type=int, default=1_000_000, help="scans for the memory run")
     ap.add_argument("--speed", type=float, default=25.0, help="device time per real second")
+    ap.add_argument("--feature-seconds", type=float, default=30.0,
+                    help="CPU window per feature run")  # fmt: skip
+    ap.add_argument("--repeats", type=int, default=3, help="runs per feature")
     args = ap.parse_args()
     print(f"CPU and read timing at 20 Hz, {args.seconds:g} s after a 5 s warm-up (Modbus TCP):")
     r = bench_cpu_and_jitter(args.seconds, "modbus-tcp")
@@ -149,6 +207,14 @@ def main() -> int:
     print(f"  ASCII polling, one poll per 50 ms scan: {100 * a['cpu']:.2f} % of one core; "
           f"|deviation| p50 {p50:.2f} ms, p90 {p90:.2f} ms, p99 {p99:.2f} ms, "
           f"max {a['dev_max']:.2f} ms; {a['missed']} scans missed")  # fmt: skip
+    print()
+    print(f"Each feature's share of one core at 20 Hz ({args.feature_seconds:g} s windows):")
+    steps = bench_features(args.feature_seconds, args.repeats)
+    for (name, share), (_, before) in zip(steps[1:], steps[:-1], strict=True):
+        print(f"  {name}: {100 * (share - before):+.2f} % of one core")
+    total = steps[-1][1]
+    print(f"  all on: {100 * total:.2f} % (target <= 1.5 %: "
+          f"{'met' if total <= 0.015 else 'NOT met'})")  # fmt: skip
     print()
     print(f"Memory while recording {args.scans:,} scans at 200 Hz x {args.speed:g} "
           f"({200 * args.speed:,.0f} scans/s):")  # fmt: skip
