@@ -1,5 +1,6 @@
 """The live view: a running recorder's channels served to Foxglove (or Lichtblick) over the
-Foxglove WebSocket protocol (``foxglove.websocket.v1``), with the vendor's ``foxglove-sdk``.
+Foxglove WebSocket protocol (``foxglove.websocket.v1``, which the vendor's ``foxglove-sdk``,
+used here, serves under its new name ``foxglove.sdk.v1``: docs/tools.md).
 
 What a viewer gets, with the recording's own topics and schemas (docs/recording.md), so the
 layout that opens a recording opens the live session too:
@@ -33,7 +34,6 @@ import threading
 import time
 from typing import Any
 
-import foxglove
 import numpy as np
 
 from loopcal.calibration.kinematics import base_points
@@ -118,6 +118,9 @@ class LiveView:
 
     def __init__(self, listen: str, controller: ControllerConfig, *,
                  health: HealthMonitor | None = None) -> None:  # fmt: skip
+        import foxglove  # here: a recorder without a live view never loads the SDK
+
+        self._fx = foxglove
         host, port = parse_listen(listen)
         self.params = np.array(controller.params, dtype=float)
         self.health = health
@@ -133,7 +136,7 @@ class LiveView:
         self.port = self.server.port
         self.url = f"ws://{host}:{self.port}"
         self._lock = threading.Lock()  # events come from any thread
-        self._channels: dict[str, foxglove.Channel] = {}
+        self._channels: dict[str, Any] = {}  # topic -> foxglove.Channel
         for topic in (TOPIC_STATE, TOPIC_TRANSFORM, TOPIC_SCENE, TOPIC_EVENTS, TOPIC_LOG):
             name, encoding, message_encoding = CHANNELS[topic]
             schema = foxglove.Schema(name=name, encoding=encoding, data=schema_bytes(name))
@@ -153,10 +156,10 @@ class LiveView:
                         self.url, what)  # fmt: skip
         log.info("live view: %s (Foxglove: open a connection, Foxglove WebSocket)", self.url)
 
-    def _json_channel(self, topic: str, name: str, js: dict[str, Any]) -> foxglove.Channel:
-        schema = foxglove.Schema(name=name, encoding="jsonschema", data=json.dumps(js).encode())
-        return foxglove.Channel(topic, schema=schema, context=self.context,
-                                message_encoding="json")  # fmt: skip
+    def _json_channel(self, topic: str, name: str, js: dict[str, Any]) -> Any:
+        fx = self._fx
+        schema = fx.Schema(name=name, encoding="jsonschema", data=json.dumps(js).encode())
+        return fx.Channel(topic, schema=schema, context=self.context, message_encoding="json")
 
     def _log(self, topic: str, data: bytes | str, log_time: int) -> None:
         self._channels[topic].log(data, log_time=int(log_time))
@@ -256,7 +259,8 @@ class LiveView:
 def watch_live(recorder: Any, listen: str | None, *, health: HealthMonitor | None = None
                ) -> LiveView | None:  # fmt: skip
     """Serve the recorder's live view on ``listen`` (None: no live view): an observer of its
-    scans and a listener of its events; returns it (close it when the recorder stops)."""
+    scans and a listener of its events; returns it (close it when the recorder stops). The
+    address is the one in force at start: a reload does not move or start the live view."""
     if listen is None:
         return None
     view = LiveView(listen, recorder.controller, health=health)
