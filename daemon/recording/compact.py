@@ -31,6 +31,12 @@ file compacted by an older loopcal into chunks of 4 MiB, whose record has no
 Killed at any step, the original is there, whole, or the compacted copy is; a temporary
 file left behind is removed by the next compaction of the directory.
 
+Older files can leave their views out (``drop_views``, ``loopcal compact --drop-views``, the
+daemon past ``[recording].keep_views_days``): the same rewrite without ``/joint/state`` and
+``/plate/transform``, nine tenths of a compacted file, which ``loopcal export`` makes again
+from the raw scans; the ``loopcal`` record then counts the file's scans, for the reader to
+count losses against (docs/recording.md, "Views in older files").
+
 Two compactions at once (two ``loopcal compact`` on one directory, or one beside the
 daemon's compactor) never touch each other's work: a compaction holds an advisory lock
 (``flock``) on the original from before its temporary file exists until it is renamed, a
