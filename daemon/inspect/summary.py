@@ -31,10 +31,9 @@ from ..recording.names import recording_paths
 from ..recording.reader import identities
 from ..recording.verify import verify_file
 from ..scans import scan_rate_hz
-from ..worker.poses import LONGEST_POSE_S, poses_of_scans
+from ..worker.poses import completed_poses
 
 _TAIL = 512  # scans of a file's end compared with the next file's start
-POSE_BUFFER_S = 3 * LONGEST_POSE_S  # scans kept for the next file's pose search, at most
 
 
 @dataclass
@@ -135,17 +134,14 @@ class Summary:
         self.rates.append((len(rows), scan_rate_hz(rows)))
         if poses and self.poses is not None:
             buf = rows if self._pose_tail is None else np.concatenate([self._pose_tail, rows])
-            P = poses_of_scans(buf)
-            done = [k for k in range(len(P)) if P.rows[k][1] < len(buf)]  # the plate moved on
+            _, done, keep_from = completed_poses(buf)
             self.poses += len(done)
-            keep_from = int(P.rows[done[-1]][1]) if done else 0
-            keep_from = max(keep_from, len(buf) - int(POSE_BUFFER_S * P.scan_rate_hz))
             self._pose_tail = buf[keep_from:].copy()
 
     def finish(self) -> None:
         """The recordings end: the still pose they end in counts too."""
         if self.poses is not None and self._pose_tail is not None and len(self._pose_tail):
-            self.poses += len(poses_of_scans(self._pose_tail))
+            self.poses += len(completed_poses(self._pose_tail, final=True)[1])
         self._pose_tail = None
 
     @property

@@ -58,7 +58,7 @@ from loopcal.calibration.poses import pose_noise_volts
 from ..config.controller import ControllerConfig
 from ..events import Level
 from ..recorder.engine import Recorder
-from ..worker.poses import LONGEST_POSE_S, poses_of_scans
+from ..worker.poses import completed_poses
 
 WINDOW = 30  # poses per test
 MIN_AFFECTED = 6  # a shift must show in at least this many of the latest poses
@@ -73,7 +73,6 @@ REPORT_EVERY_S = 60.0  # a growing shift of the same sensor is reported at most 
 #: the offsets' standard deviation assumed for a config without a calibration's provenance
 DEFAULT_CONFIG_STD_MM = 0.05
 FALSE_ALARM = 1e-8
-BUFFER_S = 3 * LONGEST_POSE_S  # scans kept while no pose is found (the plate moving)
 
 log = logging.getLogger(__name__)
 
@@ -189,25 +188,19 @@ class HealthMonitor:
         buf = rows if self._buf is None else np.concatenate([self._buf, rows])
         if not len(buf):
             return
-        P = poses_of_scans(buf)
-        keep_from = 0
+        P, done, keep_from = completed_poses(buf, final=final)
         new = []  # the poses this feed completes (the plate has moved on from them)
-        for k in range(len(P)):
+        for k in done:
             a, b = P.rows[k]
-            if b >= len(buf) and not final:  # still growing: the plate has not moved on yet
-                break
             key = (int(buf["epoch"][a]), int(buf["counter64"][a]))
             if key <= self._last_key:
                 continue
             self._last_key = (int(buf["epoch"][b - 1]), int(buf["counter64"][b - 1]))
-            keep_from = b
             new.append(k)
         if new:
             self._add(_Poses(P.volts[new], P.scan_noise[new], P.counts[new].astype(float),
                              P.stamp_ns[new].astype(np.int64),
                              pose_models(P.volts[new], self.params)))  # fmt: skip
-        rate = P.scan_rate_hz
-        keep_from = max(keep_from, len(buf) - int(BUFFER_S * rate))
         self._buf = buf[keep_from:].copy()
 
     # ------------------------------------------------------------------ the test

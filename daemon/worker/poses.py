@@ -23,6 +23,8 @@ from .. import scans as scan_rows
 STILL_WINDOW_S = 0.5  # a pose spans at least this long
 GAP_MARGIN_S = 0.25  # scans this close to a gap or restart are not used
 LONGEST_POSE_S = 5.0  # longer stretches are split (a plate may creep while "still")
+#: scans kept for the next search of a stream while no pose completes (the plate moving)
+POSE_BUFFER_S = 3 * LONGEST_POSE_S
 
 
 @dataclass(frozen=True)
@@ -102,6 +104,20 @@ def _readings(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         volts[a : a + _BLOCK] = scan_rows.volts(part)
         bad[a : a + _BLOCK] = ~scan_rows.trustworthy(part).all(axis=1)
     return volts, bad
+
+
+def completed_poses(
+    buf: np.ndarray, *, final: bool = False
+) -> tuple[RecordedPoses, list[int], int]:
+    """The still poses of a stream's scans so far, as a stream's reader counts them (the
+    health monitor, ``loopcal info`` across files): the poses of ``buf`` (SCAN_DTYPE rows,
+    in order, not empty), the indices of those the plate has moved on from (every one if
+    ``final``: no scan follows), and the row from which ``buf`` is kept for the next search
+    (after the last of those, and at most :data:`POSE_BUFFER_S` back)."""
+    P = poses_of_scans(buf)
+    done = [k for k in range(len(P)) if final or P.rows[k][1] < len(buf)]
+    keep_from = int(P.rows[done[-1]][1]) if done else 0
+    return P, done, max(keep_from, len(buf) - int(POSE_BUFFER_S * P.scan_rate_hz))
 
 
 def poses_of_scans(
