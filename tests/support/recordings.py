@@ -1,10 +1,13 @@
 """Real recordings, written by the daemon's own writer: a file of scan rows
 (:func:`write_rows`, :func:`write_recording`), a directory of them as a recorder leaves it
 (:func:`write_directory`), a copy compacted as the daemon keeps closed files
-(:func:`compacted_copy`), and a file in an older loopcal's layout (:func:`in_large_chunks`)."""
+(:func:`compacted_copy`), a file in an older loopcal's layout (:func:`in_large_chunks`), and
+what is not a recording, each with the words a command refuses it in
+(:func:`not_recordings`)."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import time
 from collections.abc import Callable
@@ -140,3 +143,25 @@ def in_large_chunks(src: Path, dst: Path, edit: Callable[[dict[str, str]], None]
         for _, c, m in reader.iter_messages(log_time_order=False):
             w.add_message(c.id, m.log_time, m.data, m.publish_time, m.sequence)
         w.finish()
+
+
+def not_recordings(tmp_path: Path) -> list[tuple[list[str | Path], str]]:
+    """What a command that takes recordings must refuse as bad input, made under
+    ``tmp_path`` (a text file named ``x.mcap``, an empty directory, a FIFO named
+    ``fifo.mcap``), each as (the command's arguments, the words its error names it in)."""
+    text = tmp_path / "x.mcap"
+    text.write_text("root:x:0:0:root:/root:/bin/bash\n")
+    empty_dir = tmp_path / "empty"
+    empty_dir.mkdir()
+    fifo = tmp_path / "fifo.mcap"
+    os.mkfifo(fifo)
+    missing = tmp_path / "missing.mcap"
+    return [
+        (["/etc/passwd"], "/etc/passwd: not an MCAP file"),
+        ([""], "an empty path"),
+        (["/dev/zero"], "/dev/zero: not a regular file (a character device)"),
+        ([fifo], f"{fifo}: not a regular file (a FIFO)"),
+        ([empty_dir], f"{empty_dir}: no recordings"),
+        ([text], f"{text}: not an MCAP file"),
+        ([missing], f"{missing}: no such file"),
+    ]

@@ -14,7 +14,7 @@ from mcap.writer import Writer
 
 from loopcal.daemon import recording as rec
 from tests.support.mutations import tear_chunk
-from tests.support.recordings import write_recording
+from tests.support.recordings import not_recordings, write_recording
 from tests.support.rows import T0, make_rows
 
 pytestmark = pytest.mark.timeout(180)
@@ -54,23 +54,13 @@ def _foreign_mcap(path: Path) -> Path:
 
 
 def test_what_is_not_a_recording_is_bad_input(tmp_path):
+    strangers = not_recordings(tmp_path)
     text = tmp_path / "x.mcap"
-    text.write_text("root:x:0:0:root:/root:/bin/bash\n")
-    empty_dir = tmp_path / "empty"
-    empty_dir.mkdir()
     foreign = _foreign_mcap(tmp_path / "camera.mcap")
-    fifo = tmp_path / "fifo.mcap"
-    os.mkfifo(fifo)
     before = {p: p.read_bytes() for p in (text, foreign)}
     for argv, words in (
-        (["/etc/passwd"], "/etc/passwd: not an MCAP file"),
-        ([""], "an empty path"),
-        (["/dev/zero"], "/dev/zero: not a regular file (a character device)"),
-        ([fifo], f"{fifo}: not a regular file (a FIFO)"),
-        ([empty_dir], f"{empty_dir}: no recordings"),
-        ([text], f"{text}: not an MCAP file"),
+        *strangers,
         ([foreign], f"{foreign}: an MCAP file but not a loopcal recording"),
-        ([tmp_path / "missing.mcap"], "no such file"),
         (["--json", text], f"{text}: not an MCAP file"),
     ):
         _bad_input(_compact(*argv), words)

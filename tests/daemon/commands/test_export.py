@@ -28,7 +28,7 @@ from loopcal.daemon.version import loopcal_version
 from tests.support.js import read_ts
 from tests.support.mutations import tear_chunk
 from tests.support.processes import fresh_config, loopcal
-from tests.support.recordings import write_recording, write_rows
+from tests.support.recordings import not_recordings, write_recording, write_rows
 from tests.support.rows import T0, make_rows
 from tests.support.sessions import hand_rows
 
@@ -216,24 +216,14 @@ def test_an_existing_output_file_is_refused_and_left_as_it_was(tmp_path):
 
 def test_bad_input_exits_2_naming_it(tmp_path):
     good = _recorded(tmp_path / "in", make_rows(300))
+    strangers = not_recordings(tmp_path)
     text = tmp_path / "x.mcap"
-    text.write_text("root:x:0:0:root:/root:/bin/bash\n")
-    empty_dir = tmp_path / "empty"
-    empty_dir.mkdir()
-    fifo = tmp_path / "fifo.mcap"
-    os.mkfifo(fifo)
     twin = _recorded(tmp_path / "twin", make_rows(300))  # the same name as ``good``
     bad_config = tmp_path / "bad.toml"
     bad_config.write_text("[parameters]\nA1x = 1\n")
     out = tmp_path / "out"
     for argv, words in (
-        (["/etc/passwd"], "/etc/passwd: not an MCAP file"),
-        ([""], "an empty path"),
-        (["/dev/zero"], "/dev/zero: not a regular file (a character device)"),
-        ([fifo], f"{fifo}: not a regular file (a FIFO)"),
-        ([empty_dir], f"{empty_dir}: no recordings"),
-        ([text], f"{text}: not an MCAP file"),
-        ([tmp_path / "missing.mcap"], f"{tmp_path / 'missing.mcap'}: no such file"),
+        *strangers,
         ([good, text, "--json"], f"{text}: not an MCAP file"),
         ([good, twin], f"both would be exported to {out / good.name}"),
         ([good, "--controller-config", bad_config], f"{bad_config}: [parameters] lacks"),
