@@ -13,6 +13,8 @@ import tomllib
 import numpy as np
 import pytest
 import tomlkit
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from loopcal.calibration.errors import ParameterError
 from loopcal.calibration.parameters import NAMES, NOMINAL, PRESETS, UNITS
@@ -302,3 +304,43 @@ def test_write_initial_config_errors(tmp_path):
     with pytest.raises(ControllerConfigError, match="cannot write"):
         write_initial_config(tmp_path / "dir.toml", force=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.toml", "dir.toml"]
+
+
+def test_a_recordings_controller_record_gives_back_its_parameters_bit_for_bit():
+    from loopcal.daemon.config.controller import nominal_config, params_from_metadata
+    from tests.support.sessions import truth_for
+
+    for params in (NOMINAL, truth_for(3)):
+        record = replace_params(nominal_config(), params).as_metadata()
+        got, why = params_from_metadata(record)
+        assert why == "" and got.tobytes() == np.asarray(params, dtype=float).tobytes()
+        del record[NAMES[5]]
+        assert params_from_metadata(record) == (None, f"its controller_config record lacks "
+                                                      f"{NAMES[5]}")  # fmt: skip
+
+
+def replace_params(config, params):
+    from dataclasses import replace
+
+    return replace(config, params=tuple(float(x) for x in params))
+
+
+@settings(max_examples=300, deadline=None)
+@given(record=st.dictionaries(st.sampled_from([*NAMES, "path", "junk"]),
+                              st.one_of(st.text(max_size=12), st.sampled_from(
+                                  ["nan", "inf", "-inf", "1e308", "0", "97.4", " 1 "]))))
+@example(record={"d03": "nan"})
+@example(record={"d03": "1e308"})
+@example(record={"A1x": " 1 ", "d01": ""})
+def test_a_damaged_or_hostile_controller_record_is_refused_in_words(record):
+    """Whatever a recording's controller_config record holds, the parameters come back
+    checked (finite, a mechanism) or refused with a reason; never an exception. The
+    drawn keys overwrite a whole record of the reference geometry, so most examples have
+    all 20 parameters."""
+    from loopcal.daemon.config.controller import nominal_config, params_from_metadata
+
+    params, why = params_from_metadata({**nominal_config().as_metadata(), **record})
+    if params is None:
+        assert why.startswith("its controller_config record") or why.startswith("the file has")
+    else:
+        assert why == "" and params.shape == (20,) and np.all(np.isfinite(params))

@@ -94,12 +94,24 @@ config = "/etc/loopcal/controller/controller.toml"
         ('disk_budget = "1 MiB"\n', r"\[recording\]\.disk_budget: .* less than two files"),
         ("max_backlog_scans = 10\n", r"\[recording\]\.max_backlog_scans: must be an integer"),
         ("[watchdog]\nsec = 3\n", r"unknown table or key 'watchdog'"),
+        ("keep_views_days = -1\n", r"\[recording\]\.keep_views_days: must be a number of days >="),
+        ("keep_views_days = nan\n", r"\[recording\]\.keep_views_days: must be a number of days >="),
+        ('keep_views_days = "7"\n', r"\[recording\]\.keep_views_days: must be a number of days"),
+        ('[live]\nlisten = "8765"\n', r"\[live\]\.listen: .*HOST:PORT"),
     ],
 )
 def test_bad_configs_are_refused_naming_the_key(tmp_path, extra, message):
     cfg = write_config(tmp_path / "d.toml", "modbus-tcp://10.0.0.5", tmp_path, extra)
     with pytest.raises(SettingsError, match=message):
         load_daemon_config(cfg)
+
+
+def test_views_are_kept_for_ever_or_a_week_by_default(tmp_path):
+    cfg = write_config(tmp_path / "d.toml", "modbus-tcp://10.0.0.5", tmp_path)
+    assert load_daemon_config(cfg).keep_views_days == 7.0
+    cfg = write_config(tmp_path / "d.toml", "modbus-tcp://10.0.0.5", tmp_path,
+                       "keep_views_days = inf\n")  # fmt: skip
+    assert load_daemon_config(cfg).keep_views_days == float("inf")
 
 
 def test_bad_daq_url_missing_keys_and_bad_toml(tmp_path):
