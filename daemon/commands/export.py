@@ -68,10 +68,11 @@ from ..recording import (
     read_recordings,
 )
 from ..recording.compact import recordings_named
+from ..recording.schemas import NS_PER_S
 from ..version import loopcal_version
 
 #: scan time fed to the writer at a time (one write: one chunk of scans, one of views)
-BATCH_NS = 60 * 1_000_000_000
+BATCH_NS = 60 * NS_PER_S
 #: the ``loopcal`` record's keys that describe a file as compacted, not as written
 _COMPACTION_KEYS = ("views", "scans", "views_dropped_utc", "compacted_utc", "chunk_span_s")
 #: the topics of the views, in the order the JSON lists them

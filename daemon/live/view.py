@@ -148,7 +148,6 @@ class LiveView:
             TOPIC_TILT, "foxglove.SceneUpdate", json.loads(schema_bytes("foxglove.SceneUpdate")))
         self._last_scene = 0.0
         self._health_poses = -1
-        self.messages = 0  # handed to the server
         if what := exposed(host):
             log.warning("the live view on %s is served to %s, not only to this machine: "
                         "anyone who reaches it watches the session (read-only); bind "
@@ -163,7 +162,6 @@ class LiveView:
 
     def _log(self, topic: str, data: bytes | str, log_time: int) -> None:
         self._channels[topic].log(data, log_time=int(log_time))
-        self.messages += 1
 
     # ------------------------------------------------------------------ observer
 
