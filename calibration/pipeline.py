@@ -29,15 +29,23 @@ class Calibration:
     ----------
     identification : Identification
         The final estimate, from the selected poses (its ``start`` is the caller's start).
-    selection : Selection
-        The chosen poses; ``selection.indices`` index the recording's poses.
+    selection : Selection or None
+        The chosen poses; ``selection.indices`` index the recording's poses. None for a fit
+        on every pose given (:func:`calibrate_scans`).
     rounds : int
         How many select-and-identify rounds ran.
     """
 
     identification: Identification
-    selection: Selection
+    selection: Selection | None
     rounds: int
+
+    @property
+    def indices(self) -> np.ndarray:
+        """The poses given to the final identification, as indices of the caller's poses."""
+        if self.selection is not None:
+            return self.selection.indices
+        return np.arange(len(self.identification.used))
 
 
 #: how many of the recorded poses a calibration selects unless told otherwise
@@ -158,3 +166,46 @@ def calibrate(
         previous, p = sel.indices, result.params
     # report against the caller's start, not the intermediate one of the last round
     return Calibration(replace(result, start=np.asarray(start, dtype=float)), sel, rounds_run)
+
+
+def calibrate_scans(
+    volts: np.ndarray,
+    model: ParameterModel = PAPER7,
+    start: np.ndarray = NOMINAL,
+    *,
+    noise_volts: float | np.ndarray | None = None,
+) -> Calibration:
+    """Identify the parameters by maximum likelihood from single scans, every one a pose.
+
+    Parameters
+    ----------
+    volts : array_like, shape (N, 4)
+        Readings of single scans, moving or still, V, each brought to its scan's instant
+        (:func:`loopcal.calibration.scans.deskew`).
+    model : ParameterModel, default PAPER7
+        Which parameters are free, tied and fixed.
+    start : array_like, shape (20,), default NOMINAL
+        Full parameter vector to start from (mm, mm/V).
+    noise_volts : float or array_like, shape (4,), optional
+        Known noise of one reading, 1 sigma, V; None estimates it from the misfit.
+
+    Returns
+    -------
+    Calibration
+        The identification (one rotation per scan, :func:`identify` with ``method="ml"``),
+        no selection, one round.
+
+    Raises
+    ------
+    InputError, ParameterError, UnobservableError, ConvergenceError
+        As :func:`identify`.
+
+    Notes
+    -----
+    No pose is selected: with one rotation per scan eliminated in closed form
+    (:mod:`loopcal.calibration.implicit`), a fit on 10,000 scans costs a fraction of a
+    second, and every scan adds information. Scans whose rotation the lengths do not
+    determine are left out by :func:`identify`.
+    """
+    ident = identify(volts, model, start, method="ml", noise_volts=noise_volts)
+    return Calibration(replace(ident, start=np.asarray(start, dtype=float)), None, 1)

@@ -279,16 +279,23 @@ def _print_human(result, path, written: Written | None, asked_to_write: bool) ->
     print(f"Free parameters: {result.model.describe()}")
     if cal is not None:
         ident = cal.identification
+        if cal.selection is None:  # every usable scan, one rotation each
+            blocks = len(set(result.poses.block[result.held_out].tolist()))
+            used = (f"{int(ident.used.sum()):,} of {len(cal.indices):,} scans used, moving or "
+                    f"still, one plate rotation each; {len(result.held_out):,} in {blocks} "
+                    "stretches held out to check")  # fmt: skip
+        else:
+            used = (f"{int(ident.used.sum())} of {len(cal.indices)} selected poses used; "
+                    f"{len(result.held_out)} held out to check")  # fmt: skip
         print(
-            f"{int(ident.used.sum())} of {len(cal.selection.indices)} selected poses used; "
-            f"{len(result.held_out)} held out to check; {METHOD_NAMES[ident.method]}: "
+            f"{used}; {METHOD_NAMES[ident.method]}: "
             + (
                 f"rms misfit {1000 * ident.rms_residual:.1f} mV per scan"
                 if ident.method == "ml"
                 else f"rms residual {ident.rms_residual:.4g} mm^2"
             )
             + f", equivalent noise {1000 * ident.sigma_volts:.1f} mV "
-            f"(the poses' scatter predicts {1000 * result.expected_noise_volts:.1f} mV)"
+            f"(the readings' scatter predicts {1000 * result.expected_noise_volts:.1f} mV)"
         )
         print()
         print(result.table())

@@ -8,12 +8,16 @@ explains each):
 =================  ===========================================================================
 gate               passes when
 =================  ===========================================================================
-``poses``          at least MIN_POSES still poses, and every channel moved across them
+``poses``          at least MIN_POSES still poses (a fit on every scan: distinct positions),
+                   and every channel moved across them
 ``converged``      the identification converged
 ``condition``      condition number of the scaled Jacobian <= 1000
 ``min_singular``   its smallest singular value >= MIN_SINGULAR
 ``noise``          the residuals imply no more noise than NOISE_RATIO x the noise the poses'
                    own spread predicts (their loops close as well as the sensors allow)
+``averaging``      (a fit on every scan) its misfit averages down over a second of motion as
+                   noise does
+``gains``          (a fit on every scan) no fixed gain would fit the scans better if freed
 ``holdout``        poses kept out of the fit close their loops as well as predicted
 ``plausible``      no parameter moved further than a refit, or a blueprint tolerance, can
 ``precision``      every identified parameter's standard deviation is within PRECISION
@@ -45,9 +49,15 @@ from loopcal.calibration.simulate import NEAR_SINGULAR_MM
 MIN_POSES = 30  #: still poses the ``poses`` gate needs at least
 MIN_CHANNEL_RANGE_V = 0.5  #: V; a channel that moves less than this over all poses is stuck
 BARELY_MOVED_V = 2.0  #: V; every channel within this over all poses, the plate barely moved
+POSITION_CELL_V = 1.0  #: V; scans count as distinct positions this far apart on a channel
 MIN_SINGULAR = 0.05  #: smallest minimum singular value of the scaled Jacobian
 NOISE_RATIO = 1.5  #: largest fitted noise over the noise the poses predict
 HOLDOUT_EVERY = 5  #: every fifth pose is kept out of the fit to validate it
+HOLDOUT_BLOCK_S = 5.0  #: a fit on every scan keeps every fifth stretch of this long out
+AVERAGING_S = 1.0  #: s; the averaging gate's windows of consecutive scans
+#: allowance over the chi-square bound of the averaging gate (the misfit is not quite white:
+#: the fitted rotations and parameters take a little of it)
+AVERAGING_MARGIN = 1.15
 #: allowance over the chi-square bound, since the predicted noise is itself estimated and
 #: the parameters' own uncertainty adds to the held-out poses' errors
 HOLDOUT_MARGIN = 1.15
@@ -158,7 +168,7 @@ def coverage(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
     return reach
 
 
-def coverage_advice(volts: np.ndarray, params: np.ndarray) -> str:
+def coverage_advice(volts: np.ndarray, params: np.ndarray, *, still: bool = True) -> str:
     """Which way the technician should tilt the plate next, from where the poses went.
 
     The plate's output axis (its z axis) of each pose, by forward kinematics: for each
@@ -171,6 +181,9 @@ def coverage_advice(volts: np.ndarray, params: np.ndarray) -> str:
         The poses' mean readings, V.
     params : ndarray of float, shape (20,)
         The parameters to turn them into poses with.
+    still : bool, default True
+        The fit uses still poses (the advice asks to hold each position); False: every
+        scan, moving or still (it asks for motion).
 
     Returns
     -------
@@ -179,16 +192,19 @@ def coverage_advice(volts: np.ndarray, params: np.ndarray) -> str:
         :data:`GOOD_TILT_DEG`, 25 deg), else record more positions spread over the
         workspace; with no poses, move the plate through its whole range.
     """
+    hold = ", holding each position still for a second" if still else ""
     if len(volts) == 0:
-        return "move the plate by hand through its whole range, holding each position still"
+        return "move the plate by hand through its whole range" + hold
     reach = coverage(volts, params)
     worst = int(np.argmin(reach))
     if reach[worst] >= GOOD_TILT_DEG:
-        return "record more still positions spread over the whole workspace"
+        if still:
+            return "record more still positions spread over the whole workspace"
+        return "keep moving the plate through the whole workspace"
     return (
-        f"tilt the plate further toward sensor {worst + 1} (the poses reach only "
-        f"{reach[worst]:.0f} deg that way; aim for {GOOD_TILT_DEG:.0f} deg or more), holding "
-        "each position still for a second"
+        f"tilt the plate further toward sensor {worst + 1} (the {'poses' if still else 'scans'}"
+        f" reach only {reach[worst]:.0f} deg that way; aim for {GOOD_TILT_DEG:.0f} deg or "
+        f"more){hold}"
     )
 
 
@@ -196,7 +212,9 @@ def coverage_advice(volts: np.ndarray, params: np.ndarray) -> str:
 Advice = str | Callable[[], str]
 
 
-def lazy_coverage_advice(volts: np.ndarray, params: np.ndarray) -> Callable[[], str]:
+def lazy_coverage_advice(
+    volts: np.ndarray, params: np.ndarray, *, still: bool = True
+) -> Callable[[], str]:
     """:func:`coverage_advice`, made on the first call and only then.
 
     Forward kinematics of every pose (a day's 30,000 of them) is paid for only when a gate
@@ -216,7 +234,7 @@ def lazy_coverage_advice(volts: np.ndarray, params: np.ndarray) -> Callable[[], 
         :data:`Advice` for :func:`condition_gate`, :func:`min_singular_gate` and
         :func:`precision_gate`.
     """
-    return cache(lambda: coverage_advice(volts, params))
+    return cache(lambda: coverage_advice(volts, params, still=still))
 
 
 def _text(advice: Advice) -> str:
@@ -224,6 +242,37 @@ def _text(advice: Advice) -> str:
 
 
 # ---------------------------------------------------------------------------- gates
+
+
+def _motion_failure(
+    span: np.ndarray, n: int, over: str, move: str, unit: str = "poses"
+) -> Gate | None:
+    """The ``poses`` gate's failure when the plate barely moved or a channel never did
+    (span: (4,) each channel's range, V; n: the gate's value; over: what the ranges are
+    over, as text; move: the advice to move; unit: what the gate counts), else None."""
+    if span.max() < BARELY_MOVED_V:
+        return Gate(
+            "poses",
+            False,
+            n,
+            f">= {MIN_POSES} {unit}, every channel moving",
+            f"the plate barely moved: every channel stayed within {span.max():.2f} V "
+            f"({span.max() * GAIN_NOMINAL:.1f} mm of stroke) over {over}",
+            move,
+        )
+    stuck = [i + 1 for i in range(4) if span[i] < MIN_CHANNEL_RANGE_V]
+    if stuck and len(stuck) < 4:
+        names = ", ".join(f"sensor {i}" for i in stuck)
+        return Gate(
+            "poses",
+            False,
+            n,
+            f">= {MIN_POSES} {unit}, every channel moving",
+            f"{names} read the same ({', '.join(f'{span[i - 1]:.3f} V' for i in stuck)} "
+            f"range) over {over} while the others moved: stuck or disconnected",
+            f"check {names}: its LVDT core, cable and conditioner; then record again",
+        )
+    return None
 
 
 def poses_gate(volts: np.ndarray) -> Gate:
@@ -249,30 +298,13 @@ def poses_gate(volts: np.ndarray) -> Gate:
     """
     n = len(volts)
     if n:
-        span = np.ptp(volts, axis=0)
-        if span.max() < BARELY_MOVED_V:
-            return Gate(
-                "poses",
-                False,
-                n,
-                f">= {MIN_POSES} poses, every channel moving",
-                f"the plate barely moved: every channel stayed within {span.max():.2f} V "
-                f"({span.max() * GAIN_NOMINAL:.1f} mm of stroke) over all {n} still poses",
-                "move the plate by hand through its whole range (tilt it 25 deg or more "
-                "toward each sensor), holding each position still for about a second",
-            )
-        stuck = [i + 1 for i in range(4) if span[i] < MIN_CHANNEL_RANGE_V]
-        if stuck and len(stuck) < 4:
-            names = ", ".join(f"sensor {i}" for i in stuck)
-            return Gate(
-                "poses",
-                False,
-                n,
-                f">= {MIN_POSES} poses, every channel moving",
-                f"{names} read the same ({', '.join(f'{span[i - 1]:.3f} V' for i in stuck)} "
-                "range) in every pose while the others moved: stuck or disconnected",
-                f"check {names}: its LVDT core, cable and conditioner; then record again",
-            )
+        failed = _motion_failure(
+            np.ptp(volts, axis=0), n, f"all {n} still poses",
+            "move the plate by hand through its whole range (tilt it 25 deg or more "
+            "toward each sensor), holding each position still for about a second",
+        )  # fmt: skip
+        if failed is not None:
+            return failed
     if n < MIN_POSES:
         return Gate(
             "poses",
@@ -283,6 +315,63 @@ def poses_gate(volts: np.ndarray) -> Gate:
             "move the plate to at least 40 positions, holding each still for about a second",
         )
     return Gate("poses", True, n, f">= {MIN_POSES}")
+
+
+def distinct_positions(volts: np.ndarray) -> int:
+    """How many distinct positions scans passed through: the cells of
+    :data:`POSITION_CELL_V` (1 V, about 4 mm of stroke) on every channel that their readings
+    (k, 4), V, fall in."""
+    if len(volts) == 0:
+        return 0
+    return len(np.unique(np.floor(volts / POSITION_CELL_V).astype(np.int64), axis=0))
+
+
+def scans_gate(volts: np.ndarray, seconds: float) -> Gate:
+    """Enough motion in the usable scans, and no channel that never moved: the ``poses``
+    gate of a fit on every scan.
+
+    Parameters
+    ----------
+    volts : ndarray of float, shape (k, 4)
+        The readings of the usable scans, V.
+    seconds : float
+        The time those scans span at the scan rate, s (for the text).
+
+    Returns
+    -------
+    Gate
+        ``"poses"``, its value the number of distinct positions
+        (:func:`distinct_positions`).
+
+    Notes
+    -----
+    Fails, in this order, when the plate barely moved or a channel did not (as
+    :func:`poses_gate`, with each channel's range taken between its 0.5th and 99.5th
+    percentiles, so that a few wild readings do not count as motion), and when the scans
+    passed through fewer than :data:`MIN_POSES` (30) distinct positions. Whether the motion
+    holds enough information is the ``min_singular``, ``condition`` and ``precision``
+    gates' judgement, on the fit itself.
+    """
+    n = len(volts)
+    k = distinct_positions(volts)
+    move = ("move the plate by hand through its whole range for about two minutes, tilting "
+            "it 25 deg or more toward each sensor")  # fmt: skip
+    if n:
+        lo, hi = np.percentile(volts, [0.5, 99.5], axis=0)
+        failed = _motion_failure(hi - lo, k, f"{seconds:.0f} s of usable scans", move, "positions")
+        if failed is not None:
+            return failed
+    if k < MIN_POSES:
+        return Gate(
+            "poses",
+            False,
+            k,
+            f">= {MIN_POSES} positions",
+            f"the plate passed through only {k} distinct positions ({POSITION_CELL_V:g} V "
+            f"apart) in {seconds:.0f} s of usable scans",
+            move,
+        )
+    return Gate("poses", True, k, f">= {MIN_POSES} positions")
 
 
 def converged_gate(converged: bool, message: str) -> Gate:
@@ -416,7 +505,7 @@ def expected_noise(scan_noise: np.ndarray, counts: np.ndarray, *, per_scan: bool
     return float(np.sqrt(var.mean()))
 
 
-def noise_gate(sigma_fit: float, expected: float) -> Gate:
+def noise_gate(sigma_fit: float, expected: float, *, still: bool = True) -> Gate:
     """The loops close as well as the sensors allow: the fit's noise <= 1.5 x the expected.
 
     Parameters
@@ -426,7 +515,10 @@ def noise_gate(sigma_fit: float, expected: float) -> Gate:
         likelihood, per pose for the paper's method).
     expected : float
         The noise the poses' own scan-to-scan scatter predicts, V, on the same footing
-        (:func:`expected_noise`).
+        (:func:`expected_noise`); for a fit on every scan, the noise of one reading from
+        fourth differences (:func:`loopcal.calibration.scans.difference_noise`).
+    still : bool, default True
+        The fit used still poses (the advice then asks to hold them still).
 
     Returns
     -------
@@ -454,7 +546,116 @@ def noise_gate(sigma_fit: float, expected: float) -> Gate:
         ""
         if ok
         else "check every sensor's wiring and its gain S in the controller config "
-        "(a swapped, sticking or mis-scaled channel), and hold the plate still in each pose",
+        "(a swapped, sticking or mis-scaled channel)"
+        + (", and hold the plate still in each pose" if still else ""),
+    )
+
+
+def averaging_gate(ratio: float, windows: int) -> Gate:
+    """A fit on every scan: its misfit averages down over a second of neighbouring scans
+    as sensor noise does, so nothing systematic is left in it.
+
+    Parameters
+    ----------
+    ratio : float
+        ``window * mean(window means^2) / mean(misfit^2)`` of the fitted scans' loop
+        misfits over :data:`AVERAGING_S` windows
+        (:func:`loopcal.calibration.scans.averaging_ratio`), dimensionless.
+    windows : int
+        How many whole windows.
+
+    Returns
+    -------
+    Gate
+        ``"averaging"``, passed when ``ratio`` is within
+        ``AVERAGING_MARGIN * chi2_quantile(J, 0.001) / J``.
+
+    Notes
+    -----
+    White noise averages down: the ratio is then about 1 (``J * ratio`` is chi-square with
+    J degrees of freedom). A model error (a wrong gain, a parameter missing from the free
+    set, a sticking channel) leaves a misfit b that changes slowly along the motion and
+    does not average down: the ratio grows as ``1 + (w - 1) b^2 / (sigma^2 + b^2)`` for
+    windows of w scans. Still poses averaged the same way before the fit, which is what
+    made the noise gate sensitive to a wrong gain; a fit on single scans needs this gate
+    for it (docs/calibration.md).
+    """
+    if windows < 5 or not np.isfinite(ratio):
+        return Gate(
+            "averaging", False, windows, ">= 5 windows",
+            f"only {windows} stretches of {AVERAGING_S:g} s of consecutive scans to judge "
+            "the misfit by",
+            "record for longer, without interruptions",
+        )  # fmt: skip
+    limit = AVERAGING_MARGIN * chi2_quantile(windows, 0.001) / windows
+    ok = ratio <= limit
+    return Gate(
+        "averaging",
+        ok,
+        ratio,
+        f"<= {limit:.2f} (misfit variance of {AVERAGING_S:g}-s means x scans per window over "
+        f"a scan's, {windows} windows)",
+        ""
+        if ok
+        else f"the fit's misfit averages down over {AVERAGING_S:g} s of motion only "
+        f"{1 / ratio:.2f} as much as noise would: something systematic is left in it",
+        ""
+        if ok
+        else "check every sensor's gain S in the controller config (a replaced sensor), "
+        "its wiring, and whether a channel sticks; or free the parameters that may have "
+        "changed",
+    )
+
+
+def gains_gate(names: list[str], statistic: float, change: np.ndarray, std: np.ndarray) -> Gate:
+    """A fit on every scan: the fixed gains fit the scans, so none is wrong enough to bias
+    the result (the score test of :func:`loopcal.calibration.implicit.score_test`).
+
+    Parameters
+    ----------
+    names : list of str
+        The gains held fixed (of S1..S4).
+    statistic : float
+        The test statistic, dimensionless: chi-square with ``len(names)`` degrees of freedom
+        when every fixed gain is right.
+    change, std : ndarray of float, shape (len(names),)
+        Each gain's change if it were freed (one Gauss-Newton step) and its standard
+        deviation then, mm/V.
+
+    Returns
+    -------
+    Gate
+        ``"gains"``, its value the statistic, passed when it is within
+        ``chi2_quantile(len(names), 0.001)``.
+
+    Notes
+    -----
+    Single scans see many more orientations than still poses, and so tell the parameters
+    apart more sharply: a gain error that still poses could not see biases a fit on every
+    scan by many of its own standard deviations (docs/calibration.md gives the figures). A
+    wrong gain leaves a misfit that correlates with the gain's own information; this test
+    looks for exactly that, and catches an error of about four of ``std``.
+    """
+    k = len(names)
+    limit = chi2_quantile(k, 0.001)
+    ok = statistic <= limit
+    j = int(np.argmax(np.abs(change) / std))
+    name = names[j]
+    return Gate(
+        "gains",
+        ok,
+        statistic,
+        f"<= {limit:.1f} (chi-square, {k} fixed gains)",
+        ""
+        if ok
+        else f"the loops would close better with {name} changed by {change[j]:+.4f} mm/V "
+        f"(+-{std[j]:.4f}, {100 * change[j] / GAIN_NOMINAL:+.2f} %): sensor {name[1:]}'s "
+        "gain in the config is wrong, or a parameter held fixed is",
+        ""
+        if ok
+        else f"check sensor {name[1:]}'s gain {name} against its calibration sheet; if it "
+        "is right, free the parameters that may have changed (a fixed geometry value, or "
+        f"{name} itself: --free with {name} added)",
     )
 
 
@@ -583,7 +784,7 @@ def chi2_quantile(dof: int, tail: float) -> float:
     return 2.0 * t
 
 
-def holdout_gate(z: np.ndarray) -> Gate:
+def holdout_gate(z: np.ndarray, *, blocks: int | None = None) -> Gate:
     """Poses kept out of the fit close their loops as well as predicted.
 
     Parameters
@@ -592,6 +793,9 @@ def holdout_gate(z: np.ndarray) -> Gate:
         The held-out poses' loop-closure errors over their predicted standard deviations
         (:func:`holdout_residuals` with ``noise``, ``model`` and ``covariance``),
         dimensionless.
+    blocks : int, optional
+        For a fit on every scan: z is one per held-out scan, from this many held-out
+        stretches of time (the text counts scans and stretches); None: one per pose.
 
     Returns
     -------
@@ -609,31 +813,36 @@ def holdout_gate(z: np.ndarray) -> Gate:
     mechanism (docs/calibration.md).
     """
     n = len(z)
-    if n < 5:
+    what = "poses" if blocks is None else "scans"
+    if n < 5 or blocks == 0:
         return Gate(
             "holdout",
             False,
             n,
-            ">= 5 held-out poses",
-            f"only {n} poses were left to check the fit against",
-            "record more still positions",
+            f">= 5 held-out {what}",
+            f"only {n} {what} were left to check the fit against",
+            "record more still positions" if blocks is None else "record for longer",
         )
     rms = float(np.sqrt(np.mean(z**2)))
     limit = HOLDOUT_MARGIN * float(np.sqrt(chi2_quantile(n, 0.001) / n))  # chi2(n) 99.9 %
     ok = rms <= limit
+    where = (f"{n} poses" if blocks is None
+             else f"{n} scans in {blocks} stretches of {HOLDOUT_BLOCK_S:g} s")  # fmt: skip
     return Gate(
         "holdout",
         ok,
         rms,
-        f"<= {limit:.2f} (RMS in predicted standard deviations, {n} poses)",
+        f"<= {limit:.2f} (RMS in predicted standard deviations, {where})",
         ""
         if ok
-        else f"{n} poses kept out of the fit open their loops {rms:.1f} times as wide "
-        "as their noise predicts: the fit describes its own poses, not the mechanism",
+        else f"{where} kept out of the fit open their loops {rms:.1f} times as wide "
+        "as their noise predicts: the fit describes its own "
+        f"{'poses' if blocks is None else 'motion'}, not the mechanism",
         ""
         if ok
         else "free the parameters that changed (for example the gain of a replaced "
-        "sensor) or check the mechanism for play; hold each position still",
+        "sensor) or check the mechanism for play"
+        + ("; hold each position still" if blocks is None else ""),
     )
 
 

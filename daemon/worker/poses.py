@@ -120,20 +120,14 @@ def completed_poses(
     return P, done, max(keep_from, len(buf) - int(POSE_BUFFER_S * P.scan_rate_hz))
 
 
-def poses_of_scans(
-    s: np.ndarray,
-    *,
-    window_s: float = STILL_WINDOW_S,
-    band_volts: float = 0.25,
-    gap_margin_s: float = GAP_MARGIN_S,
-    longest_s: float = LONGEST_POSE_S,
-) -> RecordedPoses:
-    """The still poses of scan rows (SCAN_DTYPE, oldest first; see the module docstring).
+def screen_scans(
+    s: np.ndarray, *, gap_margin_s: float = GAP_MARGIN_S
+) -> tuple[np.ndarray, np.ndarray, dict[str, int], float]:
+    """The readings of scan rows and which of them a calibration may use (module docstring).
 
-    window_s: a pose spans at least this long. band_volts: largest peak-to-peak change of a
-    channel within such a window that still counts as still (40 mV of noise gives about
-    0.2 V over 10 scans). gap_margin_s: scans this close to a gap or restart are left out.
-    longest_s: longer still stretches are split into poses of at most this long.
+    Returns volts (n, 4), V; valid (n,) bool: no channel at the rail or faulted, and not
+    within ``gap_margin_s`` of a gap, restart or power cycle; dropped: scans left out, by
+    reason; and the recording's scan rate, Hz.
     """
     n = len(s)
     rate = scan_rows.scan_rate_hz(s)
@@ -149,6 +143,25 @@ def poses_of_scans(
         "channel at the rail or faulted": int(bad_channel.sum()),
         "next to a gap or restart": int((near_gap & ~bad_channel).sum()),
     }
+    return volts, valid, dropped, rate
+
+
+def poses_of_scans(
+    s: np.ndarray,
+    *,
+    window_s: float = STILL_WINDOW_S,
+    band_volts: float = 0.25,
+    gap_margin_s: float = GAP_MARGIN_S,
+    longest_s: float = LONGEST_POSE_S,
+) -> RecordedPoses:
+    """The still poses of scan rows (SCAN_DTYPE, oldest first; see the module docstring).
+
+    window_s: a pose spans at least this long. band_volts: largest peak-to-peak change of a
+    channel within such a window that still counts as still (40 mV of noise gives about
+    0.2 V over 10 scans). gap_margin_s: scans this close to a gap or restart are left out.
+    longest_s: longer still stretches are split into poses of at most this long.
+    """
+    volts, valid, dropped, rate = screen_scans(s, gap_margin_s=gap_margin_s)
     window = max(2, round(window_s * rate))
     found = still_poses(
         volts,

@@ -75,7 +75,7 @@ def _plot_changes(res: WorkerResult, path: Path) -> None:
 def _plot_residuals(res: WorkerResult, path: Path) -> None:
     cal = res.calibration
     poses = res.poses
-    chosen = res.fit[cal.selection.indices] if cal is not None else res.fit
+    chosen = res.fit[cal.indices] if cal is not None else res.fit
     before = 1000 * holdout_residuals(poses.volts[chosen], res.previous)
     after = 1000 * holdout_residuals(poses.volts[chosen], res.params)
     held = 1000 * holdout_residuals(poses.volts[res.held_out], res.params)
@@ -130,7 +130,7 @@ def _plot_singular_values(res: WorkerResult, path: Path, progress: Callable[[str
     fig, ax = plt.subplots(figsize=(7, 3.6))
     ax.plot(ks, s_min, "o-", label="smallest singular value")
     ax.plot(ks, s_max, "s--", label="largest singular value", alpha=0.6)
-    chosen = len(res.calibration.selection.indices) if res.calibration is not None else None
+    chosen = len(res.calibration.indices) if res.calibration is not None else None
     if chosen:
         ax.axvline(chosen, color="grey", lw=0.8, ls=":", label=f"{chosen} selected")
     ax.set_xlabel("poses selected (best of the recording)")
@@ -147,7 +147,7 @@ def _plot_workspace(res: WorkerResult, path: Path) -> None:
     tilt, az = _axis_angles(poses.volts, p)
     chosen = np.zeros(len(poses), dtype=bool)
     if res.calibration is not None:
-        chosen[res.fit[res.calibration.selection.indices]] = True
+        chosen[res.fit[res.calibration.indices]] = True
     held = np.zeros(len(poses), dtype=bool)
     held[res.held_out] = True
     fig = plt.figure(figsize=(5.5, 5.5))

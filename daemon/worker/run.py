@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -22,15 +22,25 @@ import numpy as np
 
 from loopcal.calibration.errors import CalibrationError
 from loopcal.calibration.identify import DEFAULT_METHOD
-from loopcal.calibration.parameters import INDEX, NAMES, UNITS, ParameterModel
-from loopcal.calibration.pipeline import DEFAULT_N_SELECT, Calibration, calibrate
+from loopcal.calibration.implicit import score_test
+from loopcal.calibration.scans import averaging_ratio, closure_misfit
+from loopcal.calibration.parameters import GROUPS, INDEX, NAMES, UNITS, ParameterModel
+from loopcal.calibration.pipeline import (
+    DEFAULT_N_SELECT,
+    Calibration,
+    calibrate,
+    calibrate_scans,
+)
 
 from ..config.controller import ControllerConfig
 from ..recording import RecordingFile
 from ..version import loopcal_version
 from . import gates as G
+from .motion import scans_for_fit
 from .poses import RecordedPoses, poses_of_scans
 
+#: what a fit takes its samples from: every usable scan, or still poses (averaged, selected)
+SAMPLES = ("scans", "poses")
 METHOD_NAMES = {"ml": "maximum likelihood", "paper": "the paper's closed-loop residuals"}
 
 
@@ -41,8 +51,11 @@ class WorkerResult:
     model: the free set identified. previous: (20,) the controller config's values.
     params: (20,) the new values (= previous if the identification failed).
     std: {name: standard deviation} of the free parameters. gates: the acceptance gates in
-    order. poses, fit, held_out: the poses found, and indices of those fitted and held out.
-    calibration: the selection and identification, or None if it could not run.
+    order. poses, fit, held_out: the poses found (for a fit on every scan: the usable scans,
+    :class:`~loopcal.daemon.worker.motion.RecordedScans`), and indices of those fitted and
+    held out (every scan is in the final fit on scans: the held-out ones were left out of a
+    first fit, which the holdout gate checks). calibration: the selection and
+    identification, or None if it could not run.
     n_scans: the scans it started from. span_ns: their first and last stamps (ns since the
     Unix epoch), or None. files: the recording files they came from, as read.
     """
@@ -128,7 +141,7 @@ class WorkerResult:
             "poses": {
                 "found": len(self.poses),
                 "fit_candidates": int(len(self.fit)),
-                "selected": int(len(cal.selection.indices)) if cal is not None else 0,
+                "selected": int(len(cal.indices)) if cal is not None else 0,
                 "held_out": int(len(self.held_out)),
                 "scans": self.n_scans,
                 "dropped_scans": self.poses.dropped,
@@ -184,44 +197,73 @@ def run_worker(
     files: Sequence[RecordingFile] = (),
     n_select: int = DEFAULT_N_SELECT,
     method: str = DEFAULT_METHOD,
+    samples: str | None = None,
     progress: Callable[[str], None] = lambda _: None,
 ) -> WorkerResult:
     """Poses, fit and gates for scans of a recording (SCAN_DTYPE rows, oldest first: one
     or many files, already loaded; ``files``, what they came from, for the provenance and
     the report).
 
-    method: the estimator (:func:`loopcal.calibration.identify.identify`); "ml" weighs each pose by
-    the scans averaged into it."""
+    method: the estimator (:func:`loopcal.calibration.identify.identify`). samples: what it
+    fits, ``"scans"`` (every usable scan, moving or still, each a pose of its own:
+    :mod:`loopcal.daemon.worker.motion`; ml only, its default) or ``"poses"`` (still poses,
+    averaged, of which ``n_select`` are selected: the paper's method, and ml on request)."""
     t0 = time.perf_counter()
+    samples = samples or ("scans" if method == "ml" else "poses")
+    if samples not in SAMPLES or (samples == "scans" and method != "ml"):
+        raise ValueError(f"samples={samples!r} with method={method!r}")
+    per_scan = samples == "scans"
     start = np.array(controller.params, dtype=float)
-    poses = poses_of_scans(scans)
-    progress(
-        f"{len(scans):,} scans: {len(poses)} still poses "
-        f"(median {int(np.median(poses.counts)) if len(poses) else 0} scans each)"
-    )
-    k = np.arange(len(poses))
-    held = k % G.HOLDOUT_EVERY == G.HOLDOUT_EVERY // 2
-    fit, held_out = k[~held], k[held]
     span = (int(scans["stamp_ns"][0]), int(scans["stamp_ns"][-1])) if len(scans) else None
+    if per_scan:
+        poses: RecordedPoses = scans_for_fit(scans)
+        thinned = f", every {poses.stride}th taken" if poses.stride > 1 else ""
+        progress(f"{len(scans):,} scans: {poses.usable:,} usable ({poses.seconds:.0f} s)"
+                 f"{thinned}")  # fmt: skip
+        held = poses.block % G.HOLDOUT_EVERY == G.HOLDOUT_EVERY // 2
+        gate = G.scans_gate(poses.volts, poses.seconds)
+    else:
+        poses = poses_of_scans(scans)
+        progress(
+            f"{len(scans):,} scans: {len(poses)} still poses "
+            f"(median {int(np.median(poses.counts)) if len(poses) else 0} scans each)"
+        )
+        held = np.arange(len(poses)) % G.HOLDOUT_EVERY == G.HOLDOUT_EVERY // 2
+        gate = G.poses_gate(poses.volts)
+    k = np.arange(len(poses))
+    fit, held_out = k[~held], k[held]
     result = WorkerResult(model, start, start.copy(), {}, [], poses, fit, held_out, None,
                           len(scans), span, list(files))  # fmt: skip
     result.method = method
-    gate = G.poses_gate(poses.volts)
     result.gates.append(gate)
-    advice = G.lazy_coverage_advice(poses.volts, start)  # made only if a gate fails
+    still = not per_scan
+    advice = G.lazy_coverage_advice(poses.volts, start, still=still)  # made only if a gate fails
     if not gate.passed:
         result.seconds = time.perf_counter() - t0
         return result
     n_free = len(model.free)
-    progress(
-        f"selecting up to {n_select} of {len(fit)} poses, identifying {n_free} parameters "
-        f"({METHOD_NAMES[method]})"
-    )
+    if per_scan:
+        progress(f"identifying {n_free} parameters from {len(fit):,} scans, one plate rotation "
+                 f"each ({METHOD_NAMES[method]}); {len(held_out):,} held out")  # fmt: skip
+    else:
+        progress(
+            f"selecting up to {n_select} of {len(fit)} poses, identifying {n_free} parameters "
+            f"({METHOD_NAMES[method]})"
+        )
     try:
-        cal = calibrate(
-            poses.volts[fit], model, start, n_select=n_select, method=method,
-            scans_per_pose=poses.counts[fit],
-        )  # fmt: skip
+        if per_scan:
+            # the held-out stretches check a fit that did not see them; the values written
+            # then come from every usable scan (a fifth more information), started there
+            checked = calibrate_scans(poses.volts[fit], model, start).identification
+            progress(f"identifying again from all {len(k):,} scans, the held-out ones too")
+            cal = calibrate_scans(poses.volts, model, checked.params)
+            cal = replace(cal, identification=replace(cal.identification, start=start))
+            fit = result.fit = k
+        else:
+            cal = calibrate(
+                poses.volts[fit], model, start, n_select=n_select, method=method,
+                scans_per_pose=poses.counts[fit],
+            )  # fmt: skip
     except CalibrationError as exc:
         result.gates.append(
             G.Gate("converged", False, type(exc).__name__, "converged", str(exc), advice())
@@ -232,31 +274,70 @@ def run_worker(
     result.calibration = cal
     result.params = ident.params.copy()
     result.std = {n: float(s) for n, s in zip(model.free, ident.std, strict=True)}
-    advice = G.lazy_coverage_advice(poses.volts, ident.params)
-    chosen = fit[cal.selection.indices]
+    advice = G.lazy_coverage_advice(poses.volts, ident.params, still=still)
+    chosen = fit[cal.indices]
     # the paper's fit reports the noise of a pose's mean reading, ml that of one scan
     result.expected_noise_volts = G.expected_noise(
         poses.scan_noise[chosen], poses.counts[chosen], per_scan=ident.method == "ml"
     )
+    if not per_scan:
+        checked = ident
     z = G.holdout_residuals(
         poses.volts[held_out],
-        ident.params,
+        checked.params,
         poses.noise_volts[held_out],
         model=model,
-        covariance=ident.covariance,
+        covariance=checked.covariance,
     )
+    blocks = len(np.unique(poses.block[held_out])) if per_scan else None
+    checks: list[G.Gate] = []
+    if per_scan:
+        checks.append(G.averaging_gate(*_averaging(poses, chosen, ident)))
+        fixed_gains = [n for n in GROUPS["gains"] if n in model.fixed]
+        if fixed_gains:
+            checks.append(G.gains_gate(fixed_gains, *_gain_test(poses, chosen, ident, fixed_gains)))
     result.gates += [
         G.converged_gate(ident.converged, ident.message),
         G.condition_gate(ident.indices.condition, advice),
         G.min_singular_gate(ident.indices.min_singular, advice),
-        G.noise_gate(ident.sigma_volts, result.expected_noise_volts),
-        G.holdout_gate(z),
+        G.noise_gate(ident.sigma_volts, result.expected_noise_volts, still=still),
+        *checks,
+        G.holdout_gate(z, blocks=blocks),
         G.plausible_gate(list(model.free), start, ident.params),
         G.precision_gate(list(model.free), ident.std, advice),
     ]
     result.extra["holdout_rms_sigma"] = float(np.sqrt(np.mean(z**2))) if len(z) else None
+    result.extra["samples"] = samples
     result.seconds = time.perf_counter() - t0
     return result
+
+
+def _averaging(poses: RecordedPoses, chosen: np.ndarray, ident) -> tuple[float, int]:
+    """The fit's misfit averaged over windows of :data:`~gates.AVERAGING_S` of consecutive
+    fitted scans against white noise (:func:`loopcal.calibration.scans.averaging_ratio`)."""
+    used = chosen[ident.used]
+    misfit = closure_misfit(poses.volts[used], ident.rotations, ident.params)
+    rows = poses.rows[used, 0]
+    stride = getattr(poses, "stride", 1)
+    run_starts = np.flatnonzero(np.diff(rows, prepend=rows[:1] - 2 * stride) != stride)
+    window = max(2, round(G.AVERAGING_S * poses.scan_rate_hz / stride))
+    return averaging_ratio(misfit, run_starts, window)
+
+
+def _gain_test(
+    poses: RecordedPoses, chosen: np.ndarray, ident, names: list[str]
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """The score test of the fixed gains ``names`` at the fit
+    (:func:`loopcal.calibration.implicit.score_test`): the statistic (chi-square with one
+    degree of freedom per gain when they are right), and the change and standard deviation
+    of each gain if it were freed, mm/V."""
+    used = chosen[ident.used]
+    V = poses.volts[used]
+    E = np.zeros((len(NAMES), len(names)))
+    E[[INDEX[n] for n in names], np.arange(len(names))] = 1.0
+    t = score_test(V, np.ones_like(V), ident.rotations, ident.params, ident.model.tie_matrix, E)
+    sigma = ident.sigma_volts  # unit weights: the test is in V^2, the changes per 1/V
+    return t.statistic / sigma**2, t.change, t.std * sigma
 
 
 def describe_files(files: Sequence[RecordingFile]) -> str:

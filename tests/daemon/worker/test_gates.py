@@ -44,9 +44,9 @@ def test_advice_is_made_only_for_a_failing_gate(monkeypatch):
     calls = []
     original = G.coverage_advice
 
-    def counted(v, p):
+    def counted(v, p, **kw):
         calls.append(1)
-        return original(v, p)
+        return original(v, p, **kw)
 
     monkeypatch.setattr(G, "coverage_advice", counted)
     advice = G.lazy_coverage_advice(volts, params)

@@ -1,0 +1,101 @@
+"""MCAP -> scans for the fit: every usable scan of a recording, moving or still.
+
+The maximum-likelihood fit takes each scan as a pose of its own (one unknown plate rotation
+per scan), so the whole of a technician's hand motion counts, not only the pauses
+(docs/calibration.md). Before that, as for still poses (:mod:`loopcal.daemon.worker.poses`):
+
+- scans with a channel at the rail or faulted, and scans within ``gap_margin_s`` of a gap or
+  restart, are left out;
+- each remaining scan's readings are brought to its own time stamp
+  (:func:`loopcal.calibration.scans.deskew`: channel i is converted i x 250 µs after the
+  stamp), the rate taken from its neighbours; a scan with no usable neighbour is left out;
+- the sensor noise of one reading comes from fourth differences, which a hand's motion does
+  not inflate (:func:`loopcal.calibration.scans.difference_noise`).
+
+A recording with more usable scans than :data:`MAX_FIT_SCANS` (a day holds 1.7 million) is
+thinned to an even stride over its whole span (bench/bench_scans.py states what that costs
+in precision). Held-out stretches for the holdout gate are whole blocks of
+:data:`HOLDOUT_BLOCK_S` of time (every :data:`~loopcal.daemon.worker.gates.HOLDOUT_EVERY`-th),
+so that the check is on motion the fit did not see, not on the neighbours of fitted scans.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from loopcal.calibration.scans import CHANNEL_SKEW_S, deskew, difference_noise
+
+from .gates import HOLDOUT_BLOCK_S
+from .poses import GAP_MARGIN_S, RecordedPoses, screen_scans
+
+#: at most this many scans go into one fit (10 minutes at 20 Hz)
+MAX_FIT_SCANS = 12_000
+
+
+@dataclass(frozen=True)
+class RecordedScans(RecordedPoses):
+    """Usable scans of a recording as single-scan poses (counts all 1; ``rows[k]`` is
+    ``(row, row + 1)``; ``volts`` deskewed; ``scan_noise`` each channel's noise from fourth
+    differences, the same in every row).
+
+    block: (k,) index of the :data:`HOLDOUT_BLOCK_S` block of time each scan falls in,
+    counted from the recording's first scan. usable: scans that passed the screening before
+    thinning. stride: the thinning (1: every usable scan).
+    """
+
+    block: np.ndarray = None  # type: ignore[assignment]
+    usable: int = 0
+    stride: int = 1
+
+    @property
+    def seconds(self) -> float:
+        """The usable scans' time at the scan rate, s (before thinning)."""
+        return self.usable / self.scan_rate_hz if self.scan_rate_hz > 0 else 0.0
+
+
+def scans_for_fit(
+    s: np.ndarray,
+    *,
+    gap_margin_s: float = GAP_MARGIN_S,
+    max_scans: int = MAX_FIT_SCANS,
+    skew_s: float = CHANNEL_SKEW_S,
+) -> RecordedScans:
+    """The usable scans of scan rows (SCAN_DTYPE, oldest first; the module docstring).
+
+    gap_margin_s: scans this close to a gap or restart are left out. max_scans: more usable
+    scans than this are thinned to an even stride. skew_s: the delay between two channels'
+    conversions the readings are corrected for, s (0: not corrected, for comparison).
+    """
+    volts, valid, dropped, rate = screen_scans(s, gap_margin_s=gap_margin_s)
+    idx = np.flatnonzero(valid)
+    run_starts = np.flatnonzero(np.diff(idx, prepend=-2) != 1)
+    period = 1.0 / rate if rate > 0 else 0.05
+    V, corrected = deskew(volts[idx], period, run_starts=run_starts, skew_s=skew_s)
+    noise = difference_noise(volts[idx], run_starts=run_starts)
+    noise = np.where(np.isfinite(noise), noise, 0.0)
+    dropped["no usable neighbour to correct its channel skew"] = int((~corrected).sum())
+    idx, V = idx[corrected], V[corrected]
+    usable = len(idx)
+    stride = max(1, -(-usable // max_scans))
+    if stride > 1:
+        keep = np.arange(0, usable, stride)
+        dropped[f"thinned to every {stride}th usable scan"] = usable - len(keep)
+        idx, V = idx[keep], V[keep]
+    stamps = s["stamp_ns"][idx]
+    first = int(s["stamp_ns"][0]) if len(s) else 0
+    k = len(idx)
+    return RecordedScans(
+        volts=V,
+        spread=np.zeros((k, 4)),
+        scan_noise=np.broadcast_to(noise, (k, 4)),
+        counts=np.ones(k, dtype=np.int64),
+        rows=np.stack([idx, idx + 1], axis=1) if k else np.zeros((0, 2), dtype=np.int64),
+        stamp_ns=stamps,
+        scan_rate_hz=rate,
+        dropped=dropped,
+        block=((stamps - first) // int(HOLDOUT_BLOCK_S * 1e9)).astype(np.int64),
+        usable=usable,
+        stride=stride,
+    )
