@@ -25,11 +25,19 @@ parameter), and how many sessions each accepts. Baseline: ``poses`` in the same 
 how many each method refuses, through which gate, and the largest |error| / std of the
 seven parameters among the sessions it accepts.
 
+``enough``: ``record --until-enough`` on ``--enough-sessions`` simulated technicians (up
+to 5 minutes each): the guidance's own rule (the worker accepts and every offset's
+standard deviation is at most 0.1 mm, judged once a second) with every scan against still
+poses: when each stops (median and quartiles), how many reach it within 5 minutes, and the
+RMS error of the offsets at the stop. Target: every scan stops at least 30 % sooner, with
+the same acceptance.
+
 ``thin``: an hour of hand motion (72,000 scans): the fit on every usable scan against the
 worker's thinning to :data:`~loopcal.daemon.worker.motion.MAX_FIT_SCANS` (12,000): the
 reported standard deviations (the precision the thinning costs) and the time.
 
-Run: ``python -m bench.bench_scans [--part mc|gains|thin] [--sessions 40] [--jobs 2]``.
+Run: ``python -m bench.bench_scans [--part mc|gains|enough|thin] [--sessions 40]
+[--gain-sessions 10] [--enough-sessions 20] [--jobs 2]``.
 """
 
 from __future__ import annotations
@@ -180,6 +188,61 @@ def part_gains(sessions: int, jobs: int) -> None:
             print(f"{100 * off:6.2f}% {m:>6} {len(refused):>4}/{sessions:<3} {text:>40} {worst:>24}")
 
 
+#: the guidance's target on every offset's standard deviation, mm, and the longest session
+ENOUGH_MM, LONGEST_S = 0.1, 300
+
+
+def _enough(rows: np.ndarray, config: ControllerConfig, samples: str, truth: np.ndarray):
+    """(stop time s or None, offsets' errors at the stop) under the guidance's rule, judged
+    every second: first in 5-s steps, then second by second within the step that got there."""
+    offsets = [INDEX[n] for n in ("d01", "d02", "d03", "d04")]
+
+    def ok(t: int):
+        r = run_worker(rows[: 20 * t], config, PAPER7, samples=samples)
+        good = r.accepted and all(r.std[n] <= ENOUGH_MM for n in ("d01", "d02", "d03", "d04"))
+        return good, r
+
+    for t in range(10, LONGEST_S + 1, 5):
+        good, r = ok(t)
+        if good:
+            for u in range(max(t - 4, 10), t):
+                good_u, r_u = ok(u)
+                if good_u:
+                    return u, r_u.params[offsets] - truth[offsets]
+            return t, r.params[offsets] - truth[offsets]
+    return None, None
+
+
+def one_enough(seed: int) -> dict:
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    config = reference_config()
+    truth = truth_for(seed)
+    rows = hand_rows(20 * LONGEST_S, seed=seed)
+    return {m: _enough(rows, config, m, truth) for m in ("poses", "scans")}
+
+
+def part_enough(sessions: int, jobs: int) -> None:
+    t0 = time.perf_counter()
+    with _pool(jobs) as pool:
+        res = pool.map(one_enough, range(101, 101 + sessions))
+    print(f"enough: {sessions} technicians, --until-enough at {ENOUGH_MM} mm on the offsets, "
+          f"at most {LONGEST_S} s ({time.perf_counter() - t0:.0f} s)")  # fmt: skip
+    stops = {}
+    for m in ("poses", "scans"):
+        t = [r[m][0] for r in res if r[m][0] is not None]
+        e = np.array([r[m][1] for r in res if r[m][0] is not None])
+        stops[m] = np.array(t, dtype=float)
+        q = np.percentile(t, [25, 50, 75]) if t else [np.nan] * 3
+        rms = np.sqrt(np.mean(e**2)) if len(e) else np.nan
+        print(f"  {m:6}: enough in {len(t)}/{sessions}; stop at {q[1]:.0f} s (quartiles {q[0]:.0f}"
+              f"..{q[2]:.0f} s); offsets' RMS error at the stop {rms:.3f} mm")  # fmt: skip
+    both = [(r["poses"][0], r["scans"][0]) for r in res if None not in (r["poses"][0], r["scans"][0])]
+    if both:
+        ratio = np.median([b / a for a, b in both])
+        print(f"  every scan stops after {ratio:.2f} of the still-pose time (median of "
+              f"{len(both)} paired sessions; target <= 0.70: {'met' if ratio <= 0.7 else 'NOT met'})")
+
+
 def part_thin() -> None:
     from loopcal.calibration.identify import identify
 
@@ -202,7 +265,8 @@ def part_thin() -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--part", choices=("mc", "gains", "thin"))
+    ap.add_argument("--part", choices=("mc", "gains", "enough", "thin"))
+    ap.add_argument("--enough-sessions", type=int, default=20)
     ap.add_argument("--sessions", type=int, default=40)
     ap.add_argument("--gain-sessions", type=int, default=10)
     ap.add_argument("--jobs", type=int, default=2)
@@ -211,6 +275,8 @@ def main() -> int:
         part_mc(args.sessions, args.jobs)
     if args.part in (None, "gains"):
         part_gains(args.gain_sessions, args.jobs)
+    if args.part in (None, "enough"):
+        part_enough(args.enough_sessions, args.jobs)
     if args.part in (None, "thin"):
         part_thin()
     return 0

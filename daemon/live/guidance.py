@@ -2,11 +2,13 @@
 collected, how well it identifies the parameters, what to do next, and when it is enough.
 
 About once a second the guidance runs the calibration worker itself
-(:func:`loopcal.daemon.worker.run.run_worker`: still poses, held-out poses, selection,
-maximum-likelihood fit, acceptance gates) on every scan recorded so far, so its prediction is what
-``loopcal calibrate`` will report on the recording. Before there are enough poses for the
-worker, each free parameter's standard deviation is predicted from the poses'
-maximum-likelihood information at the controller config and the noise the poses show.
+(:func:`loopcal.daemon.worker.run.run_worker`: every usable scan, moving or still, held-out
+stretches, maximum-likelihood fit, acceptance gates) on every scan recorded so far, so its
+prediction is what ``loopcal calibrate`` will report on the recording. Before the scans pass
+through enough distinct positions for the worker, each free parameter's standard deviation
+is predicted from the information of every usable scan at the controller config and the
+noise the scans show: every scan counts, so it is enough as soon as the motion so far holds
+the information, whether the plate paused or not.
 
 It is *enough* once every offset's standard deviation is at or below the target and every
 acceptance gate passes; ``loopcal record --until-enough`` then stops, with the file closed.
@@ -27,27 +29,32 @@ from loopcal.calibration.parameters import INDEX, SL_OFFSET, UNITS, ParameterMod
 from loopcal.calibration.poses import pose_noise_volts
 
 from ..config.controller import ControllerConfig
+from ..scans import volts as scans_volts
 from ..worker import gates as G
-from ..worker.poses import RecordedPoses, poses_of_scans
+from ..worker.motion import RecordedScans, scans_for_fit
 from ..worker.run import run_worker
 
 PERIOD_S = 1.0
 #: the default target: every offset's predicted standard deviation, mm
 TARGET_MM = 0.1
 OFFSETS = tuple(n for n in INDEX if SL_OFFSET.start <= INDEX[n] < SL_OFFSET.stop)
-#: in the last RECENT_S seconds, less than this share of scans in still poses means the
-#: technician is not holding the positions long enough
-RECENT_S, STILL_SHARE = 20.0, 0.3
+#: the plate has not moved for RESTING_S seconds when every channel stayed within
+#: RESTING_BAND_V over them: the technician is asked to move on
+RESTING_S, RESTING_BAND_V = 10.0, 0.25
+#: the coverage (largest tilt toward each sensor) is judged on at most this many scans
+COVERAGE_SCANS = 2000
 
 
 @dataclass
 class GuidanceUpdate:
     """One update of the live guidance.
 
-    elapsed_s: the plate's time since the first scan (scans over the scan rate); scans,
-    poses: collected so far. reach_deg: (4,) the largest tilt reached toward each sensor.
-    min_singular, condition: of the poses the worker selected (before it can run: of all
-    the poses' maximum-likelihood information; None before they identify every parameter).
+    elapsed_s: the plate's time since the first scan (scans over the scan rate); scans:
+    collected so far; poses: the distinct positions the usable scans passed through
+    (:func:`loopcal.daemon.worker.gates.distinct_positions`, what the ``poses`` gate counts).
+    reach_deg: (4,) the largest tilt reached toward each sensor. min_singular, condition:
+    of the worker's fit (before it can run: of every usable scan's maximum-likelihood
+    information; None before they identify every parameter).
     std: {name: predicted standard deviation} of each free parameter. gates: {name:
     passed} (empty before the worker can run). enough: the target is met and every gate
     passes. instruction: what to do next.
@@ -87,7 +94,7 @@ class GuidanceUpdate:
         """The lines of the terminal display."""
         m, s = divmod(int(self.elapsed_s), 60)
         lines = [
-            f"loopcal guidance  {m:d}:{s:02d}  scans {self.scans:,}  still poses {self.poses}"
+            f"loopcal guidance  {m:d}:{s:02d}  scans {self.scans:,}  positions {self.poses}"
             f" (need {G.MIN_POSES})",
             f"coverage, largest tilt toward each sensor (aim for {G.GOOD_TILT_DEG:.0f} deg):",
         ]
@@ -96,7 +103,7 @@ class GuidanceUpdate:
             lines.append(f"  sensor {i + 1} {r:5.1f} deg |{bar:<30}|")
         if self.min_singular is not None:
             lines.append(
-                f"selection: min singular value {self.min_singular:.3f}, condition "
+                f"observability: min singular value {self.min_singular:.3f}, condition "
                 f"{self.condition:.1f}"
             )
         lines.append(f"predicted standard deviations (target {self.target_mm:g} mm on offsets):")
@@ -166,7 +173,7 @@ class Guidance:
             return "guidance: waiting for scans"
         worst = max((u.std[n] for n in OFFSETS if n in u.std), default=float("nan"))
         return (
-            f"guidance: {u.poses} poses, offsets std {worst:.3f} mm (target "
+            f"guidance: {u.poses} positions, offsets std {worst:.3f} mm (target "
             f"{u.target_mm:g}){', ENOUGH' if u.enough else ''}"
         )
 
@@ -179,18 +186,20 @@ class Guidance:
             raise ValueError("no scans yet")
         self._chunks = [scans]
         start = np.array(self.controller.params, dtype=float)
-        poses = poses_of_scans(scans)
-        elapsed = len(scans) / poses.scan_rate_hz  # of the plate's time, whatever the clock
-        reach = G.coverage(poses.volts, start)
-        u = GuidanceUpdate(elapsed, len(scans), len(poses), [float(r) for r in reach], None,
+        usable = scans_for_fit(scans)
+        elapsed = len(scans) / usable.scan_rate_hz  # of the plate's time, whatever the clock
+        step = max(1, -(-len(usable) // COVERAGE_SCANS))
+        reach = G.coverage(usable.volts[::step], start)
+        positions = G.distinct_positions(usable.volts)
+        u = GuidanceUpdate(elapsed, len(scans), positions, [float(r) for r in reach], None,
                            None, {}, self.target_mm)  # fmt: skip
-        if len(poses) >= G.MIN_POSES:
+        if positions >= G.MIN_POSES:
             self._from_worker(u, scans)
         else:
-            u.std, indices = self._predicted_std(poses, start)
+            u.std, indices = self._predicted_std(usable, start)
             if indices is not None:
                 u.min_singular, u.condition = indices.min_singular, indices.condition
-            u.instruction = self._instruction(poses, scans, start, [])
+            u.instruction = self._instruction(usable, scans, start)
         self.last = u
         self.on_update(u)
         if u.enough and not self.done:
@@ -219,21 +228,20 @@ class Guidance:
             u.instruction = failed[0].advice
         else:
             params = result.params if cal is not None else np.array(self.controller.params)
-            u.instruction = self._instruction(result.poses, scans, params, failed)
+            u.instruction = self._instruction(result.poses, scans, params)
 
     def _predicted_std(
-        self, poses: RecordedPoses, p: np.ndarray
+        self, usable: RecordedScans, p: np.ndarray
     ) -> tuple[dict[str, float], ObservabilityIndices | None]:
-        """Each free parameter's standard deviation from the poses' ML information at the
-        config (inf while the poses cannot identify them all), and the poses' indices."""
+        """Each free parameter's standard deviation from the usable scans' ML information at
+        the config (inf while they cannot identify them all), and their indices."""
         n = self.model.n_free
         out = dict.fromkeys(self.model.free, float("inf"))
-        if len(poses) < n:
+        if len(usable) < n:
             return out, None
-        scan = np.sqrt(np.mean(poses.scan_noise**2, axis=0))  # pooled over the poses
-        w = 1.0 / pose_noise_volts(scan, poses.counts)
-        R, ok = implicit.start_rotations(poses.volts, p)
-        if ok.sum() < n:
+        w = 1.0 / pose_noise_volts(usable.scan_noise, usable.counts)
+        R, ok = implicit.start_rotations(usable.volts, p)
+        if ok.sum() < n or not np.all(np.isfinite(w[ok])):
             return out, None
         a = implicit.weighted_information(R[ok], p, self.model.tie_matrix, w[ok])
         info = a.T @ a
@@ -243,16 +251,11 @@ class Guidance:
         indices = observability_indices(a[:, None, :])
         return {name: float(s) for name, s in zip(self.model.free, std, strict=True)}, indices
 
-    def _instruction(self, poses: RecordedPoses, scans: np.ndarray, p, failed) -> str:
-        recent = scans["stamp_ns"] >= scans["stamp_ns"][-1] - int(RECENT_S * 1e9)
-        first_recent = int(np.argmax(recent))
-        in_pose = np.zeros(len(scans), dtype=bool)
-        for a, b in poses.rows:
-            in_pose[a:b] = True
-        share = float(in_pose[first_recent:].mean()) if recent.any() else 0.0
-        span = (int(scans["stamp_ns"][-1]) - int(scans["stamp_ns"][first_recent])) / 1e9
-        if span >= RECENT_S / 2 and share < STILL_SHARE:
-            return "hold each position still for about a second before moving on"
-        if span >= RECENT_S / 2 and share > 0.95:
-            return "move the plate to a new position (tilt it by hand), then hold it still"
-        return G.coverage_advice(poses.volts, p)
+    def _instruction(self, usable: RecordedScans, scans: np.ndarray, p) -> str:
+        recent = scans["stamp_ns"] >= scans["stamp_ns"][-1] - int(RESTING_S * 1e9)
+        span = (int(scans["stamp_ns"][-1]) - int(scans["stamp_ns"][recent][0])) / 1e9
+        if span >= RESTING_S * 0.9:
+            volts = scans_volts(scans[recent])
+            if np.all(np.ptp(volts, axis=0) <= RESTING_BAND_V):
+                return "move the plate: tilt it by hand through new positions"
+        return G.coverage_advice(usable.volts, p, still=False)
