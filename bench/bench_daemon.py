@@ -17,8 +17,8 @@ process). Three figures, each against a baseline measured in the same run:
   accelerated rate (200 Hz of device time, ``--speed`` times as fast), sampled as it goes;
   baseline: its resident memory after the first 50,000 scans. Target: no growth.
 
-Run: ``python -m bench.bench_daemon [--seconds 60] [--scans 1000000] [--speed 25]
-[--feature-seconds 30] [--repeats 3]``.
+Run: ``python -m bench.bench_daemon [--part cpu features memory] [--seconds 60]
+[--scans 1000000] [--speed 25] [--feature-seconds 30] [--repeats 3]``.
 """
 
 from __future__ import annotations
@@ -103,53 +103,74 @@ def bench_cpu_and_jitter(seconds: float, transport: str) -> dict:
 
 
 def bench_features(seconds: float, repeats: int) -> list[tuple[str, float]]:
-    """(what is on, median share of one core) for each feature added in turn."""
+    """(what is on, median share of one core) for each feature added in turn. The steps
+    take turns (each repeat runs every step once), so that what else the machine does
+    weighs on every step alike."""
     from loopcal.daemon.config.controller import write_initial_config
-    from tests.support.js import JS, npm_installed
-    from tests.support.processes import free_port, scrape
 
     tmp = Path(tempfile.mkdtemp(prefix="loopcal-bench-"))
     config = write_initial_config(tmp / "controller.toml")  # the emulator's geometry
-    metrics, live = free_port(), free_port()
-    steps = [
-        ("recording alone (--no-health)", ["--no-health"], False, False),
-        ("+ loop-closure health", ["--controller-config", str(config)], False, False),
-        ("+ metrics (scraped every 5 s)", ["--controller-config", str(config), "--metrics",
-                                           f"127.0.0.1:{metrics}"], True, False),
-        ("+ live view, one client", ["--controller-config", str(config), "--metrics",
-                                     f"127.0.0.1:{metrics}", "--live", f"127.0.0.1:{live}"],
-         True, True),
-    ]  # fmt: skip
+    health = ["--controller-config", str(config)]
+    steps = [  # (name, health, metrics scraped, live view watched)
+        ("recording alone (--no-health)", False, False, False),
+        ("+ loop-closure health", True, False, False),
+        ("+ metrics (scraped every 5 s)", True, True, False),
+        ("+ live view, one client", True, True, True),
+    ]
+    shares: list[list[float]] = [[] for _ in steps]
+    for r in range(repeats):
+        for i, (_, healthy, scraped, watched) in enumerate(steps):
+            extra = health if healthy else ["--no-health"]
+            shares[i].append(feature_share(tmp / f"{i}-{r}", extra, seconds, scraped, watched))
     out = []
-    for name, extra, scraped, watched in steps:
-        shares = []
-        for r in range(repeats):
-            with hand_emulator(rate=20) as emu:
-                rec = subprocess.Popen([*LOOPCAL, "record", "--daq", emu.url, "--out",
-                                        str(tmp / f"{len(out)}-{r}"), *extra],
-                                       stdout=subprocess.DEVNULL,
-                                       stderr=subprocess.DEVNULL)  # fmt: skip
-                client = None
-                if watched:
-                    time.sleep(3.0)
-                    client = subprocess.Popen([npm_installed(), str(JS / "live_client.mjs"),
-                                               f"ws://127.0.0.1:{live}", str(seconds + 10)],
-                                              stdout=subprocess.DEVNULL)  # fmt: skip
-                time.sleep(5.0)
-                c0, t0 = cpu_seconds(rec.pid), time.monotonic()
-                while time.monotonic() - t0 < seconds:
-                    time.sleep(5.0)
-                    if scraped:
-                        scrape(metrics)
-                shares.append((cpu_seconds(rec.pid) - c0) / (time.monotonic() - t0))
-                stop(rec)
-                if client is not None:
-                    client.kill()
-                    client.wait()
-        out.append((name, float(np.median(shares))))
-        print(f"  {name:34} {100 * out[-1][1]:5.2f} % of one core (median of {repeats})",
-              flush=True)  # fmt: skip
+    for (name, *_), got in zip(steps, shares, strict=True):
+        out.append((name, float(np.median(got))))
+        print(f"  {name:34} {100 * out[-1][1]:5.2f} % of one core (median of {repeats}: "
+              f"{', '.join(f'{100 * x:.2f}' for x in got)})", flush=True)  # fmt: skip
     return out
+
+
+def feature_share(out: Path, extra: list[str], seconds: float, scraped: bool,
+                  watched: bool) -> float:  # fmt: skip
+    """The recorder's share of one core at 20 Hz over ``seconds`` after a warm-up, with
+    ``extra`` options, its metrics scraped every 5 s, a Foxglove client watching."""
+    from tests.support.js import JS, npm_installed
+    from tests.support.processes import free_port, scrape
+
+    metrics = free_port()
+    live = free_port()
+    while live == metrics:  # the system may give a port just released again
+        live = free_port()
+    if scraped:
+        extra = [*extra, "--metrics", f"127.0.0.1:{metrics}"]
+    if watched:
+        extra = [*extra, "--live", f"127.0.0.1:{live}"]
+    log = out.with_suffix(".log")
+    with hand_emulator(rate=20) as emu, open(log, "wb") as err:
+        rec = subprocess.Popen([*LOOPCAL, "record", "--daq", emu.url, "--out", str(out), *extra],
+                               stdout=subprocess.DEVNULL, stderr=err)  # fmt: skip
+        client = None
+        try:
+            if watched:
+                time.sleep(3.0)
+                client = subprocess.Popen([npm_installed(), str(JS / "live_client.mjs"),
+                                           f"ws://127.0.0.1:{live}", str(seconds + 10)],
+                                          stdout=subprocess.DEVNULL)  # fmt: skip
+            time.sleep(5.0)
+            c0, t0 = cpu_seconds(rec.pid), time.monotonic()
+            while time.monotonic() - t0 < seconds:
+                time.sleep(5.0)
+                if rec.poll() is not None:
+                    raise RuntimeError(f"the recorder stopped: {log.read_text()[-2000:]}")
+                if scraped:
+                    scrape(metrics)
+            share = (cpu_seconds(rec.pid) - c0) / (time.monotonic() - t0)
+        finally:
+            stop(rec)
+            if client is not None:
+                client.kill()
+                client.wait()
+    return share
 
 
 def bench_memory(n_scans: int, speed: float) -> list[tuple[int, float]]:
@@ -191,7 +212,22 @@ def main() -> int:
     ap.add_argument("--feature-seconds", type=float, default=30.0,
                     help="CPU window per feature run")  # fmt: skip
     ap.add_argument("--repeats", type=int, default=3, help="runs per feature")
+    ap.add_argument("--part", nargs="+", choices=PARTS, default=list(PARTS),
+                    help="which figures (default: all)")  # fmt: skip
     args = ap.parse_args()
+    if "cpu" in args.part:
+        cpu_and_jitter(args)
+    if "features" in args.part:
+        features(args)
+    if "memory" in args.part:
+        memory(args)
+    return 0
+
+
+PARTS = ("cpu", "features", "memory")
+
+
+def cpu_and_jitter(args: argparse.Namespace) -> None:
     print(f"CPU and read timing at 20 Hz, {args.seconds:g} s after a 5 s warm-up (Modbus TCP):")
     r = bench_cpu_and_jitter(args.seconds, "modbus-tcp")
     print(f"  recorder        {100 * r['cpu']:5.2f} % of one core "
@@ -208,6 +244,9 @@ def main() -> int:
           f"|deviation| p50 {p50:.2f} ms, p90 {p90:.2f} ms, p99 {p99:.2f} ms, "
           f"max {a['dev_max']:.2f} ms; {a['missed']} scans missed")  # fmt: skip
     print()
+
+
+def features(args: argparse.Namespace) -> None:
     print(f"Each feature's share of one core at 20 Hz ({args.feature_seconds:g} s windows):")
     steps = bench_features(args.feature_seconds, args.repeats)
     for (name, share), (_, before) in zip(steps[1:], steps[:-1], strict=True):
@@ -216,6 +255,9 @@ def main() -> int:
     print(f"  all on: {100 * total:.2f} % (target <= 1.5 %: "
           f"{'met' if total <= 0.015 else 'NOT met'})")  # fmt: skip
     print()
+
+
+def memory(args: argparse.Namespace) -> None:
     print(f"Memory while recording {args.scans:,} scans at 200 Hz x {args.speed:g} "
           f"({200 * args.speed:,.0f} scans/s):")  # fmt: skip
     samples = bench_memory(args.scans, args.speed)
@@ -229,7 +271,6 @@ def main() -> int:
         f"{made[rss.argmax()]:,} scans. Files rotate every 60 s of device time "
         f"({200 * 60:,} x {args.speed:g} scans): each file's index is freed when it closes."
     )
-    return 0
 
 
 if __name__ == "__main__":
