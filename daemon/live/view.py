@@ -16,11 +16,18 @@ layout that opens a recording opens the live session too:
   ``/loopcal/guidance/tilt``: the next direction to tilt, an arrow in the 3D scene.
 
 Read-only: the server advertises no capability (no parameters, services, publishing or
-client channels). It runs in threads of its own (the SDK's); the observer hands each
-message to it and returns: a client that cannot keep up has its oldest messages dropped by
-the server (:data:`BACKLOG` per client), never the recording's, and the views are computed
-only while someone subscribes. The live view is an observer (the analysis thread): reading
-the DAQ and writing the recording never wait for it.
+client channels). The per-scan views are not computed again: the recording's writer hands
+the ones it has just put in the file over a bounded queue (:data:`QUEUE` messages) to a
+thread of the live view's own, which gives them to the server (the SDK's threads) if
+someone subscribes; the writer only appends to that queue and returns. So the live view
+shows a scan once it is in the file (at most a flush period, ``[recording].flush_period``,
+later), and shows at the controller config the file records. A client that cannot keep up
+has its oldest messages dropped by the server (:data:`BACKLOG` per client, not counted:
+the SDK does not say); a live view that cannot keep up drops the oldest of its queue, and
+counts them (:attr:`LiveView.dropped`, the metric ``loopcal_live_dropped_messages``):
+never a scan of the recording. The health and the scene come from the analysis thread
+(the live view is an observer, after the health monitor); events from whichever thread
+emits them.
 
 Imports: foxglove-sdk, the recording format's views and schemas, the recorder's settings
 (the address) and metrics (what a bound address exposes).
@@ -32,9 +39,12 @@ import json
 import logging
 import threading
 import time
+from collections import deque
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
+from prometheus_client.core import CounterMetricFamily
 
 from loopcal.calibration.kinematics import base_points
 
@@ -53,7 +63,7 @@ from ..recording.schemas import (
     TOPIC_TRANSFORM,
     schema_bytes,
 )
-from ..recording.views import joint_states, scene_message, state_messages, transform_messages
+from ..recording.views import WrittenViews, scene_message
 from ..recording.writer import log_entry
 from .guidance import GuidanceUpdate
 from .health import HealthMonitor
@@ -63,6 +73,9 @@ log = logging.getLogger(__name__)
 #: messages the server keeps per client before it drops the oldest (about 25 s of views at
 #: 20 Hz: two a scan)
 BACKLOG = 1024
+#: messages of scan views waiting between the recording's writer and the live view's
+#: thread: no more than the server keeps for a client (more would be dropped there)
+QUEUE = BACKLOG
 #: seconds between two /plate/scene messages (a viewer that joins sees it within this)
 SCENE_EVERY_S = 2.0
 TOPIC_HEALTH = "/loopcal/health"
@@ -110,9 +123,10 @@ def _stamp(ns: int) -> dict[str, int]:
 
 
 class LiveView:
-    """An observer serving the recorder's channels on ``listen`` ("HOST:PORT"; port 0: any
-    free port, :attr:`port` says which). Raises SettingsError naming ``[live].listen`` if
-    it cannot listen there. Call :meth:`close` when the recorder stops."""
+    """An observer serving the recorder's channels on ``listen`` ("HOST:PORT", a port of
+    1..65535), and a listener of the recording's views (:meth:`views`). Raises
+    SettingsError naming ``[live].listen`` if it cannot listen there. Call :meth:`close`
+    when the recorder stops."""
 
     name = "live view"
 
@@ -148,6 +162,17 @@ class LiveView:
             TOPIC_TILT, "foxglove.SceneUpdate", json.loads(schema_bytes("foxglove.SceneUpdate")))
         self._last_scene = 0.0
         self._health_poses = -1
+        self._queue: deque[WrittenViews] = deque()
+        self._queued = 0  # messages in the queue
+        self._queue_lock = threading.Lock()
+        self._wake = threading.Event()
+        self._closing = False
+        #: per-scan view messages dropped from the queue (it was full), and handed to the
+        #: server while someone subscribed
+        self.dropped = 0
+        self.served = 0
+        self._thread = threading.Thread(target=self._serve, name="loopcal-live", daemon=True)
+        self._thread.start()
         if what := exposed(host):
             log.warning("the live view on %s is served to %s, not only to this machine: "
                         "anyone who reaches it watches the session (read-only); bind "
@@ -163,28 +188,73 @@ class LiveView:
     def _log(self, topic: str, data: bytes | str, log_time: int) -> None:
         self._channels[topic].log(data, log_time=int(log_time))
 
+    # ------------------------------------------------------------------ scan views
+
+    def views(self, views: WrittenViews) -> None:
+        """The views of scans the recording's writer has just written (its thread): queued
+        for the live view's thread. Returns at once; past :data:`QUEUE` messages waiting,
+        the oldest are dropped and counted in :attr:`dropped`."""
+        if not len(views):
+            return
+        with self._queue_lock:
+            self._queue.append(views)
+            self._queued += len(views)
+            while self._queued > QUEUE:
+                old = self._queue.popleft()
+                self._queued -= len(old)
+                if self._queued < QUEUE:  # keep the newest messages of the oldest write
+                    kept = _newest(old, QUEUE - self._queued)
+                    self._queue.appendleft(kept)
+                    self._queued += len(kept)
+                    self.dropped += len(old) - len(kept)
+                else:
+                    self.dropped += len(old)
+        self._wake.set()
+
+    def _serve(self) -> None:
+        """The live view's thread: hands the queued views to the server (to subscribers)."""
+        state, transform = (self._channels[t].base for t in (TOPIC_STATE, TOPIC_TRANSFORM))
+        while not self._closing:
+            self._wake.wait()
+            self._wake.clear()
+            with self._queue_lock:
+                pending, self._queue = self._queue, deque()
+                self._queued = 0
+            for v in pending:
+                for base, stamps, messages in ((state, v.state_stamps, v.states),
+                                               (transform, v.transform_stamps, v.transforms)):
+                    if messages and base.has_sinks():
+                        for t, data in zip(stamps.tolist(), messages, strict=True):
+                            base.log(data, t, None)
+                        self.served += len(messages)
+            if pending:
+                last = pending[-1]
+                self._scene(int(max(last.state_stamps[-1:].tolist()
+                                    + last.transform_stamps[-1:].tolist())))
+
+    def _scene(self, stamp_ns: int) -> None:
+        """/plate/scene, every :data:`SCENE_EVERY_S` while someone subscribes."""
+        now = time.monotonic()
+        ch = self._channels[TOPIC_SCENE]
+        if now - self._last_scene >= SCENE_EVERY_S and ch.has_sinks():
+            ch.log(scene_message(stamp_ns, self.params), log_time=stamp_ns)
+            self._last_scene = now
+
+    def metrics(self) -> Iterator[Any]:
+        """The live view's counters for the recorder's metrics."""
+        yield CounterMetricFamily(
+            "loopcal_live_dropped_messages", "live view messages (per-scan views) dropped "
+            "because the live view's queue was full; not those the server drops for a "
+            "client that cannot keep up", value=self.dropped)  # fmt: skip
+        yield CounterMetricFamily(
+            "loopcal_live_messages", "per-scan view messages handed to the live view's "
+            "server while someone subscribed", value=self.served)  # fmt: skip
+
     # ------------------------------------------------------------------ observer
 
     def feed(self, rows: np.ndarray) -> None:
-        """The views of new scans, to whoever subscribes (nothing is computed otherwise)."""
-        ch = self._channels
-        state, transform = ch[TOPIC_STATE].has_sinks(), ch[TOPIC_TRANSFORM].has_sinks()
-        if len(rows) and (state or transform):
-            js = joint_states(rows, self.params)
-            stamps = rows["stamp_ns"]
-            if state:
-                for t, data in zip(stamps, state_messages(rows, js), strict=True):
-                    self._log(TOPIC_STATE, data, t)
-            if transform:
-                good = np.flatnonzero(js.pose_ok)
-                for t, data in zip(stamps[good], transform_messages(stamps[good], js.quat[good]),
-                                   strict=True):  # fmt: skip
-                    self._log(TOPIC_TRANSFORM, data, t)
-        now = time.monotonic()
-        if len(rows) and now - self._last_scene >= SCENE_EVERY_S and ch[TOPIC_SCENE].has_sinks():
-            t = int(rows["stamp_ns"][-1])
-            self._log(TOPIC_SCENE, scene_message(t, self.params), t)
-            self._last_scene = now
+        """After the health monitor's feed (the analysis thread): its latest test, if new.
+        The scans' views come from the recording's writer (:meth:`views`)."""
         self._publish_health()
 
     def _publish_health(self) -> None:
@@ -251,6 +321,9 @@ class LiveView:
         self._log(TOPIC_TILT, json.dumps(scene), now)
 
     def close(self) -> None:
+        self._closing = True
+        self._wake.set()
+        self._thread.join(5.0)
         self.server.stop()
 
 
@@ -264,4 +337,15 @@ def watch_live(recorder: Any, listen: str | None, *, health: HealthMonitor | Non
     view = LiveView(listen, recorder.controller, health=health)
     recorder.add_observer(view)
     recorder.event_listeners.append(view.event)
+    recorder.view_listeners.append(view.views)
     return view
+
+
+def _newest(v: WrittenViews, keep: int) -> WrittenViews:
+    """The newest ``keep`` messages of ``v`` (of each channel in proportion)."""
+    n = len(v)
+    ks = keep * len(v.states) // n if n else 0
+    kt = keep - ks
+    return WrittenViews(v.state_stamps[len(v.states) - ks:], v.states[len(v.states) - ks:],
+                        v.transform_stamps[len(v.transforms) - kt:],
+                        v.transforms[len(v.transforms) - kt:])  # fmt: skip

@@ -28,6 +28,7 @@ from pathlib import Path
 
 from ..config.controller import ControllerConfig, load_controller_config, nominal_config
 from ..events import Event, Level
+from ..recording.views import WrittenViews
 from ..version import loopcal_version
 from .acquisition import Acquisition, AcquisitionStats, Batch, ResumePoint
 from .compactor import Compactor
@@ -113,6 +114,10 @@ class Recorder:
         #: called with every event as it is emitted, from the emitting thread (the live
         #: view); each must return at once
         self.event_listeners: list[Callable[[Event], None]] = []
+        #: called with the views of the scans each write put in the recording (the live
+        #: view, which so does not compute them again), from the writer thread; each must
+        #: return at once
+        self.view_listeners: list[Callable[[WrittenViews], None]] = []
         self.compactor = Compactor(lambda: self.settings.keep_views_days) \
             if settings.compact else None  # fmt: skip
         self.metrics: MetricsServer | None = None
@@ -164,6 +169,13 @@ class Recorder:
                 listener(ev)
             except Exception:  # noqa: BLE001 - a listener (the live view) never stops recording
                 log.exception("an event listener failed")
+
+    def _views(self, views: WrittenViews) -> None:
+        for listener in self.view_listeners:
+            try:
+                listener(views)
+            except Exception:  # noqa: BLE001 - a listener (the live view) never stops recording
+                log.exception("a listener of the views failed")
 
     def event_counts(self) -> Counter[tuple[str, str]]:
         """How many events of each (kind, level) the recorder has recorded so far (its own,
@@ -412,7 +424,8 @@ class Recorder:
     def _writer_main(self) -> None:
         try:
             FileWriter(self._queue, self.shared, self.status, command=self.command,
-                       done=self._writer_done, compactor=self.compactor).run()  # fmt: skip
+                       done=self._writer_done, compactor=self.compactor,
+                       on_views=self._views if self.view_listeners else None).run()  # fmt: skip
         except BaseException as exc:  # noqa: BLE001 - reported, and the recorder stops
             log.exception("writer thread failed")
             self._fatal = exc

@@ -23,6 +23,7 @@ import os
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,6 +32,7 @@ import numpy as np
 from ..config.controller import ControllerConfig
 from ..events import Event, Level
 from ..recording import RecordingWriter, find_recordings, metadata_records, recording_name
+from ..recording.views import WrittenViews
 from ..scans import SCAN_DTYPE
 from .acquisition import Batch, DeviceInfo
 from .compactor import Compactor
@@ -186,15 +188,18 @@ class FileWriter:
     queue: where the acquisition puts its batches. shared: the state the recorder's threads
     share. status: what the status line shows (written here). command: how the recorder
     was started (every file's metadata). done: set when the recorder stops: write
-    everything, close the file, return from :meth:`run`.
+    everything, close the file, return from :meth:`run`. on_views: given every write's views
+    as the file got them (:class:`~loopcal.daemon.recording.views.WrittenViews`; the live
+    view), from this thread: it must return at once.
     """
 
     def __init__(self, queue: ScanQueue, shared: Shared, status: RecorderStatus, *,
-                 command: str, done: threading.Event,
-                 compactor: Compactor | None = None) -> None:  # fmt: skip
+                 command: str, done: threading.Event, compactor: Compactor | None = None,
+                 on_views: Callable[[WrittenViews], None] | None = None) -> None:  # fmt: skip
         self.queue, self.shared, self.status = queue, shared, status
         self.command, self.done = command, done
         self.compactor = compactor
+        self.on_views = on_views
         self.rows: list[np.ndarray] = []
         self.n_rows = 0
         self.events: list[Event] = []
@@ -302,7 +307,8 @@ class FileWriter:
                 "rotate_bytes": str(s.rotate_bytes),
             },
         )
-        f = RecordingWriter(path, metadata=meta, params=controller.params)
+        f = RecordingWriter(path, metadata=meta, params=controller.params,
+                            on_views=self.on_views)  # fmt: skip
         self.status.bytes_written += f.size  # its header, schemas and metadata
         self.file, self.file_opened, self.file_device = f, now, self.device
         self.status.file = path

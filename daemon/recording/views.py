@@ -89,6 +89,22 @@ def joint_states(rows: np.ndarray, params: np.ndarray) -> JointStates:
     return JointStates(v, lengths, ok, pose_ok, quat, euler, b, swivel, rms, error)
 
 
+@dataclass(frozen=True)
+class WrittenViews:
+    """The per-scan views of one write, as a recording file got them (what the live view
+    passes on instead of computing them again): ``/joint/state`` messages (CDR) and their
+    log times (ns), one a scan; ``/plate/transform`` messages and theirs, one a scan with a
+    pose."""
+
+    state_stamps: np.ndarray
+    states: list[bytes]
+    transform_stamps: np.ndarray
+    transforms: list[bytes]
+
+    def __len__(self) -> int:
+        return len(self.states) + len(self.transforms)
+
+
 def _secs(stamps: np.ndarray, arr: np.ndarray) -> None:
     sec, nsec = np.divmod(stamps.astype(np.int64), NS_PER_S)
     arr["sec"], arr["nanosec"] = sec, nsec

@@ -4,10 +4,11 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import socket
 import sys
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -33,7 +34,15 @@ from .schemas import (
     TOPIC_TRANSFORM,
     schema_bytes,
 )
-from .views import joint_states, scene_message, state_messages, transform_messages
+from .views import (
+    WrittenViews,
+    joint_states,
+    scene_message,
+    state_messages,
+    transform_messages,
+)
+
+log = logging.getLogger(__name__)
 
 #: chunks are closed by flushes only, never by size
 _CHUNK_SIZE = 1 << 30
@@ -53,7 +62,9 @@ class RecordingWriter:
     path: the file to create. metadata: name -> {key: value} records to write at the start.
     params: the controller config's full parameter vector (20,), for the views.
     fsync: make each write durable (only synthetic test data turns it off; the layout is
-    the same either way).
+    the same either way). on_views: called with each write's views (:class:`WrittenViews`)
+    once they are in the file, from the writing thread (the recorder's live view); it must
+    return at once, and what it raises is not the recording's concern (logged, ignored).
     """
 
     def __init__(
@@ -64,8 +75,10 @@ class RecordingWriter:
         params: np.ndarray,
         compression: CompressionType = CompressionType.ZSTD,
         fsync: bool = True,
+        on_views: Callable[[WrittenViews], None] | None = None,
     ) -> None:
         self.path = Path(path)
+        self.on_views = on_views
         self._fsync = fsync
         self.params = check_vector(params).copy()
         self.scans_written = 0
@@ -169,11 +182,18 @@ class RecordingWriter:
             t0 = int(stamps[0])
             w.add_message(ch[TOPIC_SCENE], t0, scene_message(t0, self.params), t0)
             self._scene_done = True
-        for i, data in enumerate(state_messages(rows, js)):
+        states = state_messages(rows, js)
+        for i, data in enumerate(states):
             w.add_message(ch[TOPIC_STATE], int(stamps[i]), data, int(hosts[i]), int(seq[i]))
         good = np.flatnonzero(js.pose_ok)
-        for i, data in zip(good, transform_messages(stamps[good], js.quat[good]), strict=True):
+        transforms = transform_messages(stamps[good], js.quat[good])
+        for i, data in zip(good, transforms, strict=True):
             w.add_message(ch[TOPIC_TRANSFORM], int(stamps[i]), data, int(hosts[i]), int(seq[i]))
+        if self.on_views is not None:
+            try:
+                self.on_views(WrittenViews(stamps.copy(), states, stamps[good], transforms))
+            except Exception:  # noqa: BLE001 - a reader of the views never stops the recording
+                log.exception("a listener of the views failed")
 
     def close(self) -> None:
         """Write the summary and index, fsync and close. Idempotent."""

@@ -11,13 +11,21 @@ import subprocess
 import numpy as np
 import pytest
 
-from loopcal.daemon.config.controller import write_initial_config
+from loopcal.daemon.config.controller import nominal_config, write_initial_config
+from loopcal.daemon.live.view import QUEUE, LiveView
 from loopcal.daemon.recording import read_recordings
+from loopcal.daemon.recording.views import (
+    WrittenViews,
+    joint_states,
+    state_messages,
+    transform_messages,
+)
 from tests.support import ROOT
 from tests.support.emulator import hand_emulator
 from tests.support.js import JS, npm_installed
 from tests.support.layouts import PATH, layout_paths, value_at
-from tests.support.processes import free_port, record
+from tests.support.processes import free_port, record, scrape, value
+from tests.support.rows import make_rows
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -92,16 +100,26 @@ def test_a_foxglove_client_sees_every_channel_decoded_at_the_scan_rate(tmp_path)
 
 
 def test_stalled_and_many_viewers_cost_the_recording_no_scan(tmp_path):
-    port = free_port()
+    port, metrics = free_port(), free_port()
+    while metrics == port:
+        metrics = free_port()
     with hand_emulator(speed=SPEED) as emu:
         rec = record(emu.url, tmp_path / "rec", "--read-period", "0.05", "--live",
-                     f"127.0.0.1:{port}", "--duration", "12")  # fmt: skip
+                     f"127.0.0.1:{port}", "--metrics", f"127.0.0.1:{metrics}",
+                     "--duration", "12")  # fmt: skip
         try:
             rec.wait_for("recording to", timeout=20)
             seen = watch(port, 8.0, clients=20, stalled=5)
+            m = scrape(metrics)
             assert rec.wait(60) == 0, rec.text
         finally:
             rec.kill()
+    # what the live path itself dropped is exported (the server's drops per client are not
+    # known to it); the views it handed on, one /joint/state and about one /plate/transform
+    # a scan while someone watched
+    assert value(m, "loopcal_live_dropped_messages_total") >= 0
+    state = seen["topics"]["/joint/state"]["received"]
+    assert value(m, "loopcal_live_messages_total") > 1.5 * state
     assert seen["errors"] == [], seen["errors"][:5]
     assert seen["topics"]["/joint/state"]["received"] > 0.6 * 8.0 * 20 * SPEED
     assert seen["others"]["received"] > 10 * seen["topics"]["/joint/state"]["received"]
@@ -129,3 +147,28 @@ def test_a_bad_or_taken_live_address_is_refused(tmp_path):
         proc = record("modbus-tcp://127.0.0.1:1", tmp_path / "r", "--live", f"127.0.0.1:{port}",
                       "--duration", "1")  # fmt: skip
         assert proc.wait(30) == 2 and "--live" in proc.text, proc.text
+
+
+def test_the_live_path_drops_the_oldest_views_it_cannot_hand_on_and_counts_them():
+    """More views at once than the live view's queue holds (a disk backlog written when the
+    disk is back, at 200 scans a second): QUEUE messages are kept (the newest), the rest
+    dropped, counted, and exported; the server's own drops for a slow client are not."""
+    controller = nominal_config()
+    rows = make_rows(3000)
+    js = joint_states(rows, controller.params)
+    stamps = rows["stamp_ns"].copy()
+    good = np.flatnonzero(js.pose_ok)
+    views = WrittenViews(stamps, state_messages(rows, js), stamps[good],
+                         transform_messages(stamps[good], js.quat[good]))  # fmt: skip
+    assert len(views) > 2 * QUEUE
+    view = LiveView(f"127.0.0.1:{free_port()}", controller)
+    try:
+        view.views(views)
+        assert view.dropped == len(views) - QUEUE
+        view.views(WrittenViews(stamps[:0], [], stamps[:0], []))  # nothing: nothing dropped
+        assert view.dropped == len(views) - QUEUE
+        exported = {m.name: m.samples[0].value for m in view.metrics()}
+        assert exported["loopcal_live_dropped_messages"] == len(views) - QUEUE
+        assert exported["loopcal_live_messages"] == 0  # nobody subscribed: none handed on
+    finally:
+        view.close()
