@@ -58,7 +58,7 @@ from loopcal.calibration.poses import pose_noise_volts
 from ..config.controller import ControllerConfig
 from ..events import Level
 from ..recorder.engine import Recorder
-from ..worker.poses import completed_poses
+from ..worker.poses import GAP_MARGIN_S, STILL_WINDOW_S, RecordedPoses, completed_poses
 
 WINDOW = 30  # poses per test
 MIN_AFFECTED = 6  # a shift must show in at least this many of the latest poses
@@ -201,7 +201,39 @@ class HealthMonitor:
             self._add(_Poses(P.volts[new], P.scan_noise[new], P.counts[new].astype(float),
                              P.stamp_ns[new].astype(np.int64),
                              pose_models(P.volts[new], self.params)))  # fmt: skip
+        if not final:
+            keep_from = self._settle(buf, P, len(done) < len(P), keep_from)
         self._buf = buf[keep_from:].copy()
+
+    def _settle(self, buf: np.ndarray, P: RecordedPoses, open_pose: bool, keep_from: int) -> int:
+        """Where to keep ``buf`` from for the next search, so that a feed searches its new
+        scans and a bounded context, not every scan since the last pose (up to
+        :data:`~loopcal.daemon.worker.poses.POSE_BUFFER_S` while the plate moves).
+
+        A row the plate was not still at, whose every still window is in ``buf`` (settled),
+        is in no later pose: the open pose begins after it (the row before the open pose),
+        or, with none, every settled row after the kept ones is such a row (a still one would
+        be in a pose of ``buf``); take the last one, r. The rows from r on are still or not
+        in a search of ``buf[s:]`` exactly as in one of ``buf``, for s = r + 1 - window -
+        margin (a gap's margin before them, and their windows, are in it), so the poses a
+        later search finds after r are the same; those it finds up to r (rows whose context
+        was cut) are not poses, and are skipped as counted ones are (``_last_key``)."""
+        rate = P.scan_rate_hz
+        window = max(2, round(STILL_WINDOW_S * rate))
+        margin = max(1, round(GAP_MARGIN_S * rate))
+        if open_pose:
+            r = int(P.rows[-1][0]) - 1  # the row before it: it begins no split piece here
+            if r < keep_from:
+                return keep_from  # the open pose goes on from the kept rows' start
+        else:
+            r = len(buf) - window  # the last settled row
+            if r < keep_from + window:  # the kept rows may begin with a still one
+                return keep_from
+        s = r + 1 - window - margin
+        if s <= keep_from:
+            return keep_from
+        self._last_key = max(self._last_key, (int(buf["epoch"][r]), int(buf["counter64"][r])))
+        return s
 
     # ------------------------------------------------------------------ the test
 

@@ -295,3 +295,48 @@ def test_a_recorder_whose_config_never_fitted_says_so_not_a_drift(tmp_path):
     assert kinds == ["loops_open"], [e.message for e in events]
     assert "the loops do not close at the controller config since the recording began" \
         in proc.text  # fmt: skip
+
+
+def test_a_feed_searches_its_new_scans_not_every_scan_since_the_last_pose():
+    """While the plate moves (20 s without a still pose), the monitor keeps two windows and
+    a gap's margin of scans for the next search (24 at 20 Hz), not every scan since the
+    last pose (up to 15 s): a feed's work follows its new scans."""
+    n = 20 * 20
+    sweep = (np.arange(n) * 20) % 1500  # 0.1 V a scan: never still
+    rows = rows_from(np.arange(n) * 50_000, 1000 + sweep[:, None] + np.arange(4) * 300)
+    mon = HealthMonitor(replace(nominal_config(), params=tuple(TRUTH)), lambda *a, **d: None)
+    kept = []
+    for a in range(0, n, 20):
+        mon.feed(rows[a : a + 20])
+        kept.append(len(mon._buf))
+    assert mon.state.poses == 0 and max(kept) == 2 * 10 + 5 - 1, kept
+
+
+def test_poses_fed_a_second_at_a_time_are_those_of_one_search_over_the_session():
+    """Across gaps and a restart, the poses the monitor tests, fed a second of scans at a
+    time and keeping only what a later pose can need, are those one search over the whole
+    session completes."""
+    from loopcal.daemon.live.health import MIN_AFFECTED
+    from loopcal.daemon.worker.poses import completed_poses
+
+    scenario = HandMoves(3, params=TRUTH, pause_s=PAUSE_S)
+    t_us, codes = mechanism_scans(scenario, TRUTH, 20 * 900, noise_volts=0.04, seed=3)
+    rows = rows_from(t_us, codes)
+    rng = np.random.default_rng(3)
+    keep = np.ones(len(rows), dtype=bool)
+    for g in rng.integers(100, len(rows) - 100, 8):  # eight gaps of up to 30 scans
+        keep[g : g + rng.integers(1, 30)] = False
+    rows = rows[keep].copy()
+    jump = np.diff(rows["counter64"].astype(np.int64))
+    rows["missed"][1:] = np.where(jump > 1, jump - 1, 0)
+    r = int(0.6 * len(rows))  # the module restarts there
+    rows["epoch"][r:] += 1
+    rows["restarted"][r] = True
+    tested = []
+    mon = HealthMonitor(replace(nominal_config(), params=tuple(TRUTH)), lambda *a, **d: None,
+                        on_test=lambda stamp, _: tested.append(stamp))  # fmt: skip
+    for a in range(0, len(rows), 20):
+        mon.feed(rows[a : a + 20])
+    P, done, _ = completed_poses(rows)
+    assert mon.state.poses == len(done) > 250
+    assert tested == P.stamp_ns[done][MIN_AFFECTED - 1 :].tolist()
