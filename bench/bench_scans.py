@@ -23,7 +23,8 @@ parameter), and how many sessions each accepts. Baseline: ``poses`` in the same 
 
 ``gains``: sensor 3's gain in the config off by 0 .. 3 % on ``--gain-sessions`` sessions:
 how many each method refuses, through which gate, and the largest |error| / std of the
-seven parameters among the sessions it accepts.
+seven parameters among the sessions it accepts; and, with the four gains free too (every
+scan), the same and the gains' precision.
 
 ``enough``: ``record --until-enough`` on ``--enough-sessions`` simulated technicians (up
 to 5 minutes each): the guidance's own rule (the worker accepts and every offset's
@@ -50,7 +51,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from loopcal.calibration.parameters import INDEX, PAPER7
+from loopcal.calibration.parameters import INDEX, PAPER7, ParameterModel
 from loopcal.calibration.pipeline import calibrate_scans
 from loopcal.daemon.config.controller import ControllerConfig, nominal_config
 from loopcal.daemon.worker.motion import scans_for_fit
@@ -58,6 +59,8 @@ from loopcal.daemon.worker.run import run_worker
 from tests.support.sessions import hand_rows, truth_for
 
 FREE = list(PAPER7.free)
+GAINS = ("S1", "S2", "S3", "S4")
+WITH_GAINS = ParameterModel(free=(*PAPER7.free, *GAINS), ties=PAPER7.ties)
 IDX = [INDEX[n] for n in FREE]
 VARIANTS = ("poses", "scans", "scans 75s", "no deskew")
 
@@ -165,6 +168,12 @@ def one_gain(args: tuple[int, float]) -> dict:
         r = run_worker(rows, config, PAPER7, samples=samples)
         _, z = _errors(r.params, r.std, truth)
         out[samples] = (r.accepted, [g.name for g in r.failed], float(np.abs(z).max()))
+    # every scan with the four gains free too: the seven's error over their std, and the
+    # gains' std
+    r = run_worker(rows, config, WITH_GAINS)
+    _, z = _errors(r.params, r.std, truth)
+    out["scans, gains free"] = (r.accepted, [g.name for g in r.failed], float(np.abs(z).max()),
+                                max(r.std.get(n, np.nan) for n in GAINS))  # fmt: skip
     return out
 
 
@@ -173,19 +182,22 @@ def part_gains(sessions: int, jobs: int) -> None:
     with _pool(jobs) as pool:
         res = pool.map(one_gain, [(s, o) for o in offs for s in range(1, sessions + 1)])
     print(f"gains: S3 in the config off by ..., {sessions} sessions each")
-    print(f"{'S3 off':>7} {'method':>6} {'refused':>8} {'by':>40} {'max |err|/std accepted':>24}")
+    print(f"{'S3 off':>7} {'method':>6} {'refused':>8} {'by':>40} {'max |err|/std accepted':>24}"
+          "  (the seven's)")  # fmt: skip
     for j, off in enumerate(offs):
         chunk = res[j * sessions : (j + 1) * sessions]
-        for m in ("poses", "scans"):
+        for m in ("poses", "scans", "scans, gains free"):
             refused = [c[m] for c in chunk if not c[m][0]]
             by: dict[str, int] = {}
-            for _, names, _ in refused:
+            for _, names, *_ in refused:
                 for n in names:
                     by[n] = by.get(n, 0) + 1
             acc = [c[m][2] for c in chunk if c[m][0]]
             worst = f"{max(acc):.2f}" if acc else "-"
             text = ", ".join(f"{n} {c}" for n, c in sorted(by.items()))
             print(f"{100 * off:6.2f}% {m:>6} {len(refused):>4}/{sessions:<3} {text:>40} {worst:>24}")
+        g = [c["scans, gains free"][3] for c in chunk]
+        print(f"{'':8}gains free: largest std of S1..S4 {np.median(g):.4f} mm/V (median)")
 
 
 #: the guidance's target on every offset's standard deviation, mm, and the longest session

@@ -5,7 +5,7 @@ second between moves, 40 mV of noise), written once as the daemon writes it (hou
 cached under ``--dir``; scans from :mod:`loopcal.simulator.offline`, the emulator's own) and kept as
 the daemon keeps it: each file compacted after its rotation
 (:mod:`loopcal.daemon.recording.compact`); the day is also run as written, before compaction (one
-chunk a second). For each length, the median of ``--repeats`` runs of the real command,
+chunk a second). The worker fits every usable scan (issue 22; a day thinned to 12,000). For each length, the median of ``--repeats`` runs of the real command,
 ``loopcal calibrate DIR --controller-config C --write`` in a subprocess on a fresh config,
 and, in this process, where the time goes (read, poses, fit and gates). The baseline,
 measured in the same run, is reading the recording alone: the growth of the rest against it
@@ -13,9 +13,9 @@ shows how the worker scales. Target (issue #16): a day in under 3 s.
 
 Then a line per stage of the worker with its median over the repeats, a column per
 recording (:func:`loopcal.daemon.worker.run.run_worker` on the scans read, the stages timed where it
-calls them): the still-pose search, the held-out split and the gates, the selection
-(candidates prepared and chosen, every round), the identification (every fit, the first
-estimate's included), and the worker's total; and the command's total, with the share of it
+calls them): the usable scans (screening, channel skew, thinning), the held-out split and the
+gates, the identification (both fits: without the held-out stretches, then all), and the
+worker's total; and the command's total, with the share of it
 the read takes (the same read, timed in this process).
 
 Run: ``python -m bench.bench_worker [--repeats 3] [--dir bench/results/worker]``.
@@ -34,7 +34,7 @@ import loopcal.calibration.pipeline as pipeline
 import loopcal.daemon.worker.run as worker_run
 from loopcal.daemon.config.controller import load_controller_config, write_initial_config
 from loopcal.daemon.recording import find_recordings, read_recordings
-from loopcal.daemon.worker.poses import poses_of_scans
+from loopcal.daemon.worker.motion import scans_for_fit
 from loopcal.daemon.worker.run import run_worker
 from loopcal.simulator.scenarios import HandMoves
 from tests.support.recordings import compacted_copy
@@ -79,21 +79,15 @@ def command(rec_dir: Path, work: Path) -> tuple[float, int]:
 
 #: the worker's stages: the functions timed, where run.py and pipeline.py look them up
 STAGE_FUNCTIONS = {
-    "poses": [(worker_run, "poses_of_scans")],
-    "selection": [
-        (pipeline, "ml_candidates"),
-        (pipeline, "candidate_jacobian"),
-        (pipeline, "select_poses"),
-    ],
+    "poses": [(worker_run, "scans_for_fit")],
     "identification": [(pipeline, "identify")],
-    "calibrate": [(worker_run, "calibrate")],
+    "calibrate": [(worker_run, "calibrate_scans")],
 }
 STAGE_LABELS = {
-    "poses": "still poses (search over the scans)",
+    "poses": "usable scans (screen, deskew, thin)",
     "split+gates": "held-out split and gates",
-    "selection": "selection (candidates and exchange)",
-    "identification": "identification (every fit)",
-    "worker": "poses+fit+gates (run_worker)",
+    "identification": "identification (both fits)",
+    "worker": "scans+fit+gates (run_worker)",
 }
 
 
@@ -127,7 +121,6 @@ def timed_worker(scans, config) -> tuple[dict[str, float], object]:
     out = {
         "poses": spent["poses"],
         "split+gates": total - spent["poses"] - spent["calibrate"],
-        "selection": spent["selection"],
         "identification": spent["identification"],
         "worker": total,
     }
@@ -141,12 +134,12 @@ def stages(rec_dir: Path, work: Path) -> dict[str, float]:
     rec = read_recordings(rec_dir)
     out["read"] = time.perf_counter() - t
     t = time.perf_counter()
-    poses = poses_of_scans(rec.scans)
+    usable = scans_for_fit(rec.scans)
     out["poses"] = time.perf_counter() - t
     t = time.perf_counter()
     res = run_worker(rec.scans, config, config.model(), files=rec.files)
     out["poses+fit+gates"] = time.perf_counter() - t
-    out["n_poses"] = len(poses)
+    out["n_poses"] = len(usable)
     out["accepted"] = res.accepted
     out["scans"] = len(rec)
     parts, _ = timed_worker(rec.scans, config)
@@ -178,8 +171,8 @@ def main() -> int:
         rows.append((label, statistics.median(t for t, _ in runs), runs[-1][1], med, st[-1]))
     print()
     print(
-        f"{'recording':>9} {'scans':>10} {'poses':>6} {'command':>8} {'read':>7} "
-        f"{'poses':>7} {'fit+gates':>9} {'accepted':>8}"
+        f"{'recording':>9} {'scans':>10} {'fitted':>6} {'command':>8} {'read':>7} "
+        f"{'usable':>7} {'fit+gates':>9} {'accepted':>8}"
     )
     base = None
     for label, total, rc, med, last in rows:

@@ -42,7 +42,7 @@ def _runs(starts: np.ndarray, n: int) -> np.ndarray:
     """Run id of each of n scans from the (sorted, unique) first rows of its runs."""
     run = np.zeros(n, dtype=np.int64)
     if len(starts):
-        run[starts[starts > 0]] = 1
+        run[starts[(starts > 0) & (starts < n)]] = 1  # a start at n begins no scan's run
     return np.cumsum(run)
 
 

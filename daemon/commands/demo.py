@@ -1,12 +1,13 @@
 """``loopcal demo``: the field job for real, on the built-in emulated DAQ.
 
 A simulated shoulder joint whose LVDTs were refitted (offsets lost, known only to the
-simulation) is moved by a technician's hand, pausing about a second at each position. Its
+simulation) is moved by a technician's hand for 75 seconds (every scan counts, moving or
+still: the hand pauses about a second between moves only as people do). Its
 emulated LDQ-412 is recorded by ``loopcal record`` through a real driver over a real
 transport; ``loopcal calibrate --write`` turns the recording into new values in a fresh
 controller config (``loopcal init-config``); and what was written is compared with the truth.
-The emulated module runs ``--speed`` times as fast as wall time, so two minutes of session
-take about twelve seconds (over ASCII, which polls, in real time: progress is shown).
+The emulated module runs ``--speed`` times as fast as wall time, so 75 s of session take
+about eight seconds (over ASCII, which polls, in real time: progress is shown).
 
 Each command is shown as it is run, quoted to paste into a shell. The last line is the
 verdict: written (and how close to the truth), or refused and why, nothing written.
@@ -49,7 +50,7 @@ PROGRESS_S = 5.0  # wall seconds between progress lines while recording
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_transport_option(p, "the wire between the recorder and the emulated module")
-    p.add_argument("--minutes", type=float, default=2.0, help="session length (2)")
+    p.add_argument("--minutes", type=float, default=1.25, help="session length (1.25)")
     p.add_argument(
         "--speed",
         type=float,
@@ -226,7 +227,8 @@ def _nothing_written(status: int, calibrate_out: str, config: Path) -> str:
             f"{config} is as loopcal init-config wrote it."
         )
         if any(name == "poses" for name, _ in failed):
-            print("In this demo a longer session (--minutes, default 2) gives more poses.")
+            print("In this demo a longer session (--minutes, default 1.25) passes through "
+                  "more positions.")
         return f"refused ({reason}), nothing written"
     if status == 0:
         print(f"\nNothing was written: {config} already held the values calibrated.")

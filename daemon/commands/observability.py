@@ -1,5 +1,6 @@
 """``loopcal observability``: which parameters a pose set can identify (the paper's steps
-a-c), on simulated poses spread over the workspace.
+a-c), on simulated poses spread over the workspace, or (``--session SECONDS``) on every scan
+of a simulated technician's hand session, as the worker's maximum-likelihood fit sees them.
 
 Exit status: 0 every chosen parameter is observable, 1 some are not (the weak directions
 and a free set that reaches the condition limit are shown), 2 bad input."""
@@ -9,6 +10,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+
+import numpy as np
 
 from loopcal.calibration.observability import CONDITION_OK, analyse_identifiability
 from loopcal.calibration.selection import candidate_jacobian
@@ -21,6 +24,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_model_options(p)
     p.add_argument("--poses", type=int, default=450, metavar="N",
                    help="simulated poses spread over the workspace (default 450)")  # fmt: skip
+    p.add_argument("--session", type=float, default=None, metavar="SECONDS",
+                   help="judge every scan of a simulated hand session this long (20 Hz, "
+                        "40 mV) by its maximum-likelihood information, as the worker fits "
+                        "it, instead of --poses still poses by the paper's Jacobian")  # fmt: skip
     p.add_argument("--seed", type=int, default=1, help="random seed of the poses (default 1)")
     p.add_argument("--condition-limit", type=float, default=CONDITION_OK, metavar="C",
                    help="the largest condition number a free set may have "
@@ -34,11 +41,13 @@ def run(args: argparse.Namespace) -> int:
     if args.poses < 1:
         raise ValueError(f"--poses {args.poses}: at least 1")
     model = model_from_args(args)
-    ps = simulate_poses(args.poses, seed=args.seed, noise_volts=0.0, quantize=False)
-    cand = candidate_jacobian(ps.volts, model, ps.truth)
-    report = analyse_identifiability(
-        cand.jacobian[cand.usable], model, condition_limit=args.condition_limit
-    )
+    if args.session is not None:
+        J = _session_information(args.session, args.seed, model)
+    else:
+        ps = simulate_poses(args.poses, seed=args.seed, noise_volts=0.0, quantize=False)
+        cand = candidate_jacobian(ps.volts, model, ps.truth)
+        J = cand.jacobian[cand.usable]
+    report = analyse_identifiability(J, model, condition_limit=args.condition_limit)
     if args.json:
         def num(x: float) -> float | None:
             return float(x) if math.isfinite(x) else None
@@ -60,3 +69,19 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(report.summary())
     return 0 if report.observable else 1
+
+
+def _session_information(seconds: float, seed: int, model) -> np.ndarray:
+    """The maximum-likelihood information rows (m, 1, n) of every scan of a simulated hand
+    session (the reference mechanism, moved as :class:`loopcal.simulator.scenarios.HandMoves`
+    does, 20 Hz, its true rotations at each scan's instant)."""
+    if not (math.isfinite(seconds) and 1 <= seconds <= 86400):
+        raise ValueError(f"--session {seconds!r}: between 1 and 86400 seconds")
+    from loopcal.calibration import implicit
+    from loopcal.calibration.parameters import NOMINAL
+    from loopcal.simulator.scenarios import HandMoves
+
+    t = np.arange(round(seconds * 20)) / 20.0
+    R = HandMoves(seed, params=NOMINAL).rotation(t)
+    w = np.full((len(R), 4), 1.0 / 0.040)
+    return implicit.weighted_information(R, NOMINAL, model.tie_matrix, w)[:, None, :]

@@ -252,10 +252,9 @@ class Guidance:
         return {name: float(s) for name, s in zip(self.model.free, std, strict=True)}, indices
 
     def _instruction(self, usable: RecordedScans, scans: np.ndarray, p) -> str:
-        recent = scans["stamp_ns"] >= scans["stamp_ns"][-1] - int(RESTING_S * 1e9)
-        span = (int(scans["stamp_ns"][-1]) - int(scans["stamp_ns"][recent][0])) / 1e9
-        if span >= RESTING_S * 0.9:
-            volts = scans_volts(scans[recent])
+        n = round(RESTING_S * usable.scan_rate_hz)  # by scan count: stamps may be packed
+        if len(scans) >= n:
+            volts = scans_volts(scans[-n:])
             if np.all(np.ptp(volts, axis=0) <= RESTING_BAND_V):
                 return "move the plate: tilt it by hand through new positions"
         return G.coverage_advice(usable.volts, p, still=False)

@@ -40,8 +40,8 @@ class RecordedScans(RecordedPoses):
     ``(row, row + 1)``; ``volts`` deskewed; ``scan_noise`` each channel's noise from fourth
     differences, the same in every row).
 
-    block: (k,) index of the :data:`HOLDOUT_BLOCK_S` block of time each scan falls in,
-    counted from the recording's first scan. usable: scans that passed the screening before
+    block: (k,) index of the block of :data:`HOLDOUT_BLOCK_S` worth of scans (at the scan
+    rate) each scan falls in, counted from the recording's first scan. usable: scans that passed the screening before
     thinning. stride: the thinning (1: every usable scan).
     """
 
@@ -84,8 +84,10 @@ def scans_for_fit(
         dropped[f"thinned to every {stride}th usable scan"] = usable - len(keep)
         idx, V = idx[keep], V[keep]
     stamps = s["stamp_ns"][idx]
-    first = int(s["stamp_ns"][0]) if len(s) else 0
     k = len(idx)
+    # blocks by scan count at the scan rate, not by stamps: an accelerated replay or
+    # emulator packs its stamps closer than the scans' own time
+    per_block = max(1, round(HOLDOUT_BLOCK_S * rate)) if rate > 0 else 100
     return RecordedScans(
         volts=V,
         spread=np.zeros((k, 4)),
@@ -95,7 +97,7 @@ def scans_for_fit(
         stamp_ns=stamps,
         scan_rate_hz=rate,
         dropped=dropped,
-        block=((stamps - first) // int(HOLDOUT_BLOCK_S * 1e9)).astype(np.int64),
+        block=(idx // per_block).astype(np.int64),
         usable=usable,
         stride=stride,
     )

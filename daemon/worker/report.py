@@ -25,6 +25,8 @@ from loopcal.calibration.kinematics import (  # noqa: E402
     output_axis_angles,
     volts_to_lengths,
 )
+from loopcal.calibration import implicit  # noqa: E402
+from loopcal.calibration.observability import column_scales  # noqa: E402
 from loopcal.calibration.parameters import INDEX, UNITS  # noqa: E402
 from loopcal.calibration.selection import candidate_jacobian, select_poses  # noqa: E402
 
@@ -113,7 +115,39 @@ def _plot_residuals(res: WorkerResult, path: Path) -> None:
     save_figure(fig, path)
 
 
+def _plot_singular_values_scans(res: WorkerResult, path: Path) -> None:
+    """A fit on every scan selects nothing: how the singular values grew with the seconds of
+    motion recorded (the fitted scans' information at the result, scaled as the fit's)."""
+    ident = res.calibration.identification
+    rows = implicit.weighted_information(ident.rotations, res.params, res.model.tie_matrix,
+                                         np.ones((len(ident.rotations), 4)))  # fmt: skip
+    seconds = (res.poses.rows[res.fit[res.calibration.indices][ident.used], 0] + 1) / max(
+        res.poses.scan_rate_hz, 1e-9
+    )
+    n = res.model.n_free
+    ends = sorted({int(k) for k in np.linspace(n, len(rows), 12)} | {len(rows)})
+    ts, s_min, s_max = [], [], []
+    for k in ends:
+        a = rows[:k]
+        sv = np.linalg.svd(a * column_scales(a[:, None, :], res.model.free), compute_uv=False)
+        ts.append(seconds[k - 1])
+        s_min.append(sv[-1])
+        s_max.append(sv[0])
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    ax.plot(ts, s_min, "o-", label="smallest singular value")
+    ax.plot(ts, s_max, "s--", label="largest singular value", alpha=0.6)
+    ax.set_xlabel("seconds of the recording (every usable scan up to then)")
+    ax.set_ylabel("singular value (scaled information)")
+    ax.set_yscale("log")
+    ax.set_title("Observability as the motion went on")
+    ax.legend(fontsize=8)
+    save_figure(fig, path)
+
+
 def _plot_singular_values(res: WorkerResult, path: Path, progress: Callable[[str], None]) -> None:
+    if res.calibration.selection is None:
+        _plot_singular_values_scans(res, path)
+        return
     volts = res.poses.volts[res.fit]
     cand = candidate_jacobian(volts, res.model, res.params)
     usable = int(cand.usable.sum())
@@ -153,9 +187,12 @@ def _plot_workspace(res: WorkerResult, path: Path) -> None:
     fig = plt.figure(figsize=(5.5, 5.5))
     ax = fig.add_subplot(projection="polar")
     other = ~chosen & ~held
+    scans = res.calibration is not None and res.calibration.selection is None
     ax.scatter(az[other], tilt[other], s=12, color="lightgrey", label="other still poses")
-    ax.scatter(az[chosen], tilt[chosen], s=24, color="tab:blue", label="selected for the fit")
-    ax.scatter(az[held], tilt[held], s=30, marker="x", color="black", label="held out")
+    ax.scatter(az[chosen], tilt[chosen], s=4 if scans else 24, color="tab:blue",
+               label="fitted scans" if scans else "selected for the fit")  # fmt: skip
+    ax.scatter(az[held], tilt[held], s=6 if scans else 30, marker="x", color="black",
+               label="held out of the first fit" if scans else "held out")  # fmt: skip
     A = base_points(p)
     for i in range(4):
         a = np.arctan2(A[i, 1], A[i, 0])
@@ -186,6 +223,13 @@ def write_report(
     page = directory / "index.html"
     page.write_text(_html(res, plots), encoding="utf-8")
     return page
+
+
+def _samples_text(res: WorkerResult) -> str:
+    if res.calibration is not None and res.calibration.selection is None:
+        return (f"{len(res.poses):,} usable scans, every one fitted ({len(res.held_out):,} "
+                "held out of a first fit to check it)")  # fmt: skip
+    return f"{len(res.poses)} still poses ({len(res.held_out)} held out)"
 
 
 def _html(res: WorkerResult, plots: list[tuple[str, str]]) -> str:
@@ -227,7 +271,7 @@ figure {{ display: inline-block; margin: 8px; }} img {{ max-width: 470px; }}
 </style></head><body>
 <h1>Calibration report</h1>
 <p class="verdict">{e(verdict)}</p>
-<p>{res.n_scans:,} scans, {len(res.poses)} still poses ({len(res.held_out)} held out);
+<p>{res.n_scans:,} scans, {_samples_text(res)};
 free parameters: {e(res.model.describe())}; estimator: {e(METHOD_NAMES[res.method])}.
 Made {datetime.now(UTC):%Y-%m-%d %H:%M} UTC.</p>
 <h2>Parameters</h2>

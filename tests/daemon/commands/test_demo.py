@@ -127,7 +127,7 @@ def test_demo_writes_offsets_close_to_the_truth(tmp_path):
 def test_demo_shows_the_commands_it_really_runs(tmp_path):
     """The printed command lines paste into a shell as they are: split by shlex or by bash
     (the URL's `?`, a path with a space), they are the argv of the processes the demo ran."""
-    demo = run_demo("--out", str(tmp_path / "with space"), "--minutes", "0.5")
+    demo = run_demo("--out", str(tmp_path / "with space"), "--minutes", "0.2")
     assert demo.returncode == 1, demo.stdout + demo.stderr  # too short: refused
     assert demo.stderr == ""  # the commands' output is all on stdout, in order
     for command in ("record", "calibrate"):
@@ -138,24 +138,24 @@ def test_demo_shows_the_commands_it_really_runs(tmp_path):
     record = demo.shown("record")
     assert record[record.index("--daq") + 1].startswith("modbus-tcp://127.0.0.1:")
     assert "?unit=1" in record[record.index("--daq") + 1]
-    assert record[record.index("--duration") + 1] == "3"  # 0.5 min at x10
+    assert record[record.index("--duration") + 1] == "1.2"  # 0.2 min at x10
     assert record[record.index("--out") + 1] == str(tmp_path / "with space" / "recordings")
 
 
 def test_demo_too_short_says_nothing_was_written(tmp_path):
-    demo = run_demo("--out", str(tmp_path), "--minutes", "1")
+    demo = run_demo("--out", str(tmp_path), "--minutes", "0.1")
     out = demo.stdout
     assert demo.returncode == 1, out + demo.stderr
     assert "against the truth" not in out and not re.search(r"\bnan\b", out) and not table(out)
-    m = re.search(r"^  \[FAIL\] poses: (\d+) \(limit >= (\d+)\)$", out, re.M)
-    assert m and int(m.group(1)) < int(m.group(2)), out
+    # six seconds of motion: refused, and the verdict quotes the first gate that failed
+    failed = re.findall(r"^  \[FAIL\] (\S+): .*\n\s+why: (.*)$", out, re.M)
+    assert failed, out
+    name, why = failed[0]
     assert re.search(
-        r"^Nothing was written: loopcal calibrate refused the session \(poses: ", out, re.M
+        rf"^Nothing was written: loopcal calibrate refused the session \({name}: ", out, re.M
     )
-    assert demo.lines[-1][1] == (
-        f"verdict: refused (poses: only {m.group(1)} still poses found in the recording), "
-        "nothing written\n"
-    )
+    assert demo.lines[-1][1].startswith(f"verdict: refused ({name}: {why}")
+    assert demo.lines[-1][1].endswith("), nothing written\n")
     # and indeed nothing was: the config is what init-config wrote, with no previous version
     config = load_controller_config(tmp_path / "controller.toml")
     assert config.provenance is None
@@ -170,7 +170,8 @@ def test_ascii_demo_shows_progress_while_it_records(tmp_path):
     every few seconds, in the session's own time: never more than has passed, nor beyond
     the session's end."""
     demo = run_demo("--transport", "ascii", "--minutes", "0.3", "--out", str(tmp_path))
-    assert demo.returncode == 1, demo.stdout + demo.stderr  # 18 s are too short to calibrate
+    # 18 s of motion: written or refused (every scan counts: the precision gate may pass)
+    assert demo.returncode in (0, 1), demo.stdout + demo.stderr
     assert demo.shown("record")[:3] == ["loopcal", "record", "--daq"]
     start = next(i for i, (_, ln) in enumerate(demo.lines) if ln.startswith("$ loopcal record"))
     stop = next(i for i, (_, ln) in enumerate(demo.lines) if "stopped (--duration" in ln)
@@ -187,7 +188,7 @@ def test_ascii_demo_shows_progress_while_it_records(tmp_path):
             seconds.append(60 * int(m.group(1)) + int(m.group(2)))
             assert seconds[-1] <= min(18, t - t_start + 1), (t - t_start, line)
     assert len(seconds) >= 2 and seconds == sorted(seconds) and seconds[-1] >= 5, during
-    assert demo.lines[-1][1].startswith("verdict: refused (poses: ")
+    assert re.match(r"verdict: (written|refused)\b", demo.lines[-1][1]), demo.lines[-1]
 
 
 @pytest.mark.parametrize(
