@@ -195,7 +195,8 @@ def part_gains(sessions: int, jobs: int) -> None:
             acc = [c[m][2] for c in chunk if c[m][0]]
             worst = f"{max(acc):.2f}" if acc else "-"
             text = ", ".join(f"{n} {c}" for n, c in sorted(by.items()))
-            print(f"{100 * off:6.2f}% {m:>6} {len(refused):>4}/{sessions:<3} {text:>40} {worst:>24}")
+            print(f"{100 * off:6.2f}% {m:>6} {len(refused):>4}/{sessions:<3} {text:>40} "
+                  f"{worst:>24}")  # fmt: skip
         g = [c["scans, gains free"][3] for c in chunk]
         print(f"{'':8}gains free: largest std of S1..S4 {np.median(g):.4f} mm/V (median)")
 
@@ -248,11 +249,13 @@ def part_enough(sessions: int, jobs: int) -> None:
         rms = np.sqrt(np.mean(e**2)) if len(e) else np.nan
         print(f"  {m:6}: enough in {len(t)}/{sessions}; stop at {q[1]:.0f} s (quartiles {q[0]:.0f}"
               f"..{q[2]:.0f} s); offsets' RMS error at the stop {rms:.3f} mm")  # fmt: skip
-    both = [(r["poses"][0], r["scans"][0]) for r in res if None not in (r["poses"][0], r["scans"][0])]
+    both = [(r["poses"][0], r["scans"][0]) for r in res
+            if None not in (r["poses"][0], r["scans"][0])]  # fmt: skip
     if both:
         ratio = np.median([b / a for a, b in both])
         print(f"  every scan stops after {ratio:.2f} of the still-pose time (median of "
-              f"{len(both)} paired sessions; target <= 0.70: {'met' if ratio <= 0.7 else 'NOT met'})")
+              f"{len(both)} paired sessions; target <= 0.70: "
+              f"{'met' if ratio <= 0.7 else 'NOT met'})")  # fmt: skip
 
 
 def part_thin() -> None:

@@ -5,7 +5,8 @@ second between moves, 40 mV of noise), written once as the daemon writes it (hou
 cached under ``--dir``; scans from :mod:`loopcal.simulator.offline`, the emulator's own) and kept as
 the daemon keeps it: each file compacted after its rotation
 (:mod:`loopcal.daemon.recording.compact`); the day is also run as written, before compaction (one
-chunk a second). The worker fits every usable scan (issue 22; a day thinned to 12,000). For each length, the median of ``--repeats`` runs of the real command,
+chunk a second). The worker fits every usable scan (issue 22; a day thinned to 12,000).
+For each length, the median of ``--repeats`` runs of the real command,
 ``loopcal calibrate DIR --controller-config C --write`` in a subprocess on a fresh config,
 and, in this process, where the time goes (read, poses, fit and gates). The baseline,
 measured in the same run, is reading the recording alone: the growth of the rest against it

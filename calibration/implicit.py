@@ -735,4 +735,5 @@ def score_test(
     C = Mee - Mfe.T @ X[:, :-1]
     ge = g[n:] - Mfe.T @ X[:, -1]
     change = -np.linalg.solve(C, ge)
-    return ScoreTest(float(-ge @ change), extra.shape[1], change, np.sqrt(np.diag(np.linalg.inv(C))))
+    std = np.sqrt(np.diag(np.linalg.inv(C)))
+    return ScoreTest(float(-ge @ change), extra.shape[1], change, std)

@@ -41,8 +41,8 @@ class RecordedScans(RecordedPoses):
     differences, the same in every row).
 
     block: (k,) index of the block of :data:`HOLDOUT_BLOCK_S` worth of scans (at the scan
-    rate) each scan falls in, counted from the recording's first scan. usable: scans that passed the screening before
-    thinning. stride: the thinning (1: every usable scan).
+    rate) each scan falls in, counted from the recording's first scan. usable: scans that
+    passed the screening before thinning. stride: the thinning (1: every usable scan).
     """
 
     block: np.ndarray = None  # type: ignore[assignment]

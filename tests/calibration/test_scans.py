@@ -25,7 +25,9 @@ from loopcal.simulator.scenarios import HandMoves
 RATE = 20.0
 
 
-def hand_volts(seconds: float, seed: int = 3, *, skew: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def hand_volts(
+    seconds: float, seed: int = 3, *, skew: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
     """Noise-free readings of a hand-moved plate at 20 Hz: each channel at its own instant
     (skew) or all at the stamp; and the rotations at the stamps."""
     t = np.arange(round(seconds * RATE)) / RATE
