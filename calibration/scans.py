@@ -46,95 +46,105 @@ def _runs(starts: np.ndarray, n: int) -> np.ndarray:
     return np.cumsum(run)
 
 
-def _check_runs(volts: np.ndarray, run_starts: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def _check(
+    volts: np.ndarray, valid: np.ndarray | None, rows: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     V = check_volts(volts)
     n = len(V)
-    starts = np.zeros(1, dtype=np.int64) if run_starts is None else np.asarray(run_starts)
-    if starts.ndim != 1 or (len(starts) and (starts.min() < 0 or starts.max() > n)):
-        raise InputError(f"run_starts must be rows 0..{n}, one dimension")
-    starts = np.unique(starts.astype(np.int64))
-    return V, starts
+    ok = np.ones(n, dtype=bool) if valid is None else np.asarray(valid)
+    if ok.shape != (n,) or ok.dtype != bool:
+        raise InputError(f"valid must be {n} booleans, one per scan")
+    at = np.flatnonzero(ok) if rows is None else np.asarray(rows)
+    if at.ndim != 1 or not np.issubdtype(at.dtype, np.integer):
+        raise InputError("rows must be one dimension of row numbers")
+    if len(at) and (at.min() < 0 or at.max() >= n or not ok[at].all()):
+        raise InputError(f"rows must be valid rows of the {n} scans")
+    return V, ok, at.astype(np.int64)
 
 
 def deskew(
     volts: np.ndarray,
     period_s: float,
     *,
-    run_starts: np.ndarray | None = None,
+    valid: np.ndarray | None = None,
+    rows: np.ndarray | None = None,
     skew_s: float = CHANNEL_SKEW_S,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Each scan's readings brought to its time stamp (the module docstring's correction).
+    """Readings brought to their scan's time stamp (the module docstring's correction).
 
     Parameters
     ----------
     volts : array_like, shape (n, 4)
-        Readings of consecutive scans, V, oldest first.
+        Readings of consecutive scans, V, oldest first (row j + 1 is ``period_s`` after
+        row j).
     period_s : float
         Time between two consecutive scans, s (0.05 at 20 Hz).
-    run_starts : array_like of int, shape (r,), optional
-        First row of each run of consecutive scans (a scan and the one before it are
-        ``period_s`` apart unless a run starts at it); default one run.
+    valid : array_like of bool, shape (n,), optional
+        Which scans may be used, as readings and as neighbours; default all.
+    rows : array_like of int, shape (k,), optional
+        The (valid) rows to correct; default every valid row.
     skew_s : float, default CHANNEL_SKEW_S
         Delay between two neighbouring channels' conversions, s.
 
     Returns
     -------
-    volts : ndarray, shape (n, 4)
-        ``V_ki - i * skew_s * dV_i/dt``, V.
-    corrected : ndarray of bool, shape (n,)
-        False for a scan alone in its run (no neighbour to take a rate from; its
-        readings are returned as they are).
+    volts : ndarray, shape (k, 4)
+        ``V_ki - i * skew_s * dV_i/dt`` of the rows, V; the rate from the valid neighbours
+        (central where both are, one-sided where one is).
+    corrected : ndarray of bool, shape (k,)
+        False for a row with no valid neighbour (its readings are returned as they are).
 
     Raises
     ------
     InputError
-        Bad readings or run starts, or a period that is not positive and finite.
+        Bad readings, mask or rows, or a period that is not positive and finite.
     """
-    V, starts = _check_runs(volts, run_starts)
+    V, ok, at = _check(volts, valid, rows)
     if not (np.isfinite(period_s) and period_s > 0):
         raise InputError(f"period_s must be positive, got {period_s!r}")
     n = len(V)
-    run = _runs(starts, n)
-    same_prev = np.zeros(n, dtype=bool)
-    same_prev[1:] = run[1:] == run[:-1]
-    same_next = np.zeros(n, dtype=bool)
-    same_next[:-1] = same_prev[1:]
-    prev = np.where(same_prev, np.arange(n) - 1, np.arange(n))
-    nxt = np.where(same_next, np.arange(n) + 1, np.arange(n))
+    has_prev = (at > 0) & ok[np.maximum(at - 1, 0)]
+    has_next = (at < n - 1) & ok[np.minimum(at + 1, n - 1)]
+    prev = np.where(has_prev, at - 1, at)
+    nxt = np.where(has_next, at + 1, at)
     steps = (nxt - prev).astype(float)
     corrected = steps > 0
-    rate = np.zeros_like(V)
-    rate[corrected] = (V[nxt[corrected]] - V[prev[corrected]]) / (
-        steps[corrected, None] * period_s
-    )
-    return V - rate * (np.arange(4) * skew_s), corrected
+    rate = np.zeros((len(at), 4))
+    c = corrected
+    rate[c] = (V[nxt[c]] - V[prev[c]]) / (steps[c, None] * period_s)
+    return V[at] - rate * (np.arange(4) * skew_s), corrected
 
 
-def difference_noise(volts: np.ndarray, *, run_starts: np.ndarray | None = None) -> np.ndarray:
-    """Per-channel noise of one reading, from fourth differences within runs (module
-    docstring): robust to motion and to occasional jerks.
+def difference_noise(
+    volts: np.ndarray, *, valid: np.ndarray | None = None, rows: np.ndarray | None = None
+) -> np.ndarray:
+    """Per-channel noise of one reading, from fourth differences (module docstring): robust
+    to motion and to occasional jerks.
 
     Parameters
     ----------
     volts : array_like, shape (n, 4)
         Readings of consecutive scans, V.
-    run_starts : array_like of int, optional
-        First row of each run of consecutive scans (as :func:`deskew`).
+    valid : array_like of bool, shape (n,), optional
+        Which scans may be used; a fourth difference needs five valid scans in a row.
+    rows : array_like of int, optional
+        The (valid) rows to centre the differences on; default every valid row.
 
     Returns
     -------
     ndarray, shape (4,)
-        1 sigma per channel, V; NaN where no run holds five scans.
+        1 sigma per channel, V; NaN where no row has its five scans.
     """
-    V, starts = _check_runs(volts, run_starts)
+    V, ok, at = _check(volts, valid, rows)
     n = len(V)
-    if n < 5:
+    if n < 5 or not len(at):
         return np.full(4, np.nan)
-    run = _runs(starts, n)
-    whole = run[4:] == run[:-4]  # the five scans k-2..k+2 in one run
-    if not whole.any():
+    centre = at[(at >= 2) & (at <= n - 3)]
+    whole = np.all([ok[centre + j] for j in (-2, -1, 1, 2)], axis=0) if len(centre) else []
+    centre = centre[whole] if len(centre) else centre
+    if not len(centre):
         return np.full(4, np.nan)
-    d = sum(w * V[j : n - 4 + j] for j, w in enumerate(_D4))[whole]
+    d = sum(w * V[centre + j - 2] for j, w in enumerate(_D4))
     return np.median(np.abs(d), axis=0) / (_MAD_NORMAL * np.sqrt(_D4_VAR))
 
 

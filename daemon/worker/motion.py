@@ -69,20 +69,22 @@ def scans_for_fit(
     conversions the readings are corrected for, s (0: not corrected, for comparison).
     """
     volts, valid, dropped, rate = screen_scans(s, gap_margin_s=gap_margin_s)
-    idx = np.flatnonzero(valid)
-    run_starts = np.flatnonzero(np.diff(idx, prepend=-2) != 1)
-    period = 1.0 / rate if rate > 0 else 0.05
-    V, corrected = deskew(volts[idx], period, run_starts=run_starts, skew_s=skew_s)
-    noise = difference_noise(volts[idx], run_starts=run_starts)
-    noise = np.where(np.isfinite(noise), noise, 0.0)
-    dropped["no usable neighbour to correct its channel skew"] = int((~corrected).sum())
-    idx, V = idx[corrected], V[corrected]
-    usable = len(idx)
+    neighbour = np.zeros_like(valid)
+    neighbour[1:] |= valid[:-1]
+    neighbour[:-1] |= valid[1:]
+    dropped["no usable neighbour to correct its channel skew"] = int((valid & ~neighbour).sum())
+    rows = np.flatnonzero(valid & neighbour)
+    usable = len(rows)
     stride = max(1, -(-usable // max_scans))
-    if stride > 1:
-        keep = np.arange(0, usable, stride)
-        dropped[f"thinned to every {stride}th usable scan"] = usable - len(keep)
-        idx, V = idx[keep], V[keep]
+    if stride > 1:  # before the correction: a day's scans are never all converted
+        kept = rows[::stride]
+        dropped[f"thinned to every {stride}th usable scan"] = usable - len(kept)
+        rows = kept
+    period = 1.0 / rate if rate > 0 else 0.05
+    V, _ = deskew(volts, period, valid=valid, rows=rows, skew_s=skew_s)
+    noise = difference_noise(volts, valid=valid, rows=rows)
+    noise = np.where(np.isfinite(noise), noise, 0.0)
+    idx = rows
     stamps = s["stamp_ns"][idx]
     k = len(idx)
     # blocks by scan count at the scan rate, not by stamps: an accelerated replay or

@@ -52,16 +52,23 @@ def test_deskew_brings_each_reading_to_the_stamp():
     assert before > 1e-3 and after < before / 20, (before, after)
 
 
-def test_deskew_never_reaches_across_a_run_boundary():
+def test_deskew_never_reaches_across_an_unusable_scan():
     skewed, _ = hand_volts(10)
-    V, corrected = deskew(skewed, 1 / RATE, run_starts=np.array([0, 50, 51, 120]))
-    assert not corrected[50] and corrected[[0, 49, 51, 119, 120]].all()
-    assert np.array_equal(V[50], skewed[50])  # alone: as it was
-    # the scan before a boundary takes its rate from itself and the one before, not after
+    valid = np.ones(len(skewed), dtype=bool)
+    valid[[49, 51]] = False  # scan 50 is alone between two unusable ones
+    V, corrected = deskew(skewed, 1 / RATE, valid=valid)
+    rows = np.flatnonzero(valid)
+    assert not corrected[rows == 50].any() and corrected[rows != 50].all()
+    assert np.array_equal(V[rows == 50][0], skewed[50])  # alone: as it was
+    # the scan before an unusable one takes its rate from itself and the one before
     far = skewed.copy()
-    far[51:] += 5.0
-    W, _ = deskew(far, 1 / RATE, run_starts=np.array([0, 50, 51, 120]))
-    assert np.allclose(W[:50], V[:50])
+    far[49:] += 5.0
+    W, _ = deskew(far, 1 / RATE, valid=valid, rows=np.arange(48))
+    assert np.allclose(W, V[:48])
+    # a subset of rows is corrected exactly as it is among all of them
+    some = rows[::7]
+    S, _ = deskew(skewed, 1 / RATE, valid=valid, rows=some)
+    assert np.array_equal(S, V[::7])
 
 
 def test_difference_noise_is_not_fooled_by_motion():
@@ -74,23 +81,31 @@ def test_difference_noise_is_not_fooled_by_motion():
     assert np.all(naive > 2 * 0.04)  # scan-to-scan differences see the motion
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=80, deadline=None)
 @given(
     n=st.integers(0, 40),
-    starts=st.lists(st.integers(-3, 45), max_size=6),
+    holes=st.lists(st.integers(0, 39), max_size=6),
+    rows=st.one_of(st.none(), st.lists(st.integers(-3, 45), max_size=6)),
     period=st.sampled_from([0.05, 0.0, -1.0, float("nan")]),
 )
-def test_bad_runs_and_periods_are_refused_in_words(n, starts, period):
+def test_bad_rows_and_periods_are_refused_in_words(n, holes, rows, period):
     V = np.zeros((n, 4))
-    runs = np.array(starts, dtype=np.int64)
-    ok_runs = all(0 <= s <= n for s in starts)
+    valid = np.ones(n, dtype=bool)
+    valid[[h for h in holes if h < n]] = False
+    at = None if rows is None else np.array(rows, dtype=np.int64)
+    ok_rows = rows is None or all(0 <= r < n and valid[r] for r in rows)
     try:
-        out, corrected = deskew(V, period, run_starts=runs)
+        out, corrected = deskew(V, period, valid=valid, rows=at)
     except InputError as exc:
-        assert "run_starts" in str(exc) or "period" in str(exc) or "volts" in str(exc).lower()
-        assert not (ok_runs and period == 0.05 and n > 0)
+        assert "rows" in str(exc) or "period" in str(exc) or "volts" in str(exc).lower()
+        assert not (ok_rows and period == 0.05 and n > 0)
     else:
-        assert ok_runs and period == 0.05 and out.shape == (n, 4) and corrected.shape == (n,)
+        k = int(valid.sum()) if rows is None else len(rows)
+        assert ok_rows and period == 0.05 and out.shape == (k, 4) and corrected.shape == (k,)
+        noise = difference_noise(V, valid=valid, rows=at)
+        assert noise.shape == (4,) and not np.any(noise > 0)  # zeros or NaN: no noise here
+    with pytest.raises(InputError, match="valid"):
+        deskew(V, 0.05, valid=np.ones(n + 1, dtype=bool))
 
 
 def test_averaging_ratio_tells_white_noise_from_a_slow_misfit():
