@@ -7,8 +7,8 @@ runs of all commands interleaved so that a busy machine slows them alike; median
 
 * baseline: ``python -c "import numpy, scipy.linalg"`` (what any numerical command pays);
 * ``loopcal --help`` (target: at most 1.3x the baseline: it imports no command);
-* ``loopcal calibrate`` of a two-minute recording (target: at most 2x: the fit itself takes
-  about 20 ms; the rest is imports, reading and the gates);
+* ``loopcal calibrate`` of a two-minute recording (target: at most 2x: the fit on every
+  scan, twice, takes about 0.25 s; the rest is imports, reading and the gates);
 * ``loopcal calibrate --help`` and ``loopcal record --help`` for reference.
 """
 
