@@ -912,7 +912,9 @@ def _limits_text() -> str:
     )
 
 
-def precision_gate(free: list[str], std: np.ndarray, advice: Advice) -> Gate:
+def precision_gate(
+    free: list[str], std: np.ndarray, advice: Advice, *, seconds: float | None = None
+) -> Gate:
     """Every identified parameter is known well enough: std <= 0.25 mm (0.01 mm/V).
 
     Parameters
@@ -923,6 +925,10 @@ def precision_gate(free: list[str], std: np.ndarray, advice: Advice) -> Gate:
         Their standard deviations, in the order of ``free`` (mm, mm/V for the gains).
     advice : Advice
         What to do if it fails: the text, or a function making it (called only then).
+    seconds : float, optional
+        For a fit on every scan: the seconds of usable motion it had. The advice then says
+        for how long to go on: the variance falls as one over the time for motion like
+        the recorded, so about ``seconds * ((std / limit)^2 - 1)`` more.
 
     Returns
     -------
@@ -951,5 +957,15 @@ def precision_gate(free: list[str], std: np.ndarray, advice: Advice) -> Gate:
         f"{name} {std[j]:.3f} {UNITS[name]}",
         limit,
         "" if ok else f"{name} is known only to +-{std[j]:.3f} {UNITS[name]} (1 sigma)",
-        "" if ok else _text(advice),
+        "" if ok else _text(advice) + _for_how_long(seconds, ratios[j]),
     )
+
+
+def _for_how_long(seconds: float | None, ratio: float) -> str:
+    """``precision_gate``'s "for how long" (ratio: the worst std over its limit, > 1)."""
+    if seconds is None or not (np.isfinite(ratio) and seconds > 0):
+        return ""
+    more = seconds * (ratio**2 - 1.0)
+    if more > 3600:
+        return "; at this pace it would take over an hour more: move the plate further"
+    return f", for about {max(5, 5 * math.ceil(more / 5)):.0f} s more of such motion"

@@ -23,7 +23,6 @@ import numpy as np
 from loopcal.calibration.errors import CalibrationError
 from loopcal.calibration.identify import DEFAULT_METHOD
 from loopcal.calibration.implicit import score_test
-from loopcal.calibration.scans import averaging_ratio, closure_misfit
 from loopcal.calibration.parameters import GROUPS, INDEX, NAMES, UNITS, ParameterModel
 from loopcal.calibration.pipeline import (
     DEFAULT_N_SELECT,
@@ -31,6 +30,7 @@ from loopcal.calibration.pipeline import (
     calibrate,
     calibrate_scans,
 )
+from loopcal.calibration.scans import averaging_ratio, closure_misfit
 
 from ..config.controller import ControllerConfig
 from ..recording import RecordingFile
@@ -304,7 +304,8 @@ def run_worker(
         *checks,
         G.holdout_gate(z, blocks=blocks),
         G.plausible_gate(list(model.free), start, ident.params),
-        G.precision_gate(list(model.free), ident.std, advice),
+        G.precision_gate(list(model.free), ident.std, advice,
+                         seconds=poses.seconds if per_scan else None),  # fmt: skip
     ]
     result.extra["holdout_rms_sigma"] = float(np.sqrt(np.mean(z**2))) if len(z) else None
     result.extra["samples"] = samples

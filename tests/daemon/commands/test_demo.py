@@ -189,6 +189,8 @@ def test_ascii_demo_shows_progress_while_it_records(tmp_path):
             assert seconds[-1] <= min(18, t - t_start + 1), (t - t_start, line)
     assert len(seconds) >= 2 and seconds == sorted(seconds) and seconds[-1] >= 5, during
     assert re.match(r"verdict: (written|refused)\b", demo.lines[-1][1]), demo.lines[-1]
+    # what it wrote over ASCII is within its bounds
+    assert all(abs(z) < 3.5 for *_, z in table(demo.stdout).values())
 
 
 @pytest.mark.parametrize(

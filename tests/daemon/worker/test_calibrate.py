@@ -5,6 +5,7 @@ while it writes, replay round trips, and bad input."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import time
 from datetime import UTC, datetime
@@ -18,6 +19,7 @@ from loopcal.daemon.config import durable
 from loopcal.daemon.config.controller import load_controller_config
 from loopcal.daemon.recording import read_recordings
 from loopcal.daemon.worker.writeback import STEPS
+from loopcal.simulator.drift import OffsetDrift
 from loopcal.simulator.scenarios import HandMoves, Static, Sweep
 from tests.support.processes import Proc, calibrate_json, fresh_config, loopcal
 from tests.support.recordings import write_rows
@@ -237,7 +239,7 @@ def test_report(offline, tmp_path):
 
 
 @pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu"])
-def test_replay_round_trip_is_exact(sessions, tmp_path, transport):
+def test_replay_round_trip_is_exact_and_calibrates(sessions, tmp_path, transport):
     # 50 s from the middle of a session: the module was powered on before the first scan
     src = trim(sessions[0].directory, tmp_path / "src", 600, 1600)
     player, recorder = replay_and_record(src, tmp_path / "again", transport, 10)
@@ -250,6 +252,12 @@ def test_replay_round_trip_is_exact(sessions, tmp_path, transport):
     }
     for c, t, k in zip(a["counter64"], a["time64_us"], a["codes"], strict=True):
         assert got[int(c)] == (int(t), tuple(int(x) for x in k)), int(c)
+    # and the 50 s recorded again over this transport calibrate: every scan counts
+    config = fresh_config(tmp_path / "controller.toml")
+    rc, doc, err = calibrate_json(tmp_path / "again", "--controller-config", config, "--write")
+    assert rc == 0 and doc["written"], (err, doc.get("gates"))
+    for name, p in doc["parameters"].items():
+        assert abs(p["value"] - sessions[0].truth[INDEX[name]]) <= 3 * p["std"], name
 
 
 def test_bad_input_is_named(tmp_path, offline):
@@ -433,3 +441,49 @@ def test_json_warnings_name_the_damaged_file(offline, tmp_path):
     proc = loopcal("calibrate", copy, "--controller-config", config)
     assert doc["warnings"][0] in proc.stdout
     assert rc in (0, 1)
+
+
+@pytest.mark.parametrize(
+    ("case", "gates"),
+    [
+        # sensors 1 and 2 wired to each other's channels: nothing closes
+        ("swapped channels", {"noise"}),
+        # sensor 3's offset steps by 0.6 mm a minute in: no single value fits the session
+        ("offset step", {"averaging", "holdout"}),
+    ],
+)
+def test_moving_scans_that_no_mechanism_explains_are_refused(tmp_path, case, gates):
+    truth = truth_for(4)
+    kwargs = {}
+    if case == "swapped channels":
+
+        def swap(codes):
+            codes[:, [0, 1]] = codes[:, [1, 0]]
+
+        kwargs["edit"] = swap
+    else:
+        kwargs["drifts"] = (OffsetDrift("step", 3, 60.0, 0.6),)
+    write_session(tmp_path / "rec", HandMoves(4, params=truth, pause_s=PAUSE_S), truth, 120,
+                  seed=4, **kwargs)  # fmt: skip
+    config = fresh_config(tmp_path / "controller.toml")
+    rc, doc, _ = calibrate_json(tmp_path / "rec", "--controller-config", config, "--write")
+    failed = {g["name"]: g for g in doc["gates"] if not g["passed"]}
+    assert rc == 1 and not doc["accepted"] and not doc["written"]
+    assert gates & set(failed) or "converged" in failed, failed
+    assert all(g["reason"] and g["advice"] for g in failed.values())
+    assert load_controller_config(config).provenance is None
+
+
+def test_too_little_motion_says_for_how_long(offline, tmp_path):
+    """Twenty seconds of the session: every channel moved, but not enough to know the
+    seven well; the refusal says which way and for about how long to go on."""
+    rec_dir, _ = offline
+    config = fresh_config(tmp_path / "controller.toml")
+    t = read_recordings(rec_dir).scans["stamp_ns"]
+    since, until = (datetime.fromtimestamp(int(t[k]) / 1e9, UTC).isoformat() for k in (0, 300))
+    rc, doc, _ = calibrate_json(rec_dir, "--controller-config", config, "--since", since,
+                                "--until", until)  # fmt: skip
+    failed = {g["name"]: g for g in doc["gates"] if not g["passed"]}
+    assert rc == 1 and "precision" in failed, doc["gates"]
+    m = re.search(r"for about (\d+) s more of such motion", failed["precision"]["advice"])
+    assert m and 5 <= int(m.group(1)) <= 600, failed["precision"]
