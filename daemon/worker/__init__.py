@@ -1,6 +1,9 @@
 """The calibration worker: MCAP -> poses -> fit -> gates -> config.
 
-- :mod:`~loopcal.daemon.worker.poses`: still poses from recorded scans;
+- :mod:`~loopcal.daemon.worker.motion`: the poses of a fit on every scan: each usable scan, moving
+  or still, its channel skew corrected (maximum likelihood, the default);
+- :mod:`~loopcal.daemon.worker.poses`: still poses from recorded scans (the paper's method, and
+  the live health);
 - :mod:`~loopcal.daemon.worker.gates`: the acceptance gates a result must pass;
 - :mod:`~loopcal.daemon.worker.run`: :func:`~loopcal.daemon.worker.run.run_worker`, from scans to a
   :class:`~loopcal.daemon.worker.run.WorkerResult` it can vouch for;
