@@ -35,7 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from loopcal.daemon.recording import read_recordings
-from loopcal.simulator import Emulator, SimClock
+from loopcal.simulator import Emulator
+from loopcal.simulator.clock import HeldClock
 from loopcal.simulator.source import TestSource
 from tests.support.emulator import hand_emulator
 from tests.support.processes import cpu_seconds
@@ -173,35 +174,94 @@ def feature_share(out: Path, extra: list[str], seconds: float, scraped: bool,
     return share
 
 
-def bench_memory(n_scans: int, speed: float) -> list[tuple[int, float]]:
+def bench_memory(n_scans: int, speed: float, *, live: bool = False, rate: int = 200
+                 ) -> tuple[list[tuple[int, float]], dict[str, float]]:  # fmt: skip
+    """RSS samples (scans made, MB) of a recorder recording ``n_scans`` at ``rate`` Hz of
+    device time, ``speed`` times as fast; and, with ``live``, what its metrics said at the
+    end. live: a hand-moved plate (still poses) at a controller config (health on), the
+    live view with one Foxglove client subscribed to everything, metrics scraped every
+    10 s; else a test signal with health off (no controller config, nothing to watch)."""
     out = Path(tempfile.mkdtemp(prefix="loopcal-bench-"))
-    rate = 200
-    clock = SimClock(speed)
+    clock = HeldClock(speed)  # started by the recorder's first request
     samples = []
-    with Emulator("modbus-tcp", TestSource(1), scan_rate_hz=rate, clock=clock,
-                  truth_limit=1000) as emu:  # fmt: skip
+    extra: list[str] = []
+    metrics_port = live_port = 0
+    if live:
+        from loopcal.calibration.parameters import NOMINAL
+        from loopcal.daemon.config.controller import write_initial_config
+        from loopcal.simulator.mechanism import MechanismSource
+        from loopcal.simulator.scenarios import HandMoves
+        from tests.support.processes import free_port
+
+        source = MechanismSource(HandMoves(0), NOMINAL, noise_volts=0.04, seed=0)
+        config = write_initial_config(out.parent / f"{out.name}-controller.toml")
+        metrics_port = free_port()
+        live_port = free_port()
+        while live_port == metrics_port:
+            live_port = free_port()
+        extra = ["--controller-config", str(config), "--metrics", f"127.0.0.1:{metrics_port}",
+                 "--live", f"127.0.0.1:{live_port}"]  # fmt: skip
+    else:
+        source = TestSource(1)
+    seen: dict[str, float] = {}
+    log = out.parent / f"{out.name}.log"
+    with Emulator("modbus-tcp", source, scan_rate_hz=rate, clock=clock,
+                  truth_limit=1000) as emu, open(log, "wb") as err:  # fmt: skip
         rec = subprocess.Popen([*LOOPCAL, "record", "--daq", emu.url, "--out", str(out),
                                 "--read-period", "0.02", "--rotate-seconds", "60",
-                                "--disk-budget", "2GiB"],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+                                "--disk-budget", "2GiB", *extra],
+                               stdout=subprocess.DEVNULL, stderr=err)  # fmt: skip
+        client = None
+        if live:
+            from tests.support.js import JS, npm_installed
+
+            time.sleep(3.0)
+            wall = n_scans / (rate * speed) + 120
+            client = subprocess.Popen([npm_installed(), str(JS / "live_client.mjs"),
+                                       f"ws://127.0.0.1:{live_port}", str(wall)],
+                                      stdout=subprocess.DEVNULL)  # fmt: skip
         t0 = clock.now()
         next_report = 0
-        while True:
-            time.sleep(2.0)
-            made = int((clock.now() - t0) * rate)
-            samples.append((made, rss_mb(rec.pid)))
-            if made >= next_report:
-                print(f"  {made:>9,} scans  RSS {samples[-1][1]:6.1f} MB", flush=True)
-                next_report += n_scans // 10
-            if made >= n_scans:
-                break
-        stop(rec)
+        last_scrape = 0.0
+        try:
+            while True:
+                time.sleep(2.0)
+                if rec.poll() is not None:
+                    raise RuntimeError(f"the recorder stopped: {log.read_text()[-3000:]}")
+                made = int((clock.now() - t0) * rate)
+                samples.append((made, rss_mb(rec.pid)))
+                if live and time.monotonic() - last_scrape >= 10.0:
+                    seen = _live_metrics(metrics_port)
+                    last_scrape = time.monotonic()
+                if made >= next_report:
+                    print(f"  {made:>11,} scans  RSS {samples[-1][1]:6.1f} MB", flush=True)
+                    next_report += n_scans // 10
+                if made >= n_scans:
+                    break
+            if live:
+                seen = _live_metrics(metrics_port)
+        finally:
+            stop(rec)
+            if client is not None:
+                client.kill()
+                client.wait()
     rows = read_recordings(out).scans
-    print(f"  recorded {len(rows):,} scans in the files kept, {int(rows['missed'].sum())} missed")
+    print(f"  recorded {len(rows):,} scans in the files kept (a disk budget of 2 GiB), "
+          f"{int(rows['missed'].sum())} missed")  # fmt: skip
     for p in out.iterdir():
         p.unlink()
     out.rmdir()
-    return samples
+    return samples, seen
+
+
+def _live_metrics(port: int) -> dict[str, float]:
+    from tests.support.processes import scrape
+
+    m = scrape(port)
+    names = ("loopcal_scans_recorded_total", "loopcal_loop_closure_poses_total",
+             "loopcal_live_messages_total", "loopcal_live_dropped_messages_total",
+             "loopcal_scans_missed_total")  # fmt: skip
+    return {n: float(m[n][0][1]) for n in names if n in m}
 
 
 def main() -> int:
@@ -214,6 +274,9 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=3, help="runs per feature")
     ap.add_argument("--part", nargs="+", choices=PARTS, default=list(PARTS),
                     help="which figures (default: all)")  # fmt: skip
+    ap.add_argument("--rate", type=int, default=200, help="device scan rate of the memory run")
+    ap.add_argument("--memory-live", action="store_true",
+                    help="the memory run with health, metrics and the live view (one client)")
     args = ap.parse_args()
     if "cpu" in args.part:
         cpu_and_jitter(args)
@@ -258,19 +321,26 @@ def features(args: argparse.Namespace) -> None:
 
 
 def memory(args: argparse.Namespace) -> None:
-    print(f"Memory while recording {args.scans:,} scans at 200 Hz x {args.speed:g} "
-          f"({200 * args.speed:,.0f} scans/s):")  # fmt: skip
-    samples = bench_memory(args.scans, args.speed)
+    live = args.memory_live
+    what = ("health at a controller config, metrics, the live view with one client, a "
+            "hand-moved plate" if live else "no health, a test signal")  # fmt: skip
+    print(f"Memory while recording {args.scans:,} scans at {args.rate} Hz x {args.speed:g} "
+          f"({args.rate * args.speed:,.0f} scans/s; {what}):")  # fmt: skip
+    samples, seen = bench_memory(args.scans, args.speed, live=live, rate=args.rate)
     made = np.array([s[0] for s in samples])
     rss = np.array([s[1] for s in samples])
     fifth = max(1, len(rss) // 5)
-    first, last = float(np.median(rss[:fifth])), float(np.median(rss[-fifth:]))
+    warm = made >= min(args.scans // 20, 500_000)  # after the warm-up: 5 %
+    base = float(np.median(rss[warm][:fifth]))
+    last = float(np.median(rss[-fifth:]))
     print(
-        f"  RSS: median over the first fifth {first:.1f} MB (baseline), over the last fifth "
-        f"{last:.1f} MB ({last - first:+.1f} MB); peak {rss.max():.1f} MB at "
-        f"{made[rss.argmax()]:,} scans. Files rotate every 60 s of device time "
-        f"({200 * 60:,} x {args.speed:g} scans): each file's index is freed when it closes."
+        f"  RSS: median over the first fifth after a warm-up of 5 % {base:.1f} MB (baseline), "
+        f"over the last fifth {last:.1f} MB ({last - base:+.1f} MB); peak {rss.max():.1f} MB "
+        f"at {made[rss.argmax()]:,} scans. Files rotate every 60 s of wall time: each file's "
+        f"index is freed when it closes."
     )
+    if seen:
+        print("  at the end: " + ", ".join(f"{k} {v:,.0f}" for k, v in seen.items()))
 
 
 if __name__ == "__main__":
