@@ -1,5 +1,5 @@
 """Single scans as calibration samples: the channel skew taken out, and the sensor noise
-measured on a moving plate (docs/model.md section 10).
+measured on a moving plate (docs/model.md section 9.1).
 
 The module converts its four channels one after another, channel i (0-based) at
 ``t + i * skew_s`` after the scan's time stamp t (250 µs apart). While the plate moves,

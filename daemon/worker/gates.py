@@ -318,9 +318,19 @@ def poses_gate(volts: np.ndarray) -> Gate:
 
 
 def distinct_positions(volts: np.ndarray) -> int:
-    """How many distinct positions scans passed through: the cells of
-    :data:`POSITION_CELL_V` (1 V, about 4 mm of stroke) on every channel that their readings
-    (k, 4), V, fall in."""
+    """How many distinct positions scans passed through.
+
+    Parameters
+    ----------
+    volts : ndarray of float, shape (k, 4)
+        The scans' readings, V.
+
+    Returns
+    -------
+    int
+        The number of cells of :data:`POSITION_CELL_V` (1 V, about 4 mm of stroke) on
+        every channel that the readings fall in; 0 for no scans.
+    """
     if len(volts) == 0:
         return 0
     return len(np.unique(np.floor(volts / POSITION_CELL_V).astype(np.int64), axis=0))
