@@ -19,13 +19,13 @@ matplotlib.use("Agg")  # files only, no screen
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from loopcal.calibration import implicit  # noqa: E402
 from loopcal.calibration.kinematics import (  # noqa: E402
     base_points,
     forward_kinematics,
     output_axis_angles,
     volts_to_lengths,
 )
-from loopcal.calibration import implicit  # noqa: E402
 from loopcal.calibration.observability import column_scales  # noqa: E402
 from loopcal.calibration.parameters import INDEX, UNITS  # noqa: E402
 from loopcal.calibration.selection import candidate_jacobian, select_poses  # noqa: E402
