@@ -487,3 +487,20 @@ def test_too_little_motion_says_for_how_long(offline, tmp_path):
     assert rc == 1 and "precision" in failed, doc["gates"]
     m = re.search(r"for about (\d+) s more of such motion", failed["precision"]["advice"])
     assert m and 5 <= int(m.group(1)) <= 600, failed["precision"]
+
+
+def test_a_technician_who_never_pauses_is_calibrated_in_75_seconds(tmp_path):
+    """The plate kept moving the whole time: no still poses for the paper's method, and
+    every scan for the fit."""
+    truth = truth_for(6)
+    write_session(tmp_path / "rec", HandMoves(6, params=truth, pause_s=(0.0, 0.05)), truth, 75,
+                  seed=6)  # fmt: skip
+    config = fresh_config(tmp_path / "controller.toml")
+    rc, doc, err = calibrate_json(tmp_path / "rec", "--controller-config", config)
+    assert rc == 0 and doc["accepted"] and doc["samples"] == "scans", (err, doc["gates"])
+    for name, p in doc["parameters"].items():
+        assert abs(p["value"] - truth[INDEX[name]]) <= 3 * p["std"], name
+    rc, doc, _ = calibrate_json(tmp_path / "rec", "--controller-config", config,
+                                "--method", "paper")  # fmt: skip
+    failed = [g for g in doc["gates"] if not g["passed"]]
+    assert rc == 1 and failed[0]["name"] == "poses" and "still poses" in failed[0]["reason"]
