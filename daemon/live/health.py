@@ -218,7 +218,7 @@ class HealthMonitor:
         margin (a gap's margin before them, and their windows, are in it), so the poses a
         later search finds after r are the same; those it finds up to r (rows whose context
         was cut) are not poses, and are skipped as counted ones are (``_last_key``)."""
-        rate = P.scan_rate_hz
+        rate = P.scan_rate_hz  # the window and the margin as poses_of_scans derives them
         window = max(2, round(STILL_WINDOW_S * rate))
         margin = max(1, round(GAP_MARGIN_S * rate))
         if open_pose:

@@ -19,11 +19,11 @@ from ..config.controller import ControllerConfig
 log = logging.getLogger(__name__)
 
 MAX_PENDING_BATCHES = 10_000  # beyond this (observers far behind) the oldest are dropped
-#: seconds between two feeds: each feed has a fixed cost (a still-pose search over the
-#: health monitor's buffer, the live view's forward kinematics), so a second of scans at a
-#: time costs a controller less (bench_daemon, every feature on at 20 Hz: 1.57 % of a core,
-#: against 2.60 % feeding every 0.25 s; the live view's share 0.30 % against 0.93 %); an
-#: alarm, a guidance line or a live message is at most a second later
+#: seconds between two feeds: each feed has a fixed cost (the health monitor's still-pose
+#: search, however few its new scans), so a second of scans at a time costs a controller
+#: less (when chosen, bench_daemon with every feature on at 20 Hz: 1.57 % of a core against
+#: 2.60 % fed every 0.25 s; figures of today in docs/tools.md); an alarm, a guidance line or
+#: a health message is at most a second later (the live view's scans come from the writer)
 PERIOD_S = 1.0
 
 
