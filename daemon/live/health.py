@@ -58,7 +58,7 @@ from loopcal.calibration.poses import pose_noise_volts
 from ..config.controller import ControllerConfig
 from ..events import Level
 from ..recorder.engine import Recorder
-from ..worker.poses import GAP_MARGIN_S, STILL_WINDOW_S, RecordedPoses, completed_poses
+from ..worker.poses import RecordedPoses, completed_poses, margin_scans, window_scans
 
 WINDOW = 30  # poses per test
 MIN_AFFECTED = 6  # a shift must show in at least this many of the latest poses
@@ -219,8 +219,7 @@ class HealthMonitor:
         later search finds after r are the same; those it finds up to r (rows whose context
         was cut) are not poses, and are skipped as counted ones are (``_last_key``)."""
         rate = P.scan_rate_hz  # the window and the margin as poses_of_scans derives them
-        window = max(2, round(STILL_WINDOW_S * rate))
-        margin = max(1, round(GAP_MARGIN_S * rate))
+        window, margin = window_scans(rate), margin_scans(rate)
         if open_pose:
             r = int(P.rows[-1][0]) - 1  # the row before it: it begins no split piece here
             if r < keep_from:

@@ -23,6 +23,16 @@ from .. import scans as scan_rows
 STILL_WINDOW_S = 0.5  # a pose spans at least this long
 GAP_MARGIN_S = 0.25  # scans this close to a gap or restart are not used
 LONGEST_POSE_S = 5.0  # longer stretches are split (a plate may creep while "still")
+def window_scans(rate: float, window_s: float = STILL_WINDOW_S) -> int:
+    """Scans in the still-pose window at ``rate`` Hz (at least 2)."""
+    return max(2, round(window_s * rate))
+
+
+def margin_scans(rate: float, gap_margin_s: float = GAP_MARGIN_S) -> int:
+    """Scans left out on each side of a gap or restart at ``rate`` Hz (at least 1)."""
+    return max(1, round(gap_margin_s * rate))
+
+
 #: scans kept for the next search of a stream while no pose completes (the plate moving)
 POSE_BUFFER_S = 3 * LONGEST_POSE_S
 
@@ -136,8 +146,7 @@ def screen_scans(
     if n:
         epoch_change = np.flatnonzero(np.diff(s["epoch"]) != 0) + 1
         breaks = np.union1d(breaks, epoch_change)
-    margin = max(1, round(gap_margin_s * rate))
-    near_gap = _near(breaks, margin, n)
+    near_gap = _near(breaks, margin_scans(rate, gap_margin_s), n)
     valid = ~bad_channel & ~near_gap
     dropped = {
         "channel at the rail or faulted": int(bad_channel.sum()),
@@ -162,7 +171,7 @@ def poses_of_scans(
     longest_s: longer still stretches are split into poses of at most this long.
     """
     volts, valid, dropped, rate = screen_scans(s, gap_margin_s=gap_margin_s)
-    window = max(2, round(window_s * rate))
+    window = window_scans(rate, window_s)
     found = still_poses(
         volts,
         window=window,
