@@ -125,7 +125,9 @@ def test_stalled_and_many_viewers_cost_the_recording_no_scan(tmp_path):
     assert seen["others"]["received"] > 10 * seen["topics"]["/joint/state"]["received"]
     out = read_recordings(tmp_path / "rec")
     c = out.scans["counter64"].astype(np.int64)
-    assert len(c) > 0.8 * 12 * 20 * SPEED
+    # every scan a viewer saw was recorded (the views come from the writer), and however
+    # long a loaded machine took to start the recorder, none is missing between
+    assert len(c) >= state
     assert np.all(np.diff(c) == 1) and out.scans["missed"].sum() == 0
     assert not out.events_of("gap") and not out.events_of("overflow")
 

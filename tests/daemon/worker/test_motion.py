@@ -21,7 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from loopcal.daemon.worker.motion import scans_for_fit
-from tests.daemon.worker.test_poses import near_a_break, readings, synthetic_scans, untrustworthy
+from tests.support.rows import near_a_break, readings, synthetic_scans, untrustworthy
 
 SKEW_S = 250e-6
 

@@ -20,37 +20,20 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from loopcal.calibration.poses import still_poses
-from loopcal.daemon import scans as scan_rows
 from loopcal.daemon.worker.poses import poses_of_scans
 from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.scenarios import HandMoves
-from tests.support.rows import T0, rows_from
+from tests.support.rows import (
+    LSB,
+    near_a_break,
+    readings,
+    rows_from,
+    synthetic_scans,
+    untrustworthy,
+)
 from tests.support.sessions import PAUSE_S, truth_for
 
 EPS = np.finfo(float).eps
-LSB = 20.0 / 4096  # one code of the 12-bit converter over its 20 V span
-
-
-def readings(s):
-    """The datasheet's mid-code reconstruction, V."""
-    return (s["codes"].astype(float) + 0.5) * LSB - 10.0
-
-
-def untrustworthy(s):
-    """(n,) a channel at the rail or faulted."""
-    status = s["status"].astype(np.int64)
-    at_rail = ((status & 0x0F) != 0) | np.any((s["codes"] == 0) | (s["codes"] == 4095), axis=1)
-    return at_rail | ((status & 0xF0) != 0)
-
-
-def near_a_break(s, margin):
-    """(n,) within ``margin`` scans of a break, row by row."""
-    missed, restarted, epoch = (s[f].tolist() for f in ("missed", "restarted", "epoch"))
-    near = np.zeros(len(s), dtype=bool)
-    for b in range(len(s)):
-        if missed[b] > 0 or restarted[b] or (b > 0 and epoch[b] != epoch[b - 1]):
-            near[max(0, b - margin) : b + margin] = True
-    return near
 
 
 def check_recorded_poses(s, got, *, rate, window, band_volts, margin, longest):
@@ -157,55 +140,6 @@ def test_poses_of_a_damaged_recording(seed):
 
 
 # --- synthetic recordings --------------------------------------------------------------------
-
-
-def synthetic_scans(rng, n, rate, *, gaps=0, restarts=0, power_cycles=0, bad=0):
-    """n scan rows at ``rate`` Hz of a plate moved and held still in turn, with scans
-    missed before ``gaps`` rows, ``restarts`` restarted rows, ``power_cycles`` changes of
-    epoch and ``bad`` rows with a channel at the rail (by its code or its status bit) or
-    faulted."""
-    V = np.empty((n, 4))
-    i, level = 0, rng.uniform(-8, 8, 4)
-    while i < n:
-        hold = int(rng.integers(2, 60))
-        V[i : i + hold] = level
-        i += hold
-        move = int(rng.integers(1, 12))
-        target = rng.uniform(-8, 8, 4)
-        V[i : i + move] = np.linspace(level, target, move + 2)[1:-1][: max(n - i, 0)]
-        i, level = i + move, target
-    V += rng.normal(0, 0.04, V.shape)
-    s = scan_rows.empty(n)
-    s["codes"] = np.clip(np.floor((V + 10) / LSB), 0, 4095)
-    if n == 0:
-        return s
-    s["missed"][rng.integers(0, n, gaps)] = rng.integers(1, 40, gaps)
-    s["restarted"][rng.integers(0, n, restarts)] = True
-    cycle = np.zeros(n, dtype=np.uint32)
-    cycle[rng.integers(1, max(n, 2), power_cycles) % n] = 1
-    s["epoch"] = 7 + np.cumsum(cycle)
-    rows, channel = rng.integers(0, n, bad), rng.integers(0, 4, bad)
-    kind = rng.integers(0, 4, bad)
-    s["codes"][rows[kind == 0], channel[kind == 0]] = 0
-    s["codes"][rows[kind == 1], channel[kind == 1]] = 4095
-    s["status"][rows[kind == 2]] |= (1 << channel[kind == 2]).astype(np.uint16)
-    s["status"][rows[kind == 3]] |= (1 << (4 + channel[kind == 3])).astype(np.uint16)
-    # counters from 0 at each restart, on by the missed scans at a gap; stamps on by as
-    # many scan periods, and 2 s more across a restart
-    period_us = 1_000_000 // rate
-    step = 1 + s["missed"].astype(np.int64)
-    fresh = np.zeros(n, dtype=bool)
-    fresh[1:] = s["restarted"][1:] | (np.diff(s["epoch"]) != 0)
-    inc = np.where(fresh, 0, step)
-    inc[0] = 0
-    total = np.cumsum(inc)
-    start = np.maximum.accumulate(np.where(fresh, np.arange(n), 0))
-    s["counter64"] = total - total[start]
-    advance = step * period_us * 1000 + fresh * 2_000_000_000
-    advance[0] = 0
-    s["stamp_ns"] = T0 + np.cumsum(advance)
-    s["time64_us"] = s["counter64"] * period_us
-    return s
 
 
 @st.composite
