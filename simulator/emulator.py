@@ -55,7 +55,7 @@ _log = logging.getLogger(__name__)
 TRANSPORTS = ("modbus-tcp", "modbus-rtu", "ascii")
 TICK_S = 0.01
 _START_TIMEOUT_S = 5.0
-_STOP_TIMEOUT_S = 5.0
+_STOP_TIMEOUT_S = 15.0
 _GARBAGE_STREAM = 0x6A756E6B  # second seed word: the garbage rng differs from the source's
 _LATENCY_STREAM = 0x6C617465  # and the answer delays' from both
 
@@ -329,7 +329,7 @@ class Emulator:
         ------
         RuntimeError
             If called from the emulator's own thread, or the thread did not stop within
-            5 s.
+            15 s (a loaded machine's server shutdown has taken over 5).
         """
         if self._thread is not None and threading.current_thread() is self._thread:
             raise RuntimeError("Emulator.close() called from the emulator's own thread")

@@ -90,7 +90,9 @@ def assert_same_scans(original: np.ndarray, again: np.ndarray, *, polled: bool =
                    original["counter64"].tolist(), strict=True)  # fmt: skip
         present = np.array([k in have for k in keys], dtype=bool)
         absent = int((~present).sum())
-        assert absent <= 1 + len(original) // 100, f"{absent} of {len(original)} scans missed"
+        # a 2-core CI runner shared by two test workers delays some polls past a scan (4 to
+        # 6 of 220 seen); each such miss must still be declared (below)
+        assert absent <= 1 + len(original) // 30, f"{absent} of {len(original)} scans missed"
         idx = np.flatnonzero(present)
         before = np.diff(np.r_[-1, idx]) - 1  # scans missed just before each one recorded
         same_epoch = np.r_[False, original["epoch"][idx][1:] == original["epoch"][idx][:-1]]

@@ -17,7 +17,7 @@ from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.scenarios import HandMoves
 from tests.support.processes import Proc, calibrate_json, fresh_config, listening_url, record
 from tests.support.rows import rows_from
-from tests.support.sessions import PAUSE_S, truth_for
+from tests.support.sessions import PAUSE_S, trim, truth_for
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -79,11 +79,19 @@ def test_until_enough_stops_by_itself_and_calibrate_agrees(tmp_path):
     assert all(f.complete for f in out.files)
     assert out.events_of("guidance")[0].details["enough"] is True
     predicted = updates[-1]["std"]
-    code, doc, err = calibrate_json(tmp_path / "rec", "--controller-config", config)
-    assert code == 0 and doc["accepted"], err
-    for name, p in doc["parameters"].items():
-        assert p["std"] == pytest.approx(predicted[name], rel=0.2), name
-        assert abs(p["value"] - truth[INDEX[name]]) <= 3 * p["std"], name
+    # on the scans the guidance judged, calibrate reports what it predicted; the whole
+    # recording holds the scans recorded while it stopped too (every scan counts: at ten
+    # times, a second's lag on a loaded machine is ten seconds of motion), no less precise
+    seen = trim(tmp_path / "rec", tmp_path / "seen", 0, updates[-1]["scans"])
+    for where, rel in ((seen, 0.02), (tmp_path / "rec", None)):
+        code, doc, err = calibrate_json(where, "--controller-config", config)
+        assert code == 0 and doc["accepted"], err
+        for name, p in doc["parameters"].items():
+            if rel is not None:
+                assert p["std"] == pytest.approx(predicted[name], rel=rel), name
+            else:
+                assert p["std"] <= predicted[name] * 1.02, name
+            assert abs(p["value"] - truth[INDEX[name]]) <= 3 * p["std"], name
 
 
 @pytest.mark.parametrize(
