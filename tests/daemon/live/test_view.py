@@ -121,7 +121,13 @@ def test_stalled_and_many_viewers_cost_the_recording_no_scan(tmp_path):
     state = seen["topics"]["/joint/state"]["received"]
     assert value(m, "loopcal_live_messages_total") > 1.5 * state
     assert seen["errors"] == [], seen["errors"][:5]
-    assert seen["topics"]["/joint/state"]["received"] > 0.6 * 8.0 * 20 * SPEED
+    # the views reached a viewer that kept reading: few missing in the span it saw (counted in
+    # the module's time, 5 ms a scan, not in the wall time a loaded machine gives node), and
+    # that span is most of the time watched
+    first, last = (int(seen["topics"]["/joint/state"][k]) for k in ("first_ns", "last_ns"))
+    span = (last - first) / (50e6 / SPEED) + 1
+    assert state > 0.8 * span, (state, span)
+    assert span > 0.5 * 8.0 * 20 * SPEED, span
     assert seen["others"]["received"] > 10 * seen["topics"]["/joint/state"]["received"]
     out = read_recordings(tmp_path / "rec")
     c = out.scans["counter64"].astype(np.int64)
