@@ -467,6 +467,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="with --scenario hand: seconds the hand holds each position (default 1,3)",
     )
     p.add_argument(
+        "--twist-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="with --scenario hand: every N-th move twists the plate about its own axis, as "
+        "the live guidance asks (default 0: never)",
+    )
+    p.add_argument(
         "--offset-error",
         type=float,
         default=3.0,
@@ -528,6 +536,8 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             raise ValueError("--speed must be positive")
         if args.noise_mv < 0:
             raise ValueError("--noise-mv must not be negative")
+        if args.twist_every < 0:
+            raise ValueError(f"--twist-every must be 0 or more moves, got {args.twist_every}")
         drifts = tuple(d for d in (e.drift() for e in faults) if d is not None)
         open_points = open_points_from_arguments(args)
         if args.scenario == "replay":
@@ -539,8 +549,9 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             scenario = None
         else:
             scenario = scenario_named(
-                args.scenario, seed=args.seed, params=truth, pause_s=args.pause
-            )
+                args.scenario, seed=args.seed, params=truth, pause_s=args.pause,
+                twist_every=args.twist_every,
+            )  # fmt: skip
             source = MechanismSource(
                 scenario, truth, noise_volts=args.noise_mv / 1000, seed=args.seed, drifts=drifts
             )

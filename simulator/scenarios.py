@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from loopcal.calibration.kinematics import from_euler_zyz
+from loopcal.calibration.errors import InputError
+from loopcal.calibration.kinematics import euler_zyz, from_euler_zyz
 from loopcal.calibration.parameters import NOMINAL
 from loopcal.calibration.simulate import NEAR_SINGULAR_MM, reachable, sample_workspace
 
@@ -218,6 +219,10 @@ def min_jerk(tau: np.ndarray) -> np.ndarray:
     return tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
 
 
+#: orientations drawn for a twisting move of :class:`HandMoves`, the most twisted one taken
+TWIST_CANDIDATES = 8
+
+
 class HandMoves(Scenario):
     """A technician moving the plate by hand.
 
@@ -239,6 +244,11 @@ class HandMoves(Scenario):
     params : ndarray of float, shape (20,), default NOMINAL
         The mechanism whose workspace the moves stay in
         (:data:`loopcal.calibration.parameters.NOMINAL`; mm and mm/V).
+    twist_every : int, default 0
+        Every ``twist_every``-th move goes to the most twisted (largest |swivel|) of
+        :data:`TWIST_CANDIDATES` reachable orientations: a technician who also twists the
+        plate about its own axis, as the live guidance asks (0: never; every target drawn
+        uniformly). 0 draws exactly the motion it drew before the option existed.
 
     Attributes
     ----------
@@ -249,6 +259,8 @@ class HandMoves(Scenario):
     speed_deg_s : tuple of 2 float
         As given.
     params : ndarray of float, shape (20,)
+        As given.
+    twist_every : int
         As given.
 
     Notes
@@ -266,11 +278,16 @@ class HandMoves(Scenario):
         pause_s: tuple[float, float] = (1.0, 3.0),
         speed_deg_s: tuple[float, float] = (15.0, 40.0),
         params: np.ndarray = NOMINAL,
+        twist_every: int = 0,
     ) -> None:
+        if twist_every < 0:
+            raise InputError(f"twist_every must be 0 or more moves, got {twist_every}")
         self.seed = seed
         self.pause_s = pause_s
         self.speed_deg_s = speed_deg_s
         self.params = np.asarray(params, dtype=float)
+        self.twist_every = int(twist_every)
+        self._moves = 0
         self._rng = np.random.default_rng(seed)
         self._segments: list[_Segment] = []
         self._starts: list[float] = []
@@ -286,10 +303,15 @@ class HandMoves(Scenario):
     def _extend(self) -> None:
         last = self._segments[-1]
         here = last.hold
+        self._moves += 1
+        twist = self.twist_every > 0 and self._moves % self.twist_every == 0
         for _ in range(100):
-            target = Rotation.from_matrix(
-                sample_workspace(1, self._rng, self.params, margin_mm=1.5 * NEAR_SINGULAR_MM)[0]
-            )
+            drawn = sample_workspace(TWIST_CANDIDATES if twist else 1, self._rng, self.params,
+                                     margin_mm=1.5 * NEAR_SINGULAR_MM)  # fmt: skip
+            if twist:
+                a, _, g = euler_zyz(drawn).T
+                drawn = drawn[np.argmax(np.abs(np.angle(np.exp(1j * (a + g)))))][None]
+            target = Rotation.from_matrix(drawn[0])
             slerp = Slerp([0.0, 1.0], Rotation.concatenate([here, target]))
             path = slerp(np.linspace(0.0, 1.0, 24)).as_matrix()
             if reachable(path, self.params, margin_mm=NEAR_SINGULAR_MM).all():
@@ -381,6 +403,7 @@ def scenario_named(
     seed: int = 0,
     params: np.ndarray = NOMINAL,
     pause_s: tuple[float, float] = (1.0, 3.0),
+    twist_every: int = 0,
 ) -> Scenario:
     """The scenario ``loopcal simulate --scenario NAME`` serves.
 
@@ -395,11 +418,14 @@ def scenario_named(
         With "hand": the mechanism whose workspace the moves stay in.
     pause_s : tuple of 2 float, default (1.0, 3.0)
         With "hand": (min, max) of each still pause, s.
+    twist_every : int, default 0
+        With "hand": every so many moves twist the plate about its own axis (0: never).
 
     Returns
     -------
     Scenario
-        A new scenario; the other scenarios ignore ``seed``, ``params`` and ``pause_s``.
+        A new scenario; the other scenarios ignore ``seed``, ``params``, ``pause_s`` and
+        ``twist_every``.
 
     Raises
     ------
@@ -409,5 +435,5 @@ def scenario_named(
     if name not in SCENARIOS:
         raise ValueError(f"scenario {name!r}: one of {', '.join(SCENARIOS)}")
     if name == "hand":
-        return HandMoves(seed, params=params, pause_s=pause_s)
+        return HandMoves(seed, params=params, pause_s=pause_s, twist_every=twist_every)
     return SCENARIOS[name]()

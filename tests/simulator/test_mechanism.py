@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from loopcal.calibration.kinematics import inverse_kinematics, lengths_to_volts
+from loopcal.calibration.errors import InputError
+from loopcal.calibration.kinematics import euler_zyz, inverse_kinematics, lengths_to_volts
 from loopcal.calibration.parameters import NOMINAL, PAPER7
 from loopcal.calibration.pipeline import calibrate
 from loopcal.calibration.poses import still_poses
@@ -23,6 +24,29 @@ def test_hand_moves_are_deterministic_in_any_query_order():
     b = np.concatenate([b[250:], b[:250]])
     assert np.array_equal(a, b)
     assert not np.allclose(a, HandMoves(4).rotation(t))
+
+
+def _swivel_deg(R: np.ndarray) -> np.ndarray:
+    a, _, g = euler_zyz(R).T
+    return np.degrees(np.angle(np.exp(1j * (a + g))))
+
+
+def test_a_twisting_technician_twists_every_other_move_and_stays_in_the_workspace():
+    truth = perturbed_truth(np.random.default_rng(2))
+    plain, twisting = HandMoves(5, params=truth), HandMoves(5, params=truth, twist_every=2)
+    t = np.linspace(0, 300, 6000)
+    assert np.array_equal(plain.rotation(t), HandMoves(5, params=truth, twist_every=0).rotation(t))
+    held = []
+    for h in (plain, twisting):
+        ends = [b for _, b, moving in h.segments_until(300) if moving]  # where each move ends
+        held.append(np.abs(_swivel_deg(h.rotation(np.array(ends)))))
+    # every second move ends at the most twisted of eight draws: far more twisted than the
+    # uniform draws of the other moves and of the plain technician
+    assert np.median(held[1][1::2]) > 1.5 * np.median(held[1][0::2])
+    assert np.median(held[1][1::2]) > 1.5 * np.median(held[0])
+    assert reachable(twisting.rotation(t), truth, margin_mm=9.0).all()
+    with pytest.raises(InputError, match="twist_every"):
+        HandMoves(5, twist_every=-1)
 
 
 def test_hand_moves_stay_in_the_workspace_and_pause():

@@ -165,14 +165,16 @@ def write_session(
     return n
 
 
-def hand_rows(n: int, *, seed: int = 1, first: int = 0, read_every: int = 4) -> np.ndarray:
+def hand_rows(n: int, *, seed: int = 1, first: int = 0, read_every: int = 4,
+              twist_every: int = 0) -> np.ndarray:  # fmt: skip
     """``n`` scans of a technician's hand-moved session at 20 Hz (the motion of ``seed``),
     counters (and device times) from ``first`` on, as the recorder stamps them: the offline
     mechanism's codes (40 mV of noise), one host receive time per read of ``read_every``
-    scans, 1 to 3 ms after the last one's stamp."""
+    scans, 1 to 3 ms after the last one's stamp. twist_every: every so many moves twist the
+    plate (:class:`~loopcal.simulator.scenarios.HandMoves`; 0: never)."""
     truth = truth_for(seed)
-    time_us, codes = mechanism_scans(HandMoves(seed, params=truth, pause_s=PAUSE_S), truth,
-                                     n, rate_hz=20, noise_volts=0.04, seed=seed)  # fmt: skip
+    motion = HandMoves(seed, params=truth, pause_s=PAUSE_S, twist_every=twist_every)
+    time_us, codes = mechanism_scans(motion, truth, n, rate_hz=20, noise_volts=0.04, seed=seed)
     rows = rows_from(time_us + first * 50_000, codes, counter=np.arange(first, first + n))
     last = rows["stamp_ns"][read_every - 1 :: read_every]
     latency = np.random.default_rng([seed, 3]).integers(1_000_000, 3_000_000, len(last))
