@@ -41,7 +41,8 @@ OFFSETS = tuple(n for n in INDEX if SL_OFFSET.start <= INDEX[n] < SL_OFFSET.stop
 #: the plate has not moved for RESTING_S seconds when every channel stayed within
 #: RESTING_BAND_V over them: the technician is asked to move on
 RESTING_S, RESTING_BAND_V = 10.0, 0.25
-#: the coverage (largest tilt toward each sensor) is judged on at most this many scans
+#: the coverage (largest tilt toward each sensor, largest twist) is judged on at most this
+#: many scans
 COVERAGE_SCANS = 2000
 
 
@@ -52,7 +53,9 @@ class GuidanceUpdate:
     elapsed_s: the plate's time since the first scan (scans over the scan rate); scans:
     collected so far; poses: the distinct positions the usable scans passed through
     (:func:`loopcal.daemon.worker.gates.distinct_positions`, what the ``poses`` gate counts).
-    reach_deg: (4,) the largest tilt reached toward each sensor. min_singular, condition:
+    reach_deg: (4,) the largest tilt reached toward each sensor. twist_deg: (2,) the largest
+    twist about the plate's own axis, clockwise and counter-clockwise seen from above
+    (:func:`loopcal.daemon.worker.gates.twist_coverage`). min_singular, condition:
     of the worker's fit (before it can run: of every usable scan's maximum-likelihood
     information; None before they identify every parameter).
     std: {name: predicted standard deviation} of each free parameter. gates: {name:
@@ -71,6 +74,7 @@ class GuidanceUpdate:
     gates: dict[str, bool] = field(default_factory=dict)
     enough: bool = False
     instruction: str = ""
+    twist_deg: list[float] = field(default_factory=lambda: [0.0, 0.0])
 
     def as_json(self) -> dict[str, Any]:
         def num(x: float | None) -> float | None:
@@ -81,6 +85,8 @@ class GuidanceUpdate:
             "scans": self.scans,
             "poses": self.poses,
             "reach_deg": {f"sensor{i + 1}": round(r, 1) for i, r in enumerate(self.reach_deg)},
+            "twist_deg": dict(zip(("clockwise", "counter_clockwise"),
+                                  (round(t, 1) for t in self.twist_deg), strict=True)),
             "min_singular": num(self.min_singular),
             "condition": num(self.condition),
             "std": {n: num(s) for n, s in self.std.items()},
@@ -101,6 +107,9 @@ class GuidanceUpdate:
         for i, r in enumerate(self.reach_deg):
             bar = "#" * int(min(r, 45) / 45 * 30)
             lines.append(f"  sensor {i + 1} {r:5.1f} deg |{bar:<30}|")
+        cw, ccw = self.twist_deg
+        lines.append(f"twist about the plate's axis (aim for {G.GOOD_TWIST_DEG:.0f} deg each way): "
+                     f"clockwise {cw:.1f} deg, counter-clockwise {ccw:.1f} deg")  # fmt: skip
         if self.min_singular is not None:
             lines.append(
                 f"observability: min singular value {self.min_singular:.3f}, condition "
@@ -190,9 +199,11 @@ class Guidance:
         elapsed = len(scans) / usable.scan_rate_hz  # of the plate's time, whatever the clock
         step = max(1, -(-len(usable) // COVERAGE_SCANS))
         reach = G.coverage(usable.volts[::step], start)
+        twist = G.twist_coverage(usable.volts[::step], start)
         positions = G.distinct_positions(usable.volts)
         u = GuidanceUpdate(elapsed, len(scans), positions, [float(r) for r in reach], None,
-                           None, {}, self.target_mm)  # fmt: skip
+                           None, {}, self.target_mm,
+                           twist_deg=[float(t) for t in twist])  # fmt: skip
         if positions >= G.MIN_POSES:
             self._from_worker(u, scans)
         else:

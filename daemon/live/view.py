@@ -108,6 +108,7 @@ _JSON_SCHEMAS: dict[str, dict[str, Any]] = {
             "scans": {"type": "integer"},
             "poses": {"type": "integer"},
             "reach_deg": _NUMBERS,
+            "twist_deg": _NUMBERS,
             "std": {"type": "object", "additionalProperties": {"type": "number"}},
             "target_mm": {"type": "number"},
             "enough": {"type": "boolean"},
@@ -296,6 +297,7 @@ class LiveView:
         doc = {k: v for k, v in update.as_json().items()
                if k in _JSON_SCHEMAS[TOPIC_GUIDANCE]["properties"]}  # fmt: skip
         doc["reach_deg"] = [round(float(r), 1) for r in update.reach_deg]
+        doc["twist_deg"] = [round(float(t), 1) for t in update.twist_deg]  # clockwise, ccw
         self._log(TOPIC_GUIDANCE, json.dumps(doc), now)
         entities = []
         if not update.enough and len(update.reach_deg):

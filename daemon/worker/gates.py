@@ -36,6 +36,7 @@ import numpy as np
 
 from loopcal.calibration.kinematics import (
     base_points,
+    euler_zyz,
     forward_kinematics,
     output_axis_angles,
     volts_to_lengths,
@@ -66,6 +67,9 @@ CHANGE_LIMITS = {"offset": 15.0, "geometry": 3.0, "gain": 0.05}
 #: largest standard deviation of an identified parameter, by unit
 PRECISION = {"mm": 0.25, "mm/V": 0.01}
 GOOD_TILT_DEG = 25.0  #: deg; the workspace allows 45, poses should reach this far every way
+#: deg; how far to twist the plate about its own axis each way: the parameters' weakest
+#: combination is learnt mostly from twisted positions (docs/calibration.md)
+GOOD_TWIST_DEG = 30.0
 
 
 @dataclass(frozen=True)
@@ -138,6 +142,38 @@ def _group(name: str) -> str:
 # ---------------------------------------------------------------------------- workspace
 
 
+def _rotations(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
+    """(k, 3, 3) plate rotations of readings (forward kinematics; NaN where none)."""
+    fk = forward_kinematics(volts_to_lengths(volts, params), params)
+    return np.where(fk.converged[:, None, None], fk.rotations, np.nan)
+
+
+def twist_coverage(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
+    """How far the poses twisted the plate about its own axis, each way.
+
+    Parameters
+    ----------
+    volts : ndarray of float, shape (k, 4)
+        The poses' readings, V.
+    params : ndarray of float, shape (20,)
+        The parameters to turn them into poses with (forward kinematics).
+
+    Returns
+    -------
+    ndarray of float, shape (2,)
+        The largest swivel (the ZYZ angles' alpha + gamma) reached clockwise and
+        counter-clockwise seen from above, degrees, both >= 0 (0 for no poses).
+    """
+    if len(volts) == 0:
+        return np.zeros(2)
+    a, _, g = euler_zyz(_rotations(volts, params)).T
+    swivel = np.degrees(np.angle(np.exp(1j * (a + g))))
+    swivel = swivel[np.isfinite(swivel)]
+    if swivel.size == 0:
+        return np.zeros(2)
+    return np.array([max(0.0, -float(swivel.min())), max(0.0, float(swivel.max()))])
+
+
 def coverage(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
     """How far the poses tilted the plate toward each sensor.
 
@@ -157,8 +193,7 @@ def coverage(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
     """
     if len(volts) == 0:
         return np.zeros(4)
-    fk = forward_kinematics(volts_to_lengths(volts, params), params)
-    tilt, az = np.degrees(output_axis_angles(fk.rotations))
+    tilt, az = np.degrees(output_axis_angles(_rotations(volts, params)))
     A = base_points(params)
     reach = np.zeros(4)
     for i in range(4):
@@ -189,18 +224,29 @@ def coverage_advice(volts: np.ndarray, params: np.ndarray, *, still: bool = True
     -------
     str
         The advice: tilt further toward the sensor reached least (while it is under
-        :data:`GOOD_TILT_DEG`, 25 deg), else record more positions spread over the
-        workspace; with no poses, move the plate through its whole range.
+        :data:`GOOD_TILT_DEG`, 25 deg), else twist the plate about its own axis the way it
+        was twisted least (while under :data:`GOOD_TWIST_DEG`, 30 deg,
+        :func:`twist_coverage`), else record more positions spread over the workspace,
+        tilted and twisted; with no poses, move the plate through its whole range.
     """
     hold = ", holding each position still for a second" if still else ""
     if len(volts) == 0:
-        return "move the plate by hand through its whole range" + hold
+        return "move the plate by hand through its whole range, tilting and twisting it" + hold
     reach = coverage(volts, params)
     worst = int(np.argmin(reach))
     if reach[worst] >= GOOD_TILT_DEG:
+        twist = twist_coverage(volts, params)
+        least = int(np.argmin(twist))
+        if twist[least] < GOOD_TWIST_DEG:
+            way = ("clockwise", "counter-clockwise")[least]
+            return (
+                f"twist the plate about its own axis, {way} seen from above (the "
+                f"{'poses' if still else 'scans'} reach only {twist[least]:.0f} deg that way; "
+                f"aim for {GOOD_TWIST_DEG:.0f} deg or more){hold}"
+            )
         if still:
-            return "record more still positions spread over the whole workspace"
-        return "keep moving the plate through the whole workspace"
+            return "record more still positions spread over the whole workspace, tilted and twisted"
+        return "keep moving the plate through the whole workspace, tilting and twisting it"
     return (
         f"tilt the plate further toward sensor {worst + 1} (the {'poses' if still else 'scans'}"
         f" reach only {reach[worst]:.0f} deg that way; aim for {GOOD_TILT_DEG:.0f} deg or "

@@ -10,8 +10,10 @@ import pytest
 
 from loopcal.calibration.parameters import INDEX, NAMES, PAPER7
 from loopcal.daemon.config.controller import nominal_config
-from loopcal.daemon.live.guidance import Guidance
+from loopcal.daemon.live.guidance import COVERAGE_SCANS, Guidance
 from loopcal.daemon.recording import read_recordings
+from loopcal.daemon.worker import gates as G
+from loopcal.daemon.worker.motion import scans_for_fit
 from loopcal.daemon.worker.run import run_worker
 from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.scenarios import HandMoves
@@ -49,7 +51,16 @@ def test_guidance_predicts_what_the_worker_reports_and_stops_when_enough():
     assert {n: pytest.approx(s) for n, s in result.std.items()} == last.std
     text = "\n".join(last.render())
     assert "ENOUGH" in text and "sensor 4" in text and "d03" in text
-    assert json.loads(json.dumps(last.as_json()))["enough"] is True
+    doc = json.loads(json.dumps(last.as_json()))
+    assert doc["enough"] is True
+    # how far the plate was twisted each way, as the worker's advice judges it
+    usable = scans_for_fit(seen).volts
+    step = max(1, -(-len(usable) // COVERAGE_SCANS))
+    twist = G.twist_coverage(usable[::step], np.array(nominal_config().params))
+    assert last.twist_deg == pytest.approx(twist.tolist()) and min(twist) > 0
+    assert doc["twist_deg"] == {"clockwise": round(twist[0], 1),
+                                "counter_clockwise": round(twist[1], 1)}  # fmt: skip
+    assert f"clockwise {twist[0]:.1f} deg, counter-clockwise {twist[1]:.1f} deg" in text
 
 
 def test_until_enough_stops_by_itself_and_calibrate_agrees(tmp_path):

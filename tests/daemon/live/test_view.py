@@ -82,7 +82,7 @@ def test_a_foxglove_client_sees_every_channel_decoded_at_the_scan_rate(tmp_path)
     guidance = topics["/loopcal/guidance"]
     assert guidance["received"] >= 1 and guidance["last"]["instruction"], guidance["last"]
     assert topics["/loopcal/guidance/tilt"]["received"] == guidance["received"]
-    assert len(guidance["last"]["reach_deg"]) == 4
+    assert len(guidance["last"]["reach_deg"]) == 4 and len(guidance["last"]["twist_deg"]) == 2
     tilt = topics["/loopcal/guidance/tilt"]["last"]
     for entity in tilt["entities"]:  # none once the recording is enough
         [arrow] = entity["arrows"]
