@@ -1,7 +1,8 @@
 """``loopcal demo``: the field job for real, on the built-in emulated DAQ.
 
 A simulated shoulder joint whose LVDTs were refitted (offsets lost, known only to the
-simulation) is moved by a technician's hand for 75 seconds (every scan counts, moving or
+simulation) is moved by a technician's hand for 75 seconds as the guidance asks, tilting it
+and, every other move, twisting it about its own axis (every scan counts, moving or
 still: the hand pauses about a second between moves only as people do). Its
 emulated LDQ-412 is recorded by ``loopcal record`` through a real driver over a real
 transport; ``loopcal calibrate --write`` turns the recording into new values in a fresh
@@ -58,6 +59,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="device time per real second (default 10; 1 over ASCII, which polls)",
     )
     p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    p.add_argument("--twist-every", type=int, default=2, metavar="N",
+                   help="the technician twists the plate about its own axis every N-th move "
+                        "(default 2, as the guidance asks; 0: never)")  # fmt: skip
     p.add_argument("--noise-mv", type=float, default=40.0, help="sensor noise, mV (40)")
     p.add_argument(
         "--offset-error",
@@ -98,6 +102,8 @@ def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
     """The demo; ``report`` gets what --json prints: verdict, written, work, parameters."""
     if args.minutes <= 0:
         raise ValueError("--minutes must be positive")
+    if args.twist_every < 0:
+        raise ValueError(f"--twist-every must be 0 or more moves, got {args.twist_every}")
     if args.noise_mv < 0:
         raise ValueError("--noise-mv must not be negative")
     speed = args.speed if args.speed is not None else (1.0 if args.transport == "ascii" else 10.0)
@@ -122,10 +128,12 @@ def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
     print(
         f"A shoulder joint whose LVDTs were refitted (offsets off by up to "
         f"{args.offset_error:g} mm), {args.noise_mv:g} mV of sensor noise; a technician moves "
-        f"it by hand for {args.minutes:g} min. Working in {work}."
+        f"it by hand for {args.minutes:g} min"
+        + (f", twisting it every {args.twist_every} moves" if args.twist_every else "")
+        + f". Working in {work}."
     )
     source = MechanismSource(
-        HandMoves(args.seed, params=truth, pause_s=PAUSE_S),
+        HandMoves(args.seed, params=truth, pause_s=PAUSE_S, twist_every=args.twist_every),
         truth,
         noise_volts=args.noise_mv / 1000,
         seed=args.seed,
