@@ -33,12 +33,28 @@ poses: when each stops (median and quartiles), how many reach it within 5 minute
 RMS error of the offsets at the stop. Target: every scan stops at least 30 % sooner, with
 the same acceptance.
 
+``length``: how the precision grows with the session's length, on ``--sessions``
+sessions: the every-scan fit's reported standard deviations (median over the sessions) at
+45 s to 4 min of the same sessions, against the still-pose method at 120 s and against
+the 1/sqrt(length) a fixed information rate would give; the fit's standard deviations over
+the Cramér-Rao bound of its scans (its efficiency; the bound from the true rotations and
+parameters, 40 mV and the 12-bit step); and the same technicians moving without pausing
+(pauses of 0 to 0.2 s), 75 s and 120 s; and where the least-known combination of the
+parameters is learnt (its scaled components, and the share of its information in the top
+5 % of the scans and in the scans twisted 20 deg or more). Why random technicians need
+longer than 75 s, and twisting ones do not: docs/model.md section 9.2.
+
 ``thin``: an hour of hand motion (72,000 scans): the fit on every usable scan against the
 worker's thinning to :data:`~loopcal.daemon.worker.motion.MAX_FIT_SCANS` (12,000): the
 reported standard deviations (the precision the thinning costs) and the time.
 
-Run: ``python -m bench.bench_scans [--part mc|gains|enough|thin] [--sessions 40]
-[--gain-sessions 10] [--enough-sessions 20] [--jobs 2]``.
+``--twist-every N``: the simulated technicians also twist the plate about its own axis
+every N-th move (to the most twisted of eight reachable orientations), as the live guidance
+now asks (:class:`loopcal.simulator.scenarios.HandMoves`); 0, the default, keeps the
+random targets of the sessions before that advice.
+
+Run: ``python -m bench.bench_scans [--part mc|gains|enough|length|thin] [--twist-every 2]
+[--sessions 40] [--gain-sessions 10] [--enough-sessions 20] [--jobs 2]``.
 """
 
 from __future__ import annotations
@@ -65,6 +81,11 @@ IDX = [INDEX[n] for n in FREE]
 VARIANTS = ("poses", "scans", "scans 75s", "no deskew")
 
 
+def _twist() -> int:
+    """``--twist-every``, handed to the pool's processes in the environment."""
+    return int(os.environ.get("LOOPCAL_BENCH_TWIST_EVERY", "0"))
+
+
 def reference_config() -> ControllerConfig:
     return nominal_config()
 
@@ -85,7 +106,7 @@ def one_session(seed: int) -> dict:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     config = reference_config()
     truth = truth_for(seed)
-    rows = hand_rows(2400, seed=seed)
+    rows = hand_rows(2400, seed=seed, twist_every=_twist())
     out = {}
     for name in VARIANTS:
         t = time.perf_counter()
@@ -162,7 +183,7 @@ def one_gain(args: tuple[int, float]) -> dict:
     p[INDEX["S3"]] *= 1.0 + off
     config = replace(config, params=p)
     truth = truth_for(seed)
-    rows = hand_rows(2400, seed=seed)
+    rows = hand_rows(2400, seed=seed, twist_every=_twist())
     out = {}
     for samples in ("poses", "scans"):
         r = run_worker(rows, config, PAPER7, samples=samples)
@@ -231,7 +252,7 @@ def one_enough(seed: int) -> dict:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     config = reference_config()
     truth = truth_for(seed)
-    rows = hand_rows(20 * LONGEST_S, seed=seed)
+    rows = hand_rows(20 * LONGEST_S, seed=seed, twist_every=_twist())
     return {m: _enough(rows, config, m, truth) for m in ("poses", "scans")}
 
 
@@ -259,6 +280,91 @@ def part_enough(sessions: int, jobs: int) -> None:
               f"{'met' if ratio <= 0.7 else 'NOT met'})")  # fmt: skip
 
 
+LENGTHS_S = (45, 60, 75, 90, 120, 180, 240)
+#: one conversion's noise: 40 mV and the 12-bit step (20 V / 4096) as a uniform error
+SCAN_NOISE_V = float(np.hypot(0.04, 20 / 4096 / np.sqrt(12)))
+
+
+def _std(rows: np.ndarray, config: ControllerConfig) -> np.ndarray:
+    S = scans_for_fit(rows)
+    return calibrate_scans(S.volts, PAPER7, np.array(config.params)).identification.std
+
+
+def one_length(seed: int) -> dict:
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    from loopcal.calibration.implicit import cramer_rao, weighted_information
+    from loopcal.calibration.kinematics import euler_zyz
+    from loopcal.simulator.offline import mechanism_scans
+    from loopcal.simulator.scenarios import HandMoves
+    from tests.support.rows import rows_from
+    from tests.support.sessions import PAUSE_S
+
+    config = reference_config()
+    truth = truth_for(seed)
+    rows = hand_rows(20 * max(LENGTHS_S), seed=seed, twist_every=_twist())
+    out = {"scans": np.array([_std(rows[: 20 * t], config) for t in LENGTHS_S])}
+    out["poses 120s"] = np.array(
+        [run_worker(rows[:2400], config, PAPER7, samples="poses").std[n] for n in FREE]
+    )
+    S = scans_for_fit(rows[:2400])
+    # the true rotation at each fitted scan (scan k at k / 20 s; the deskewed readings are
+    # at their stamps)
+    R = HandMoves(seed, params=truth, pause_s=PAUSE_S, twist_every=_twist()).rotation(
+        S.rows[:, 0] / 20.0
+    )
+    out["CR 120s"] = np.sqrt(np.diag(
+        cramer_rao(R, truth, PAPER7.tie_matrix, noise_volts=SCAN_NOISE_V)
+    ))  # fmt: skip
+    # where the least-known combination is learnt: the scaled information's smallest
+    # eigenvector, each scan's share of the information along it, and the twist of the scans
+    a = weighted_information(R, truth, PAPER7.tie_matrix, np.full((len(R), 4), 1 / SCAN_NOISE_V))
+    a = a / np.sqrt(np.sum(a**2, axis=0))
+    v = np.linalg.eigh(a.T @ a)[1][:, 0]
+    share = (a @ v) ** 2 / np.sum((a @ v) ** 2)
+    alpha, _, gamma = euler_zyz(R).T
+    twisted = np.abs(np.degrees(np.angle(np.exp(1j * (alpha + gamma))))) >= 20
+    out["weak"] = v * np.sign(v[np.argmax(np.abs(v))])  # sign: its largest part positive
+    out["weak shares"] = np.array([np.sort(share)[::-1][: len(share) // 20].sum(),
+                                   share[twisted].sum(), twisted.mean()])  # fmt: skip
+    moving = HandMoves(seed, params=truth, pause_s=(0.0, 0.2), twist_every=_twist())
+    time_us, codes = mechanism_scans(moving, truth, 2400, rate_hz=20, noise_volts=0.04, seed=seed)
+    rows = rows_from(time_us, codes)
+    out["no pauses"] = np.array([_std(rows[: 20 * t], config) for t in (75, 120)])
+    return out
+
+
+def part_length(sessions: int, jobs: int) -> None:
+    t0 = time.perf_counter()
+    with _pool(jobs) as pool:
+        res = pool.map(one_length, range(1, sessions + 1))
+    print(f"length: {sessions} hand sessions at 40 mV, reported std (mm, mm/V), medians "
+          f"({time.perf_counter() - t0:.0f} s)")  # fmt: skip
+    scans = np.median([r["scans"] for r in res], axis=0)
+    poses = np.median([r["poses 120s"] for r in res], axis=0)
+    at120 = scans[LENGTHS_S.index(120)]
+    print(f"{'':24}" + "".join(f"{n:>8}" for n in FREE) + "   /120 s  sqrt(120/T)")
+    print(f"{'still poses, 120 s':24}" + "".join(f"{x:8.4f}" for x in poses))
+    for t, row in zip(LENGTHS_S, scans, strict=True):
+        grow = np.median(row / at120)
+        print(f"{f'every scan, {t} s':24}" + "".join(f"{x:8.4f}" for x in row)
+              + f"   {grow:6.2f}  {np.sqrt(120 / t):6.2f}")  # fmt: skip
+    per = np.array([r["scans"][LENGTHS_S.index(75)] / r["poses 120s"] for r in res])
+    print(f"{'75 s / poses 120 s':24}" + "".join(f"{x:8.2f}" for x in np.median(per, 0))
+          + "   (median per session)")  # fmt: skip
+    eff = np.array([r["scans"][LENGTHS_S.index(120)] / r["CR 120s"] for r in res])
+    print(f"{'std / Cramer-Rao, 120 s':24}" + "".join(f"{x:8.3f}" for x in np.median(eff, 0))
+          + f"   (range {eff.min():.3f}..{eff.max():.3f})")  # fmt: skip
+    still = np.median([r["no pauses"] for r in res], axis=0)
+    for t, row in zip((75, 120), still, strict=True):
+        print(f"{f'no pauses, {t} s':24}" + "".join(f"{x:8.4f}" for x in row))
+    weak = np.median([r["weak"] for r in res], axis=0)
+    top, twist, time_ = np.median([r["weak shares"] for r in res], axis=0)
+    print(f"{'least-known combination':24}" + "".join(f"{x:8.2f}" for x in weak)
+          + "   (120 s, scaled; median)")  # fmt: skip
+    print(f"  its information: {100 * top:.0f} % from 5 % of the scans; {100 * twist:.0f} % from "
+          f"the {100 * time_:.0f} % of scans twisted 20 deg or more (medians)")  # fmt: skip
+
+
 def part_thin() -> None:
     from loopcal.calibration.identify import identify
 
@@ -281,18 +387,26 @@ def part_thin() -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--part", choices=("mc", "gains", "enough", "thin"))
+    ap.add_argument("--part", choices=("mc", "gains", "enough", "length", "thin"))
     ap.add_argument("--enough-sessions", type=int, default=20)
     ap.add_argument("--sessions", type=int, default=40)
     ap.add_argument("--gain-sessions", type=int, default=10)
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--twist-every", type=int, default=0,
+                    help="the simulated technicians twist the plate every so many moves, as "
+                    "the live guidance asks (0: random targets only)")  # fmt: skip
     args = ap.parse_args()
+    os.environ["LOOPCAL_BENCH_TWIST_EVERY"] = str(args.twist_every)
+    if args.twist_every:
+        print(f"technicians twist the plate every {args.twist_every} moves")
     if args.part in (None, "mc"):
         part_mc(args.sessions, args.jobs)
     if args.part in (None, "gains"):
         part_gains(args.gain_sessions, args.jobs)
     if args.part in (None, "enough"):
         part_enough(args.enough_sessions, args.jobs)
+    if args.part in (None, "length"):
+        part_length(args.sessions, args.jobs)
     if args.part in (None, "thin"):
         part_thin()
     return 0

@@ -13,7 +13,7 @@ from loopcal.drivers import open_daq
 from loopcal.drivers.ldq412 import at_rail, code_to_volts
 from loopcal.simulator import Emulator, ManualClock
 from loopcal.simulator.mechanism import MechanismSource
-from loopcal.simulator.scenarios import HandMoves, Static, Sweep, min_jerk
+from loopcal.simulator.scenarios import HandMoves, Static, Sweep, min_jerk, scenario_named
 
 
 def test_hand_moves_are_deterministic_in_any_query_order():
@@ -47,6 +47,9 @@ def test_a_twisting_technician_twists_every_other_move_and_stays_in_the_workspac
     assert reachable(twisting.rotation(t), truth, margin_mm=9.0).all()
     with pytest.raises(InputError, match="twist_every"):
         HandMoves(5, twist_every=-1)
+    # what loopcal simulate --twist-every serves
+    served = scenario_named("hand", seed=5, params=truth, twist_every=2)
+    assert np.array_equal(served.rotation(t), twisting.rotation(t))
 
 
 def test_hand_moves_stay_in_the_workspace_and_pause():

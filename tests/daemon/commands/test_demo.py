@@ -195,8 +195,9 @@ def test_ascii_demo_shows_progress_while_it_records(tmp_path):
 
 @pytest.mark.parametrize(
     ("args", "message"),
-    [(["--minutes", "0"], "--minutes must be positive"), (["--free", "Q7"], "unknown parameter")],
-)
+    [(["--minutes", "0"], "--minutes must be positive"), (["--free", "Q7"], "unknown parameter"),
+     (["--twist-every", "-1"], "--twist-every must be 0 or more moves, got -1")],
+)  # fmt: skip
 def test_demo_bad_options(args, message):
     proc = subprocess.run([*ENTRY, "demo", *args], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2

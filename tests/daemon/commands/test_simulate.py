@@ -96,6 +96,7 @@ def test_scheduled_stall_and_restart_reach_the_driver(tmp_path):
         (["--fault", "stuck@1+1:9=5"], "channel 1..4"),
         (["--truth", "d09=1"], "bad --truth entry 'd09=1'"),
         (["--speed", "0"], "--speed must be positive"),
+        (["--twist-every", "-3"], "--twist-every must be 0 or more moves, got -3"),
     ],
 )
 def test_bad_options_are_named(args, message):
