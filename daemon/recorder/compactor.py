@@ -20,6 +20,7 @@ up on, is not opened again).
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import math
 import os
@@ -41,6 +42,23 @@ NICE = 10  # the compaction thread's CPU priority (lower than the acquisition's)
 
 #: seconds in a day
 DAY_S = 86_400.0
+
+
+def release_free_heap() -> bool:
+    """Give the C heap's free pages back to the system (glibc's ``malloc_trim(0)``; False
+    where the C library has none).
+
+    A compaction reads a file's messages and lets them go: the freed memory stays with the
+    process, scattered between what is still in use, and a daemon that runs for months
+    would keep the largest such peak. Trimming after each file keeps its resident memory
+    at what it uses (bench/bench_daemon.py --part memory)."""
+    try:
+        trim = ctypes.CDLL(None).malloc_trim
+    except (AttributeError, OSError):
+        return False
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    trim(0)
+    return True
 
 
 class Compactor:
@@ -114,6 +132,7 @@ class Compactor:
                     if not self._queue.empty():  # a new file, or stop: that first
                         break
                     self._compact(old)
+            release_free_heap()
 
     def _compact(self, path: Path) -> None:
         drop = self.views_expired(path)
