@@ -267,5 +267,5 @@ class Guidance:
         if len(scans) >= n:
             volts = scans_volts(scans[-n:])
             if np.all(np.ptp(volts, axis=0) <= RESTING_BAND_V):
-                return "move the plate: tilt it by hand through new positions"
+                return "move the plate: tilt and twist it by hand through new positions"
         return G.coverage_advice(usable.volts, p, still=False)

@@ -16,10 +16,10 @@ from loopcal.daemon.worker import gates as G
 from loopcal.daemon.worker.motion import scans_for_fit
 from loopcal.daemon.worker.run import run_worker
 from loopcal.simulator.offline import mechanism_scans
-from loopcal.simulator.scenarios import HandMoves
+from loopcal.simulator.scenarios import HandMoves, Static
 from tests.support.processes import Proc, calibrate_json, fresh_config, listening_url, record
 from tests.support.rows import rows_from
-from tests.support.sessions import PAUSE_S, trim, truth_for
+from tests.support.sessions import PAUSE_S, hand_rows, trim, truth_for
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -61,6 +61,28 @@ def test_guidance_predicts_what_the_worker_reports_and_stops_when_enough():
     assert doc["twist_deg"] == {"clockwise": round(twist[0], 1),
                                 "counter_clockwise": round(twist[1], 1)}  # fmt: skip
     assert f"clockwise {twist[0]:.1f} deg, counter-clockwise {twist[1]:.1f} deg" in text
+
+
+def test_a_plate_left_still_is_asked_to_move_and_a_moving_one_where_to():
+    truth = truth_for(3)
+    updates = []
+    g = Guidance(nominal_config(), PAPER7, target_mm=0.1, on_update=updates.append,
+                 period_s=0)  # fmt: skip
+    t_us, codes = mechanism_scans(Static((0.0, 12.0, 0.0)), truth, 20 * 12, noise_volts=0.04,
+                                  seed=3)  # fmt: skip
+    still = rows_from(t_us, codes)
+    for a in range(0, len(still), 20):
+        g.feed(still[a : a + 20])
+    # not before ten seconds at rest; then told to move, tilting and twisting
+    assert all("move the plate:" not in u.instruction for u in updates[:9])
+    told = "move the plate: tilt and twist it by hand through new positions"
+    assert updates[-1].instruction == told
+    assert updates[-1].twist_deg == pytest.approx([0.0, 0.0], abs=0.5)
+    moving = Guidance(nominal_config(), PAPER7, target_mm=0.1, on_update=updates.append,
+                      period_s=0)  # fmt: skip
+    moving.feed(hand_rows(20 * 20, seed=3))
+    assert "move the plate:" not in updates[-1].instruction
+    assert updates[-1].instruction.startswith(("tilt the plate further", "twist the plate"))
 
 
 def test_until_enough_stops_by_itself_and_calibrate_agrees(tmp_path):
