@@ -13,10 +13,11 @@ process). Three figures, each against a baseline measured in the same run:
   (none: ``--no-health``; health, with a controller config; metrics, scraped every 5 s; the
   live view with one Foxglove client subscribed to everything), the steps taking turns,
   medians of ``--repeats`` windows of ``--feature-seconds``. Target (issue 23): all on <=
-  1.5 %. Measured (2-core VM, 2 December 2026; docs/tools.md): on a quiet machine, 3
-  repeats, recording alone 1.53 %, + health 1.97, + metrics 1.96, + live view 2.23 %; with
-  another engineer's benchmarks running, 5 repeats, 1.50, 1.80, 1.90, 2.06 %. Not met: the
-  recording alone takes about the budget on this VM today (0.77 % when all on was 1.57 %).
+  1.5 %. Measured (2-core VM, 2 December 2026, the same recorder; docs/tools.md): in the
+  morning, recording alone 1.53 %, + health 1.97, + metrics 1.96, + live view 2.23 % (not
+  met; 1.50 .. 2.06 % under load); in the afternoon on a fresh VM, 1.07, 1.17, 1.23, 1.47 %
+  and 0.77, 0.87, 0.87, 1.07 % (met): what the recording alone costs on this VM varies
+  twofold from day to day, and the features add about 0.3 to 0.7 %.
 * ``memory``: resident memory of the recorder while it records ``--scans`` at an
   accelerated rate (``--rate`` Hz of device time, ``--speed`` times as fast), sampled as it
   goes; baseline: its resident memory over the first fifth of the samples after a warm-up
