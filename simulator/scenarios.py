@@ -245,7 +245,7 @@ class HandMoves(Scenario):
         The mechanism whose workspace the moves stay in
         (:data:`loopcal.calibration.parameters.NOMINAL`; mm and mm/V).
     twist_every : int, default 0
-        Every ``twist_every``-th move goes to the most twisted (largest |swivel|) of
+        Every ``twist_every``-th move goes to the most twisted (largest swivel either way) of
         :data:`TWIST_CANDIDATES` reachable orientations: a technician who also twists the
         plate about its own axis, as the live guidance asks (0: never; every target drawn
         uniformly). 0 draws exactly the motion it drew before the option existed.
