@@ -19,6 +19,7 @@ from hypothesis.extra.numpy import arrays
 from loopcal.calibration.errors import InputError
 from loopcal.calibration.poses import StillPoses, running_sums_at, still_poses
 from loopcal.calibration.simulate import quantize_volts
+from tests.support.plate import held_and_moved
 
 EPS = np.finfo(float).eps
 
@@ -124,20 +125,7 @@ def check_pieces(ranges, stretches, window, max_scans):
 
 def hand_moves(rng, n, noise=0.04):
     """Readings of a plate moved and held still in turn, quantised like the DAQ's."""
-    V = np.empty((n, 4))
-    i, level = 0, rng.uniform(-8, 8, 4)
-    while i < n:
-        hold = int(rng.integers(5, 160))
-        V[i : i + hold] = level
-        i += hold
-        if i >= n:
-            break
-        move = int(rng.integers(3, 40))
-        target = rng.uniform(-8, 8, 4)
-        V[i : i + move] = np.linspace(level, target, move + 2)[1:-1][: n - i]
-        i, level = i + move, target
-    V += rng.normal(0, noise, V.shape)
-    return quantize_volts(V)[1]
+    return quantize_volts(held_and_moved(rng, n, hold=(5, 160), move=(3, 40), noise=noise))[1]
 
 
 def test_the_brute_force_finder_itself():

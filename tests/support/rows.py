@@ -13,6 +13,8 @@ from loopcal.calibration.simulate import simulate_poses
 from loopcal.daemon import scans as S
 from loopcal.drivers.ldq412 import volts_to_code
 
+from .plate import held_and_moved
+
 #: the first scan's stamp of the tests' recordings, ns since the Unix epoch (late 2026)
 T0 = 1_795_000_000_000_000_000
 #: one past the largest 32-bit counter or device time
@@ -163,17 +165,7 @@ def synthetic_scans(rng, n, rate, *, gaps=0, restarts=0, power_cycles=0, bad=0):
     missed before ``gaps`` rows, ``restarts`` restarted rows, ``power_cycles`` changes of
     epoch and ``bad`` rows with a channel at the rail (by its code or its status bit) or
     faulted."""
-    V = np.empty((n, 4))
-    i, level = 0, rng.uniform(-8, 8, 4)
-    while i < n:
-        hold = int(rng.integers(2, 60))
-        V[i : i + hold] = level
-        i += hold
-        move = int(rng.integers(1, 12))
-        target = rng.uniform(-8, 8, 4)
-        V[i : i + move] = np.linspace(level, target, move + 2)[1:-1][: max(n - i, 0)]
-        i, level = i + move, target
-    V += rng.normal(0, 0.04, V.shape)
+    V = held_and_moved(rng, n, hold=(2, 60), move=(1, 12))
     s = S.empty(n)
     s["codes"] = np.clip(np.floor((V + 10) / LSB), 0, 4095)
     if n == 0:
