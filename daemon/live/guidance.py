@@ -198,8 +198,7 @@ class Guidance:
         usable = scans_for_fit(scans)
         elapsed = len(scans) / usable.scan_rate_hz  # of the plate's time, whatever the clock
         step = max(1, -(-len(usable) // COVERAGE_SCANS))
-        reach = G.coverage(usable.volts[::step], start)
-        twist = G.twist_coverage(usable.volts[::step], start)
+        reach, twist = G.reach_and_twist(usable.volts[::step], start)
         positions = G.distinct_positions(usable.volts)
         u = GuidanceUpdate(elapsed, len(scans), positions, [float(r) for r in reach], None,
                            None, {}, self.target_mm,

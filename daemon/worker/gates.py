@@ -148,6 +148,37 @@ def _rotations(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
     return np.where(fk.converged[:, None, None], fk.rotations, np.nan)
 
 
+def _twist(R: np.ndarray) -> np.ndarray:
+    """(2,) the largest swivel clockwise and counter-clockwise of rotations R (NaN: none)."""
+    a, _, g = euler_zyz(R).T
+    swivel = np.degrees(np.angle(np.exp(1j * (a + g))))
+    swivel = swivel[np.isfinite(swivel)]
+    if swivel.size == 0:
+        return np.zeros(2)
+    return np.array([max(0.0, -float(swivel.min())), max(0.0, float(swivel.max()))])
+
+
+def _reach(R: np.ndarray, params: np.ndarray) -> np.ndarray:
+    """(4,) the largest tilt toward each sensor of rotations R (:func:`coverage`)."""
+    tilt, az = np.degrees(output_axis_angles(R))
+    A = base_points(params)
+    reach = np.zeros(4)
+    for i in range(4):
+        a = np.degrees(np.arctan2(A[i, 1], A[i, 0]))
+        near = np.abs((az - a + 180) % 360 - 180) <= 45
+        reach[i] = float(tilt[near].max()) if near.any() else 0.0
+    return reach
+
+
+def reach_and_twist(volts: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`coverage` and :func:`twist_coverage` of the same readings, from one forward
+    kinematics."""
+    if len(volts) == 0:
+        return np.zeros(4), np.zeros(2)
+    R = _rotations(volts, params)
+    return _reach(R, params), _twist(R)
+
+
 def twist_coverage(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
     """How far the poses twisted the plate about its own axis, each way.
 
@@ -164,14 +195,7 @@ def twist_coverage(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
         The largest swivel (the ZYZ angles' alpha + gamma) reached clockwise and
         counter-clockwise seen from above, degrees, both >= 0 (0 for no poses).
     """
-    if len(volts) == 0:
-        return np.zeros(2)
-    a, _, g = euler_zyz(_rotations(volts, params)).T
-    swivel = np.degrees(np.angle(np.exp(1j * (a + g))))
-    swivel = swivel[np.isfinite(swivel)]
-    if swivel.size == 0:
-        return np.zeros(2)
-    return np.array([max(0.0, -float(swivel.min())), max(0.0, float(swivel.max()))])
+    return reach_and_twist(volts, params)[1]
 
 
 def coverage(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
@@ -191,16 +215,7 @@ def coverage(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
         poses whose axis leans within 45 deg of the azimuth of that sensor's base point;
         0 where none does (and for no poses at all).
     """
-    if len(volts) == 0:
-        return np.zeros(4)
-    tilt, az = np.degrees(output_axis_angles(_rotations(volts, params)))
-    A = base_points(params)
-    reach = np.zeros(4)
-    for i in range(4):
-        a = np.degrees(np.arctan2(A[i, 1], A[i, 0]))
-        near = np.abs((az - a + 180) % 360 - 180) <= 45
-        reach[i] = float(tilt[near].max()) if near.any() else 0.0
-    return reach
+    return reach_and_twist(volts, params)[0]
 
 
 def coverage_advice(volts: np.ndarray, params: np.ndarray, *, still: bool = True) -> str:
@@ -232,10 +247,9 @@ def coverage_advice(volts: np.ndarray, params: np.ndarray, *, still: bool = True
     hold = ", holding each position still for a second" if still else ""
     if len(volts) == 0:
         return "move the plate by hand through its whole range, tilting and twisting it" + hold
-    reach = coverage(volts, params)
+    reach, twist = reach_and_twist(volts, params)
     worst = int(np.argmin(reach))
     if reach[worst] >= GOOD_TILT_DEG:
-        twist = twist_coverage(volts, params)
         least = int(np.argmin(twist))
         if twist[least] < GOOD_TWIST_DEG:
             way = ("clockwise", "counter-clockwise")[least]
