@@ -23,6 +23,10 @@ from .. import scans as scan_rows
 STILL_WINDOW_S = 0.5  # a pose spans at least this long
 GAP_MARGIN_S = 0.25  # scans this close to a gap or restart are not used
 LONGEST_POSE_S = 5.0  # longer stretches are split (a plate may creep while "still")
+#: scans kept for the next search of a stream while no pose completes (the plate moving)
+POSE_BUFFER_S = 3 * LONGEST_POSE_S
+
+
 def window_scans(rate: float, window_s: float = STILL_WINDOW_S) -> int:
     """Scans in the still-pose window at ``rate`` Hz (at least 2)."""
     return max(2, round(window_s * rate))
@@ -31,10 +35,6 @@ def window_scans(rate: float, window_s: float = STILL_WINDOW_S) -> int:
 def margin_scans(rate: float, gap_margin_s: float = GAP_MARGIN_S) -> int:
     """Scans left out on each side of a gap or restart at ``rate`` Hz (at least 1)."""
     return max(1, round(gap_margin_s * rate))
-
-
-#: scans kept for the next search of a stream while no pose completes (the plate moving)
-POSE_BUFFER_S = 3 * LONGEST_POSE_S
 
 
 @dataclass(frozen=True)
