@@ -36,9 +36,9 @@ import numpy as np
 
 from loopcal.calibration.kinematics import (
     base_points,
-    euler_zyz,
     forward_kinematics,
     output_axis_angles,
+    tilt_swivel,
     volts_to_lengths,
 )
 from loopcal.calibration.observability import CONDITION_OK
@@ -143,18 +143,17 @@ def _group(name: str) -> str:
 
 
 def _rotations(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
-    """(k, 3, 3) plate rotations of readings (forward kinematics; NaN where none)."""
+    """(j, 3, 3) plate rotations of the readings whose forward kinematics converged (readings
+    a damaged channel made inconsistent are left out, not turned into a pose)."""
     fk = forward_kinematics(volts_to_lengths(volts, params), params)
-    return np.where(fk.converged[:, None, None], fk.rotations, np.nan)
+    return fk.rotations[fk.converged & np.isfinite(fk.rotations).all(axis=(1, 2))]
 
 
 def _twist(R: np.ndarray) -> np.ndarray:
-    """(2,) the largest swivel clockwise and counter-clockwise of rotations R (NaN: none)."""
-    a, _, g = euler_zyz(R).T
-    swivel = np.degrees(np.angle(np.exp(1j * (a + g))))
-    swivel = swivel[np.isfinite(swivel)]
-    if swivel.size == 0:
+    """(2,) the largest swivel of rotations R clockwise and counter-clockwise, deg."""
+    if len(R) == 0:
         return np.zeros(2)
+    swivel = np.degrees(tilt_swivel(R)[1])
     return np.array([max(0.0, -float(swivel.min())), max(0.0, float(swivel.max()))])
 
 
@@ -173,9 +172,7 @@ def _reach(R: np.ndarray, params: np.ndarray) -> np.ndarray:
 def reach_and_twist(volts: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`coverage` and :func:`twist_coverage` of the same readings, from one forward
     kinematics."""
-    if len(volts) == 0:
-        return np.zeros(4), np.zeros(2)
-    R = _rotations(volts, params)
+    R = _rotations(volts, params) if len(volts) else np.zeros((0, 3, 3))
     return _reach(R, params), _twist(R)
 
 
@@ -192,8 +189,9 @@ def twist_coverage(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
     Returns
     -------
     ndarray of float, shape (2,)
-        The largest swivel (the ZYZ angles' alpha + gamma) reached clockwise and
-        counter-clockwise seen from above, degrees, both >= 0 (0 for no poses).
+        The largest swivel (:func:`~loopcal.calibration.kinematics.tilt_swivel`) reached
+        clockwise and counter-clockwise seen from above, degrees, both >= 0 (0 for no
+        poses; readings whose forward kinematics does not converge count as none).
     """
     return reach_and_twist(volts, params)[1]
 
@@ -213,7 +211,8 @@ def coverage(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
     ndarray of float, shape (4,)
         For each sensor, the largest tilt of the plate's output axis, degrees, among the
         poses whose axis leans within 45 deg of the azimuth of that sensor's base point;
-        0 where none does (and for no poses at all).
+        0 where none does (and for no poses at all). Readings whose forward kinematics does
+        not converge count as no pose.
     """
     return reach_and_twist(volts, params)[0]
 

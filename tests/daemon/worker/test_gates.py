@@ -7,7 +7,7 @@ import pytest
 from scipy.special import chdtri
 
 from loopcal.calibration.implicit import predicted_volts
-from loopcal.calibration.kinematics import from_euler_zyz
+from loopcal.calibration.kinematics import forward_kinematics, from_euler_zyz, volts_to_lengths
 from loopcal.calibration.parameters import NOMINAL
 from loopcal.calibration.simulate import simulate_poses
 from loopcal.daemon.worker import gates as G
@@ -98,3 +98,17 @@ def test_once_tilted_every_way_the_advice_asks_to_twist_the_way_least_turned():
     # the tilt comes first: a sensor not reached is asked for before any twist
     low = G.coverage_advice(_tilted_and_twisted([], tilt_deg=15.0), NOMINAL, still=False)
     assert low.startswith("tilt the plate further toward sensor")
+
+
+def test_readings_no_pose_explains_are_left_out_of_the_coverage_not_fatal():
+    clean = _tilted_and_twisted([-12.0, 36.5])
+    broken = np.array([[9.9, 9.9, -9.9, -9.9]] * 3)  # a damaged channel: no pose fits
+    fk = forward_kinematics(volts_to_lengths(broken, NOMINAL), NOMINAL)
+    assert not fk.converged.any()
+    mixed = np.vstack([clean[:5], broken, clean[5:]])
+    reach, twist = G.reach_and_twist(mixed, NOMINAL)
+    np.testing.assert_allclose(reach, G.coverage(clean, NOMINAL))
+    np.testing.assert_allclose(twist, [12.0, 36.5], atol=1e-6)
+    assert G.coverage_advice(mixed, NOMINAL) == G.coverage_advice(clean, NOMINAL)
+    assert G.twist_coverage(broken, NOMINAL).tolist() == [0.0, 0.0]
+    assert G.coverage(broken, NOMINAL).tolist() == [0.0] * 4
