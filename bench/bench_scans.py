@@ -293,7 +293,7 @@ def _std(rows: np.ndarray, config: ControllerConfig) -> np.ndarray:
 def one_length(seed: int) -> dict:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from loopcal.calibration.implicit import cramer_rao, weighted_information
-    from loopcal.calibration.kinematics import euler_zyz
+    from loopcal.calibration.kinematics import tilt_swivel
     from loopcal.simulator.offline import mechanism_scans
     from loopcal.simulator.scenarios import HandMoves
     from tests.support.rows import rows_from
@@ -321,8 +321,7 @@ def one_length(seed: int) -> dict:
     a = a / np.sqrt(np.sum(a**2, axis=0))
     v = np.linalg.eigh(a.T @ a)[1][:, 0]
     share = (a @ v) ** 2 / np.sum((a @ v) ** 2)
-    alpha, _, gamma = euler_zyz(R).T
-    twisted = np.abs(np.degrees(np.angle(np.exp(1j * (alpha + gamma))))) >= 20
+    twisted = np.abs(np.degrees(tilt_swivel(R)[1])) >= 20
     out["weak"] = v * np.sign(v[np.argmax(np.abs(v))])  # sign: its largest part positive
     out["weak shares"] = np.array([np.sort(share)[::-1][: len(share) // 20].sum(),
                                    share[twisted].sum(), twisted.mean()])  # fmt: skip

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from loopcal.calibration.errors import InputError
-from loopcal.calibration.kinematics import euler_zyz, from_euler_zyz
+from loopcal.calibration.kinematics import from_euler_zyz, tilt_swivel
 from loopcal.calibration.parameters import NOMINAL
 from loopcal.calibration.simulate import NEAR_SINGULAR_MM, reachable, sample_workspace
 
@@ -309,8 +309,7 @@ class HandMoves(Scenario):
             drawn = sample_workspace(TWIST_CANDIDATES if twist else 1, self._rng, self.params,
                                      margin_mm=1.5 * NEAR_SINGULAR_MM)  # fmt: skip
             if twist:
-                a, _, g = euler_zyz(drawn).T
-                drawn = drawn[np.argmax(np.abs(np.angle(np.exp(1j * (a + g)))))][None]
+                drawn = drawn[np.argmax(np.abs(tilt_swivel(drawn)[1]))][None]
             target = Rotation.from_matrix(drawn[0])
             slerp = Slerp([0.0, 1.0], Rotation.concatenate([here, target]))
             path = slerp(np.linspace(0.0, 1.0, 24)).as_matrix()
