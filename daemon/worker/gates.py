@@ -171,7 +171,22 @@ def _reach(R: np.ndarray, params: np.ndarray) -> np.ndarray:
 
 def reach_and_twist(volts: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`coverage` and :func:`twist_coverage` of the same readings, from one forward
-    kinematics."""
+    kinematics.
+
+    Parameters
+    ----------
+    volts : ndarray of float, shape (k, 4)
+        The poses' readings, V.
+    params : ndarray of float, shape (20,)
+        The parameters to turn them into poses with.
+
+    Returns
+    -------
+    reach : ndarray of float, shape (4,)
+        The largest tilt toward each sensor, degrees (:func:`coverage`).
+    twist : ndarray of float, shape (2,)
+        The largest twist clockwise and counter-clockwise, degrees (:func:`twist_coverage`).
+    """
     R = _rotations(volts, params) if len(volts) else np.zeros((0, 3, 3))
     return _reach(R, params), _twist(R)
 
