@@ -20,6 +20,7 @@ up on, is not opened again).
 
 from __future__ import annotations
 
+import collections
 import ctypes
 import logging
 import math
@@ -42,6 +43,7 @@ NICE = 10  # the compaction thread's CPU priority (lower than the acquisition's)
 
 #: seconds in a day
 DAY_S = 86_400.0
+DONE_KEPT = 1_000  # the files :attr:`Compactor.done` remembers
 
 
 def release_free_heap() -> bool:
@@ -74,8 +76,10 @@ class Compactor:
         self._keep_views_days = keep_views_days
         self._directory: Path | None = None
         #: files whose views are gone, or that could not be thinned: not looked at again
+        #: (forgotten once the retention has removed them: the set stays the directory's size)
         self._settled: set[Path] = set()
-        self.done: list[Path] = []
+        #: the latest files compacted, newest last (bounded: the daemon runs for months)
+        self.done: collections.deque[Path] = collections.deque(maxlen=DONE_KEPT)
 
     def start(self, directory: Path | None = None) -> Compactor:
         """Start the thread; queue the closed files of ``directory`` not compact yet."""
@@ -107,6 +111,7 @@ class Compactor:
             paths = find_recordings(self._directory)
         except (RecordingError, OSError):
             return []
+        self._settled.intersection_update(paths)
         # the newest file is the one being written: never touched (it is not closed)
         return [p for p in paths[:-1] if p not in self._settled and self.views_expired(p)]
 

@@ -202,6 +202,12 @@ def test_the_daemons_compactor_thins_the_files_past_their_age(tmp_path):
     assert rec.read_recordings(recent).files[0].metadata["loopcal"]["views"] == "dropped"
     assert "views" not in rec.read_recordings(nxt).files[0].metadata["loopcal"]
     assert not Compactor(lambda: math.inf).views_expired(older)
+    # a file the retention removed is forgotten, so a daemon of months remembers no more
+    # files than its directory holds
+    assert older in later._settled
+    older.unlink()
+    assert later._expired_in_directory() == [] and older not in later._settled
+    assert recent in later._settled
 
 
 def test_the_recorder_thins_what_it_closes_when_told_to_keep_no_views(tmp_path):
