@@ -28,6 +28,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="judge every scan of a simulated hand session this long (20 Hz, "
                         "40 mV) by its maximum-likelihood information, as the worker fits "
                         "it, instead of --poses still poses by the paper's Jacobian")  # fmt: skip
+    p.add_argument("--twist-every", type=int, default=2, metavar="N",
+                   help="with --session: the technician twists the plate about its own axis "
+                        "every N-th move (default 2, as the guidance asks; 0: never)")  # fmt: skip
     p.add_argument("--seed", type=int, default=1, help="random seed of the poses (default 1)")
     p.add_argument("--condition-limit", type=float, default=CONDITION_OK, metavar="C",
                    help="the largest condition number a free set may have "
@@ -40,9 +43,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.poses < 1:
         raise ValueError(f"--poses {args.poses}: at least 1")
+    if args.twist_every < 0:
+        raise ValueError(f"--twist-every must be 0 or more moves, got {args.twist_every}")
     model = model_from_args(args)
     if args.session is not None:
-        J = _session_information(args.session, args.seed, model)
+        J = _session_information(args.session, args.seed, model, args.twist_every)
     else:
         ps = simulate_poses(args.poses, seed=args.seed, noise_volts=0.0, quantize=False)
         cand = candidate_jacobian(ps.volts, model, ps.truth)
@@ -71,10 +76,11 @@ def run(args: argparse.Namespace) -> int:
     return 0 if report.observable else 1
 
 
-def _session_information(seconds: float, seed: int, model) -> np.ndarray:
+def _session_information(seconds: float, seed: int, model, twist_every: int) -> np.ndarray:
     """The maximum-likelihood information rows (m, 1, n) of every scan of a simulated hand
     session (the reference mechanism, moved as :class:`loopcal.simulator.scenarios.HandMoves`
-    does, 20 Hz, its true rotations at each scan's instant)."""
+    does, twisting every ``twist_every``-th move, 20 Hz, its true rotations at each scan's
+    instant)."""
     if not (math.isfinite(seconds) and 1 <= seconds <= 86400):
         raise ValueError(f"--session {seconds!r}: between 1 and 86400 seconds")
     from loopcal.calibration import implicit
@@ -82,6 +88,6 @@ def _session_information(seconds: float, seed: int, model) -> np.ndarray:
     from loopcal.simulator.scenarios import HandMoves
 
     t = np.arange(round(seconds * 20)) / 20.0
-    R = HandMoves(seed, params=NOMINAL).rotation(t)
+    R = HandMoves(seed, params=NOMINAL, twist_every=twist_every).rotation(t)
     w = np.full((len(R), 4), 1.0 / 0.040)
     return implicit.weighted_information(R, NOMINAL, model.tie_matrix, w)[:, None, :]

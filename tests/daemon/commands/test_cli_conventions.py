@@ -96,6 +96,7 @@ def test_a_bad_option_is_exit_2_naming_the_command(name: str) -> None:
     ["compact", "/nonexistent/x.mcap"],
     ["replay", "/nonexistent/x.mcap"],
     ["observability", "--free", "Q9"],
+    ["observability", "--session", "60", "--twist-every", "-1"],
     ["demo", "--free", "Q9"],
     ["files", "nope"],
     ["install-units", "/nonexistent"],
@@ -148,3 +149,14 @@ def test_observability_json_says_what_its_text_says_and_exits_1_when_unobservabl
     doc = json.loads(every.stdout)
     assert doc["observable"] is False and doc["weak_directions"]
     assert "unobservable" in doc["status"].values() and doc["suggested_free"]
+
+
+def test_observability_of_a_session_follows_how_the_technician_moves() -> None:
+    """--twist-every changes the simulated session whose scans are judged: the same seed
+    moved with and without twists gives different information (and both are observable)."""
+    import json
+
+    docs = [json.loads(_loopcal("observability", "--json", "--session", "60",
+                                "--twist-every", n).stdout) for n in ("0", "2")]  # fmt: skip
+    assert all(d["observable"] and d["poses"] == 1200 for d in docs)
+    assert docs[0]["indices"] != docs[1]["indices"]
