@@ -209,7 +209,9 @@ class Guidance:
             u.std, indices = self._predicted_std(usable, start)
             if indices is not None:
                 u.min_singular, u.condition = indices.min_singular, indices.condition
-            u.instruction = self._instruction(usable, scans, start)
+            u.instruction = self._instruction(usable, scans, lambda: (
+                G.advice_from_coverage(reach, twist, still=False) if len(usable)
+                else G.coverage_advice(usable.volts, start, still=False)))  # fmt: skip
         self.last = u
         self.on_update(u)
         if u.enough and not self.done:
@@ -238,7 +240,10 @@ class Guidance:
             u.instruction = failed[0].advice
         else:
             params = result.params if cal is not None else np.array(self.controller.params)
-            u.instruction = self._instruction(result.poses, scans, params)
+            poses = result.poses
+            u.instruction = self._instruction(
+                poses, scans, lambda: G.coverage_advice(poses.volts, params, still=False)
+            )
 
     def _predicted_std(
         self, usable: RecordedScans, p: np.ndarray
@@ -261,10 +266,14 @@ class Guidance:
         indices = observability_indices(a[:, None, :])
         return {name: float(s) for name, s in zip(self.model.free, std, strict=True)}, indices
 
-    def _instruction(self, usable: RecordedScans, scans: np.ndarray, p) -> str:
+    def _instruction(
+        self, usable: RecordedScans, scans: np.ndarray, advice: Callable[[], str]
+    ) -> str:
+        """What to do next: move, if the plate has rested; else ``advice()``, the coverage
+        advice."""
         n = round(RESTING_S * usable.scan_rate_hz)  # by scan count: stamps may be packed
         if len(scans) >= n:
             volts = scans_volts(scans[-n:])
             if np.all(np.ptp(volts, axis=0) <= RESTING_BAND_V):
                 return "move the plate: tilt and twist it by hand through new positions"
-        return G.coverage_advice(usable.volts, p, still=False)
+        return advice()

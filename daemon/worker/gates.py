@@ -258,10 +258,31 @@ def coverage_advice(volts: np.ndarray, params: np.ndarray, *, still: bool = True
         :func:`twist_coverage`), else record more positions spread over the workspace,
         tilted and twisted; with no poses, move the plate through its whole range.
     """
-    hold = ", holding each position still for a second" if still else ""
     if len(volts) == 0:
+        hold = ", holding each position still for a second" if still else ""
         return "move the plate by hand through its whole range, tilting and twisting it" + hold
     reach, twist = reach_and_twist(volts, params)
+    return advice_from_coverage(reach, twist, still=still)
+
+
+def advice_from_coverage(reach: np.ndarray, twist: np.ndarray, *, still: bool = True) -> str:
+    """:func:`coverage_advice` from coverages already found (:func:`reach_and_twist`).
+
+    Parameters
+    ----------
+    reach : ndarray of float, shape (4,)
+        The largest tilt reached toward each sensor, deg.
+    twist : ndarray of float, shape (2,)
+        The largest twist reached clockwise and counter-clockwise seen from above, deg.
+    still : bool, default True
+        As for :func:`coverage_advice`.
+
+    Returns
+    -------
+    str
+        The advice, as :func:`coverage_advice` gives it.
+    """
+    hold = ", holding each position still for a second" if still else ""
     worst = int(np.argmin(reach))
     if reach[worst] >= GOOD_TILT_DEG:
         least = int(np.argmin(twist))
