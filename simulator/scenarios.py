@@ -221,6 +221,10 @@ def min_jerk(tau: np.ndarray) -> np.ndarray:
 
 #: orientations drawn for a twisting move of :class:`HandMoves`, the most twisted one taken
 TWIST_CANDIDATES = 8
+#: source time, s, of motion :class:`HandMoves` keeps before the earliest time last asked for
+HISTORY_S = 600.0
+#: segments forgotten at a time (beyond :data:`HISTORY_S`)
+FORGET_BATCH = 512
 
 
 class HandMoves(Scenario):
@@ -266,7 +270,9 @@ class HandMoves(Scenario):
     Notes
     -----
     The moves are drawn in time order as far as they are asked for: the same seed gives
-    the same motion whatever order the times are asked in.
+    the same motion whatever order the times are asked in. A source streaming forward (the
+    emulator, for months) keeps the moves of the last :data:`HISTORY_S` only, so its memory
+    and the cost of each call stay bounded; a time before those is drawn again from the seed.
     """
 
     name = "hand"
@@ -287,10 +293,16 @@ class HandMoves(Scenario):
         self.speed_deg_s = speed_deg_s
         self.params = np.asarray(params, dtype=float)
         self.twist_every = int(twist_every)
+        self._restart()
+
+    def _restart(self) -> None:
+        """Back to the first pause, the draws from ``seed`` again."""
         self._moves = 0
-        self._rng = np.random.default_rng(seed)
+        self._rng = np.random.default_rng(self.seed)
         self._segments: list[_Segment] = []
         self._starts: list[float] = []
+        self._starts_array: np.ndarray | None = None
+        self._forgotten = False  # segments before the first kept one were dropped
         self._append(_Segment(0.0, self._pause(), None, Rotation.identity()))
 
     def _pause(self) -> float:
@@ -299,6 +311,25 @@ class HandMoves(Scenario):
     def _append(self, seg: _Segment) -> None:
         self._segments.append(seg)
         self._starts.append(seg.start)
+        self._starts_array = None
+
+    def _cover(self, t_min: float, t_max: float) -> np.ndarray:
+        """Have the segments from ``t_min`` to ``t_max`` (s) at hand; forget those that
+        ended :data:`HISTORY_S` before ``t_min`` (a source streaming for months keeps a
+        bounded history), drawing them again from the seed if an earlier time is asked for.
+        Returns the kept segments' start times."""
+        if self._forgotten and t_min < self._starts[0]:
+            self._restart()
+        while self._segments[-1].end <= t_max:
+            self._extend()
+        if self._starts_array is None:
+            self._starts_array = np.array(self._starts)
+        old = int(np.searchsorted(self._starts_array, t_min - HISTORY_S, side="right")) - 1
+        if old >= FORGET_BATCH:  # in batches: the list copy is paid once per batch
+            del self._segments[:old], self._starts[:old]
+            self._starts_array = self._starts_array[old:]
+            self._forgotten = True
+        return self._starts_array
 
     def _extend(self) -> None:
         last = self._segments[-1]
@@ -338,8 +369,7 @@ class HandMoves(Scenario):
             ``(start, end, moving)`` of each segment starting at or before ``t``, in
             order, times in s; ``moving`` False for a pause.
         """
-        while self._segments[-1].end <= t:
-            self._extend()
+        self._cover(0.0, t)
         return [(s.start, s.end, s.slerp is not None) for s in self._segments if s.start <= t]
 
     def rotation(self, t: np.ndarray) -> np.ndarray:
@@ -357,11 +387,10 @@ class HandMoves(Scenario):
             between two orientations in a move.
         """
         t = np.atleast_1d(np.asarray(t, dtype=float))
-        while self._segments[-1].end <= t.max():
-            self._extend()
+        starts = self._cover(float(t.min()), float(t.max()))
         out = np.empty((t.size, 3, 3))
         # vectorised per segment: one slerp call for all the times in a move
-        seg_of = np.maximum(np.searchsorted(self._starts, t, side="right") - 1, 0)
+        seg_of = np.maximum(np.searchsorted(starts, t, side="right") - 1, 0)
         order = np.argsort(seg_of, kind="stable")
         bounds = np.flatnonzero(np.diff(seg_of[order])) + 1
         for idx in np.split(order, bounds):

@@ -26,6 +26,27 @@ def test_hand_moves_are_deterministic_in_any_query_order():
     assert not np.allclose(a, HandMoves(4).rotation(t))
 
 
+def test_a_hand_streaming_for_hours_keeps_a_bounded_history_and_can_go_back():
+    """The emulator asks for one scan at a time, forward, for months: what HandMoves keeps
+    (and so each call's cost and its memory) stays bounded; an early time asked for after
+    it was forgotten is drawn again from the seed, the same."""
+    from loopcal.simulator import scenarios
+
+    h, fresh = HandMoves(5, twist_every=2), HandMoves(5, twist_every=2)
+    early = np.linspace(0.0, 30.0, 61)
+    first = fresh.rotation(early)
+    kept = []
+    for t0 in np.arange(0.0, 7200.0, 60.0):  # two hours, in reads of a minute
+        h.rotation(t0 + np.arange(1200) / 20.0)
+        kept.append(len(h._segments))
+    horizon = (scenarios.HISTORY_S + 60.0) / 0.5 + scenarios.FORGET_BATCH  # moves >= 0.5 s
+    assert max(kept) <= horizon and kept[-1] < kept[len(kept) // 2] + scenarios.FORGET_BATCH
+    assert max(kept) < 7200.0 / 3.0  # far fewer than the moves and pauses of two hours
+    late = h.rotation(np.array([7195.0]))
+    assert np.array_equal(h.rotation(early), first)  # forgotten, drawn again: the same
+    assert np.array_equal(h.rotation(np.array([7195.0])), late)
+
+
 def _swivel_deg(R: np.ndarray) -> np.ndarray:
     a, _, g = euler_zyz(R).T
     return np.degrees(np.angle(np.exp(1j * (a + g))))
