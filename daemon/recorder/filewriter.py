@@ -16,7 +16,6 @@ for) behind one lock.
 from __future__ import annotations
 
 import collections
-import contextlib
 import errno
 import logging
 import os
@@ -32,6 +31,7 @@ import numpy as np
 from ..config.controller import ControllerConfig
 from ..events import Event, Level
 from ..recording import RecordingWriter, find_recordings, metadata_records, recording_name
+from ..recording.compact import directory_lock
 from ..recording.views import WrittenViews
 from ..scans import SCAN_DTYPE
 from .acquisition import Batch, DeviceInfo
@@ -438,14 +438,13 @@ class FileWriter:
             except OSError:
                 continue
         total = sum(sz for _, sz in sizes)
-        lock = self.compactor.lock if self.compactor is not None else contextlib.nullcontext()
         for p, sz in sizes:
             if total <= budget:
                 break
             if p == current:
                 continue
             try:
-                with lock:  # not while the compactor replaces it
+                with directory_lock(p.parent):  # not while a compaction replaces it
                     p.unlink()
             except OSError as exc:
                 log.warning("retention: cannot delete %s: %s", p, exc)

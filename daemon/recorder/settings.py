@@ -124,7 +124,8 @@ class RecorderSettings:
              "30 MB); the oldest are dropped beyond, with an event")  # fmt: skip
     compact: bool = _setting(
         True, kind="switch", key="[recording].compact", option="--no-compact",
-        help="rewrite each closed file in chunks of a minute, for fast reading (off: the "
+        help="rewrite each closed file in chunks of a minute, for fast reading, in a child "
+             "process (loopcal compact) so that its memory goes with it (off: the "
              "one-second chunks stay as written)")  # fmt: skip
     keep_views_days: float = _setting(
         7.0, kind="days", key="[recording].keep_views_days", option="--keep-views-days",

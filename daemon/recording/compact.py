@@ -42,7 +42,10 @@ daemon's compactor) never touch each other's work: a compaction holds an advisor
 (``flock``) on the original from before its temporary file exists until it is renamed, a
 second one of the same file finds the lock taken and leaves the file to it, and a
 temporary file is removed as stale only while its original's lock can be had (its writer
-is gone).
+is gone). The last step, checking that the original is still the file that was read and
+renaming the copy over it, holds a lock on the directory (:func:`directory_lock`) that the
+recorder's retention holds too while it deletes a file, so a file deleted to keep the disk
+budget never comes back as its compacted copy, whichever process compacts it.
 """
 
 from __future__ import annotations
@@ -52,7 +55,6 @@ import fcntl
 import logging
 import os
 import stat
-import threading
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -180,6 +182,19 @@ def _compacting(path: Path):
         os.close(fd)  # releases the lock
 
 
+@contextlib.contextmanager
+def directory_lock(directory: Path):
+    """Hold the advisory lock (``flock``) of a recording directory: while a compaction
+    checks and replaces a file, and while the retention deletes one. Blocks until it is had
+    (each holder keeps it for one ``stat`` and one rename or unlink)."""
+    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
 def remove_stale_temporaries(directory: Path) -> None:
     """Remove the temporary files (:func:`_tmp_of`) that killed compactions left in a
     directory, never one whose compaction is still running; call it before any compaction
@@ -191,9 +206,7 @@ def remove_stale_temporaries(directory: Path) -> None:
                 tmp.unlink(missing_ok=True)
 
 
-def compact(
-    path: Path, *, drop_views: bool = False, replace_lock: threading.Lock | None = None
-) -> Compacted:
+def compact(path: Path, *, drop_views: bool = False) -> Compacted:
     """Rewrite the closed recording ``path`` in chunks of a minute, verified, atomically (see the
     module docstring). Raises OSError if the disk refuses (the original is then as it was).
 
@@ -202,9 +215,8 @@ def compact(
     the ``loopcal`` record saying ``views = "dropped"`` and how many scans the file holds
     (``scans``, which a reader counts lost scans against, as it counts them against the
     views otherwise). A compact file that still has its views is rewritten without them.
-    replace_lock: held while the original is checked to be the file that was read (not
-    deleted or replaced meanwhile: the recorder's retention holds the same lock) and
-    replaced."""
+    The original is checked to be the file that was read (not deleted or replaced
+    meanwhile) and replaced under :func:`directory_lock`."""
     path = Path(path)
     try:
         mode = path.stat().st_mode
@@ -218,12 +230,10 @@ def compact(
     with _compacting(path) as ours:
         if not ours:
             return Compacted(path, False, "being compacted by another process")
-        return _compact_locked(path, drop_views, replace_lock)
+        return _compact_locked(path, drop_views)
 
 
-def _compact_locked(
-    path: Path, drop_views: bool, replace_lock: threading.Lock | None
-) -> Compacted:
+def _compact_locked(path: Path, drop_views: bool) -> Compacted:
     try:
         original = read_recordings(path)
     except RecordingError as exc:
@@ -256,7 +266,7 @@ def _compact_locked(
             log.error("compacting %s: %s; the original is kept", path, problem)
             return Compacted(path, False, f"verification failed: {problem}", failed=True)
         durable.step("compact-verified")
-        with replace_lock if replace_lock is not None else contextlib.nullcontext():
+        with directory_lock(path.parent):
             try:
                 now = path.stat()
             except FileNotFoundError:

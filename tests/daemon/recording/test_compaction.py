@@ -163,6 +163,56 @@ def test_the_compactor_gives_what_it_freed_back_to_the_system():
     assert trimmed and before - after > 120, (before, after)
 
 
+def test_the_recorders_compactions_run_in_a_child_whose_crash_costs_only_that_file(
+    tmp_path, monkeypatch, caplog
+):
+    """The daemon's compactor has each file compacted by a child process: a compaction
+    killed half way (SIGKILL after its copy is written) leaves this process running, the
+    original as it was, and is done again at the next start, which removes what the kill
+    left."""
+    from loopcal.daemon.recorder.compactor import Compactor
+
+    path = _recording(tmp_path)
+    rows = identities(rec.read_recordings(path).scans)
+    monkeypatch.setenv("LOOPCAL_KILL_AT", "compact-written")  # in the child, it kills it
+    c = Compactor().start()
+    c.submit(path)
+    c.stop(60)
+    assert path not in c.done and path in c._settled  # given up on, this run
+    assert "the compaction did not finish: killed by SIGKILL" in caplog.text, caplog.text
+    out = rec.read_recordings(path)
+    assert identities(out.scans) == rows and out.files[0].intact
+    assert "compacted_utc" not in out.files[0].metadata["loopcal"]
+    assert list(tmp_path.glob(".*.compact.tmp"))  # what the killed child left
+    monkeypatch.delenv("LOOPCAL_KILL_AT")
+    again = Compactor().start(tmp_path)
+    deadline = time.monotonic() + 60
+    while path not in again.done and time.monotonic() < deadline:
+        time.sleep(0.1)
+    again.stop(60)
+    assert path in again.done and not list(tmp_path.glob(".*.tmp"))
+    out = rec.read_recordings(path)
+    assert identities(out.scans) == rows and "compacted_utc" in out.files[0].metadata["loopcal"]
+
+
+def test_a_compaction_replaces_its_file_only_while_the_directory_is_not_locked(tmp_path):
+    """The retention deletes under the directory's lock; a compaction in another process
+    waits for it before it checks and replaces the file."""
+    from loopcal.daemon.recording.compact import directory_lock
+
+    path = _recording(tmp_path)
+    with directory_lock(tmp_path):
+        proc = subprocess.Popen([*LOOPCAL, "compact", str(path)], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)  # fmt: skip
+        time.sleep(4.0)  # a 3,000-scan file is written and verified in well under that
+        assert proc.poll() is None and "compacted_utc" not in (
+            rec.read_recordings(path).files[0].metadata["loopcal"])  # fmt: skip
+        assert list(tmp_path.glob(".*.compact.tmp"))  # written, waiting to replace
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and "chunks ->" in out, out + err
+    assert "compacted_utc" in rec.read_recordings(path).files[0].metadata["loopcal"]
+
+
 def test_the_command_exits_1_when_a_file_fails_and_says_so_in_json(tmp_path):
     good = _recording(tmp_path)
     junk = tmp_path / rec.recording_name(T0 + 10**12)
