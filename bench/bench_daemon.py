@@ -22,8 +22,10 @@ process). Three figures, each against a baseline measured in the same run:
   accelerated rate (``--rate`` Hz of device time, ``--speed`` times as fast), sampled as it
   goes; baseline: its resident memory over the first fifth of the samples after a warm-up
   of 5 %. Target: no growth. ``--memory-live``: a hand-moved plate at a controller config
-  (health on), metrics scraped, the live view with one client (a week at 20 Hz is 12.1 M
-  scans; this VM keeps up with about 600 scans a second with all of it on).
+  (health on), metrics scraped, the live view with one client. A week at 20 Hz is 12.1 M
+  scans: ``--memory-live --rate 200 --speed 15 --scans 12100000`` records it in 67 minutes
+  on this VM (3,000 scans a second, a file a minute of about 180,000 scans; the module's
+  FIFO of 256 scans holds 85 ms at that rate, so some scans are missed, each declared).
 
 Run: ``python -m bench.bench_daemon [--part cpu features memory] [--seconds 60]
 [--scans 1000000] [--speed 25] [--rate 200] [--memory-live] [--feature-seconds 30]
