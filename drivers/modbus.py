@@ -7,7 +7,11 @@ Retry policy: pymodbus retries are 0. A FIFO read is destructive (the module rem
 scans it answers with), so resending a request whose answer was lost or corrupted would
 silently skip scans; instead the call raises, and the scans lost with the answer show up
 as Scan.missed on the next scan delivered. A dead device therefore costs one timeout per
-call, never more (plus the answer's transfer time).
+call, never more (plus the answer's transfer time), except the FIFO window read: that
+read is made just after the snapshot answered, and giving up on it loses the scans it
+carries, so its answer is waited for longer (:data:`FIFO_ANSWER_WAIT_S`, at most half the
+FIFO's depth in time): a module or network slower than the datasheet's 100 ms, now and
+then, costs no scan (counted in :attr:`ModbusDAQ.late_fifo_answers`).
 
 After a timeout or a protocol error the connection is dropped and reopened on the next
 call (TCP: a fresh socket, so a late answer can never be taken for the next one; RTU: the
@@ -47,6 +51,10 @@ from .errors import (
     DAQTimeout,
 )
 from .sequence import RawSnapshot, Sequencer
+
+#: s a FIFO window read waits for its answer (at most half the FIFO's depth in time at the
+#: module's rate, at least the timeout): a late answer still carries its scans
+FIFO_ANSWER_WAIT_S = 1.0
 
 FC_READ_HOLDING = 3
 FC_READ_INPUT = 4
@@ -171,6 +179,9 @@ class ModbusDAQ(DAQ):
     fifo_chunk : int
         Scans per FIFO read: the datasheet's 20, fewer once a module refused or
         truncated a read of that many.
+    late_fifo_answers : int
+        FIFO reads answered after ``timeout`` but within :data:`FIFO_ANSWER_WAIT_S`
+        (their scans kept).
 
     Raises
     ------
@@ -221,6 +232,8 @@ class ModbusDAQ(DAQ):
         self._pending: list[Scan] = []
         # scans per FIFO read: the datasheet's 20, fewer for a module that refuses that
         self.fifo_chunk = ldq412.FIFO_MAX_SCANS_PER_READ
+        self.late_fifo_answers = 0
+        self._rate_hz = ldq412.SCAN_RATE_MAX_HZ
         self._client = self._make_client(self._trace_packet)
         try:
             self._connect()
@@ -279,7 +292,8 @@ class ModbusDAQ(DAQ):
                     f"{self.url}: {what}: {self._rx_bytes} bytes received but no valid "
                     f"answer (garbage, partial frame or bad CRC/MBAP)"
                 ) from exc
-            raise DAQTimeout(f"{self.url}: {what}: no answer within {self.timeout} s") from exc
+            waited = self._client.comm_params.timeout_connect
+            raise DAQTimeout(f"{self.url}: {what}: no answer within {waited} s") from exc
         except (ModbusException, ValueError, IndexError) as exc:
             self._drop()
             raise DAQProtocolError(f"{self.url}: {what}: undecodable answer: {exc}") from exc
@@ -418,7 +432,14 @@ class ModbusDAQ(DAQ):
         (rate,) = self.read_holding_registers(ldq412.HR_SCAN_RATE, 1)
         if not ldq412.SCAN_RATE_MIN_HZ <= rate <= ldq412.SCAN_RATE_MAX_HZ:
             raise DAQProtocolError(f"{self.url}: scan rate register reads {rate}")
+        self._rate_hz = rate
         return rate
+
+    def _fifo_answer_wait(self) -> float:
+        """s to wait for a FIFO read's answer: FIFO_ANSWER_WAIT_S, at most half the FIFO's
+        depth at the module's rate, never less than the timeout."""
+        half_fifo = ldq412.FIFO_DEPTH / self._rate_hz / 2
+        return max(self.timeout, min(FIFO_ANSWER_WAIT_S, half_fifo))
 
     def _read_snapshot(self) -> tuple[RawSnapshot, float]:
         regs = self.read_input_registers(ldq412.IR_COUNTER, ldq412.IR_SNAPSHOT_LEN)
@@ -438,9 +459,15 @@ class ModbusDAQ(DAQ):
         leaves is not taken for an overflow.
         """
         per = ldq412.FIFO_SCAN_REGS
+        params = self._client.comm_params
         while True:
+            # pymodbus reads its timeout at each call: this one waits longer for its answer
+            params.timeout_connect = self._fifo_answer_wait()
+            sent = time.monotonic()
             try:
                 regs = self.read_input_registers(ldq412.IR_FIFO, n * per, step=per)
+                if time.monotonic() - sent > self.timeout:
+                    self.late_fifo_answers += 1
                 break
             except DAQModbusException as exc:
                 if n == 1 or exc.code not in (exc.ILLEGAL_DATA_ADDRESS, exc.ILLEGAL_DATA_VALUE):
@@ -449,6 +476,8 @@ class ModbusDAQ(DAQ):
             except DAQError:
                 self._seq.fifo_read_lost()
                 raise
+            finally:
+                params.timeout_connect = self.timeout
         try:
             scans, filler = parse_fifo(regs)
         except DAQProtocolError as exc:
