@@ -78,6 +78,8 @@ class AcquisitionStats:
     restarts: int = 0
     reads: int = 0
     read_errors: int = 0
+    #: FIFO reads answered after the timeout, their scans kept (Modbus; docs/daq.md)
+    late_answers: int = 0
     connected: bool = False
     last_error: str = ""
     #: monotonic start times of the latest reads, s (for the read-period jitter)

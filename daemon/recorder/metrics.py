@@ -84,6 +84,11 @@ class RecorderCollector(Collector):
                        acq.gaps if acq else 0)  # fmt: skip
         yield _counter("loopcal_module_restarts", "restarts (power cycles) of the module",
                        acq.restarts if acq else 0)  # fmt: skip
+        yield _counter("loopcal_daq_read_errors", "DAQ reads that failed (no answer in time, "
+                       "a malformed answer, no connection)",
+                       acq.read_errors if acq else 0)  # fmt: skip
+        yield _counter("loopcal_daq_late_answers", "FIFO reads answered after the timeout, "
+                       "their scans kept", acq.late_answers if acq else 0)  # fmt: skip
         events = rec.event_counts()
         reconnects = sum(n for (kind, _), n in events.items() if kind == "connect")
         yield _counter("loopcal_daq_connects", "times the DAQ answered after being unreachable "

@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 import pytest
 
 from loopcal.daemon.config.controller import load_controller_config, write_initial_config
 from loopcal.daemon.recording import read_recordings
+from loopcal.simulator.open_points import Latency
 from tests.support.emulator import hand_emulator
 from tests.support.processes import Proc, free_port, record, scrape, taken_port, value, write_config
 from tests.support.sessions import truth_for
@@ -42,8 +44,29 @@ def test_record_serves_prometheus_metrics(tmp_path):
     # never calibrated: a state of its own, and no age (not a NaN an alert cannot compare)
     assert value(m, "loopcal_controller_config_calibrated") == 0.0
     assert "loopcal_controller_config_calibration_age_seconds" not in m
+    assert value(m, "loopcal_daq_read_errors_total") == 0
+    assert value(m, "loopcal_daq_late_answers_total") == 0
     with pytest.raises(OSError):  # closed with the recorder
         scrape(port)
+
+
+def test_a_module_answering_late_costs_no_scan_and_the_metrics_say_so(tmp_path):
+    """A third of the answers 150-400 ms late, beyond the datasheet's 100-ms timeout: the
+    snapshots given up on are retried, the FIFO reads waited for, and every scan is kept."""
+    port = free_port()
+    with hand_emulator(speed=4.0) as emu:
+        rec = record(emu.url, tmp_path / "rec", "--metrics", f"127.0.0.1:{port}")
+        rec.wait_for("recording to", timeout=20)
+        emu.faults.latency(Latency(slow_fraction=0.3, slow_ms=(150.0, 400.0)))
+        time.sleep(6.0)
+        m = scrape(port)
+        rc, _ = rec.stop()
+    assert rc == 0, rec.text
+    c = read_recordings(tmp_path / "rec").scans["counter64"].astype(np.int64)
+    assert len(c) > 6.0 * 20 * 4.0 * 0.8
+    assert np.all(np.diff(c) == 1) and value(m, "loopcal_scans_missed_total") == 0
+    assert value(m, "loopcal_daq_late_answers_total") > 0
+    assert value(m, "loopcal_daq_read_errors_total") > 0  # the late snapshots
 
 
 def test_a_taken_or_bad_metrics_address_is_refused(tmp_path):
