@@ -93,7 +93,8 @@ class RecorderSettings:
              "relative to the config file")  # fmt: skip
     timeout_s: float = _setting(
         ldq412.HOST_TIMEOUT_S, kind="seconds", key="[daq].timeout", option="--timeout", hi=10.0,
-        help="seconds without an answer before a read fails (the datasheet's 100 ms); at "
+        help="seconds without an answer before a read fails (the datasheet's 100 ms; a "
+             "Modbus FIFO read, whose scans already left the module, waits up to 1 s); at "
              "most 10")  # fmt: skip
     read_period_s: float = _setting(
         0.2, kind="seconds", key="[daq].read_period", option="--read-period", hi=5.0,
