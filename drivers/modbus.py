@@ -233,7 +233,6 @@ class ModbusDAQ(DAQ):
         # scans per FIFO read: the datasheet's 20, fewer for a module that refuses that
         self.fifo_chunk = ldq412.FIFO_MAX_SCANS_PER_READ
         self.late_fifo_answers = 0
-        self._rate_hz = ldq412.SCAN_RATE_MAX_HZ
         self._client = self._make_client(self._trace_packet)
         try:
             self._connect()
@@ -432,13 +431,12 @@ class ModbusDAQ(DAQ):
         (rate,) = self.read_holding_registers(ldq412.HR_SCAN_RATE, 1)
         if not ldq412.SCAN_RATE_MIN_HZ <= rate <= ldq412.SCAN_RATE_MAX_HZ:
             raise DAQProtocolError(f"{self.url}: scan rate register reads {rate}")
-        self._rate_hz = rate
         return rate
 
     def _fifo_answer_wait(self) -> float:
         """s to wait for a FIFO read's answer: FIFO_ANSWER_WAIT_S, at most half the FIFO's
         depth at the module's rate, never less than the timeout."""
-        half_fifo = ldq412.FIFO_DEPTH / self._rate_hz / 2
+        half_fifo = ldq412.FIFO_DEPTH / self.scan_rate_hz / 2
         return max(self.timeout, min(FIFO_ANSWER_WAIT_S, half_fifo))
 
     def _read_snapshot(self) -> tuple[RawSnapshot, float]:
