@@ -108,7 +108,6 @@ class Acquisition:
         self._down_since: float | None = None
         self._down_logged = 0.0
         self._backoff = BACKOFF_MIN_S
-        self._late_seen = 0  # the driver's late_fifo_answers already counted
         self._pending_events: list[Event] = []
         self._first_missed: int | None = None
         self._clock_hint: tuple[int, float, int, int] | None = None
@@ -169,10 +168,8 @@ class Acquisition:
         if self._down_since is not None:
             self._recovered(start)
         self._backoff = BACKOFF_MIN_S
-        late = getattr(daq, "late_fifo_answers", 0)
-        if late != self._late_seen:
-            self.stats.late_answers += late - self._late_seen
-            self._late_seen = late
+        # one driver for the acquisition's life (it reconnects itself): its count is ours
+        self.stats.late_answers = getattr(daq, "late_fifo_answers", 0)
         new_epochs = {s.epoch for s in scans} - self._seen_driver_epochs
         if new_epochs and daq.has_fifo:
             self._sync_clock(daq)
@@ -260,7 +257,6 @@ class Acquisition:
             self.sink(Batch(rows, events, self.device))
 
     def _connected(self, daq: DAQ) -> None:
-        self._late_seen = 0
         ident = daq.identity
         rate = daq.scan_rate_hz
         self.device = DeviceInfo(
