@@ -55,6 +55,14 @@ KINDS: dict[str, str] = {
     "(details: poses, since_ns, detected_ns, statistic, threshold, largest_sensor, "
     "largest_shift_mm, false_alarm)",
     "guidance": "the live guidance's verdict while recording (details: enough, reason)",
+    "foreign_reader": "another Modbus master takes scans off the module's FIFO: its start "
+    "(warning: since, scans taken so far) and its end (details: since_ns, until_ns, taken)",
+    "module_held": "the recorder holds the module's lock on this host, or a reload was "
+    "refused because another process holds the new module's (details: key, lock, holder)",
+    "session_start": "a technician's calibration session began through the daemon's control "
+    "socket (details: session, note, asked_by, target_mm, until_enough, duration_s)",
+    "session_end": "that session ended: enough, duration, stopped, abandoned or the daemon "
+    "stopping (details: session, reason, since_ns, until_ns, scans, enough, std)",
 }
 
 
