@@ -30,6 +30,7 @@ from loopcal.calibration.poses import pose_noise_volts
 
 from ..config.controller import ControllerConfig
 from ..scans import volts as scans_volts
+from ..worker import coverage as C
 from ..worker import gates as G
 from ..worker.motion import RecordedScans, scans_for_fit
 from ..worker.run import run_worker
@@ -55,7 +56,7 @@ class GuidanceUpdate:
     (:func:`loopcal.daemon.worker.gates.distinct_positions`, what the ``poses`` gate counts).
     reach_deg: (4,) the largest tilt reached toward each sensor. twist_deg: (2,) the largest
     twist about the plate's own axis, clockwise and counter-clockwise seen from above
-    (:func:`loopcal.daemon.worker.gates.twist_coverage`). min_singular, condition:
+    (:func:`loopcal.daemon.worker.coverage.twist_coverage`). min_singular, condition:
     of the worker's fit (before it can run: of every usable scan's maximum-likelihood
     information; None before they identify every parameter).
     std: {name: predicted standard deviation} of each free parameter. gates: {name:
@@ -102,13 +103,13 @@ class GuidanceUpdate:
         lines = [
             f"loopcal guidance  {m:d}:{s:02d}  scans {self.scans:,}  positions {self.poses}"
             f" (need {G.MIN_POSES})",
-            f"coverage, largest tilt toward each sensor (aim for {G.GOOD_TILT_DEG:.0f} deg):",
+            f"coverage, largest tilt toward each sensor (aim for {C.GOOD_TILT_DEG:.0f} deg):",
         ]
         for i, r in enumerate(self.reach_deg):
             bar = "#" * int(min(r, 45) / 45 * 30)
             lines.append(f"  sensor {i + 1} {r:5.1f} deg |{bar:<30}|")
         cw, ccw = self.twist_deg
-        lines.append(f"twist about the plate's axis (aim for {G.GOOD_TWIST_DEG:.0f} deg each way): "
+        lines.append(f"twist about the plate's axis (aim for {C.GOOD_TWIST_DEG:.0f} deg each way): "
                      f"clockwise {cw:.1f} deg, counter-clockwise {ccw:.1f} deg")  # fmt: skip
         if self.min_singular is not None:
             lines.append(
@@ -198,7 +199,7 @@ class Guidance:
         usable = scans_for_fit(scans)
         elapsed = len(scans) / usable.scan_rate_hz  # of the plate's time, whatever the clock
         step = max(1, -(-len(usable) // COVERAGE_SCANS))
-        reach, twist = G.reach_and_twist(usable.volts[::step], start)
+        reach, twist = C.reach_and_twist(usable.volts[::step], start)
         positions = G.distinct_positions(usable.volts)
         u = GuidanceUpdate(elapsed, len(scans), positions, [float(r) for r in reach], None,
                            None, {}, self.target_mm,
@@ -210,8 +211,8 @@ class Guidance:
             if indices is not None:
                 u.min_singular, u.condition = indices.min_singular, indices.condition
             u.instruction = self._instruction(usable, scans, lambda: (
-                G.advice_from_coverage(reach, twist, still=False) if len(usable)
-                else G.coverage_advice(usable.volts, start, still=False)))  # fmt: skip
+                C.advice_from_coverage(reach, twist, still=False) if len(usable)
+                else C.coverage_advice(usable.volts, start, still=False)))  # fmt: skip
         self.last = u
         self.on_update(u)
         if u.enough and not self.done:
@@ -242,7 +243,7 @@ class Guidance:
             params = result.params if cal is not None else np.array(self.controller.params)
             poses = result.poses
             u.instruction = self._instruction(
-                poses, scans, lambda: G.coverage_advice(poses.volts, params, still=False)
+                poses, scans, lambda: C.coverage_advice(poses.volts, params, still=False)
             )
 
     def _predicted_std(

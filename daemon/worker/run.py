@@ -36,6 +36,7 @@ from ..config.controller import ControllerConfig
 from ..recording import RecordingFile
 from ..version import loopcal_version
 from . import gates as G
+from .coverage import lazy_coverage_advice
 from .motion import scans_for_fit
 from .poses import RecordedPoses, poses_of_scans
 
@@ -237,7 +238,7 @@ def run_worker(
     result.method = method
     result.gates.append(gate)
     still = not per_scan
-    advice = G.lazy_coverage_advice(poses.volts, start, still=still)  # made only if a gate fails
+    advice = lazy_coverage_advice(poses.volts, start, still=still)  # made only if a gate fails
     if not gate.passed:
         result.seconds = time.perf_counter() - t0
         return result
@@ -274,7 +275,7 @@ def run_worker(
     result.calibration = cal
     result.params = ident.params.copy()
     result.std = {n: float(s) for n, s in zip(model.free, ident.std, strict=True)}
-    advice = G.lazy_coverage_advice(poses.volts, ident.params, still=still)
+    advice = lazy_coverage_advice(poses.volts, ident.params, still=still)
     chosen = fit[cal.indices]
     # the paper's fit reports the noise of a pose's mean reading, ml that of one scan
     result.expected_noise_volts = G.expected_noise(

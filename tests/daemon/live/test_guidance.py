@@ -12,7 +12,7 @@ from loopcal.calibration.parameters import INDEX, NAMES, PAPER7
 from loopcal.daemon.config.controller import nominal_config
 from loopcal.daemon.live.guidance import COVERAGE_SCANS, Guidance
 from loopcal.daemon.recording import read_recordings
-from loopcal.daemon.worker import gates as G
+from loopcal.daemon.worker import coverage as C
 from loopcal.daemon.worker.motion import scans_for_fit
 from loopcal.daemon.worker.run import run_worker
 from loopcal.simulator.offline import mechanism_scans
@@ -56,7 +56,7 @@ def test_guidance_predicts_what_the_worker_reports_and_stops_when_enough():
     # how far the plate was twisted each way, as the worker's advice judges it
     usable = scans_for_fit(seen).volts
     step = max(1, -(-len(usable) // COVERAGE_SCANS))
-    twist = G.twist_coverage(usable[::step], np.array(nominal_config().params))
+    twist = C.twist_coverage(usable[::step], np.array(nominal_config().params))
     assert last.twist_deg == pytest.approx(twist.tolist()) and min(twist) > 0
     assert doc["twist_deg"] == {"clockwise": round(twist[0], 1),
                                 "counter_clockwise": round(twist[1], 1)}  # fmt: skip
