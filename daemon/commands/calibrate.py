@@ -16,12 +16,14 @@ import json
 import os
 import re
 import sys
+from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from loopcal.calibration.errors import CalibrationError
 from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
 from loopcal.calibration.parameters import DEFAULT_FREE, ParameterModel
+from loopcal.calibration.pipeline import DEFAULT_N_SELECT
 
 from ..arguments import path_argument
 from ..config import durable
@@ -113,7 +115,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="write an HTML report with plots into DIR")  # fmt: skip
 
 
-class _Fail(Exception):
+class BadInput(Exception):
     """Bad input: message for the user, exit status 2."""
 
 
@@ -127,126 +129,171 @@ def _inputs(args: argparse.Namespace) -> tuple[list[Path], Path]:
         try:
             settings = load_daemon_config(args.config)
         except SettingsError as exc:
-            raise _Fail(str(exc)) from None
+            raise BadInput(str(exc)) from None
         if not files:
             files = [settings.directory]
         if controller is None:
             controller = settings.controller_config
     if controller is None:
-        raise _Fail(
+        raise BadInput(
             "no controller config: give --controller-config PATH (or --config with a "
             "[controller] config)"
         )
     if not files:
-        raise _Fail("no recordings given: name REC.mcap files or a directory, or use --config")
+        raise BadInput("no recordings given: name REC.mcap files or a directory, or use --config")
     out: list[Path] = []
     for f in files:
         if f.is_dir():
             try:
                 found = find_recordings(f)
             except RecordingError as exc:
-                raise _Fail(str(exc)) from None
+                raise BadInput(str(exc)) from None
             if not found:
-                raise _Fail(f"{f}: no recordings (loopcal-*.mcap) in this directory")
+                raise BadInput(f"{f}: no recordings (loopcal-*.mcap) in this directory")
             out += found
         else:
             try:
                 out += recording_paths([f])  # a regular file, or why not
             except RecordingError as exc:
-                raise _Fail(str(exc)) from None
+                raise BadInput(str(exc)) from None
     return out, controller
 
 
-def _check_report_dir(directory: Path) -> None:
+def check_report_dir(directory: Path) -> None:
     """The report's directory must be one (or creatable) and take files, before anything
     is computed or written."""
     if directory.exists() and not directory.is_dir():
-        raise _Fail(f"--report {directory}: exists and is not a directory")
+        raise BadInput(f"--report {directory}: exists and is not a directory")
     try:
         directory.mkdir(parents=True, exist_ok=True)
         probe = directory / f".loopcal-write-test.{os.getpid()}"
         probe.touch(exist_ok=False)
         probe.unlink()
     except OSError as exc:
-        raise _Fail(f"--report {directory}: cannot write there: {exc.strerror or exc}") from None
+        raise BadInput(f"--report {directory}: cannot write there: {exc.strerror or exc}") from None
 
 
-def _window_text(since: datetime | None, until: datetime | None) -> str:
-    fmt = "%Y-%m-%d %H:%M:%S UTC"
-    lo = since.astimezone(UTC).strftime(fmt) if since else "the start"
-    hi = until.astimezone(UTC).strftime(fmt) if until else "the end"
+def _window_text(since_ns: int | None, until_ns: int | None) -> str:
+    def text(ns: int) -> str:
+        return datetime.fromtimestamp(ns / 1e9, UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+
+    lo = text(since_ns) if since_ns is not None else "the start"
+    hi = text(until_ns) if until_ns is not None else "the end"
     return f"from {lo} to {hi}"
 
 
-def run(args: argparse.Namespace) -> int:
-    def progress(text: str) -> None:
-        print(text, file=sys.stderr if args.json else sys.stdout, flush=True)
+@dataclass(frozen=True)
+class Calibration:
+    """What ``loopcal calibrate`` is asked, its inputs found: the command's body as
+    :func:`calibrate` runs it (``loopcal session`` runs it on a session's window).
 
+    files: the recordings. controller_path: the controller config to start from and to
+    write. free, ties: the free set (None: the config's, else the default). since_ns,
+    until_ns: the scans stamped from ``since_ns`` on and before ``until_ns``, ns since the
+    Unix epoch (None: open). last: the last stretch instead of
+    ``since``. select, method: as the options. write, json, report: as the options.
+    extra: more keys for the JSON document. json_indent: its indent (None: one line).
+    prog: the command named in errors.
+    """
+
+    files: list[Path]
+    controller_path: Path
+    free: str | None = None
+    ties: str | None = None
+    since_ns: int | None = None
+    until_ns: int | None = None
+    last: timedelta | None = None
+    select: int = DEFAULT_N_SELECT
+    method: str = DEFAULT_METHOD
+    write: bool = False
+    json: bool = False
+    report: Path | None = None
+    extra: dict = field(default_factory=dict)
+    json_indent: int | None = 1
+    prog: str = "calibrate"
+
+
+def run(args: argparse.Namespace) -> int:
     try:
         if args.ties is not None and not args.free:
-            raise _Fail("--ties goes with --free (ties tie parameters of a custom free set)")
-        if args.report is not None:
-            _check_report_dir(args.report)
+            raise BadInput("--ties goes with --free (ties tie parameters of a custom free set)")
         files, controller_path = _inputs(args)
-        config = load_controller_config(controller_path)
-        if args.write:
-            check_writable(config)
-        free = args.free or config.free or DEFAULT_FREE
-        ties = args.ties if args.free else (",".join(config.ties) or None)
-        model = ParameterModel.parse(free, ties or ())
-        since, until = args.since, args.until
-        if args.last is not None and since is not None:
-            raise _Fail("give --since or --last, not both")
-        if since is not None and until is not None and until <= since:
-            raise _Fail(f"empty time window: --until is not after --since "
-                        f"({_window_text(since, until)})")  # fmt: skip
-        if args.select < model.n_free:
-            raise _Fail(f"--select {args.select}: at least {model.n_free} poses are needed")
-        progress(f"reading {len(files)} recording file(s)")
-        rec = read_recordings(files, since=since, until=until, last=args.last)
-        if args.last is not None and rec.since_ns is not None:  # where --last began
-            since = datetime.fromtimestamp(rec.since_ns / 1e9, UTC)
-    except (_Fail, ControllerConfigError, RecordingError, CalibrationError, ValueError) as exc:
+    except BadInput as exc:
         print(f"loopcal calibrate: error: {exc}", file=sys.stderr)
         return 2
+    return calibrate(Calibration(
+        files, controller_path, free=args.free, ties=args.ties, since_ns=_ns(args.since),
+        until_ns=_ns(args.until), last=args.last, select=args.select, method=args.method,
+        write=args.write, json=args.json, report=args.report))  # fmt: skip
+
+
+def calibrate(job: Calibration) -> int:
+    """Read, fit, check the gates, report, and write if asked and accepted: the exit
+    status (0 accepted, 1 refused, 2 bad input), everything said on stdout and stderr."""
+
+    def progress(text: str) -> None:
+        print(text, file=sys.stderr if job.json else sys.stdout, flush=True)
+
+    def fail(text: object) -> int:
+        print(f"loopcal {job.prog}: error: {text}", file=sys.stderr)
+        return 2
+
+    since, until = job.since_ns, job.until_ns
+    try:
+        if job.report is not None:
+            check_report_dir(job.report)
+        config = load_controller_config(job.controller_path)
+        if job.write:
+            check_writable(config)
+        free = job.free or config.free or DEFAULT_FREE
+        ties = job.ties if job.free else (",".join(config.ties) or None)
+        model = ParameterModel.parse(free, ties or ())
+        if job.last is not None and since is not None:
+            raise BadInput("give --since or --last, not both")
+        if since is not None and until is not None and until <= since:
+            raise BadInput(f"empty time window: --until is not after --since "
+                        f"({_window_text(since, until)})")  # fmt: skip
+        if job.select < model.n_free:
+            raise BadInput(f"--select {job.select}: at least {model.n_free} poses are needed")
+        progress(f"reading {len(job.files)} recording file(s)")
+        rec = read_recordings(job.files, since=since, until=until, last=job.last)
+        if job.last is not None and rec.since_ns is not None:  # where --last began
+            since = rec.since_ns
+    except (BadInput, ControllerConfigError, RecordingError, CalibrationError, ValueError) as exc:
+        return fail(exc)
     notes = describe_files(rec.files)
     if notes:
         progress(f"note: {notes}")
     for line in rec.warnings:
         progress(f"warning: {line}")
     if len(rec) == 0:
-        print(
-            "loopcal calibrate: error: no scans in the recordings"
-            + (f" {_window_text(since, until)}" if since or until else ""),
-            file=sys.stderr,
-        )
-        return 2
+        return fail("no scans in the recordings"
+                    + (f" {_window_text(since, until)}"
+                       if since is not None or until is not None else ""))  # fmt: skip
     result = run_worker(
-        rec.scans, config, model, files=rec.files, n_select=args.select, method=args.method,
+        rec.scans, config, model, files=rec.files, n_select=job.select, method=job.method,
         progress=progress,
     )  # fmt: skip
-    if args.report is not None:  # every other output first: the config is written last
+    if job.report is not None:  # every other output first: the config is written last
         from ..worker.report import write_report  # matplotlib only when a report is asked for
 
         try:
-            page = write_report(result, args.report, progress=progress)
+            page = write_report(result, job.report, progress=progress)
         except OSError as exc:
-            print(f"loopcal calibrate: error: cannot write the report in {args.report}: "
-                  f"{exc.strerror or exc}; nothing written", file=sys.stderr)  # fmt: skip
-            return 2
+            return fail(f"cannot write the report in {job.report}: {exc.strerror or exc}; "
+                        "nothing written")  # fmt: skip
         progress(f"report: {page}")
     written = None
-    if args.write and result.accepted:
+    if job.write and result.accepted:
         try:
             written = write_back(
                 config,
                 result.params,
-                result.provenance(since=_ns(since), until=_ns(until)),
+                result.provenance(since=since, until=until),
             )
         except ControllerConfigError as exc:
-            print(f"loopcal calibrate: error: {exc}", file=sys.stderr)
-            return 2
-    if args.json:
+            return fail(exc)
+    if job.json:
         doc = result.as_json()
         doc.update(
             {
@@ -255,11 +302,12 @@ def run(args: argparse.Namespace) -> int:
                 "target": str(written.target if written else durable.target_of(config.path)),
                 "previous_version": str(written.backup) if written else None,
                 "warnings": rec.warnings,
+                **job.extra,
             }
         )
-        print(json.dumps(doc, indent=1, default=_jsonable))
+        print(json.dumps(doc, indent=job.json_indent, default=_jsonable), flush=True)
     else:
-        _print_human(result, config.path, written, args.write)
+        _print_human(result, config.path, written, job.write)
     return 0 if result.accepted else 1
 
 

@@ -26,6 +26,7 @@ from ..live.view import watch_live
 from ..recorder.engine import Recorder
 from ..recorder.process import run_recorder, setup_logging
 from ..recorder.settings import SettingsError, add_options, option_name, settings_from_args
+from .guidance_display import Display
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -128,27 +129,3 @@ def _enough(recorder: Recorder, u: GuidanceUpdate) -> None:
         enough=True, poses=u.poses, std=u.std, target_mm=u.target_mm,
     )  # fmt: skip
     recorder.request_stop("enough to calibrate")
-
-
-class Display:
-    """The live guidance on stdout: redrawn in place on a terminal (plain ANSI, fine over
-    SSH), a block per update otherwise, or one JSON object per line."""
-
-    def __init__(self, *, json_lines: bool) -> None:
-        self.json_lines = json_lines
-        self.tty = sys.stdout.isatty()
-        self._lines = 0
-
-    def update(self, u: GuidanceUpdate) -> None:
-        if self.json_lines:
-            print(json.dumps(u.as_json()), flush=True)
-            return
-        lines = u.render()
-        if self.tty:
-            # back to the top of the previous display, clear it, draw again
-            up = f"\x1b[{self._lines}F" if self._lines else ""
-            sys.stdout.write(up + "\x1b[J" + "\n".join(lines) + "\n")
-            sys.stdout.flush()
-            self._lines = len(lines)
-        else:
-            print("\n".join(lines) + "\n", flush=True)
