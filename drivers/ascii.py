@@ -378,6 +378,8 @@ class AsciiDAQ(DAQ):
                     stopbits=self.stopbits,
                     timeout=min(self.timeout, 0.01),
                     write_timeout=self.timeout,
+                    # one program owns a serial line (pymodbus opens RTU ports so too)
+                    exclusive=True,
                 )
             except (serial.SerialException, OSError, ValueError) as exc:
                 raise DAQDisconnected(f"{self.url}: cannot open port: {exc}") from exc

@@ -3,6 +3,11 @@ own pytest plugin, loopcal.simulator.pytest_plugin: ``ldq412``, ``ldq412_url``, 
 
 from __future__ import annotations
 
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
 import pytest
 
 from tests.support.js import mcap_reader
@@ -13,3 +18,15 @@ def node_reader() -> list[str]:
     """The command that runs Foxglove's TypeScript MCAP reader (tests/support/js/
     read_mcap.mjs) on a file; fails the test, saying what is missing, without node."""
     return mcap_reader()
+
+
+@pytest.fixture(autouse=True)
+def runtime_directory(monkeypatch) -> Iterator[Path]:
+    """Each test its own runtime directory (``$LOOPCAL_RUNTIME_DIR``: the modules' lock
+    files, the daemon's control socket), inherited by the loopcal subprocesses it starts:
+    tests on two workers that open the same address (an unreachable one, say) never take
+    each other's module locks. Short, as a unix socket's path must be (108 bytes)."""
+    path = Path(tempfile.mkdtemp(prefix="lc-run-"))
+    monkeypatch.setenv("LOOPCAL_RUNTIME_DIR", str(path))
+    yield path
+    shutil.rmtree(path, ignore_errors=True)

@@ -16,6 +16,7 @@ from ..config.controller import ControllerConfigError
 from ..live.health import watch_health
 from ..live.view import watch_live
 from ..recorder.engine import Recorder
+from ..recorder.ownership import ModuleHeld
 from ..recorder.process import run_recorder, setup_logging
 from ..recorder.settings import SettingsError, load_daemon_config
 
@@ -38,10 +39,11 @@ def run(args: argparse.Namespace) -> int:
         recorder = Recorder(
             settings,
             command=f"loopcal daemon --config {args.config}",
+            service=True,
             reload_settings=lambda: load_daemon_config(args.config),
         )
         live = watch_live(recorder, settings.live_listen, health=watch_health(recorder))
-    except (SettingsError, ControllerConfigError) as exc:
+    except (SettingsError, ControllerConfigError, ModuleHeld) as exc:
         print(f"loopcal daemon: error: {exc}", file=sys.stderr)
         return 2
     try:

@@ -24,6 +24,7 @@ from ..live.guidance import OFFSETS, TARGET_MM, Guidance, GuidanceUpdate
 from ..live.health import watch_health
 from ..live.view import watch_live
 from ..recorder.engine import Recorder
+from ..recorder.ownership import ModuleHeld
 from ..recorder.process import run_recorder, setup_logging
 from ..recorder.settings import SettingsError, add_options, option_name, settings_from_args
 from .guidance_display import Display
@@ -81,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     except SettingsError as exc:
         print(f"loopcal record: error: {exc.named(option_name)}", file=sys.stderr)
         return 2
-    except (ControllerConfigError, ParameterError, ValueError) as exc:
+    except (ControllerConfigError, ParameterError, ValueError, ModuleHeld) as exc:
         print(f"loopcal record: error: {exc}", file=sys.stderr)
         return 2
     try:

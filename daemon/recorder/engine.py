@@ -35,6 +35,7 @@ from .compactor import Compactor
 from .filewriter import FileWriter, RecorderStatus, ScanQueue, Shared, prepare_directory
 from .metrics import MetricsServer
 from .observers import AnalysisThread, Observer
+from .ownership import ModuleHeld, ModuleLock, module_key
 from .resume import last_scan
 from .sdnotify import Notifier
 from .settings import RecorderSettings
@@ -76,10 +77,16 @@ class Recorder:
     """Record the DAQ named by the settings until :meth:`request_stop`.
 
     settings: what to record and where. command: how the recorder was started (metadata).
+    service: this is ``loopcal daemon`` (the lock file says so to a second process).
     reload_settings: called on :meth:`request_reload` for the new settings (None: keep the
     settings, re-read the controller config). notifier: systemd notification (None: a
     Notifier from the environment, a no-op outside systemd). The scans also go to every
     observer added with :meth:`add_observer`.
+
+    Before anything else it takes the module's lock
+    (:class:`~loopcal.daemon.recorder.ownership.ModuleLock`), and raises
+    :class:`~loopcal.daemon.recorder.ownership.ModuleHeld` naming the holder if another
+    process on this host records the module; it keeps the lock until :meth:`run` returns.
     """
 
     def __init__(
@@ -87,10 +94,13 @@ class Recorder:
         settings: RecorderSettings,
         *,
         command: str,
+        service: bool = False,
         reload_settings: Callable[[], RecorderSettings] | None = None,
         notifier: Notifier | None = None,
     ) -> None:
         self.command = command
+        self.service = service
+        self.module_lock = ModuleLock(settings.daq_url, command=command, service=service)
         self._reload_settings = reload_settings
         self.notifier = notifier if notifier is not None else Notifier()
         prepare_directory(settings.directory)
@@ -199,6 +209,7 @@ class Recorder:
             controller_config=str(self.controller.path or "reference geometry"),
             resume=None if resume is None else resume.__dict__,
         )
+        self._emit_lock()
         self.analysis.start()
         if self.compactor is not None:
             self.compactor.start(s.directory)
@@ -251,6 +262,7 @@ class Recorder:
             self.compactor.stop(timeout=0.0)  # a compaction cut short is redone next time
         if self.metrics is not None:
             self.metrics.close()
+        self.module_lock.release()
         if self._fatal is not None:
             log.critical("internal error: %r", self._fatal)
             return 1
@@ -292,6 +304,12 @@ class Recorder:
         if self.followed:
             parts.append(self.followed)
         return "; ".join(parts)
+
+    def _emit_lock(self) -> None:
+        lock = self.module_lock
+        self.emit("module_held", Level.INFO,
+                  f"this process is the module's one owner on this host ({lock.key}: "
+                  f"{lock.path})", key=lock.key, lock=str(lock.path))  # fmt: skip
 
     def _resume_point(self, directory: Path) -> ResumePoint | None:
         """Where the last recording of the directory ended. Damaged or unreadable files
@@ -353,15 +371,20 @@ class Recorder:
     def _do_reload(self) -> None:
         self.notifier.reloading()
         old = self.settings
+        lock = None
         try:
             new = self._reload_settings() if self._reload_settings is not None else old
             controller = self._load_controller(new)
             if new.directory != old.directory:
                 prepare_directory(new.directory)
-        except (ValueError, OSError) as exc:
-            self.emit("config_reload", Level.ERROR,
-                        f"reload failed, keeping the running configuration: {exc}",
-                        ok=False, error=str(exc))  # fmt: skip
+            if module_key(new.daq_url) != self.module_lock.key:  # another module
+                lock = ModuleLock(new.daq_url, command=self.command, service=self.service)
+        except (ValueError, OSError, ModuleHeld) as exc:
+            holder = getattr(exc, "holder", None)
+            self.emit("module_held" if holder is not None else "config_reload", Level.ERROR,
+                      f"reload failed, keeping the running configuration: {exc}",
+                      ok=False, error=str(exc),
+                      **({"holder": holder.__dict__} if holder is not None else {}))  # fmt: skip
             self.notifier.ready(self.status_line())
             return
         self._put_in_force(controller, new)
@@ -370,6 +393,10 @@ class Recorder:
             old.daq_url, old.timeout_s, old.read_period_s)  # fmt: skip
         if restart_daq:
             self._stop_acquisition()
+            if lock is not None:  # the new module's lock, taken above; the old one let go
+                self.module_lock.release()
+                self.module_lock = lock
+                self._emit_lock()
             acq = self._acq
             self._start_acquisition(acq.resume_point if acq is not None else None)
         self.emit("config_reload", Level.INFO,
