@@ -61,7 +61,10 @@ class GuidanceUpdate:
     information; None before they identify every parameter).
     std: {name: predicted standard deviation} of each free parameter. gates: {name:
     passed} (empty before the worker can run). enough: the target is met and every gate
-    passes. instruction: what to do next.
+    passes. instruction: what to do next. advice: the same, for a program to follow
+    (:class:`~loopcal.daemon.worker.coverage.NextMove`: tilt toward which sensor, twist
+    which way, how far, anywhere, enough; its ``text`` is the instruction, or its start
+    when a failing gate adds to it).
     """
 
     elapsed_s: float
@@ -76,6 +79,7 @@ class GuidanceUpdate:
     enough: bool = False
     instruction: str = ""
     twist_deg: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    advice: C.NextMove | None = None
 
     def as_json(self) -> dict[str, Any]:
         def num(x: float | None) -> float | None:
@@ -95,6 +99,7 @@ class GuidanceUpdate:
             "gates": self.gates,
             "enough": self.enough,
             "instruction": self.instruction,
+            "advice": self.advice.as_json() if self.advice is not None else None,
         }
 
     def render(self) -> list[str]:
@@ -210,9 +215,9 @@ class Guidance:
             u.std, indices = self._predicted_std(usable, start)
             if indices is not None:
                 u.min_singular, u.condition = indices.min_singular, indices.condition
-            u.instruction = self._instruction(usable, scans, lambda: (
-                C.advice_from_coverage(reach, twist, still=False) if len(usable)
-                else C.coverage_advice(usable.volts, start, still=False)))  # fmt: skip
+            self._advise(u, usable, scans, lambda: (
+                C.next_move(reach, twist, start, still=False) if len(usable)
+                else C.coverage_move(usable.volts, start, still=False)))  # fmt: skip
         self.last = u
         self.on_update(u)
         if u.enough and not self.done:
@@ -231,20 +236,23 @@ class Guidance:
         offsets_ok = all(u.std.get(n, 0.0) <= self.target_mm for n in OFFSETS if n in u.std)
         u.enough = bool(result.accepted and offsets_ok)
         if u.enough:
-            u.instruction = (
+            u.advice = C.NextMove(
+                "enough",
                 "enough: the recording is complete; put the plate down "
-                "(loopcal calibrate will write the new offsets)"
+                "(loopcal calibrate will write the new offsets)",
             )
+            u.instruction = u.advice.text
             return
         failed = result.failed
+        coverage = result.advice
+        assert coverage is not None  # the worker's coverage advice, made once for both
         if failed and failed[0].advice:
-            u.instruction = failed[0].advice
+            # a gate's advice is the coverage advice (made when it failed), or its own
+            u.instruction = text = failed[0].advice
+            own = not (coverage.made and text.startswith(coverage.move().text))
+            u.advice = C.NextMove("other", text) if own else coverage.move()
         else:
-            params = result.params if cal is not None else np.array(self.controller.params)
-            poses = result.poses
-            u.instruction = self._instruction(
-                poses, scans, lambda: C.coverage_advice(poses.volts, params, still=False)
-            )
+            self._advise(u, result.poses, scans, coverage.move)
 
     def _predicted_std(
         self, usable: RecordedScans, p: np.ndarray
@@ -267,14 +275,22 @@ class Guidance:
         indices = observability_indices(a[:, None, :])
         return {name: float(s) for name, s in zip(self.model.free, std, strict=True)}, indices
 
-    def _instruction(
-        self, usable: RecordedScans, scans: np.ndarray, advice: Callable[[], str]
-    ) -> str:
-        """What to do next: move, if the plate has rested; else ``advice()``, the coverage
-        advice."""
+    def _advise(
+        self,
+        u: GuidanceUpdate,
+        usable: RecordedScans,
+        scans: np.ndarray,
+        advice: Callable[[], C.NextMove],
+    ) -> None:
+        """What to do next, into ``u.advice`` and ``u.instruction``: move anywhere, if the
+        plate has rested; else ``advice()``, the coverage advice."""
         n = round(RESTING_S * usable.scan_rate_hz)  # by scan count: stamps may be packed
+        u.advice = None
         if len(scans) >= n:
             volts = scans_volts(scans[-n:])
             if np.all(np.ptp(volts, axis=0) <= RESTING_BAND_V):
-                return "move the plate: tilt and twist it by hand through new positions"
-        return advice()
+                u.advice = C.NextMove("anywhere", "move the plate: tilt and twist it by hand "
+                                      "through new positions")  # fmt: skip
+        if u.advice is None:
+            u.advice = advice()
+        u.instruction = u.advice.text

@@ -13,8 +13,8 @@ or badly spread, made only if one fails (:func:`lazy_coverage_advice`), and the 
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from functools import cache
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -47,13 +47,30 @@ def _twist(R: np.ndarray) -> np.ndarray:
     return np.array([max(0.0, -float(swivel.min())), max(0.0, float(swivel.max()))])
 
 
+def sensor_azimuths(params: np.ndarray) -> np.ndarray:
+    """Which way each sensor's side lies, seen from above.
+
+    Parameters
+    ----------
+    params : ndarray of float, shape (20,)
+        The mechanism's parameters (mm, mm/V).
+
+    Returns
+    -------
+    ndarray of float, shape (4,)
+        The azimuth of each sensor's base point A_i from the base's centre, degrees from the
+        base's +x toward +y, in (-180, 180]: the direction "toward sensor i" of
+        :func:`coverage` and of the advice.
+    """
+    A = base_points(params)
+    return np.degrees(np.arctan2(A[:, 1], A[:, 0]))
+
+
 def _reach(R: np.ndarray, params: np.ndarray) -> np.ndarray:
     """(4,) the largest tilt toward each sensor of rotations R (:func:`coverage`)."""
     tilt, az = np.degrees(output_axis_angles(R))
-    A = base_points(params)
     reach = np.zeros(4)
-    for i in range(4):
-        a = np.degrees(np.arctan2(A[i, 1], A[i, 0]))
+    for i, a in enumerate(sensor_azimuths(params)):
         near = np.abs((az - a + 180) % 360 - 180) <= 45
         reach[i] = float(tilt[near].max()) if near.any() else 0.0
     return reach
@@ -122,12 +139,166 @@ def coverage(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
     return reach_and_twist(volts, params)[0]
 
 
-def coverage_advice(volts: np.ndarray, params: np.ndarray, *, still: bool = True) -> str:
-    """Which way the technician should tilt the plate next, from where the poses went.
+#: what a :class:`NextMove` asks for
+KINDS = ("tilt", "twist", "anywhere", "enough", "other")
+#: the two ways to twist, as :func:`twist_coverage` orders them, seen from above
+TWIST_WAYS = ("clockwise", "counter-clockwise")
+
+
+@dataclass(frozen=True)
+class NextMove:
+    """What the technician should do next: the advice for a program to follow, beside its
+    text for people (both made by one decision).
+
+    Attributes
+    ----------
+    kind : str
+        One of :data:`KINDS`: ``"tilt"`` the plate toward ``sensor``'s side; ``"twist"`` it
+        about its own axis the ``way`` given; ``"anywhere"``: move it through new positions,
+        tilting and twisting (nothing is missing in particular, or it rested too long);
+        ``"enough"``: the recording is complete, stop; ``"other"``: an instruction the
+        fields do not describe (a failing gate's own advice, such as checking a sensor's
+        wiring): read ``text``.
+    text : str
+        The advice in words, as the technician is shown it.
+    sensor : int or None
+        ``"tilt"``: the sensor (1..4) whose side to tilt toward; else None.
+    azimuth_deg : float or None
+        ``"tilt"``: the direction of that side, degrees from the base's +x toward +y
+        (:func:`sensor_azimuths`); else None.
+    aim_deg : float or None
+        ``"tilt"``: the tilt of the plate's axis to reach that way (:data:`GOOD_TILT_DEG`);
+        ``"twist"``: the swivel to reach that way (:data:`GOOD_TWIST_DEG`); degrees, else
+        None.
+    reached_deg : float or None
+        ``"tilt"``, ``"twist"``: how far the poses reached that way so far, degrees; else
+        None.
+    way : str or None
+        ``"twist"``: ``"clockwise"`` or ``"counter-clockwise"`` seen from above (one of
+        :data:`TWIST_WAYS`); else None.
+    """
+
+    kind: str
+    text: str
+    sensor: int | None = None
+    azimuth_deg: float | None = None
+    aim_deg: float | None = None
+    reached_deg: float | None = None
+    way: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"kind {self.kind!r}: one of {', '.join(KINDS)}")
+
+    def as_json(self) -> dict[str, Any]:
+        """The advice as JSON-ready fields.
+
+        Returns
+        -------
+        dict
+            ``{"kind", "sensor", "azimuth_deg", "aim_deg", "reached_deg", "way"}`` (None
+            where a field does not apply; angles rounded to 0.1 degree); the text is
+            shown on its own (the guidance's ``instruction``).
+        """
+
+        def deg(x: float | None) -> float | None:
+            return None if x is None else round(float(x), 1)
+
+        return {"kind": self.kind, "sensor": self.sensor, "azimuth_deg": deg(self.azimuth_deg),
+                "aim_deg": deg(self.aim_deg), "reached_deg": deg(self.reached_deg),
+                "way": self.way}  # fmt: skip
+
+
+def next_move(
+    reach: np.ndarray, twist: np.ndarray, params: np.ndarray, *, still: bool = True
+) -> NextMove:
+    """Where the technician should take the plate next, from coverages already found
+    (:func:`reach_and_twist`).
+
+    Parameters
+    ----------
+    reach : ndarray of float, shape (4,)
+        The largest tilt reached toward each sensor, deg.
+    twist : ndarray of float, shape (2,)
+        The largest twist reached clockwise and counter-clockwise seen from above, deg.
+    params : ndarray of float, shape (20,)
+        The mechanism's parameters: where each sensor's side lies (:func:`sensor_azimuths`).
+    still : bool, default True
+        The fit uses still poses (the advice asks to hold each position); False: every
+        scan, moving or still (it asks for motion).
+
+    Returns
+    -------
+    NextMove
+        ``"tilt"`` toward the sensor reached least while it is under :data:`GOOD_TILT_DEG`,
+        else ``"twist"`` the way twisted least while under :data:`GOOD_TWIST_DEG`, else
+        ``"anywhere"``; its text as :func:`coverage_advice` gives it.
+    """
+    hold = ", holding each position still for a second" if still else ""
+    what = "poses" if still else "scans"
+    worst = int(np.argmin(reach))
+    if reach[worst] < GOOD_TILT_DEG:
+        return NextMove(
+            "tilt",
+            f"tilt the plate further toward sensor {worst + 1} (the {what} reach only "
+            f"{reach[worst]:.0f} deg that way; aim for {GOOD_TILT_DEG:.0f} deg or more){hold}",
+            sensor=worst + 1, azimuth_deg=float(sensor_azimuths(params)[worst]),
+            aim_deg=GOOD_TILT_DEG, reached_deg=float(reach[worst]),
+        )  # fmt: skip
+    least = int(np.argmin(twist))
+    if twist[least] < GOOD_TWIST_DEG:
+        way = TWIST_WAYS[least]
+        return NextMove(
+            "twist",
+            f"twist the plate about its own axis, {way} seen from above (the {what} reach "
+            f"only {twist[least]:.0f} deg that way; aim for {GOOD_TWIST_DEG:.0f} deg or "
+            f"more){hold}",
+            aim_deg=GOOD_TWIST_DEG, reached_deg=float(twist[least]), way=way,
+        )  # fmt: skip
+    if still:
+        return NextMove(
+            "anywhere",
+            "record more still positions spread over the whole workspace, tilted and twisted",
+        )
+    return NextMove(
+        "anywhere", "keep moving the plate through the whole workspace, tilting and twisting it"
+    )
+
+
+def coverage_move(volts: np.ndarray, params: np.ndarray, *, still: bool = True) -> NextMove:
+    """Where the technician should take the plate next, from where the poses went.
 
     The plate's output axis (its z axis) of each pose, by forward kinematics: for each
     sensor, the largest tilt reached towards that sensor's base point (within 45 deg of its
-    azimuth, :func:`coverage`). The sensor reached least is where to go.
+    azimuth, :func:`coverage`), and the largest twist each way (:func:`twist_coverage`);
+    then :func:`next_move`.
+
+    Parameters
+    ----------
+    volts : ndarray of float, shape (k, 4)
+        The poses' mean readings, V.
+    params : ndarray of float, shape (20,)
+        The parameters to turn them into poses with.
+    still : bool, default True
+        As for :func:`next_move`.
+
+    Returns
+    -------
+    NextMove
+        As :func:`next_move` decides; with no poses, ``"anywhere"``: move the plate through
+        its whole range.
+    """
+    if len(volts) == 0:
+        hold = ", holding each position still for a second" if still else ""
+        return NextMove("anywhere", "move the plate by hand through its whole range, tilting "
+                        "and twisting it" + hold)  # fmt: skip
+    reach, twist = reach_and_twist(volts, params)
+    return next_move(reach, twist, params, still=still)
+
+
+def coverage_advice(volts: np.ndarray, params: np.ndarray, *, still: bool = True) -> str:
+    """Which way the technician should tilt the plate next, from where the poses went: the
+    text of :func:`coverage_move`.
 
     Parameters
     ----------
@@ -148,58 +319,16 @@ def coverage_advice(volts: np.ndarray, params: np.ndarray, *, still: bool = True
         :func:`twist_coverage`), else record more positions spread over the workspace,
         tilted and twisted; with no poses, move the plate through its whole range.
     """
-    if len(volts) == 0:
-        hold = ", holding each position still for a second" if still else ""
-        return "move the plate by hand through its whole range, tilting and twisting it" + hold
-    reach, twist = reach_and_twist(volts, params)
-    return advice_from_coverage(reach, twist, still=still)
+    return coverage_move(volts, params, still=still).text
 
 
-def advice_from_coverage(reach: np.ndarray, twist: np.ndarray, *, still: bool = True) -> str:
-    """:func:`coverage_advice` from coverages already found (:func:`reach_and_twist`).
-
-    Parameters
-    ----------
-    reach : ndarray of float, shape (4,)
-        The largest tilt reached toward each sensor, deg.
-    twist : ndarray of float, shape (2,)
-        The largest twist reached clockwise and counter-clockwise seen from above, deg.
-    still : bool, default True
-        As for :func:`coverage_advice`.
-
-    Returns
-    -------
-    str
-        The advice, as :func:`coverage_advice` gives it.
-    """
-    hold = ", holding each position still for a second" if still else ""
-    worst = int(np.argmin(reach))
-    if reach[worst] >= GOOD_TILT_DEG:
-        least = int(np.argmin(twist))
-        if twist[least] < GOOD_TWIST_DEG:
-            way = ("clockwise", "counter-clockwise")[least]
-            return (
-                f"twist the plate about its own axis, {way} seen from above (the "
-                f"{'poses' if still else 'scans'} reach only {twist[least]:.0f} deg that way; "
-                f"aim for {GOOD_TWIST_DEG:.0f} deg or more){hold}"
-            )
-        if still:
-            return "record more still positions spread over the whole workspace, tilted and twisted"
-        return "keep moving the plate through the whole workspace, tilting and twisting it"
-    return (
-        f"tilt the plate further toward sensor {worst + 1} (the {'poses' if still else 'scans'}"
-        f" reach only {reach[worst]:.0f} deg that way; aim for {GOOD_TILT_DEG:.0f} deg or "
-        f"more){hold}"
-    )
-
-
-def lazy_coverage_advice(
-    volts: np.ndarray, params: np.ndarray, *, still: bool = True
-) -> Callable[[], str]:
-    """:func:`coverage_advice`, made on the first call and only then.
+class LazyAdvice:
+    """:func:`coverage_move` of poses, made on first use and only then: the advice the
+    acceptance gates give when the motion was too little or badly spread.
 
     Forward kinematics of every pose (a day's 30,000 of them) is paid for only when a gate
-    fails and needs it.
+    fails and needs it, or the live guidance asks where to go; once made, both take the same
+    decision.
 
     Parameters
     ----------
@@ -207,14 +336,74 @@ def lazy_coverage_advice(
         The poses' mean readings, V.
     params : ndarray of float, shape (20,)
         The parameters to turn them into poses with.
+    still : bool, default True
+        As for :func:`next_move`.
+
+    Attributes
+    ----------
+    still : bool
+        As given.
+    """
+
+    def __init__(self, volts: np.ndarray, params: np.ndarray, *, still: bool = True) -> None:
+        self._volts, self._params, self.still = volts, params, still
+        self._move: NextMove | None = None
+
+    @property
+    def made(self) -> bool:
+        """Whether the advice was made (a gate failed and asked, or :meth:`move` was called).
+
+        Returns
+        -------
+        bool
+        """
+        return self._move is not None
+
+    def move(self) -> NextMove:
+        """The advice, made on the first call.
+
+        Returns
+        -------
+        NextMove
+            :func:`coverage_move` of the poses.
+        """
+        if self._move is None:
+            self._move = coverage_move(self._volts, self._params, still=self.still)
+        return self._move
+
+    def __call__(self) -> str:
+        """The advice's text (an :data:`~loopcal.daemon.worker.gates.Advice` for the gates).
+
+        Returns
+        -------
+        str
+            ``move().text``.
+        """
+        return self.move().text
+
+
+def lazy_coverage_advice(
+    volts: np.ndarray, params: np.ndarray, *, still: bool = True
+) -> LazyAdvice:
+    """:func:`coverage_advice`, made on the first call and only then.
+
+    Parameters
+    ----------
+    volts : ndarray of float, shape (k, 4)
+        The poses' mean readings, V.
+    params : ndarray of float, shape (20,)
+        The parameters to turn them into poses with.
+    still : bool, default True
+        As for :func:`next_move`.
 
     Returns
     -------
-    callable
+    LazyAdvice
         ``advice() -> str``, computing the advice once and then returning it again: an
         :data:`~loopcal.daemon.worker.gates.Advice` for the gates
         (:func:`~loopcal.daemon.worker.gates.condition_gate`,
         :func:`~loopcal.daemon.worker.gates.min_singular_gate`,
-        :func:`~loopcal.daemon.worker.gates.precision_gate`).
+        :func:`~loopcal.daemon.worker.gates.precision_gate`); ``advice.move()`` is the same
+        decision as a :class:`NextMove`.
     """
-    return cache(lambda: coverage_advice(volts, params, still=still))
+    return LazyAdvice(volts, params, still=still)

@@ -36,7 +36,7 @@ from ..config.controller import ControllerConfig
 from ..recording import RecordingFile
 from ..version import loopcal_version
 from . import gates as G
-from .coverage import lazy_coverage_advice
+from .coverage import LazyAdvice, lazy_coverage_advice
 from .motion import scans_for_fit
 from .poses import RecordedPoses, poses_of_scans
 
@@ -59,6 +59,9 @@ class WorkerResult:
     identification, or None if it could not run.
     n_scans: the scans it started from. span_ns: their first and last stamps (ns since the
     Unix epoch), or None. files: the recording files they came from, as read.
+    advice: where the plate should go next, from the poses' coverage at the parameters the
+    gates judged (:class:`~loopcal.daemon.worker.coverage.LazyAdvice`: made only if a gate
+    failed and asked for it, or when the live guidance asks).
     """
 
     model: ParameterModel
@@ -77,6 +80,7 @@ class WorkerResult:
     expected_noise_volts: float = float("nan")
     extra: dict[str, Any] = field(default_factory=dict)
     method: str = DEFAULT_METHOD
+    advice: LazyAdvice | None = None
 
     @property
     def accepted(self) -> bool:
@@ -239,6 +243,7 @@ def run_worker(
     result.gates.append(gate)
     still = not per_scan
     advice = lazy_coverage_advice(poses.volts, start, still=still)  # made only if a gate fails
+    result.advice = advice
     if not gate.passed:
         result.seconds = time.perf_counter() - t0
         return result
@@ -275,7 +280,7 @@ def run_worker(
     result.calibration = cal
     result.params = ident.params.copy()
     result.std = {n: float(s) for n, s in zip(model.free, ident.std, strict=True)}
-    advice = lazy_coverage_advice(poses.volts, ident.params, still=still)
+    advice = result.advice = lazy_coverage_advice(poses.volts, ident.params, still=still)
     chosen = fit[cal.indices]
     # the paper's fit reports the noise of a pose's mean reading, ml that of one scan
     result.expected_noise_volts = G.expected_noise(

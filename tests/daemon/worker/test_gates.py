@@ -43,18 +43,18 @@ def test_advice_is_made_only_for_a_failing_gate(monkeypatch):
     ps = simulate_poses(60, seed=3)
     volts, params = ps.volts, ps.truth
     calls = []
-    original = C.coverage_advice
+    original = C.coverage_move
 
     def counted(v, p, **kw):
         calls.append(1)
         return original(v, p, **kw)
 
-    monkeypatch.setattr(C, "coverage_advice", counted)
+    monkeypatch.setattr(C, "coverage_move", counted)
     advice = C.lazy_coverage_advice(volts, params)
     assert G.condition_gate(10.0, advice).passed
     assert G.min_singular_gate(1.0, advice).passed
     assert G.precision_gate(["d01"], np.array([0.01]), advice).passed
-    assert calls == []
+    assert calls == [] and not advice.made
     failed = [
         G.condition_gate(1e4, advice),
         G.min_singular_gate(0.01, advice),
