@@ -22,6 +22,8 @@ COMMANDS: tuple[tuple[str, str], ...] = (
      "the field job on an emulated DAQ: record a session, calibrate, write, check the truth"),
     ("record", "record the DAQ to MCAP files in the foreground"),
     ("daemon", "the acquisition daemon (systemd's entry point): record the DAQ for months"),
+    ("session",
+     "calibrate through the running daemon: live guidance, then the session's scans calibrated"),
     ("init-config",
      "write a controller config (TOML) with the 20 parameters at the reference geometry"),
     ("calibrate",

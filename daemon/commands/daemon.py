@@ -3,7 +3,9 @@
 Reads the TOML config (every key is described in docs/daemon.md and in
 :mod:`loopcal.daemon.recorder.settings`), records until SIGTERM, reloads the config and starts a new
 file on SIGHUP, and speaks the systemd notify protocol (READY, STATUS, WATCHDOG) when systemd
-gives it a socket.
+gives it a socket. It owns the module (a second loopcal process that opens it is refused)
+and listens on its control socket (``[control].socket``) for a technician's session
+(``loopcal session``).
 """
 
 from __future__ import annotations
@@ -13,7 +15,9 @@ import sys
 
 from ..arguments import path_argument
 from ..config.controller import ControllerConfigError
+from ..live.control import ControlError
 from ..live.health import watch_health
+from ..live.sessions import ControlServer
 from ..live.view import watch_live
 from ..recorder.engine import Recorder
 from ..recorder.ownership import ModuleHeld
@@ -34,6 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     setup_logging(args.verbose)
+    live = control = None
     try:
         settings = load_daemon_config(args.config)
         recorder = Recorder(
@@ -43,11 +48,18 @@ def run(args: argparse.Namespace) -> int:
             reload_settings=lambda: load_daemon_config(args.config),
         )
         live = watch_live(recorder, settings.live_listen, health=watch_health(recorder))
-    except (SettingsError, ControllerConfigError, ModuleHeld) as exc:
+        assert settings.control_socket is not None  # load_daemon_config gives the default
+        control = ControlServer(recorder, settings.control_socket, live=live,
+                                client_timeout=settings.control_client_timeout_s)  # fmt: skip
+        recorder.stop_listeners.append(control.stop_session)
+    except (SettingsError, ControllerConfigError, ModuleHeld, ControlError) as exc:
+        if live is not None:
+            live.close()
         print(f"loopcal daemon: error: {exc}", file=sys.stderr)
         return 2
     try:
         return run_recorder(recorder)
     finally:
+        control.close()
         if live is not None:
             live.close()

@@ -128,6 +128,10 @@ class Recorder:
         #: view, which so does not compute them again), from the writer thread; each must
         #: return at once
         self.view_listeners: list[Callable[[WrittenViews], None]] = []
+        #: called in :meth:`run`'s thread as it stops, before the acquisition stops and the
+        #: last scans are written (a technician's session ends there, so that its end and
+        #: its scans reach the recording)
+        self.stop_listeners: list[Callable[[], None]] = []
         self.compactor = Compactor(lambda: self.settings.keep_views_days) \
             if settings.compact else None  # fmt: skip
         self.metrics: MetricsServer | None = None
@@ -251,6 +255,11 @@ class Recorder:
                 timeout = min(timeout, max(0.0, t_end - now))
             self._stop.wait(timeout)
         self.notifier.stopping(f"stopping: {self.exit_reason}")
+        for listener in self.stop_listeners:
+            try:
+                listener()
+            except Exception:  # noqa: BLE001 - stopping goes on, whatever a listener does
+                log.exception("a stop listener failed")
         self._stop_acquisition()
         self.analysis.stop()
         self.emit("recorder_stop", Level.INFO, f"recorder stopping: {self.exit_reason}",

@@ -139,6 +139,8 @@ class RecorderStatus:
     bytes_written: int = 0
     disk_error: str = ""
     backlog: int = 0
+    #: the stamp of the newest scan written and made durable (None before the first)
+    written_through_ns: int | None = None
 
 
 @dataclass
@@ -360,6 +362,8 @@ class FileWriter:
             self.status.bytes_written += f.size - before
             self.events = []
             self.status.scans_written += b - a
+            if b > a:
+                self.status.written_through_ns = int(stamps[b - 1])
             self.rows, self.n_rows = [rows[b:]], len(rows) - b
         self.rows, self.n_rows = [], 0
         if f.views_error and self.views_reported != f.path:

@@ -51,11 +51,31 @@ class AnalysisThread:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="loopcal-analysis", daemon=True)
+        self._started = self._running = False
 
     def start(self) -> AnalysisThread:
-        if self.observers:
+        with self._lock:
+            self._started = True
+            run = self._running = bool(self.observers)
+        if run:
             self._thread.start()
         return self
+
+    def add(self, observer: Observer) -> None:
+        """Feed ``observer`` too from the next scans on (a session started while recording;
+        the thread starts now if it had nothing to feed)."""
+        with self._lock:
+            self.observers.append(observer)
+            run = self._started and not self._running and not self._stop.is_set()
+            self._running = self._running or run
+        if run:
+            self._thread.start()
+
+    def remove(self, observer: Observer) -> None:
+        """Feed ``observer`` no more: once this returns, no feed of it is under way."""
+        with self._lock:
+            if observer in self.observers:
+                self.observers.remove(observer)
 
     def put(self, rows: np.ndarray) -> None:
         """Queue scan rows (never blocks)."""

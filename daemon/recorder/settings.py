@@ -24,6 +24,7 @@ from typing import Any
 from loopcal.drivers import driver_for_url, ldq412
 
 from ..arguments import path_argument
+from .ownership import runtime_directory
 
 _SIZE_RE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(B|KiB|MiB|GiB|TiB|kB|MB|GB|TB)?\s*$")
 _UNITS = {None: 1, "B": 1, "KiB": 1 << 10, "MiB": 1 << 20, "GiB": 1 << 30, "TiB": 1 << 40,
@@ -31,6 +32,8 @@ _UNITS = {None: 1, "B": 1, "KiB": 1 << 10, "MiB": 1 << 20, "GiB": 1 << 30, "TiB"
 
 
 _MAX_SIZE = float(1 << 62)
+#: the daemon's control socket's name in the runtime directory (the default of [control].socket)
+CONTROL_SOCKET_NAME = "control.sock"
 #: the most scans the backlog may hold in memory (about 560 MB)
 MAX_BACKLOG_SCANS = 10_000_000
 
@@ -153,6 +156,16 @@ class RecorderSettings:
         metavar="HOST:PORT", shown_default="off",
         help="serve Prometheus metrics on http://HOST:PORT/metrics, e.g. "
              "127.0.0.1:9464")  # fmt: skip
+    control_socket: Path | None = _setting(
+        None, kind="path", key="[control].socket",
+        shown_default="control.sock in the runtime directory (/run/loopcal)",
+        help="the daemon's control socket, a unix socket that loopcal session asks for a "
+             "technician's session through (owner and group may connect: the loopcal "
+             "group); loopcal daemon only")  # fmt: skip
+    control_client_timeout_s: float = _setting(
+        30.0, kind="seconds", key="[control].client_timeout", lo=1.0, hi=3600.0,
+        help="a session whose client has said nothing for this long (a closed laptop, a "
+             "dropped SSH) ends by itself, marked abandoned")  # fmt: skip
     live_listen: str | None = _setting(
         None, kind="listen", key="[live].listen", option="--live", metavar="HOST:PORT",
         shown_default="off",
@@ -303,6 +316,7 @@ def load_daemon_config(path: str | os.PathLike) -> RecorderSettings:
     for name in SETTINGS:
         if name not in DEFAULTS and name not in values:
             raise SettingsError(f"{config_key(name)} is required", where=str(p))
+    values.setdefault("control_socket", runtime_directory() / CONTROL_SOCKET_NAME)
     return RecorderSettings(**values).checked(str(p))
 
 
