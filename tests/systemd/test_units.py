@@ -153,6 +153,10 @@ def test_tmpfiles_agrees_with_the_units_directory_modes():
     assert dirs["/etc/loopcal"] == (s["ConfigurationDirectoryMode"], "root", "root")
     assert not int(dirs["/etc/loopcal"][0], 8) & 0o022  # daemon.toml: root's alone
     assert dirs["/etc/loopcal/controller"] == ("0775", "root", "loopcal")  # the worker's
+    # the control socket and the lock files: the group's, where every loopcal process looks
+    assert dirs["/run/loopcal"] == (s["RuntimeDirectoryMode"], "loopcal", "loopcal")
+    assert s["RuntimeDirectory"] == "loopcal" and s["RuntimeDirectoryPreserve"] == "yes"
+    assert int(s["RuntimeDirectoryMode"], 8) & 0o070 == 0o070
 
 
 def test_sysusers_and_tmpfiles_make_the_user_and_directories(tmp_path):
@@ -187,6 +191,8 @@ def test_sysusers_and_tmpfiles_make_the_user_and_directories(tmp_path):
     assert (st.st_mode & 0o777, st.st_uid, st.st_gid) == (0o755, 0, 0)
     st = (root / "etc" / "loopcal" / "controller").stat()
     assert (st.st_mode & 0o777, st.st_uid, st.st_gid) == (0o775, 0, gid)
+    st = (root / "run" / "loopcal").stat()
+    assert (st.st_mode & 0o7777, st.st_uid, st.st_gid) == (0o2770, uid, gid)
 
 
 def test_the_daemon_unit_lets_it_serve_metrics_on_loopback():
