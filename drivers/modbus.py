@@ -20,8 +20,10 @@ port is reopened and the line is drained until quiet).
 FIFO overflow: the driver never writes holding register 2, since by the datasheet that
 clears the FIFO along with the overflow flag, and would throw away the scans that arrived
 while the driver was reading. The flag stays latched; an overflow shows as a counter gap
-in the FIFO (the oldest scans were dropped), told apart from a FIFO answer lost on the way
-(the driver knows which reads failed). See :class:`loopcal.drivers.sequence.Sequencer`.
+in the FIFO (the oldest scans were dropped) after the module made a FIFO's worth of
+scans, told apart from a FIFO answer lost on the way (the driver knows which reads
+failed) and from scans another Modbus master took off the FIFO (a gap neither explains).
+See :class:`loopcal.drivers.sequence.Sequencer`.
 
 Modules differ where the datasheet is loose (docs/daq.md, "open points"): a FIFO answer
 with fewer scans than asked (a module that leaves the filler out, or truncates long
@@ -583,13 +585,15 @@ class ModbusDAQ(DAQ):
 
     def clear_fifo(self) -> None:
         """Empty the module's FIFO and clear its overflow flag (holding register 2): the
-        scans in it are lost, and reported as missed. read_scans never does this.
+        scans in it are lost, and reported as missed (as a lost answer's are, not as
+        another reader's). read_scans never does this.
 
         Raises
         ------
         DAQError
             If the module cannot be written.
         """
+        self._seq.fifo_read_lost()  # the gap it leaves is ours, whether the write answers or not
         self.write_register(ldq412.HR_CLEAR_FIFO, 1)
 
     def clear_restart(self) -> bool:

@@ -93,9 +93,17 @@ class Scan:
         bit or the counter going backwards. Also true on the first scan after connect if
         the restart bit was set then.
     overflow : bool
-        The device's FIFO overflowed before this scan (bit 8 rising, or a counter gap in
-        the FIFO while bit 8 is latched; the driver never clears the bit, since that
-        would empty the FIFO too). Only FIFO reads report it.
+        The device's FIFO overflowed before this scan: bit 8 rising, or a counter gap in
+        the FIFO after the module made at least its depth (256 scans) since the scan
+        delivered before it (the driver never clears the bit, since that would empty the
+        FIFO too, so a latched bit says nothing about later gaps). Only FIFO reads report
+        it.
+    taken : bool
+        The scans missed just before this one were taken off the module's FIFO by another
+        reader (another Modbus master reading the FIFO window): a counter gap that neither
+        an overflow nor a FIFO answer lost on the way explains
+        (:mod:`loopcal.drivers.sequence`). ``missed`` counts them as for any gap. Only
+        FIFO reads report it.
     time_measured : bool
         ``time_us`` came from the device (snapshot, ``#AA``). False for FIFO scans, whose
         time is derived: anchor time + (counter - anchor counter) x 1e6 / scan rate,
@@ -122,6 +130,7 @@ class Scan:
     missed: int = 0
     restarted: bool = False
     overflow: bool = False
+    taken: bool = False
     time_measured: bool = True
     status_measured: bool = True
     source: ScanSource = "snapshot"

@@ -19,12 +19,27 @@ Two kinds of input:
   restricted to channels reading 4095 (a faulted channel reads 4095, and a channel at 4095
   is untrustworthy anyway); latched bits 8-9 from the anchor.
 
-Overflow detection: the drivers never clear the overflow flag (clearing it also empties
-the FIFO, losing what arrived since the last read), so after the first overflow of a
-power-on the bit stays set. A scan is marked ``overflow`` when the bit rises (or is set at
-the first observation), or when a FIFO scan follows a counter gap while the bit is set,
-unless a FIFO read was lost on the way since the last scan (``fifo_read_lost``): that gap
-is the lost answer's, not the module's.
+Gaps in the FIFO: a FIFO scan after a counter gap (scans missed, no restart) has its gap
+put down to one cause, the first of these that can explain it:
+
+1. an overflow (``Scan.overflow``): the overflow bit rose since the last scan delivered,
+   or the module made at least FIFO_DEPTH scans after that one (the newest counter known:
+   the anchor's, or the batch's newest FIFO scan's). An overflow needs one scan more; the
+   margin keeps a module that updates its registers a moment apart from being taken for
+   another reader. The drivers never clear the overflow bit (clearing it also empties the
+   FIFO, losing what arrived since the last read), so after the first overflow of a
+   power-on it stays set and says nothing about later gaps. A scan is also marked
+   ``overflow``, gap or not, when the bit rises (or is set at the first observation);
+2. a FIFO answer lost on the way (``fifo_read_lost``): the scans that read took. No flag;
+3. another reader of the FIFO window (``Scan.taken``, counted in ``taken_total``): the
+   module kept the scans and no read of ours took them, so somebody else did.
+
+The FIFO level tells the third before a gap shows it: all the scans made since the last
+one delivered should wait in the FIFO, so at each anchor (the same power-on, fewer than
+FIFO_DEPTH scans made, no answer lost since, the overflow bit not rising) a level lower by
+more than one means scans were taken: at least that many less one (``taken_unreported``,
+until a scan delivered reports the gap, exactly). One is tolerated: the datasheet leaves
+open whether a module updates its snapshot before it pushes the scan into its FIFO.
 
 Restart detection: the restart bit rising (or set at the first observation), or the
 counter going backwards (a backwards step of less than 2**31 is a restart; a larger one
@@ -44,6 +59,8 @@ from .records import Scan, ScanSource
 U32 = ldq412.U32_MOD
 HALF = U32 // 2
 LATCHED_MASK = ldq412.STATUS_OVERFLOW | ldq412.STATUS_RESTART
+#: scans the FIFO level may lag the counter by with none taken (module docstring)
+LEVEL_TOLERANCE = 1
 
 
 @dataclass(frozen=True, slots=True)
@@ -172,6 +189,12 @@ class Sequencer:
         Restarts detected so far (equal to ``epoch``).
     missed_total : int
         Scans missed over the sequence's life (the sum of Scan.missed).
+    taken_total : int
+        Of those, the scans another reader took off the FIFO (the sum of Scan.missed over
+        the scans marked ``taken``).
+    taken_unreported : int
+        At least this many scans were taken by another reader, by the latest anchor's FIFO
+        level, that no scan delivered has reported yet (0 when none; module docstring).
     measured_period_us : float or None
         The scan period measured between the latest two successive anchors of one epoch
         at least 20 scans apart, µs, or None (none yet, or the rate was set since).
@@ -182,6 +205,8 @@ class Sequencer:
         self.epoch = 0
         self.restarts_detected = 0
         self.missed_total = 0
+        self.taken_total = 0
+        self.taken_unreported = 0
         self._anchor: _Anchor | None = None
         self._prev_anchor: _Anchor | None = None  # newest anchor of the previous epoch
         self._batch_prev_anchor: _Anchor | None = None  # anchor before this batch's, same epoch
@@ -191,6 +216,8 @@ class Sequencer:
         self._pending_overflow = False
         self._overflow_bit_prev = False
         self._lost_read = False  # a FIFO answer was lost since the last delivered scan
+        # ... during the batch under way: its scans come after everything the batch delivers
+        self._lost_in_batch = False
         self._boundary_pending = False
         self._anchor_host_time: float | None = None
         # measured scan period (µs) between the last two anchors of one epoch, or None
@@ -199,9 +226,10 @@ class Sequencer:
     # -- bookkeeping ---------------------------------------------------------------
 
     def fifo_read_lost(self) -> None:
-        """A FIFO read failed after it was sent: scans it took are lost, and the gap they
-        leave is not an overflow."""
-        self._lost_read = True
+        """A FIFO read failed after it was sent (or the driver emptied the FIFO itself):
+        the scans it took are lost, and the gap they leave after the scans this batch
+        delivers is neither an overflow nor another reader's."""
+        self._lost_in_batch = True
 
     def restart_bit_cleared(self) -> None:
         """The driver cleared the restart bit: the next time it is seen set is a restart."""
@@ -383,16 +411,30 @@ class Sequencer:
             ``time.monotonic()`` when it arrived, s; the FIFO scan equal to it keeps it.
         """
         self._anchor_host_time = host_time
+        if self._lost_in_batch:  # lost in an earlier batch: its gap shows from this one on
+            self._lost_read, self._lost_in_batch = True, False
         old = self._anchor
         if self._observe(snap):
             self._start_epoch()
             self._boundary_pending = True
-        self._set_anchor(snap)
+        anchor = self._set_anchor(snap)
         self._batch_prev_anchor = old if old is not None and old.epoch == self.epoch else None
         bit = bool(snap.status & ldq412.STATUS_OVERFLOW)
         if bit and not self._overflow_bit_prev:
             self._pending_overflow = True
         self._overflow_bit_prev = bit
+        self.taken_unreported = self._taken_by_level(anchor, snap.fifo_level)
+
+    def _taken_by_level(self, anchor: _Anchor, level: int | None) -> int:
+        """Scans made since the last one delivered that the FIFO level says are gone, less
+        the tolerance, where nothing of ours or the module's took them; else 0."""
+        last = self._last
+        if (level is None or last is None or last.epoch != anchor.epoch or self._lost_read
+                or self._pending_overflow):  # fmt: skip
+            return 0
+        made = anchor.counter64 - last.counter64
+        gone = made - level
+        return gone - LEVEL_TOLERANCE if made < ldq412.FIFO_DEPTH and gone > LEVEL_TOLERANCE else 0
 
     def fifo_scans(
         self, raw: Sequence[tuple[int, tuple[int, int, int, int]]], host_time: float
@@ -435,14 +477,19 @@ class Sequencer:
                         boundary = i
                         break
                     prev = c
-        rate = self.scan_rate_hz
-        bracket = self._batch_prev_anchor
-        other_fault = bracket.status if bracket is not None else 0
-        out: list[Scan] = []
+        resolved: list[tuple[_Anchor, int, int, tuple[int, int, int, int]]] = []
+        newest: dict[int, int] = {}  # the newest counter64 known, per epoch
         for i, (c, codes) in enumerate(raw):
             a = anchor if i >= boundary else self._prev_anchor
             assert a is not None
             c64 = a.counter64 + signed_delta(c, a.counter)
+            resolved.append((a, c64, c, codes))
+            newest[a.epoch] = max(newest.get(a.epoch, a.counter64), c64)
+        rate = self.scan_rate_hz
+        bracket = self._batch_prev_anchor
+        other_fault = bracket.status if bracket is not None else 0
+        out: list[Scan] = []
+        for a, c64, c, codes in resolved:
             last = self._last
             if last is not None and (
                 last.epoch > a.epoch or (last.epoch == a.epoch and c64 <= last.counter64)
@@ -458,9 +505,15 @@ class Sequencer:
                 extra = other_fault if a is anchor else 0
                 status, measured = derived_status(codes, a.status, extra), False
             missed, restarted, overflow = self._deliver(a.epoch, c, c64)
-            if missed and not restarted:
-                overflow = overflow or (self._overflow_bit_prev and not self._lost_read)
+            taken = False
+            if missed and not restarted:  # the gap's cause (module docstring)
+                if newest[a.epoch] - (c64 - missed - 1) >= ldq412.FIFO_DEPTH:
+                    overflow = True
+                elif not overflow and not self._lost_read:
+                    taken = True
+                    self.taken_total += missed
             self._lost_read = False
+            self.taken_unreported = 0
             out.append(
                 Scan(
                     counter=c,
@@ -473,6 +526,7 @@ class Sequencer:
                     missed=missed,
                     restarted=restarted,
                     overflow=overflow,
+                    taken=taken,
                     time_measured=measured,
                     status_measured=measured,
                     source="fifo",

@@ -13,6 +13,7 @@ scripts run as ``python -m bench.NAME``); it is not part of the installed packag
 - :mod:`.sessions`: technician sessions, recorded live or written from offline scans;
 - :mod:`.processes`: ``loopcal`` subprocesses, metrics, ports, the notify socket;
 - :mod:`.emulator`: the emulated module in this process and its truth;
+- :mod:`.foreign`: another Modbus master reading the module's FIFO (plain pymodbus);
 - :mod:`.replay`: replay round trips;
 - :mod:`.timeline`: a module's scan timeline in simulated time (polls, stamps);
 - :mod:`.independent_module`: a module written from the datasheet alone;
