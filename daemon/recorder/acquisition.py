@@ -19,7 +19,9 @@ What it adds to the driver's scans:
   one's floor), and step back only when the host's clock was set back;
 - events: gaps, restarts, FIFO overflow, rail and sensor faults (onset at once, end after a
   second of clear scans, so a channel flickering at the rail does not flood the log),
-  and the link going down and coming back.
+  the link going down and coming back, and another Modbus master taking scans off the
+  FIFO (one ``foreign_reader`` warning when it starts, one event when it stops:
+  :mod:`loopcal.daemon.recorder.foreign`; its gaps are info, each scan still missed).
 
 When the module stops answering, the loop retries every 0.05 s through the datasheet's
 restart window (a power-cycled module answers again within 2 s), then with exponential
@@ -45,6 +47,7 @@ from ..events import Event, Level
 from ..scans import SCAN_DTYPE
 from .batches import AcquisitionStats, Batch, DeviceInfo, ResumePoint
 from .clockmap import ClockMap, StampFloor
+from .foreign import ForeignReaders
 from .polling import PhaseLock
 
 log = logging.getLogger(__name__)
@@ -56,6 +59,8 @@ BACKOFF_MAX_S = 2.0
 READ_DITHER_STEP = 0.6180339887498949  # golden ratio: even coverage of a scan period
 FAULT_CLEAR_S = 1.0  # a rail or fault condition ends after this long of clear scans
 STILL_DOWN_LOG_S = 60.0
+#: the reason of a gap another Modbus master took (Scan.taken)
+TAKEN_REASON = "taken by another reader of the module's FIFO"
 
 
 class _Flag:
@@ -115,6 +120,7 @@ class Acquisition:
         self._poll_epoch = -1
         self._newest_us: int | None = None  # device time of the newest scan polled
         self._seen_driver_epochs: set[int] = set()
+        self._foreign = ForeignReaders()
 
     @property
     def resume_point(self) -> ResumePoint | None:
@@ -174,7 +180,9 @@ class Acquisition:
         if new_epochs and daq.has_fifo:
             self._sync_clock(daq)
         self._seen_driver_epochs |= new_epochs
-        rows = self._rows(scans) if scans else np.zeros(0, dtype=SCAN_DTYPE)
+        rows, taken = self._rows(scans)
+        if daq.has_fifo:
+            self._watch_foreign(rows, taken, daq.sequencer.taken_unreported)
         if len(rows) or self._pending_events:
             self._flush_events(rows)
         if daq.has_fifo:
@@ -322,11 +330,12 @@ class Acquisition:
 
     # ------------------------------------------------------------------ scans -> rows
 
-    def _rows(self, scans: list[Scan]) -> np.ndarray:
-        if self._base_epoch is None:
+    def _rows(self, scans: list[Scan]) -> tuple[np.ndarray, np.ndarray]:
+        """The scans as rows, and per row whether another reader took its gap's scans."""
+        if scans and self._base_epoch is None:
             scans = self._continue_from_last(scans)
-            if not scans:
-                return np.zeros(0, dtype=SCAN_DTYPE)
+        if not scans:
+            return np.zeros(0, dtype=SCAN_DTYPE), np.zeros(0, dtype=bool)
         base = self._base_epoch
         assert base is not None
         n = len(scans)
@@ -350,14 +359,15 @@ class Acquisition:
             rows["missed"][0] = self._first_missed
             self._first_missed = None
         self._stamp(rows, host)
-        self._scan_events(rows, first_ever=self._last is None, resumed=resumed)
+        taken = np.array([s.taken for s in scans], dtype=bool)
+        self._scan_events(rows, taken, first_ever=self._last is None, resumed=resumed)
         last = rows[-1]
         self._last = ResumePoint(
             int(last["epoch"]), int(last["counter64"]), int(last["time64_us"]),
             self.device.serial if self.device else None, self._floor,
         )  # fmt: skip
         self.stats.scans += n
-        return rows
+        return rows, taken
 
     def _continue_from_last(self, scans: list[Scan]) -> list[Scan]:
         """First scans of a new driver: same power-on as the last recorded scan, or not?"""
@@ -408,7 +418,9 @@ class Acquisition:
             rows["stamp_ns"][sel] = clock.stamps(rows["time64_us"][sel])
             self._floor = clock.floor
 
-    def _scan_events(self, rows: np.ndarray, *, first_ever: bool, resumed: bool) -> None:
+    def _scan_events(
+        self, rows: np.ndarray, taken: np.ndarray, *, first_ever: bool, resumed: bool
+    ) -> None:
         st = self.stats
         for i in np.flatnonzero(rows["missed"] | rows["restarted"] | rows["overflow"]):
             r = rows[i]
@@ -425,10 +437,12 @@ class Acquisition:
                            epoch=int(r["epoch"]), counter64=c64, missed=missed)  # fmt: skip
             elif missed:
                 st.gaps += 1
-                why = "counter gap"
+                why, level = "counter gap", Level.WARNING
                 if i == 0 and resumed:
                     why = "since the last recorded scan (read but not written, or never read)"
-                self._emit("gap", Level.WARNING,
+                elif taken[i]:  # the episode's warning says it once (_watch_foreign)
+                    why, level = TAKEN_REASON, Level.INFO
+                self._emit("gap", level,
                            f"{missed} scan(s) missed before counter {c64}: {why}",
                            missed=missed, counter64=c64, epoch=int(r["epoch"]),
                            reason=why)  # fmt: skip
@@ -443,6 +457,15 @@ class Acquisition:
             self._flag_events("rail", self._rail[ch], ch, (status >> ch) & 1, rows, rate)
             self._flag_events("sensor_fault", self._fault[ch], ch, (status >> (4 + ch)) & 1,
                               rows, rate)  # fmt: skip
+
+    def _watch_foreign(self, rows: np.ndarray, taken: np.ndarray, unreported: int) -> None:
+        """Another reader of the module's FIFO: its episodes' events and counts."""
+        for level, message, details in self._foreign.observe(rows, taken, self._rate_hz,
+                                                             unreported):  # fmt: skip
+            self._emit("foreign_reader", level, message, **details)
+        ep = self._foreign.episode
+        self.stats.foreign_taken = self._foreign.total
+        self.stats.foreign_since_ns = None if ep is None else ep.since_ns
 
     def _flag_events(
         self, kind: str, flag: _Flag, ch: int, bits: np.ndarray, rows: np.ndarray, rate: int

@@ -80,7 +80,16 @@ class AcquisitionStats:
     read_errors: int = 0
     #: FIFO reads answered after the timeout, their scans kept (Modbus; docs/daq.md)
     late_answers: int = 0
+    #: of ``missed``, the scans another Modbus master took off the module's FIFO
+    foreign_taken: int = 0
+    #: UTC ns of the first scan taken in the episode under way, or None (docs/daq.md)
+    foreign_since_ns: int | None = None
     connected: bool = False
     last_error: str = ""
     #: monotonic start times of the latest reads, s (for the read-period jitter)
     read_starts: collections.deque = field(default_factory=lambda: collections.deque(maxlen=4096))
+
+    @property
+    def foreign_active(self) -> bool:
+        """Whether another Modbus master is taking scans off the FIFO (an episode is on)."""
+        return self.foreign_since_ns is not None

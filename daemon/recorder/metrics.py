@@ -89,6 +89,12 @@ class RecorderCollector(Collector):
                        acq.read_errors if acq else 0)  # fmt: skip
         yield _counter("loopcal_daq_late_answers", "FIFO reads answered after the timeout, "
                        "their scans kept", acq.late_answers if acq else 0)  # fmt: skip
+        yield _counter("loopcal_daq_foreign_reader_scans", "scans another Modbus master took off "
+                       "the module's FIFO (each also counted as missed)",
+                       acq.foreign_taken if acq else 0)  # fmt: skip
+        yield _gauge("loopcal_daq_foreign_reader_active", "1 while another Modbus master takes "
+                     "scans off the module's FIFO (a foreign_reader episode is on)",
+                     1 if acq is not None and acq.foreign_active else 0)  # fmt: skip
         events = rec.event_counts()
         reconnects = sum(n for (kind, _), n in events.items() if kind == "connect")
         yield _counter("loopcal_daq_connects", "times the DAQ answered after being unreachable "

@@ -192,8 +192,11 @@ def test_a_gap_while_the_overflow_bit_stays_latched_is_not_an_overflow():
     module.make(10)
     module.pop(4, "foreign")
     [gap, *rest] = drain(module, seq)
-    assert gap.taken and gap.missed == 4 and not gap.overflow and not any(
-        s.overflow or s.taken or s.missed for s in rest
+    assert (
+        gap.taken
+        and gap.missed == 4
+        and not gap.overflow
+        and not any(s.overflow or s.taken or s.missed for s in rest)
     )
     module.make(DEPTH + 30)  # unread for longer than the FIFO holds: an overflow again
     [gap, *rest] = drain(module, seq)
