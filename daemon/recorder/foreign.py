@@ -34,10 +34,20 @@ Notice = tuple[Level, str, dict[str, object]]
 class Episode:
     """Another reader taking scans, from its first scan taken on.
 
-    since_ns: UTC of the first scan taken (its device time mapped as the rows' stamps are);
-    counter64: that scan's counter; taken: scans taken so far, as the gaps counted them;
-    until_ns, last_counter64: the last scan taken so far; quiet: scans the module made
-    since then.
+    Attributes
+    ----------
+    since_ns : int
+        UTC of the first scan taken, ns (between the stamps of the rows around it).
+    counter64 : int
+        That scan's counter.
+    until_ns : int
+        UTC of the last scan taken so far, ns.
+    last_counter64 : int
+        That scan's counter.
+    taken : int
+        Scans taken so far, as the gaps counted them.
+    quiet : int
+        Scans the module made since the last one taken.
     """
 
     since_ns: int
@@ -51,8 +61,13 @@ class Episode:
 class ForeignReaders:
     """The episodes of another reader of the module's FIFO (module docstring).
 
-    Attributes: ``episode``, the one under way or None; ``total``, every scan taken since
-    the acquisition started (the sum of the gaps put down to another reader).
+    Attributes
+    ----------
+    episode : Episode or None
+        The episode under way.
+    total : int
+        Every scan taken since the acquisition started (the sum of the gaps put down to
+        another reader).
     """
 
     def __init__(self) -> None:
@@ -65,10 +80,22 @@ class ForeignReaders:
     ) -> list[Notice]:
         """One read's rows: what starts or ends an episode.
 
-        rows: the read's scan rows (SCAN_DTYPE, oldest first); taken: per row, whether its
-        gap was taken by another reader (Scan.taken); rate_hz: the module's scan rate;
-        unreported: scans the FIFO level shows taken that no gap has counted yet (the
-        driver's Sequencer.taken_unreported). Returns the notices in order.
+        Parameters
+        ----------
+        rows : numpy.ndarray
+            The read's scan rows (SCAN_DTYPE, oldest first), stamped.
+        taken : numpy.ndarray of bool
+            Per row, whether another reader took its gap's scans (``Scan.taken``).
+        rate_hz : int
+            The module's scan rate, Hz.
+        unreported : int
+            Scans the FIFO level shows taken that no gap has counted yet, at least (the
+            driver's ``Sequencer.taken_unreported``).
+
+        Returns
+        -------
+        list of Notice
+            What the acquisition raises as ``foreign_reader`` events, in order.
         """
         out: list[Notice] = []
         period_ns = round(1e9 / rate_hz)
