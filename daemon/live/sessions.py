@@ -62,7 +62,8 @@ MAX_OUTGOING_BYTES = 1 << 20
 MAX_ERRORS = 20
 #: s the end of a session waits for its scans to be written before it is sent unflushed
 FLUSH_WAIT_S = 15.0
-TICK_S = 0.1
+TICK_S = 0.1  # s between two looks at a running session (its end, its client)
+IDLE_S = 1.0
 
 
 class SessionObserver:
@@ -274,7 +275,9 @@ class ControlServer:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            for key, mask in self._sel.select(TICK_S):
+            # idle, nothing to watch but the sockets (a request or a wake-up ends the wait)
+            wait = TICK_S if self.session is not None or self._requested_end else IDLE_S
+            for key, mask in self._sel.select(wait):
                 try:
                     self._event(key, mask)
                 except Exception:  # noqa: BLE001 - a client never stops the server
