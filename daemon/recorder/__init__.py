@@ -4,7 +4,11 @@
   and turns its scans into rows with epochs, UTC stamps and events, handed on as
   :mod:`~loopcal.daemon.recorder.batches`; without a FIFO it polls phase-locked to the module's
   clock (:mod:`~loopcal.daemon.recorder.polling`), and it stamps device time as UTC through a map
-  that follows the module's clock error (:mod:`~loopcal.daemon.recorder.clockmap`);
+  that follows the module's clock error (:mod:`~loopcal.daemon.recorder.clockmap`); another
+  Modbus master taking scans off the module's FIFO is told as one episode
+  (:mod:`~loopcal.daemon.recorder.foreign`);
+- :mod:`~loopcal.daemon.recorder.ownership`: one owner of a module on the host (the module's
+  lock, taken before it is opened);
 - :mod:`~loopcal.daemon.recorder.engine`: the :class:`~loopcal.daemon.recorder.engine.Recorder`
   (three threads: acquisition, writer, the caller's) writing rotating recording files;
 - :mod:`~loopcal.daemon.recorder.observers`: the analysis thread that feeds every scan to observers

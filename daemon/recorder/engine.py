@@ -304,6 +304,10 @@ class Recorder:
             parts.append(f"{a.gaps} gaps ({a.missed} missed)")
             if a.restarts:
                 parts.append(f"{a.restarts} module restarts")
+            if a.foreign_since_ns is not None:
+                since = time.strftime("%H:%M:%S", time.gmtime(a.foreign_since_ns / 1e9))
+                parts.append(f"ANOTHER MODBUS MASTER is taking scans off the DAQ's FIFO since "
+                             f"{since} UTC ({a.foreign_taken} taken in all)")  # fmt: skip
             parts.append(
                 "DAQ connected"
                 if a.connected

@@ -401,5 +401,6 @@ def test_ascii_checksum_mode(emu_factory) -> None:
         advance_and_read(daq, clock, 1)
     got += advance_and_read(daq, clock, 1)
     check_against_truth(got, emu)
+    daq.close()  # the port is one program's at a time (opened exclusively)
     with pytest.raises(DAQTimeout):  # module ignores frames without a valid checksum
         open_daq(emu.url.replace("checksum=1", "checksum=0"), timeout=TIMEOUT)
