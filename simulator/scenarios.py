@@ -12,13 +12,16 @@ rotations (k, 3, 3), deterministically for its seed, whatever order it is asked 
 
 from __future__ import annotations
 
+import bisect
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from loopcal.calibration.errors import InputError
-from loopcal.calibration.kinematics import from_euler_zyz, tilt_swivel
+from loopcal.calibration.kinematics import base_points, from_euler_zyz, tilt_swivel
 from loopcal.calibration.parameters import NOMINAL
 from loopcal.calibration.simulate import NEAR_SINGULAR_MM, reachable, sample_workspace
 
@@ -335,6 +338,23 @@ class HandMoves(Scenario):
         last = self._segments[-1]
         here = last.hold
         self._moves += 1
+        target, slerp = self._target(here, last.end)
+        angle = np.degrees((here.inv() * target).magnitude())
+        duration = max(0.5, angle / self._rng.uniform(*self.speed_deg_s))
+        t0 = last.end
+        self._append(_Segment(t0, t0 + duration, slerp, target))
+        self._append(_Segment(t0 + duration, t0 + duration + self._pause(), None, target))
+
+    def _path(self, here: Rotation, target: Rotation) -> Slerp | None:
+        """The shortest rotation from ``here`` to ``target``, if it stays in the workspace."""
+        slerp = Slerp([0.0, 1.0], Rotation.concatenate([here, target]))
+        path = slerp(np.linspace(0.0, 1.0, 24)).as_matrix()
+        return slerp if reachable(path, self.params, margin_mm=NEAR_SINGULAR_MM).all() else None
+
+    def _target(self, here: Rotation, t0: float) -> tuple[Rotation, Slerp]:
+        """The next move's target from ``here`` (the move starts at ``t0``, s) and its path:
+        a random reachable orientation, every ``twist_every``-th move the most twisted of
+        :data:`TWIST_CANDIDATES`."""
         twist = self.twist_every > 0 and self._moves % self.twist_every == 0
         for _ in range(100):
             drawn = sample_workspace(TWIST_CANDIDATES if twist else 1, self._rng, self.params,
@@ -342,18 +362,13 @@ class HandMoves(Scenario):
             if twist:
                 drawn = drawn[np.argmax(np.abs(tilt_swivel(drawn)[1]))][None]
             target = Rotation.from_matrix(drawn[0])
-            slerp = Slerp([0.0, 1.0], Rotation.concatenate([here, target]))
-            path = slerp(np.linspace(0.0, 1.0, 24)).as_matrix()
-            if reachable(path, self.params, margin_mm=NEAR_SINGULAR_MM).all():
+            slerp = self._path(here, target)
+            if slerp is not None:
                 break
         else:  # pragma: no cover - the workspace is connected around home
             target = Rotation.identity()
             slerp = Slerp([0.0, 1.0], Rotation.concatenate([here, target]))
-        angle = np.degrees((here.inv() * target).magnitude())
-        duration = max(0.5, angle / self._rng.uniform(*self.speed_deg_s))
-        t0 = last.end
-        self._append(_Segment(t0, t0 + duration, slerp, target))
-        self._append(_Segment(t0 + duration, t0 + duration + self._pause(), None, target))
+        return target, slerp
 
     def segments_until(self, t: float) -> list[tuple[float, float, bool]]:
         """Every move and pause that starts by time ``t``: which stretches are still.
@@ -419,6 +434,235 @@ class HandMoves(Scenario):
             "pause_s": list(self.pause_s),
             "speed_deg_s": list(self.speed_deg_s),
         }
+
+
+#: what :meth:`GuidedHand.steer` understands: the ``kind`` of the live guidance's advice
+#: (``"advice"`` in ``loopcal record --until-enough --json``)
+ADVICE_KINDS = ("tilt", "twist", "anywhere", "enough", "other")
+
+
+def _instruction(advice: Mapping[str, Any] | None) -> tuple | None:
+    """What an advice asks for, whatever it says of the progress so far (``reached_deg``):
+    a technician notices a new instruction, not a number that moved."""
+    if advice is None:
+        return None
+    return advice["kind"], advice.get("sensor"), advice.get("way")
+
+
+class GuidedHand(HandMoves):
+    """A technician who does what the live guidance shows, as a person does it.
+
+    The plate moves and pauses as with :class:`HandMoves` (minimum-jerk moves, pauses of
+    ``pause_s``, speeds of ``speed_deg_s``, every orientation reachable), but each move goes
+    where the advice last given before it starts asks (:meth:`steer`, once a second in a
+    closed loop; the advice is the guidance's structured advice as JSON):
+
+    - ``"tilt"``: toward ``azimuth_deg`` (else the side of ``sensor``), the plate's axis
+      tilted to ``aim_deg`` plus up to ``beyond_deg`` (uniform: "aim for 25 deg or more"),
+      with a natural swivel of standard deviation ``side_deg``;
+    - ``"twist"``: about the plate's own axis the ``way`` asked (clockwise seen from above
+      is a negative swivel) to ``aim_deg`` plus up to ``beyond_deg``, tilted up to
+      ``side_deg`` in any direction;
+    - ``"anywhere"``, ``"other"``, or no advice yet: as :class:`HandMoves` does, tilting and
+      twisting (the most twisted of :data:`TWIST_CANDIDATES` every ``twist_every``-th move);
+    - ``"enough"``: the plate held where it is.
+
+    A person's imprecision: the angle reached is off by ``aim_sd_deg`` (standard deviation)
+    and the direction by ``azimuth_sd_deg``; after the advice changes, each move has the
+    chance ``late`` of still following the one before (a move or two late); each tilt or
+    twist has the chance ``wrong`` of going the wrong way (the opposite side, the other
+    twist). A target beyond the mechanism's reach is approached as far as it goes (the tilt
+    and twist scaled down in steps of 5 % until the orientation and the way there are
+    reachable).
+
+    Parameters
+    ----------
+    seed : int, default 0
+        Seed of the pauses, speeds, targets and imprecision.
+    pause_s : tuple of 2 float, default (1.0, 3.0)
+        (min, max) of each pause, s.
+    speed_deg_s : tuple of 2 float, default (15.0, 40.0)
+        (min, max) of each move's average angular speed, degrees per second.
+    params : ndarray of float, shape (20,), default NOMINAL
+        The mechanism whose workspace the moves stay in (mm, mm/V).
+    twist_every : int, default 2
+        For ``"anywhere"`` moves: every so many moves the most twisted of eight (0: never).
+    aim_sd_deg : float, default 5.0
+        Standard deviation of the tilt or twist reached about the one aimed for, degrees.
+    azimuth_sd_deg : float, default 10.0
+        Standard deviation of the direction of a tilt about the one asked for, degrees.
+    beyond_deg : float, default 10.0
+        How far past ``aim_deg`` a technician goes at most (uniform from 0), degrees.
+    side_deg : float, default 10.0
+        Tilting: the standard deviation of the unintended swivel; twisting: the largest
+        unintended tilt; degrees.
+    late : float, default 0.25
+        Chance, per move, of still following the advice before it changed, 0..1.
+    wrong : float, default 0.15
+        Chance, per tilt or twist, of going the wrong way, 0..1.
+
+    Attributes
+    ----------
+    aim_sd_deg, azimuth_sd_deg, beyond_deg, side_deg, late, wrong : float
+        As given (and those of :class:`HandMoves`).
+
+    Raises
+    ------
+    InputError
+        If a chance is outside 0..1, an angle negative, or ``twist_every`` negative.
+
+    Notes
+    -----
+    The motion is a function of the seed and of the advice given and when: a move starting
+    at time s follows the latest advice given for a time at or before s. Advice can only be
+    given for a time after every move already drawn has started (:meth:`steer`), so the
+    same seed and advice give the same motion whatever order the times are asked in.
+    """
+
+    name = "guided"
+
+    def __init__(
+        self,
+        seed: int = 0,
+        *,
+        pause_s: tuple[float, float] = (1.0, 3.0),
+        speed_deg_s: tuple[float, float] = (15.0, 40.0),
+        params: np.ndarray = NOMINAL,
+        twist_every: int = 2,
+        aim_sd_deg: float = 5.0,
+        azimuth_sd_deg: float = 10.0,
+        beyond_deg: float = 10.0,
+        side_deg: float = 10.0,
+        late: float = 0.25,
+        wrong: float = 0.15,
+    ) -> None:
+        for name, chance in (("late", late), ("wrong", wrong)):
+            if not 0.0 <= chance <= 1.0:
+                raise InputError(f"{name} must be a chance from 0 to 1, got {chance}")
+        angles = {"aim_sd_deg": aim_sd_deg, "azimuth_sd_deg": azimuth_sd_deg,
+                  "beyond_deg": beyond_deg, "side_deg": side_deg}  # fmt: skip
+        for name, deg in angles.items():
+            if not deg >= 0.0:
+                raise InputError(f"{name} must be 0 or more degrees, got {deg}")
+        self.aim_sd_deg, self.azimuth_sd_deg = float(aim_sd_deg), float(azimuth_sd_deg)
+        self.beyond_deg, self.side_deg = float(beyond_deg), float(side_deg)
+        self.late, self.wrong = float(late), float(wrong)
+        self._steers: list[tuple[float, dict[str, Any] | None]] = []
+        super().__init__(seed, pause_s=pause_s, speed_deg_s=speed_deg_s, params=params,
+                         twist_every=twist_every)  # fmt: skip
+
+    def _restart(self) -> None:
+        super()._restart()
+        self._followed: dict[str, Any] | None = None  # the advice the last move followed
+        self._drawn_until = -np.inf  # the start of the last move drawn, s
+
+    def steer(self, advice: Mapping[str, Any] | None, at_s: float) -> None:
+        """Show the technician the advice from time ``at_s`` on.
+
+        Parameters
+        ----------
+        advice : mapping or None
+            The live guidance's structured advice as JSON (``"advice"`` of an update of
+            ``loopcal record --until-enough --json``): ``"kind"`` one of
+            :data:`ADVICE_KINDS`; a ``"tilt"`` with ``"aim_deg"`` and ``"azimuth_deg"`` or
+            ``"sensor"`` (1..4), a ``"twist"`` with ``"aim_deg"`` and ``"way"``
+            (``"clockwise"`` or ``"counter-clockwise"`` seen from above). None: no advice.
+        at_s : float
+            Source time from which it is shown, s: the moves starting then or later follow
+            it (until the next advice).
+
+        Raises
+        ------
+        ValueError
+            If ``at_s`` is not after the start of every move already drawn (the plate's
+            motion up to then is decided) or before the last advice's time, or the advice
+            lacks what its kind needs.
+        """
+        at_s = float(at_s)
+        decided = max(self._drawn_until, self._steers[-1][0] if self._steers else -np.inf)
+        if at_s <= self._drawn_until or at_s < decided:
+            raise ValueError(f"advice for {at_s:g} s comes too late: the motion up to "
+                             f"{decided:g} s is decided")  # fmt: skip
+        self._steers.append((at_s, None if advice is None else self._checked(advice)))
+
+    def _checked(self, advice: Mapping[str, Any]) -> dict[str, Any]:
+        """A copy of ``advice`` with the direction of a tilt (``azimuth_deg``), or ValueError
+        if it lacks what its kind needs."""
+        out = dict(advice)
+        kind = out.get("kind")
+        need = {"tilt": ("aim_deg",), "twist": ("aim_deg", "way")}.get(kind, ())
+        if kind not in ADVICE_KINDS or any(out.get(k) is None for k in need):
+            raise ValueError(f"advice {out!r}: a kind of {', '.join(ADVICE_KINDS)}, with "
+                             "aim_deg for a tilt or twist, and its way for a twist")  # fmt: skip
+        if kind == "twist" and out["way"] not in ("clockwise", "counter-clockwise"):
+            raise ValueError(f"advice {out!r}: the way clockwise or counter-clockwise")
+        if kind == "tilt" and out.get("azimuth_deg") is None:
+            if out.get("sensor") not in (1, 2, 3, 4):
+                raise ValueError(f"advice {out!r}: a tilt needs azimuth_deg or sensor 1..4")
+            A = base_points(self.params)[out["sensor"] - 1]
+            out["azimuth_deg"] = float(np.degrees(np.arctan2(A[1], A[0])))
+        return out
+
+    def _advice(self, t0: float) -> dict[str, Any] | None:
+        """The advice a move starting at ``t0`` follows: the latest shown by then, or (a
+        move late, by chance) the one the last move followed."""
+        i = bisect.bisect_right([s for s, _ in self._steers], t0) - 1
+        now = self._steers[i][1] if i >= 0 else None
+        before = self._followed
+        if before is not None and _instruction(now) != _instruction(before):
+            if self._rng.random() < self.late:
+                return before
+        self._followed = now
+        return now
+
+    def _target(self, here: Rotation, t0: float) -> tuple[Rotation, Slerp]:
+        self._drawn_until = t0
+        advice = self._advice(t0)
+        kind = advice["kind"] if advice is not None else None
+        if kind == "enough":
+            return here, Slerp([0.0, 1.0], Rotation.concatenate([here, here]))
+        if advice is None or kind not in ("tilt", "twist"):
+            return super()._target(here, t0)
+        rng = self._rng
+        wrong = rng.random() < self.wrong
+        reach = max(0.0, advice["aim_deg"] + rng.uniform(0.0, self.beyond_deg)
+                    + rng.normal(0.0, self.aim_sd_deg))  # fmt: skip
+        if kind == "tilt":
+            azimuth = advice["azimuth_deg"] + rng.normal(0.0, self.azimuth_sd_deg)
+            azimuth += 180.0 if wrong else 0.0
+            tilt, swivel = reach, rng.normal(0.0, self.side_deg)
+        else:
+            way = -1.0 if advice["way"] == "clockwise" else 1.0
+            azimuth, tilt = rng.uniform(-180.0, 180.0), rng.uniform(0.0, self.side_deg)
+            swivel = -way * reach if wrong else way * reach
+        return self._toward(here, azimuth, tilt, swivel)
+
+    def _toward(self, here: Rotation, azimuth: float, tilt: float, swivel: float):
+        """As far toward (azimuth, tilt, swivel), degrees, as the mechanism goes from here."""
+        scale = np.linspace(1.0, 0.0, 21)
+        a = np.radians(azimuth)
+        R = from_euler_zyz(np.column_stack([np.full(scale.size, a), np.radians(tilt) * scale,
+                                            np.radians(swivel) * scale - a]))  # fmt: skip
+        for Rk in R[reachable(R, self.params, margin_mm=1.5 * NEAR_SINGULAR_MM)]:
+            target = Rotation.from_matrix(Rk)
+            slerp = self._path(here, target)
+            if slerp is not None:
+                return target, slerp
+        target = Rotation.identity()  # home: the workspace is connected around it
+        return target, Slerp([0.0, 1.0], Rotation.concatenate([here, target]))
+
+    def describe(self) -> dict:
+        """``{"name": "guided", "seed", "pause_s", "speed_deg_s", ...}``.
+
+        Returns
+        -------
+        dict
+            The name and the settings (s, degrees per second, degrees, chances).
+        """
+        return {**super().describe(), "twist_every": self.twist_every,
+                "aim_sd_deg": self.aim_sd_deg, "azimuth_sd_deg": self.azimuth_sd_deg,
+                "beyond_deg": self.beyond_deg, "side_deg": self.side_deg,
+                "late": self.late, "wrong": self.wrong}  # fmt: skip
 
 
 #: the scenarios by name, as ``loopcal simulate --scenario NAME`` offers them
