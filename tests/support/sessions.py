@@ -13,7 +13,7 @@ from loopcal.calibration.parameters import PAPER7
 from loopcal.calibration.simulate import perturbed_truth
 from loopcal.daemon import recording as rec
 from loopcal.simulator.offline import mechanism_scans
-from loopcal.simulator.scenarios import HandMoves, Scenario
+from loopcal.simulator.scenarios import GuidedHand, HandMoves, Scenario
 
 from .processes import Proc, listening_url, record
 from .recordings import write_directory
@@ -176,9 +176,79 @@ def hand_rows(n: int, *, seed: int = 1, first: int = 0, read_every: int = 4,
     motion = HandMoves(seed, params=truth, pause_s=PAUSE_S, twist_every=twist_every)
     time_us, codes = mechanism_scans(motion, truth, n, rate_hz=20, noise_volts=0.04, seed=seed)
     rows = rows_from(time_us + first * 50_000, codes, counter=np.arange(first, first + n))
+    return _received(rows, np.random.default_rng([seed, 3]), read_every)
+
+
+def _received(rows: np.ndarray, rng: np.random.Generator, read_every: int) -> np.ndarray:
+    """``rows`` with the host's receive times: one per read of ``read_every`` scans, 1 to 3
+    ms after the last one's stamp (``rng``); a last partial read 2 ms after each stamp."""
+    n = len(rows)
     last = rows["stamp_ns"][read_every - 1 :: read_every]
-    latency = np.random.default_rng([seed, 3]).integers(1_000_000, 3_000_000, len(last))
+    latency = rng.integers(1_000_000, 3_000_000, len(last))
     host = np.repeat(last + latency, read_every)[:n]
     rows["host_ns"][: len(host)] = host
     rows["host_ns"][len(host) :] = rows["stamp_ns"][len(host) :] + 2_000_000
     return rows
+
+
+class _Later(Scenario):
+    """``scenario`` from ``offset_s`` on: its time 0 is the other's ``offset_s``."""
+
+    def __init__(self, scenario: Scenario, offset_s: float) -> None:
+        self.scenario, self.offset_s = scenario, offset_s
+
+    def rotation(self, t: np.ndarray) -> np.ndarray:
+        return self.scenario.rotation(np.asarray(t, dtype=float) + self.offset_s)
+
+
+class GuidedSession:
+    """A technician following the live guidance, one second at a time: the closed loop,
+    offline. Its scans are the offline emulator's (40 mV of noise, 20 Hz, as
+    :func:`hand_rows`; each second's noise from ``[seed, 5, second]``) of a
+    :class:`~loopcal.simulator.scenarios.GuidedHand` on the mechanism of ``seed``
+    (:func:`truth_for`), steered between seconds by what the guidance said of the scans so
+    far (:meth:`steer`). technician: GuidedHand's imprecision (``late``, ``wrong``, ...)."""
+
+    RATE = 20
+
+    def __init__(self, seed: int, *, read_every: int = 4, **technician) -> None:
+        assert self.RATE % read_every == 0, "a second holds whole reads"
+        self.seed, self.read_every = seed, read_every
+        self.truth = truth_for(seed)
+        self.motion = GuidedHand(seed, params=self.truth, pause_s=PAUSE_S, **technician)
+        self._chunks: list[np.ndarray] = []
+
+    @property
+    def seconds(self) -> int:
+        """The seconds recorded so far."""
+        return len(self._chunks)
+
+    @property
+    def rows(self) -> np.ndarray:
+        """Every scan so far, as the recorder stamps them."""
+        return np.concatenate(self._chunks) if self._chunks else rows_from([], np.zeros((0, 4)))
+
+    def advance(self) -> np.ndarray:
+        """Record one more second; returns its scans."""
+        k, n = self.seconds, self.RATE
+        later = _Later(self.motion, float(k))
+        time_us, codes = mechanism_scans(later, self.truth, n, rate_hz=n, noise_volts=0.04,
+                                         seed=[self.seed, 5, k])  # fmt: skip
+        rows = rows_from(time_us + k * 1_000_000, codes, counter=np.arange(k * n, (k + 1) * n))
+        self._chunks.append(_received(rows, np.random.default_rng([self.seed, 3, k]),
+                                      self.read_every))  # fmt: skip
+        return self._chunks[-1]
+
+    def follow(self, guidance, seconds: int) -> None:
+        """The closed loop: record second by second, each second's scans fed to
+        ``guidance`` (a :class:`loopcal.daemon.live.guidance.Guidance` judging at every
+        feed, ``period_s=0``) and its advice (``"advice"`` of its JSON, as a client reads it)
+        shown to the technician, until it is enough or ``seconds`` are recorded."""
+        while self.seconds < seconds and not guidance.done:
+            guidance.feed(self.advance())
+            self.steer(guidance.last.as_json()["advice"])
+
+    def steer(self, advice) -> None:
+        """Show the technician ``advice`` (the guidance's ``"advice"`` JSON, or None) now:
+        the moves that start from here on follow it."""
+        self.motion.steer(advice, float(self.seconds))

@@ -14,7 +14,7 @@ from loopcal.daemon.live.guidance import Guidance, GuidanceUpdate
 from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.scenarios import Static
 from tests.support.rows import rows_from
-from tests.support.sessions import hand_rows, truth_for
+from tests.support.sessions import GuidedSession, hand_rows, truth_for
 
 
 def _session(rows: np.ndarray, target_mm: float) -> list[GuidanceUpdate]:
@@ -71,3 +71,19 @@ def test_a_plate_left_still_is_told_to_move_anywhere():
         "reached_deg": None,
         "way": None,
     }
+
+
+def test_a_technician_doing_what_it_says_covers_what_it_asks_for_and_is_done():
+    """The loop closed offline: the advice of each second steers the guided technician's
+    next moves (tests.support.sessions.GuidedSession), as bench_scans --part enough runs it."""
+    session = GuidedSession(101)
+    updates: list[GuidanceUpdate] = []
+    g = Guidance(nominal_config(), PAPER7, target_mm=0.1, on_update=updates.append, period_s=0)
+    session.follow(g, 90)
+    last = updates[-1]
+    assert last.enough and last.advice.kind == "enough" and session.seconds <= 60
+    kinds = [u.advice.kind for u in updates]
+    # every side, then both twists, then anywhere: asked for in that order, and all reached
+    assert kinds.index("tilt") < kinds.index("twist") < kinds.index("anywhere")
+    assert "tilt" not in kinds[kinds.index("twist") :]
+    assert min(last.reach_deg) >= 25.0 and min(last.twist_deg) >= 30.0
