@@ -36,7 +36,8 @@ autoclass_content = "class"
 # public function and class of each is in the reference with a Parameters, Returns or
 # Attributes section. Add a package here (one line) once its docstrings are written.
 NUMPY_STYLE = ("loopcal.calibration", "loopcal.drivers", "loopcal.simulator",
-               "loopcal.daemon.recording.reader", "loopcal.daemon.worker.gates")
+               "loopcal.daemon.recording.reader", "loopcal.daemon.worker.gates",
+               "loopcal.daemon.worker.coverage")
 
 # In the modules not listed yet (the rest of daemon/), a docstring with no numpy section
 # is shown as written, in a literal block, instead of being parsed as reStructuredText:
