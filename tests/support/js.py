@@ -52,3 +52,16 @@ def read_ts(node_reader: list[str], path: Path) -> dict:
     proc = run_node(node_reader, path)
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout)
+
+
+def watch_live(port: int, seconds: float, clients: int = 1, stalled: int = 0) -> dict:
+    """What Foxglove's WebSocket protocol client (@foxglove/ws-protocol under node) saw of a
+    live view on ``port`` in ``seconds``: its channels, and per topic what it received and
+    decoded (js/live_client.mjs)."""
+    proc = subprocess.run(
+        [npm_installed(), str(JS / "live_client.mjs"), f"ws://127.0.0.1:{port}", str(seconds),
+         str(clients), str(stalled)],
+        capture_output=True, text=True, timeout=seconds + 60,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout)

@@ -31,7 +31,8 @@ from loopcal.daemon.recorder.engine import Recorder
 from loopcal.daemon.recorder.settings import RecorderSettings
 from loopcal.daemon.recording import read_recordings
 from tests.support.emulator import hand_emulator
-from tests.support.processes import Proc, fresh_config, listening_url, loopcal
+from tests.support.js import watch_live
+from tests.support.processes import Proc, free_port, fresh_config, listening_url, loopcal
 from tests.support.sessions import PAUSE_S, truth_for
 
 pytestmark = pytest.mark.timeout(180)
@@ -381,3 +382,31 @@ def test_session_refuses_bad_input_before_asking_the_daemon(tmp_path):
         assert proc.returncode == 2, (argv, proc.stderr)
         assert proc.stderr.startswith("loopcal session: error:") or "usage:" in proc.stderr
         assert re.search(why, proc.stderr), (argv, proc.stderr)
+
+
+def test_the_live_view_shows_a_sessions_guidance(tmp_path, runtime_directory):
+    """With [live] on, a technician's session is watched in Foxglove as record's is: its
+    guidance on /loopcal/guidance, decoded by the protocol's own client."""
+    port = free_port()
+    config = fresh_config(tmp_path / "controller.toml")
+    with hand_emulator(speed=4.0) as emu:
+        cfg = tmp_path / "daemon.toml"
+        cfg.write_text(f'[daq]\nurl = "{emu.url}"\nread_period = 0.05\n[recording]\n'
+                       f'directory = "{tmp_path / "rec"}"\n[controller]\nconfig = "{config}"\n'
+                       f'[live]\nlisten = "127.0.0.1:{port}"\n')  # fmt: skip
+        daemon = Proc(["daemon", "--config", str(cfg)])
+        try:
+            daemon.wait_for("recording to ", 30)
+            with ControlClient(runtime_directory / "control.sock") as c:
+                c.send("start", note="watched")
+                expect(c, "started")
+                seen = watch_live(port, 5.0)
+                c.send("stop")
+                ended = expect(c, "ended")["session"]
+            rc, _ = daemon.stop()
+        finally:
+            daemon.kill()
+    assert rc == 0 and ended["reason"] == "stopped"
+    guidance = seen["topics"]["/loopcal/guidance"]
+    assert guidance["received"] >= 2 and guidance["decoded"] == guidance["received"]
+    assert guidance["last"]["scans"] > 0 and guidance["last"]["instruction"]

@@ -6,7 +6,6 @@ once, cost the recording no scan."""
 from __future__ import annotations
 
 import json
-import subprocess
 
 import numpy as np
 import pytest
@@ -22,7 +21,7 @@ from loopcal.daemon.recording.views import (
 )
 from tests.support import ROOT
 from tests.support.emulator import hand_emulator
-from tests.support.js import JS, npm_installed
+from tests.support.js import watch_live as watch
 from tests.support.layouts import PATH, layout_paths, value_at
 from tests.support.processes import free_port, record, scrape, value
 from tests.support.rows import make_rows
@@ -35,17 +34,6 @@ TOPICS = {
     "/loopcal/events": "json", "/loopcal/log": "json", "/loopcal/health": "json",
     "/loopcal/guidance": "json", "/loopcal/guidance/tilt": "json",
 }  # fmt: skip
-
-
-def watch(port: int, seconds: float, clients: int = 1, stalled: int = 0) -> dict:
-    """What the protocol's client saw of the live view on ``port`` in ``seconds``."""
-    proc = subprocess.run(
-        [npm_installed(), str(JS / "live_client.mjs"), f"ws://127.0.0.1:{port}", str(seconds),
-         str(clients), str(stalled)],
-        capture_output=True, text=True, timeout=seconds + 60,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr
-    return json.loads(proc.stdout)
 
 
 def test_a_foxglove_client_sees_every_channel_decoded_at_the_scan_rate(tmp_path):
