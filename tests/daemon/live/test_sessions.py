@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import socket
 import threading
 import time
@@ -410,3 +411,24 @@ def test_the_live_view_shows_a_sessions_guidance(tmp_path, runtime_directory):
     guidance = seen["topics"]["/loopcal/guidance"]
     assert guidance["received"] >= 2 and guidance["decoded"] == guidance["received"]
     assert guidance["last"]["scans"] > 0 and guidance["last"]["instruction"]
+
+
+def test_ctrl_c_ends_the_session_and_calibrates_what_it_recorded(daemon, tmp_path):
+    daemon.wait_scans(20)
+    s = daemon.settings
+    cfg = tmp_path / "daemon.toml"
+    cfg.write_text(f'[daq]\nurl = "{s.daq_url}"\n[recording]\ndirectory = "{s.directory}"\n'
+                   f'[controller]\nconfig = "{s.controller_config}"\n[control]\n'
+                   f'socket = "{s.control_socket}"\n')  # fmt: skip
+    session = Proc(["session", "--config", str(cfg), "--note", "interrupted"])
+    session.wait_for(r"^loopcal guidance ", 60)
+    session.signal(signal.SIGINT)
+    rc = session.wait(120)
+    assert rc in (0, 1), session.text  # the gates decide on what was recorded
+    assert "stopping the session" in session.text
+    assert re.search(r"session \S+ ended: stopped; [\d,]+ scans", session.text), session.text
+    assert "Acceptance gates:" in session.text and "Traceback" not in session.text
+    out = daemon.stop()
+    [end] = out.events_of("session_end")
+    assert end.details["reason"] == "stopped"
+    no_scan_lost(out)
