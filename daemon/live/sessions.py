@@ -507,6 +507,7 @@ class ControlServer:
     # ------------------------------------------------------------------ the session's end
 
     def _tick(self) -> None:
+        self._reap_idle()
         s = self.session
         if s is None:
             return
@@ -520,6 +521,16 @@ class ControlServer:
                                            f"{self.client_timeout:g} s")  # fmt: skip
         if s.reason:
             self._finish()
+
+    def _reap_idle(self) -> None:
+        """Close connections that neither own nor follow a session and have said nothing
+        for the client timeout: idle ones would hold the places of those that come to work."""
+        s = self.session
+        busy = () if s is None else (s.owner, *s.followers)
+        limit = time.monotonic() - self.client_timeout
+        for conn in list(self._conns.values()):
+            if conn.heard < limit and conn not in busy:
+                self._drop(conn)
 
     def _end(self, reason: str, why: str = "") -> None:
         """End the session: no more scans for it, its window fixed, ``session_end``."""

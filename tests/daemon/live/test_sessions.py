@@ -248,6 +248,8 @@ def test_a_vanished_client_abandons_its_session(tmp_path, runtime_directory):
     d = Daemon(tmp_path, runtime_directory, client_timeout=1.5)
     try:
         d.wait_scans(20)
+        idle = socket.socket(socket.AF_UNIX)  # connected, and never a word
+        idle.connect(str(d.settings.control_socket))
         c = d.client()
         c.send("start", note="closed laptop")
         expect(c, "started")
@@ -256,6 +258,9 @@ def test_a_vanished_client_abandons_its_session(tmp_path, runtime_directory):
         while d.control.session is not None and time.monotonic() - t0 < 30:
             time.sleep(0.05)
         assert d.control.session is None
+        idle.settimeout(10)
+        assert idle.recv(1) == b""  # closed for its silence: its place is free again
+        idle.close()
         c.close()
         c2 = d.client()
         c2.send("start", note="dropped ssh")
