@@ -82,10 +82,16 @@ class Proc:
         self.proc.send_signal(sig)
 
     def stop(self, timeout: float = 10.0) -> tuple[int, float]:
-        """SIGTERM; returns (exit status, seconds it took to exit)."""
+        """SIGTERM; returns (exit status, seconds it took to exit). Not gone within
+        ``timeout``: an AssertionError with its log (it is killed)."""
         t0 = time.monotonic()
         self.proc.send_signal(signal.SIGTERM)
-        rc = self.proc.wait(timeout)
+        try:
+            rc = self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.kill()
+            raise AssertionError(f"still running {timeout:g} s after SIGTERM:\n{self.text}") \
+                from None  # fmt: skip
         took = time.monotonic() - t0
         self._reader.join(5)
         return rc, took
