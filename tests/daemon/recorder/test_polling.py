@@ -96,8 +96,9 @@ def test_the_recorder_polls_once_per_scan_whatever_the_modules_clock(tmp_path):
         rows = read_recordings(tmp_path / str(ppm)).scans
         assert len(rows) > 120, (ppm, len(rows))
         # a poll the host's scheduler delays past the next scan misses it (declared in the
-        # next scan's missed); a schedule that drifts would miss them by the dozen
-        assert rows["missed"][1:].sum() <= 1 + len(rows) // 100, (ppm, rec.text)
+        # next scan's missed): none or one on a quiet machine, 4 of 179 on a busy 2-core CI
+        # runner; a schedule that drifts would miss them by the dozens (2 ms a second)
+        assert rows["missed"][1:].sum() <= 2 + len(rows) // 25, (ppm, rec.text)
         answers = emu.wire.answers_sent - 3  # less the identity and rate at connect
         made = int(rows["counter64"][-1] - rows["counter64"][0]) + 1
         assert answers <= 1.03 * made + 25, (ppm, answers, made)

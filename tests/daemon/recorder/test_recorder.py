@@ -45,10 +45,14 @@ def test_a_recording_holds_exactly_the_modules_scans(tmp_path, transport):
         assert rows["counter64"][0] == 0
     assert len(rows) >= 4 * rate - 2 and len(rows) <= made
     assert np.all(np.diff(rows["stamp_ns"]) > 0)
-    # stamps follow the module's clock: one period apart, within a millisecond or so
+    # stamps follow the module's clock: one period apart, within a millisecond or so; the
+    # few a busy machine answers late while the clock map settles may be off by more (11 ms
+    # seen on a 2-core CI runner), never by a period
     dt = np.diff(rows["stamp_ns"]) / 1e6
     period = 1000 / rate
-    assert np.median(dt) == pytest.approx(period, abs=0.01) and np.abs(dt - period).max() < 5
+    off = np.abs(dt - period)
+    assert np.median(dt) == pytest.approx(period, abs=0.01) and np.percentile(off, 90) < 1
+    assert off.max() < period
     meta = out.files[0].metadata
     assert meta["device"]["model"] == "LDQ412" and meta["device"]["url"].startswith(transport)
     kinds = [e.kind for e in out.events]
