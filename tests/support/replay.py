@@ -95,11 +95,14 @@ def assert_same_scans(original: np.ndarray, again: np.ndarray, *, polled: bool =
         absent = int((~present).sum())
         assert absent <= len(original) // 4, f"{absent} of {len(original)} scans missed"
         idx = np.flatnonzero(present)
-        before = np.diff(np.r_[-1, idx]) - 1  # scans missed just before each one recorded
+        # a scan recorded counts the original scans absent just before it, and what each
+        # of those counted itself (a gap the original had there)
+        absent_count = np.cumsum(np.where(present, 0, original["missed"].astype(np.int64) + 1))
+        before = np.diff(np.r_[0, absent_count[idx]])
         same_epoch = np.r_[False, original["epoch"][idx][1:] == original["epoch"][idx][:-1]]
         sub = original[idx].copy()
         sub["missed"] += np.where(same_epoch, before, 0).astype(sub["missed"].dtype)
-        if len(idx) and before[0]:  # missed before the first scan recorded: not its count
+        if len(idx) and idx[0]:  # missed before the first scan recorded: not its count
             sub["missed"][0] = again["missed"][0]
         original = sub
     key = [(int(r["counter64"]), int(r["time64_us"])) for r in again]

@@ -100,6 +100,13 @@ def test_a_polled_recording_may_miss_a_scan_only_if_it_says_so():
     silent = np.delete(rows, 10)
     with pytest.raises(AssertionError):
         assert_same_scans(rows, silent, polled=True)
+    gap = int(np.flatnonzero(rows["missed"][1:80])[0]) + 1  # a scan after the original's gap
+    after_gap = np.delete(rows, gap).copy()
+    after_gap["missed"][gap] += 1 + rows["missed"][gap]  # the next counts both
+    assert_same_scans(rows, after_gap, polled=True)
+    after_gap["missed"][gap] -= rows["missed"][gap]
+    with pytest.raises(AssertionError):
+        assert_same_scans(rows, after_gap, polled=True)
     with pytest.raises(AssertionError):  # not polled: exact
         assert_same_scans(rows, kept)
     changed = kept.copy()
