@@ -14,6 +14,9 @@ talks to the module needs nothing else::
     @pytest.mark.parametrize("ldq412", ["modbus-tcp", "modbus-rtu", "ascii"], indirect=True)
     def test_every_transport(ldq412): ...
 
+    @pytest.mark.ldq412(scenario="task", task_waypoints=4, task_move_s=1.5, task_dwell_s=0)
+    def test_in_operation(ldq412): ...  # the controller's task loop, for ever
+
     def test_two_modules(ldq412_factory):
         a, b = ldq412_factory(seed=1), ldq412_factory(transport="ascii", seed=2)
 
@@ -44,8 +47,9 @@ if TYPE_CHECKING:
 _TRANSPORTS = ("modbus-tcp", "modbus-rtu", "ascii")
 _MARKER = (
     "ldq412(**options): options of the emulated LDQ-412 the ldq412 fixtures serve "
-    "(transport, scan_rate_hz, speed, clock, seed, scenario, pause_s, noise_volts, "
-    "offset_error_mm, truth, open_points, unit, ascii_addr, ascii_checksum)"
+    "(transport, scan_rate_hz, speed, clock, seed, scenario, pause_s, task_waypoints, "
+    "task_move_s, task_dwell_s, noise_volts, offset_error_mm, truth, open_points, unit, "
+    "ascii_addr, ascii_checksum)"
 )
 
 
@@ -177,8 +181,7 @@ def ldq412(request: pytest.FixtureRequest) -> Iterator[EmulatedLDQ412]:
         options.update(param)
     elif param is not None:
         raise pytest.UsageError(
-            f"an indirect ldq412 parameter is a transport name or a dict of options, "
-            f"got {param!r}"
+            f"an indirect ldq412 parameter is a transport name or a dict of options, got {param!r}"
         )
     module = _make(options)
     try:

@@ -329,6 +329,52 @@ def truth_parameters(args: argparse.Namespace) -> np.ndarray:
     return true_parameters(args.seed, args.offset_error, overrides)
 
 
+#: ``loopcal simulate``'s task loop options: (option, argument name, TaskLoop's keyword)
+TASK_OPTIONS = (
+    ("--task-waypoints", "task_waypoints", "waypoints"),
+    ("--task-move", "task_move", "move_s"),
+    ("--task-dwell", "task_dwell", "dwell_s"),
+)
+
+
+def task_settings(args: argparse.Namespace) -> dict[str, float]:
+    """The task loop's settings ``loopcal simulate`` was given, checked.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``loopcal simulate``'s arguments: ``scenario``, and ``task_waypoints``,
+        ``task_move``, ``task_dwell`` (each None where not given).
+
+    Returns
+    -------
+    dict of str to float
+        The given ones as :class:`~loopcal.simulator.task.TaskLoop`'s keywords
+        (``waypoints``, ``move_s`` in s, ``dwell_s`` in s); those not given are left to
+        its defaults.
+
+    Raises
+    ------
+    ValueError
+        If one is given with another scenario than ``task`` (naming the options given
+        and the scenario), ``--task-waypoints`` is under 2, ``--task-move`` is not a
+        finite number of seconds above 0, or ``--task-dwell`` not one of 0 or more.
+    """
+    given = {opt: getattr(args, dest) for opt, dest, _ in TASK_OPTIONS
+             if getattr(args, dest, None) is not None}  # fmt: skip
+    if given and args.scenario != "task":
+        raise ValueError(f"{', '.join(given)} only with --scenario task, not --scenario "
+                         f"{args.scenario}")  # fmt: skip
+    waypoints, move, dwell = (given.get(opt) for opt, _, _ in TASK_OPTIONS)
+    if waypoints is not None and waypoints < 2:
+        raise ValueError(f"--task-waypoints must be 2 or more, got {waypoints}")
+    if move is not None and not (np.isfinite(move) and move > 0):
+        raise ValueError(f"--task-move must be a number of seconds above 0, got {move:g}")
+    if dwell is not None and not (np.isfinite(dwell) and dwell >= 0):
+        raise ValueError(f"--task-dwell must be 0 or more seconds, got {dwell:g}")
+    return {key: given[opt] for opt, _, key in TASK_OPTIONS if opt in given}
+
+
 def _pause(text: str) -> tuple[float, float]:
     try:
         lo, hi = (float(v) for v in text.split(","))
@@ -418,8 +464,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """Add ``loopcal simulate``'s options to its parser.
 
     The transport and listening address, the module's identity and power-on settings, the
-    speed, the simulated mechanism (seed, scenario, noise, pauses, true parameters), the
-    fault schedule, the duration, the truth file, and the open points
+    speed, the simulated mechanism (seed, scenario, noise, pauses, the task loop, true
+    parameters), the fault schedule, the duration, the truth file, and the open points
     (:func:`~loopcal.simulator.open_points.add_arguments`).
 
     Parameters
@@ -450,7 +496,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "(default 0)")  # fmt: skip
     p.add_argument("--scenario", choices=(*SCENARIOS, "replay"), default="hand",
                    help="how the plate moves: hand (a technician, pausing), static, sweep, "
-                        "or replay (a --truth-out file; default hand)")  # fmt: skip
+                        "task (the controller's task loop, for ever), or replay (a "
+                        "--truth-out file; default hand)")  # fmt: skip
     p.add_argument(
         "--replay",
         type=Path,
@@ -473,6 +520,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="with --scenario hand: every N-th move twists the plate about its own axis, as "
         "the live guidance asks (default 0: never)",
+    )
+    p.add_argument(
+        "--task-waypoints",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with --scenario task: the loop's waypoints, fixed orientations drawn from the "
+        "seed, 2 or more (default 5)",
+    )
+    p.add_argument(
+        "--task-move",
+        type=float,
+        default=None,
+        metavar="S",
+        help="with --scenario task: seconds of each move between two waypoints (default 2)",
+    )
+    p.add_argument(
+        "--task-dwell",
+        type=float,
+        default=None,
+        metavar="S",
+        help="with --scenario task: seconds the plate stays at each waypoint, 0 for none "
+        "(default 0.5)",
     )
     p.add_argument(
         "--offset-error",
@@ -538,6 +608,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             raise ValueError("--noise-mv must not be negative")
         if args.twist_every < 0:
             raise ValueError(f"--twist-every must be 0 or more moves, got {args.twist_every}")
+        task = task_settings(args)
         drifts = tuple(d for d in (e.drift() for e in faults) if d is not None)
         open_points = open_points_from_arguments(args)
         if args.scenario == "replay":
@@ -550,7 +621,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         else:
             scenario = scenario_named(
                 args.scenario, seed=args.seed, params=truth, pause_s=args.pause,
-                twist_every=args.twist_every,
+                twist_every=args.twist_every, **task,
             )  # fmt: skip
             source = MechanismSource(
                 scenario, truth, noise_volts=args.noise_mv / 1000, seed=args.seed, drifts=drifts

@@ -8,6 +8,11 @@ rotations (k, 3, 3), deterministically for its seed, whatever order it is asked 
   come from).
 - :class:`Static`: the plate held still.
 - :class:`Sweep`: the output axis circling at a fixed tilt while the plate swivels.
+- :class:`~loopcal.simulator.task.TaskLoop` (its own module): the controller driving the
+  plate round a fixed loop of waypoints, for ever.
+
+The base class :class:`~loopcal.simulator.motion.Scenario` and :func:`min_jerk` are
+:mod:`loopcal.simulator.motion`'s, imported here as before.
 """
 
 from __future__ import annotations
@@ -25,47 +30,8 @@ from loopcal.calibration.kinematics import base_points, from_euler_zyz, tilt_swi
 from loopcal.calibration.parameters import NOMINAL
 from loopcal.calibration.simulate import NEAR_SINGULAR_MM, reachable, sample_workspace
 
-
-class Scenario:
-    """Base class: :meth:`rotation` of the plate at device times ``t``.
-
-    Attributes
-    ----------
-    name : str
-        The scenario's name (``loopcal simulate --scenario NAME``; a class attribute).
-    """
-
-    name = "scenario"
-
-    def rotation(self, t: np.ndarray) -> np.ndarray:
-        """The plate's orientation at times ``t``.
-
-        Parameters
-        ----------
-        t : array_like of float, shape (k,)
-            Source times, s since the module's first power-on (a scalar is one time).
-
-        Returns
-        -------
-        ndarray of float, shape (k, 3, 3)
-            The plate's rotation matrix (plate frame in base frame) at each time.
-
-        Raises
-        ------
-        NotImplementedError
-            In the base class; every scenario overrides it.
-        """
-        raise NotImplementedError
-
-    def describe(self) -> dict:
-        """What the scenario is, for a truth file's header.
-
-        Returns
-        -------
-        dict
-            ``{"name": name}`` plus the scenario's settings (JSON-serialisable).
-        """
-        return {"name": self.name}
+from .motion import Scenario, min_jerk
+from .task import TaskLoop
 
 
 class Static(Scenario):
@@ -203,23 +169,6 @@ class _Segment:
     end: float
     slerp: Slerp | None  # None: a pause at `hold`
     hold: Rotation
-
-
-def min_jerk(tau: np.ndarray) -> np.ndarray:
-    """Minimum-jerk progress ``10 tau^3 - 15 tau^4 + 6 tau^5`` of a move.
-
-    Parameters
-    ----------
-    tau : array_like of float, any shape
-        Fraction of the move's duration; clipped to [0, 1].
-
-    Returns
-    -------
-    ndarray of float, same shape as ``tau``
-        Fraction of the way covered, 0 to 1 (zero speed and acceleration at both ends).
-    """
-    tau = np.clip(tau, 0.0, 1.0)
-    return tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
 
 
 #: orientations drawn for a twisting move of :class:`HandMoves`, the most twisted one taken
@@ -666,7 +615,7 @@ class GuidedHand(HandMoves):
 
 
 #: the scenarios by name, as ``loopcal simulate --scenario NAME`` offers them
-SCENARIOS = {"hand": HandMoves, "static": Static, "sweep": Sweep}
+SCENARIOS = {"hand": HandMoves, "static": Static, "sweep": Sweep, "task": TaskLoop}
 
 
 def scenario_named(
@@ -676,36 +625,49 @@ def scenario_named(
     params: np.ndarray = NOMINAL,
     pause_s: tuple[float, float] = (1.0, 3.0),
     twist_every: int = 0,
+    waypoints: int = 5,
+    move_s: float = 2.0,
+    dwell_s: float = 0.5,
 ) -> Scenario:
     """The scenario ``loopcal simulate --scenario NAME`` serves.
 
     Parameters
     ----------
     name : str
-        ``"hand"`` (:class:`HandMoves`), ``"static"`` (:class:`Static`, held at home) or
-        ``"sweep"`` (:class:`Sweep` with its defaults).
+        ``"hand"`` (:class:`HandMoves`), ``"static"`` (:class:`Static`, held at home),
+        ``"sweep"`` (:class:`Sweep` with its defaults) or ``"task"``
+        (:class:`~loopcal.simulator.task.TaskLoop`).
     seed : int, default 0
-        With "hand": the seed of the moves.
+        With "hand": the seed of the moves; with "task": the seed of the waypoints.
     params : ndarray of float, shape (20,), default NOMINAL
-        With "hand": the mechanism whose workspace the moves stay in.
+        With "hand" and "task": the mechanism whose workspace the moves stay in.
     pause_s : tuple of 2 float, default (1.0, 3.0)
         With "hand": (min, max) of each still pause, s.
     twist_every : int, default 0
         With "hand": every so many moves twist the plate about its own axis (0: never).
+    waypoints : int, default 5
+        With "task": the number of waypoints of the loop, >= 2.
+    move_s : float, default 2.0
+        With "task": each move between consecutive waypoints, s, > 0.
+    dwell_s : float, default 0.5
+        With "task": the dwell at each waypoint, s, >= 0.
 
     Returns
     -------
     Scenario
-        A new scenario; the other scenarios ignore ``seed``, ``params``, ``pause_s`` and
-        ``twist_every``.
+        A new scenario; each ignores the settings of the others ("static" and "sweep"
+        all of them).
 
     Raises
     ------
     ValueError
-        If ``name`` is not one of :data:`SCENARIOS`.
+        If ``name`` is not one of :data:`SCENARIOS`, or the task loop's settings are
+        refused (:class:`~loopcal.simulator.task.TaskLoop`).
     """
     if name not in SCENARIOS:
         raise ValueError(f"scenario {name!r}: one of {', '.join(SCENARIOS)}")
     if name == "hand":
         return HandMoves(seed, params=params, pause_s=pause_s, twist_every=twist_every)
+    if name == "task":
+        return TaskLoop(seed, waypoints=waypoints, move_s=move_s, dwell_s=dwell_s, params=params)
     return SCENARIOS[name]()

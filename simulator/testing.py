@@ -14,13 +14,14 @@ What the pytest plugin (:mod:`loopcal.simulator.pytest_plugin`, fixtures ``ldq41
         module.scans                      # every scan the module produced
 
 The module is driven by a simulated shoulder joint (a technician's hand moving the plate,
-the plate held still, or a sweep) with the true parameters of a seeded mechanism, exactly
-as ``loopcal simulate`` serves it.
+the plate held still, a sweep, or the controller's task loop) with the true parameters of a
+seeded mechanism, exactly as ``loopcal simulate`` serves it.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import numbers
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -66,11 +67,20 @@ class LDQ412Options:
         bytes; ``speed`` must stay 1).
     seed : int, default 0
         Seeds the mechanism's true parameters, the hand's moves and the noise.
-    scenario : {"hand", "static", "sweep"}, default "hand"
-        ``"hand"`` (a technician's moves with still pauses), ``"static"`` (held at home)
-        or ``"sweep"`` (:mod:`loopcal.simulator.scenarios`).
+    scenario : {"hand", "static", "sweep", "task"}, default "hand"
+        ``"hand"`` (a technician's moves with still pauses), ``"static"`` (held at home),
+        ``"sweep"`` (:mod:`loopcal.simulator.scenarios`) or ``"task"`` (the controller
+        driving the plate round a fixed loop of waypoints for ever,
+        :class:`~loopcal.simulator.task.TaskLoop`).
     pause_s : tuple of 2 float, default (1.0, 3.0)
         With ``"hand"``: (min, max) of each still pause, s, ``0 < min <= max``.
+    task_waypoints : int, default 5
+        With ``"task"``: the loop's waypoints (fixed orientations drawn from ``seed``),
+        >= 2.
+    task_move_s : float, default 2.0
+        With ``"task"``: each move between two consecutive waypoints, s, > 0.
+    task_dwell_s : float, default 0.5
+        With ``"task"``: how long the plate stays at each waypoint, s, >= 0 (0: none).
     noise_volts : float, default NOISE_VOLTS
         Standard deviation of the noise per conversion, V, >= 0 (0.040 V).
     offset_error_mm : float, default 3.0
@@ -92,7 +102,8 @@ class LDQ412Options:
     ValueError
         If ``transport``, ``scenario`` or ``clock`` is not one of its choices, ``speed``
         is not a positive number (or not 1 with a manual clock), ``noise_volts`` is not a
-        number >= 0, ``pause_s`` is not a range, or ``open_points`` is not an
+        number >= 0, ``pause_s`` is not a range, a task loop setting is out of its
+        range, or ``open_points`` is not an
         :class:`~loopcal.simulator.open_points.OpenPoints`; the message starts
         ``ldq412 option`` and names it.
 
@@ -110,6 +121,9 @@ class LDQ412Options:
     seed: int = 0
     scenario: str = "hand"
     pause_s: tuple[float, float] = (1.0, 3.0)
+    task_waypoints: int = 5
+    task_move_s: float = 2.0
+    task_dwell_s: float = 0.5
     noise_volts: float = NOISE_VOLTS
     offset_error_mm: float = 3.0
     truth: Mapping[str, float] = field(default_factory=dict)
@@ -137,6 +151,15 @@ class LDQ412Options:
         lo, hi = self.pause_s
         if not 0 < lo <= hi:
             raise bad(f"pause_s={self.pause_s!r}: (min, max) seconds with 0 < min <= max")
+        n = self.task_waypoints
+        if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 2:
+            raise bad(f"task_waypoints={n!r}: an integer, 2 or more")
+        for what, value, least in (("task_move_s", self.task_move_s, None),
+                                   ("task_dwell_s", self.task_dwell_s, 0.0)):  # fmt: skip
+            ok = isinstance(value, numbers.Real) and np.isfinite(value)
+            if not (ok and (value > 0 if least is None else value >= least)):
+                need = "> 0" if least is None else ">= 0"
+                raise bad(f"{what}={value!r}: seconds, {need}")
         if not isinstance(self.open_points, OpenPoints):
             raise bad("open_points: a loopcal.simulator.open_points.OpenPoints")
 
@@ -183,7 +206,7 @@ class Truth:
         the gains ``S1``..``S4``).
     scenario : dict
         The plate's motion, as ``loopcal simulate --truth-out`` describes it
-        (:meth:`Scenario.describe <loopcal.simulator.scenarios.Scenario.describe>`).
+        (:meth:`Scenario.describe <loopcal.simulator.motion.Scenario.describe>`).
     noise_volts : float
         Standard deviation of the noise per conversion, V, as built.
     seed : int
@@ -271,7 +294,9 @@ class EmulatedLDQ412:
         self.options = options or LDQ412Options.from_mapping(kwargs)
         o = self.options
         params = true_parameters(o.seed, o.offset_error_mm, o.truth)
-        scenario = scenario_named(o.scenario, seed=o.seed, params=params, pause_s=o.pause_s)
+        scenario = scenario_named(o.scenario, seed=o.seed, params=params, pause_s=o.pause_s,
+                                  waypoints=o.task_waypoints, move_s=o.task_move_s,
+                                  dwell_s=o.task_dwell_s)  # fmt: skip
         self._source = MechanismSource(scenario, params, noise_volts=o.noise_volts, seed=o.seed)
         # the mechanism's own list: what the module scans with is what a test is told
         self.truth = Truth(params.copy(), scenario.describe(), float(o.noise_volts), o.seed,
