@@ -56,7 +56,7 @@ from .sequence import RawSnapshot, Sequencer
 
 #: s a FIFO window read waits for its answer (at most half the FIFO's depth in time at the
 #: module's rate, at least the timeout): a late answer still carries its scans
-FIFO_ANSWER_WAIT_S = 1.0
+FIFO_ANSWER_WAIT_S = 2.5
 
 FC_READ_HOLDING = 3
 FC_READ_INPUT = 4
