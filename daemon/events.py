@@ -61,6 +61,17 @@ KINDS: dict[str, str] = {
     "refused because another process holds the new module's (details: key, lock, holder)",
     "session_start": "a technician's calibration session began through the daemon's control "
     "socket (details: session, note, asked_by, target_mm, until_enough, duration_s)",
+    "recalibration_proposed": "upkeep found an offset changed and identified it from the "
+    "robot's motion, every gate passed: a complete config written beside the controller "
+    "config (.proposed) for a person to apply (details: path, values, std, shift_mm, since_ns, "
+    "window_since_ns, window_until_ns, scans, gates)",
+    "recalibrated": "upkeep in write mode wrote such a change into the controller config, the "
+    "previous version kept (details: path, previous, values, std, shift_mm, since_ns, "
+    "window_since_ns, window_until_ns, scans, gates)",
+    "recalibration_withdrawn": "later scans contradict a pending proposal: it is renamed aside "
+    "(details: path, aside, names, since_ns)",
+    "recalibration_refused": "upkeep saw a change the robot's motion does not identify, or "
+    "could not write what it identified (details: names, since_ns, refusal)",
     "session_end": "that session ended: enough, duration, stopped, abandoned or the daemon "
     "stopping (details: session, reason, since_ns, until_ns, scans, enough, std)",
 }

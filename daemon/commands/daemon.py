@@ -18,6 +18,7 @@ from ..config.controller import ControllerConfigError
 from ..live.control import ControlError
 from ..live.health import watch_health
 from ..live.sessions import ControlServer
+from ..live.upkeep import watch_upkeep
 from ..live.view import watch_live
 from ..recorder.engine import Recorder
 from ..recorder.ownership import ModuleHeld
@@ -38,7 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     setup_logging(args.verbose)
-    live = control = None
+    live = control = upkeep = None
     try:
         settings = load_daemon_config(args.config)
         recorder = Recorder(
@@ -48,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
             reload_settings=lambda: load_daemon_config(args.config),
         )
         live = watch_live(recorder, settings.live_listen, health=watch_health(recorder))
+        upkeep = watch_upkeep(recorder)
         assert settings.control_socket is not None  # load_daemon_config gives the default
         control = ControlServer(recorder, settings.control_socket, live=live,
                                 client_timeout=settings.control_client_timeout_s)  # fmt: skip
@@ -61,5 +63,7 @@ def run(args: argparse.Namespace) -> int:
         return run_recorder(recorder)
     finally:
         control.close()
+        if upkeep is not None:
+            upkeep.close()
         if live is not None:
             live.close()

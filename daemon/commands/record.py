@@ -22,6 +22,7 @@ from ..config.controller import ControllerConfigError
 from ..events import Level
 from ..live.guidance import OFFSETS, TARGET_MM, Guidance, GuidanceUpdate
 from ..live.health import watch_health
+from ..live.upkeep import watch_upkeep
 from ..live.view import watch_live
 from ..recorder.engine import Recorder
 from ..recorder.ownership import ModuleHeld
@@ -64,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
         recorder = Recorder(settings, command="loopcal record " + " ".join(sys.argv[2:]))
         monitor = watch_health(recorder)
         live = watch_live(recorder, settings.live_listen, health=monitor)
+        upkeep = watch_upkeep(recorder)
         if args.until_enough:
             controller = recorder.controller
             display = Display(json_lines=args.json).update
@@ -88,6 +90,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         status = run_recorder(recorder)
     finally:
+        if upkeep is not None:
+            upkeep.close()
         if live is not None:
             live.close()
     st = recorder.status

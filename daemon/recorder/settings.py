@@ -58,7 +58,8 @@ class SettingsError(ValueError):
 class Setting:
     """How a setting is written and checked.
 
-    kind: url, path, seconds, size, count, switch, probability, listen or days. help: what it
+    kind: url, path, seconds, size, count, switch, probability, listen, days, mm or choice
+    (one of ``choices``). help: what it
     means (the option's help and the docs' table). key: ``[table].key`` in the daemon's
     config (None: command line only). option: ``loopcal record``'s option (None: config
     only; for a switch, the option that turns it off). shown_default: the default as the
@@ -73,6 +74,7 @@ class Setting:
     lo: float | None = None
     hi: float = math.inf
     metavar: str | None = None
+    choices: tuple[str, ...] = ()
 
 
 def _setting(default: Any = MISSING, **spec: Any) -> Any:
@@ -97,7 +99,7 @@ class RecorderSettings:
     timeout_s: float = _setting(
         ldq412.HOST_TIMEOUT_S, kind="seconds", key="[daq].timeout", option="--timeout", hi=10.0,
         help="seconds without an answer before a read fails (the datasheet's 100 ms; a "
-             "Modbus FIFO read, whose scans already left the module, waits up to 1 s); at "
+             "Modbus FIFO read, whose scans already left the module, waits up to 2.5 s); at "
              "most 10")  # fmt: skip
     read_period_s: float = _setting(
         0.2, kind="seconds", key="[daq].read_period", option="--read-period", hi=5.0,
@@ -166,6 +168,24 @@ class RecorderSettings:
         30.0, kind="seconds", key="[control].client_timeout", lo=1.0, hi=3600.0,
         help="a session whose client has said nothing for this long (a closed laptop, a "
              "dropped SSH) ends by itself, marked abandoned")  # fmt: skip
+    upkeep_mode: str | None = _setting(
+        None, kind="choice", key="[upkeep].mode", option="--upkeep",
+        choices=("off", "propose", "write"),
+        shown_default='"propose" with a controller config, else "off"',
+        help="recalibrate what changed from the robot's own motion: off; propose (a "
+             "complete config written beside the controller config, with .proposed appended, "
+             "for a person to apply: loopcal upkeep apply); write (straight into the "
+             "controller config, the previous version kept); docs/calibration.md")  # fmt: skip
+    upkeep_target_mm: float = _setting(
+        0.05, kind="mm", key="[upkeep].target_mm", lo=0.001, hi=1.0,
+        help="the standard deviation a recalibrated offset must reach, mm")  # fmt: skip
+    upkeep_threshold_mm: float = _setting(
+        0.1, kind="mm", key="[upkeep].threshold_mm", lo=0.01, hi=10.0,
+        help="the smallest change of an offset upkeep acts on, mm")  # fmt: skip
+    upkeep_min_interval_s: float = _setting(
+        600.0, kind="seconds", key="[upkeep].min_interval", lo=10.0, hi=30 * 86400.0,
+        help="the least time between two recalibrations of the same offset (a creeping "
+             "sensor), s")  # fmt: skip
     live_listen: str | None = _setting(
         None, kind="listen", key="[live].listen", option="--live", metavar="HOST:PORT",
         shown_default="off",
@@ -189,6 +209,12 @@ class RecorderSettings:
                 _seconds(value, name, bad, lo=spec.lo, hi=spec.hi)
             elif spec.kind == "switch" and not isinstance(value, bool):
                 raise bad(name, f"must be true or false, got {value!r}")
+            elif spec.kind == "choice" and value is not None and value not in spec.choices:
+                raise bad(name, f"must be one of {', '.join(spec.choices)}, got {value!r}")
+            elif spec.kind == "mm" and (isinstance(value, bool)
+                                        or not isinstance(value, (int, float))
+                                        or not spec.lo <= value <= spec.hi):  # fmt: skip
+                raise bad(name, f"must be a length in {spec.lo:g}..{spec.hi:g} mm, got {value!r}")
             elif spec.kind == "days" and (isinstance(value, bool)
                                           or not isinstance(value, (int, float))
                                           or not value >= 0):  # fmt: skip
@@ -355,6 +381,14 @@ def _convert(p: Path, name: str, v: Any) -> Any:
         if isinstance(v, bool) or not isinstance(v, int):
             raise bad(f"must be an integer, got {v!r}")
         return v
+    if kind == "choice":
+        if v not in SETTINGS[name].choices:
+            raise bad(f"must be one of {', '.join(SETTINGS[name].choices)}, got {v!r}")
+        return v
+    if kind == "mm":
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise bad(f"must be a length in mm, got {v!r}")
+        return float(v)
     if kind == "days":
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise bad(f"must be a number of days (inf: never), got {v!r}")
@@ -373,7 +407,7 @@ def _size_option(text: str) -> int:
 
 _OPTION_TYPES: dict[str, Callable[[str], Any]] = {
     "url": str, "listen": str, "path": path_argument, "seconds": float, "size": _size_option,
-    "count": int, "probability": float, "days": float,
+    "count": int, "probability": float, "days": float, "mm": float,
 }  # fmt: skip
 
 
@@ -388,6 +422,10 @@ def add_options(p: argparse.ArgumentParser) -> None:
             continue
         required = name not in DEFAULTS
         shown = "" if required else f" (default {shown_default(name)})"
+        if spec.kind == "choice":
+            p.add_argument(spec.option, dest=name, choices=spec.choices, default=DEFAULTS[name],
+                           help=spec.help + shown)  # fmt: skip
+            continue
         p.add_argument(spec.option, dest=name, required=required, type=_OPTION_TYPES[spec.kind],
                        default=DEFAULTS.get(name), metavar=spec.metavar or _metavar(spec.kind),
                        help=spec.help + shown)  # fmt: skip

@@ -818,8 +818,9 @@ def _limits_text() -> str:
 
 
 def precision_gate(
-    free: list[str], std: np.ndarray, advice: Advice, *, seconds: float | None = None
-) -> Gate:
+    free: list[str], std: np.ndarray, advice: Advice, *, seconds: float | None = None,
+    limit_mm: float | None = None,
+) -> Gate:  # fmt: skip
     """Every identified parameter is known well enough: std <= 0.25 mm (0.01 mm/V).
 
     Parameters
@@ -834,6 +835,8 @@ def precision_gate(
         For a fit on every scan: the seconds of usable motion it had. The advice then says
         for how long to go on: the variance falls as one over the time for motion like
         the recorded, so about ``seconds * ((std / limit)^2 - 1)`` more.
+    limit_mm : float, optional
+        Another limit on lengths, mm (the daemon's upkeep asks 0.05 mm of an offset).
 
     Returns
     -------
@@ -851,11 +854,12 @@ def precision_gate(
     :data:`PRECISION` (docs/calibration.md): 0.25 mm for lengths, 0.01 mm/V for gains.
     About one simulated 2-minute session in 20 fails it, and is told to record more.
     """
-    ratios = [std[j] / PRECISION[UNITS[n]] for j, n in enumerate(free)]
+    limits = {**PRECISION, "mm": PRECISION["mm"] if limit_mm is None else limit_mm}
+    ratios = [std[j] / limits[UNITS[n]] for j, n in enumerate(free)]
     j = int(np.argmax(ratios))
     ok = ratios[j] <= 1.0
     name = free[j]
-    limit = f"<= {PRECISION['mm']:g} mm, {PRECISION['mm/V']:g} mm/V"
+    limit = f"<= {limits['mm']:g} mm, {limits['mm/V']:g} mm/V"
     return Gate(
         "precision",
         ok,

@@ -203,6 +203,8 @@ def run_worker(
     n_select: int = DEFAULT_N_SELECT,
     method: str = DEFAULT_METHOD,
     samples: str | None = None,
+    positions: bool = True,
+    precision_mm: float | None = None,
     progress: Callable[[str], None] = lambda _: None,
 ) -> WorkerResult:
     """Poses, fit and gates for scans of a recording (SCAN_DTYPE rows, oldest first: one
@@ -212,7 +214,10 @@ def run_worker(
     method: the estimator (:func:`loopcal.calibration.identify.identify`). samples: what it
     fits, ``"scans"`` (every usable scan, moving or still, each a pose of its own:
     :mod:`loopcal.daemon.worker.motion`; ml only, its default) or ``"poses"`` (still poses,
-    averaged, of which ``n_select`` are selected: the paper's method, and ml on request)."""
+    averaged, of which ``n_select`` are selected: the paper's method, and ml on request).
+    positions: the ``poses`` gate applies (False: an offset refitted with everything else
+    held needs no spread of positions, the daemon's upkeep; the fit's own gates judge).
+    precision_mm: the ``precision`` gate's limit on lengths, mm (None: its own, 0.25)."""
     t0 = time.perf_counter()
     samples = samples or ("scans" if method == "ml" else "poses")
     if samples not in SAMPLES or (samples == "scans" and method != "ml"):
@@ -240,11 +245,12 @@ def run_worker(
     result = WorkerResult(model, start, start.copy(), {}, [], poses, fit, held_out, None,
                           len(scans), span, list(files))  # fmt: skip
     result.method = method
-    result.gates.append(gate)
+    if positions:
+        result.gates.append(gate)
     still = not per_scan
     advice = lazy_coverage_advice(poses.volts, start, still=still)  # made only if a gate fails
     result.advice = advice
-    if not gate.passed:
+    if positions and not gate.passed:
         result.seconds = time.perf_counter() - t0
         return result
     n_free = len(model.free)
@@ -311,7 +317,8 @@ def run_worker(
         G.holdout_gate(z, blocks=blocks),
         G.plausible_gate(list(model.free), start, ident.params),
         G.precision_gate(list(model.free), ident.std, advice,
-                         seconds=poses.seconds if per_scan else None),  # fmt: skip
+                         seconds=poses.seconds if per_scan else None,
+                         limit_mm=precision_mm),  # fmt: skip
     ]
     result.extra["holdout_rms_sigma"] = float(np.sqrt(np.mean(z**2))) if len(z) else None
     result.extra["samples"] = samples

@@ -1,0 +1,153 @@
+"""The daemon's upkeep, offline: the scans of a simulated robot at work (a task loop), a
+sensor swapped or not, fed to :class:`Upkeep` as the recorder feeds it, a second at a time.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from loopcal.calibration.parameters import INDEX
+from loopcal.daemon.config.controller import (
+    ControllerConfigError,
+    load_controller_config,
+    write_initial_config,
+)
+from loopcal.daemon.live.upkeep import Upkeep
+from loopcal.daemon.worker.proposal import apply_proposal, proposal_path, read_proposal
+from loopcal.simulator.drift import OffsetDrift
+from loopcal.simulator.offline import mechanism_scans
+from loopcal.simulator.task import TaskLoop
+from tests.support.recordings import write_directory
+from tests.support.rows import rows_from
+from tests.support.sessions import truth_for
+
+RATE = 20
+
+
+def robot_at_work(seed: int, seconds: float, drifts=()) -> tuple[np.ndarray, np.ndarray]:
+    """(truth, scan rows) of a task loop."""
+    truth = truth_for(seed)
+    t_us, codes = mechanism_scans(TaskLoop(seed), truth, int(seconds * RATE), seed=seed,
+                                  drifts=tuple(drifts))  # fmt: skip
+    return truth, rows_from(t_us, codes)
+
+
+class Events(list):
+    def __call__(self, kind, level, message, **details):
+        self.append((kind, message, details))
+
+    def kinds(self) -> list[str]:
+        return [k for k, _, _ in self]
+
+
+def run(upkeep: Upkeep, rows: np.ndarray, *, until: str | None = None) -> float | None:
+    """Feed a second at a time; the seconds of scans fed when an event ``until`` came."""
+    events = upkeep.emit
+    for a in range(0, len(rows), RATE):
+        upkeep.feed(rows[a:a + RATE])
+        if until is not None and until in events.kinds():
+            return (a + RATE) / RATE
+    return None
+
+
+def upkeep_for(path: Path, mode: str = "propose", **kw) -> Upkeep:
+    settings = dict(target_mm=0.05, threshold_mm=0.1, min_interval_s=600.0)
+    settings.update(kw)
+    return Upkeep(load_controller_config(path), Events(), mode=mode, threaded=False, **settings)
+
+
+@pytest.mark.parametrize(("seed", "sensor", "mm"), [(1, 3, 0.8), (2, 1, -0.3), (3, 4, 2.5)])
+def test_a_swapped_sensor_is_proposed_once_within_two_minutes(tmp_path, seed, sensor, mm):
+    truth, rows = robot_at_work(seed, 420, [OffsetDrift("step", sensor, 120.0, mm)])
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    before = config.read_bytes()
+    up = upkeep_for(config)
+    at = run(up, rows, until="recalibration_proposed")
+    assert at is not None and at - 120.0 <= 120.0, up.emit
+    run(up, rows[int(at * RATE):])  # the rest changes nothing
+    assert up.emit.kinds() == ["recalibration_proposed"], up.emit
+    name = f"d0{sensor}"
+    p = read_proposal(load_controller_config(config))
+    assert p is not None and list(p.values) == [name]
+    want = truth[INDEX[name]] + mm
+    assert abs(p.values[name] - want) <= min(0.05, 3 * p.std[name]), (p.values, want, p.std)
+    assert p.upkeep["change_since_ns"] <= int(rows["stamp_ns"][120 * RATE + 15 * RATE])
+    assert config.read_bytes() == before  # propose writes nothing into the config
+    assert "RECALIBRATION PROPOSED" in up.status()
+
+
+def test_an_unchanged_robot_gets_no_proposal(tmp_path):
+    truth, rows = robot_at_work(4, 1800)
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    up = upkeep_for(config)
+    run(up, rows)
+    assert up.emit == [] and not os.path.lexists(proposal_path(config))
+    assert up.state.fits >= 1800 / 15 - 1  # every segment (the last needs a scan after it)
+
+
+def test_two_sensors_swapped_at_once_are_both_found(tmp_path):
+    drifts = [OffsetDrift("step", 2, 90.0, 0.6), OffsetDrift("step", 4, 90.0, -1.2)]
+    truth, rows = robot_at_work(5, 360, drifts)
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    up = upkeep_for(config)
+    assert run(up, rows, until="recalibration_proposed") is not None, up.emit
+    p = read_proposal(load_controller_config(config))
+    assert sorted(p.values) == ["d02", "d04"]
+    for name, mm in (("d02", 0.6), ("d04", -1.2)):
+        assert abs(p.values[name] - (truth[INDEX[name]] + mm)) <= 0.05
+
+
+def test_write_mode_rewrites_the_config_once_and_watches_the_new_values(tmp_path):
+    truth, rows = robot_at_work(6, 600, [OffsetDrift("step", 3, 100.0, 1.0)])
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    up = upkeep_for(config, mode="write")
+    at = run(up, rows, until="recalibrated")
+    assert at is not None, up.emit
+    new = load_controller_config(config)
+    assert abs(new.params[INDEX["d03"]] - (truth[INDEX["d03"]] + 1.0)) <= 0.05
+    assert new.provenance["upkeep"]["mode"] == "write"
+    assert len(list(tmp_path.glob("controller.toml.*.prev"))) == 1  # the previous one kept
+    up.reload(new)  # as the recorder does when it follows the file
+    run(up, rows[int(at * RATE):])
+    assert up.emit.kinds() == ["recalibrated"], up.emit
+    assert load_controller_config(config).sha256 == new.sha256
+
+
+def test_a_discarded_proposal_is_not_made_again(tmp_path):
+    truth, rows = robot_at_work(7, 540, [OffsetDrift("step", 1, 60.0, 0.7)])
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    up = upkeep_for(config)
+    at = run(up, rows, until="recalibration_proposed")
+    assert at is not None
+    os.replace(proposal_path(config), tmp_path / "aside")  # a person discards it
+    run(up, rows[int(at * RATE):])
+    assert up.emit.kinds() == ["recalibration_proposed"]
+
+
+def test_a_proposal_damaged_or_edited_by_hand_is_refused_and_nothing_written(tmp_path):
+    truth, rows = robot_at_work(8, 300, [OffsetDrift("step", 2, 60.0, 0.9)])
+    recordings = write_directory(tmp_path / "rec", rows, rate=RATE)
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    up = upkeep_for(config)
+    assert run(up, rows, until="recalibration_proposed") is not None
+    path = proposal_path(config)
+    good = path.read_text()
+    before = config.read_bytes()
+    loaded = load_controller_config(config)
+    edited = good.replace(f"d02 = {read_proposal(loaded).values['d02']!r}", "d02 = 99.0")
+    assert edited != good
+    for text, why in ((edited, "edited|hand"), (good[: len(good) // 2], "damaged"),
+                      ("[parameters]\nd01 = 1.0\n", "damaged|proposal")):  # fmt: skip
+        path.write_text(text)
+        with pytest.raises(ControllerConfigError, match=why):
+            read_proposal(loaded)
+        assert config.read_bytes() == before
+    path.write_text(good)  # intact: applied, the gates checked again on its recordings
+    written = apply_proposal(loaded, read_proposal(loaded), recordings, target_mm=0.05)
+    assert written.backup.exists() and not os.path.lexists(path)
+    assert load_controller_config(config).params[INDEX["d02"]] == pytest.approx(
+        truth[INDEX["d02"]] + 0.9, abs=0.05)  # fmt: skip
