@@ -111,6 +111,8 @@ class UpkeepState:
     withdrawn: int = 0
     refused: int = 0
     last_proposed_ns: dict[str, int] = field(default_factory=dict)
+    #: in report mode, what would have been proposed (the events' details)
+    reported: list[dict] = field(default_factory=list)
 
 
 class Upkeep:
@@ -122,8 +124,9 @@ class Upkeep:
         The config in force.
     emit : callable
         ``emit(kind, level, message, **details)``: the recorder's events.
-    mode : {"propose", "write"}
-        What an accepted change does.
+    mode : {"propose", "write", "report"}
+        What an accepted change does; report: nothing written, the proposal only told
+        (an event, and ``state.reported``), for ``loopcal check`` on archives.
     target_mm, threshold_mm : float
         The precision a refitted offset must reach, and the smallest shift that counts, mm.
     min_interval_s : float
@@ -148,8 +151,8 @@ class Upkeep:
         directory: os.PathLike | None = None,
         threaded: bool = True,
     ) -> None:
-        if mode not in ("propose", "write"):
-            raise ValueError(f"upkeep mode must be propose or write here, got {mode!r}")
+        if mode not in ("propose", "write", "report"):
+            raise ValueError(f"upkeep mode must be propose, write or report, got {mode!r}")
         self.mode, self.emit = mode, emit
         self.target_mm, self.threshold_mm = float(target_mm), float(threshold_mm)
         self.min_interval_ns = int(min_interval_s * 1e9)
@@ -256,7 +259,7 @@ class Upkeep:
         self.state.pending = None
         self._reference = controller
         try:
-            pending = read_proposal(controller)
+            pending = None if self.mode == "report" else read_proposal(controller)
         except ControllerConfigError as exc:
             log.warning("upkeep: %s", exc)
             pending = None
@@ -406,7 +409,16 @@ class Upkeep:
                        window_since_ns=since, window_until_ns=until, scans=table["scans"],
                        gates=table["gates"])  # fmt: skip
         try:
-            if self.mode == "propose":
+            if self.mode == "report":  # what it would propose (loopcal check), nothing written
+                self._reference = self._with(values)
+                self._base = Normal()
+                self.state.proposals += 1
+                self.state.reported.append({"names": list(fit.changed), **details})
+                self.emit("recalibration_proposed", Level.WARNING,
+                          f"upkeep would propose {words}, changed since "
+                          f"{table['change_since_utc']}, every gate passed", path="",
+                          **details)  # fmt: skip
+            elif self.mode == "propose":
                 path = write_proposal(self.controller, values, std, table)
                 self.state.pending = read_proposal(self.controller)
                 self.state.pending_since_ns = table["proposed_ns"]
