@@ -24,6 +24,8 @@ COMMANDS: tuple[tuple[str, str], ...] = (
     ("daemon", "the acquisition daemon (systemd's entry point): record the DAQ for months"),
     ("session",
      "calibrate through the running daemon: live guidance, then the session's scans calibrated"),
+    ("upkeep",
+     "the recalibration the daemon proposed from the robot's motion: status, apply, discard"),
     ("init-config",
      "write a controller config (TOML) with the 20 parameters at the reference geometry"),
     ("calibrate",

@@ -140,14 +140,17 @@ def read_proposal(config: ControllerConfig) -> Proposal | None:
     try:
         proposed = load_controller_config(path)
     except ControllerConfigError as exc:
-        raise ControllerConfigError(f"the proposal is damaged: {exc}") from None
+        raise ControllerConfigError(f"the proposal is damaged ({exc}): nothing applied; "
+                                    "discard it (loopcal upkeep discard)") from None
     up = (proposed.provenance or {}).get("upkeep")
     if not isinstance(up, dict) or not isinstance(up.get("values"), dict):
         raise ControllerConfigError(f"{path}: not a proposal of the daemon's (no "
-                                    "[provenance.upkeep] with its values)")  # fmt: skip
+                                    "[provenance.upkeep] with its values): nothing "
+                                    "applied")  # fmt: skip
     values = {str(n): v for n, v in up["values"].items()}
     if not values or any(n not in INDEX or not isinstance(v, float) for n, v in values.items()):
-        raise ControllerConfigError(f"{path}: its [provenance.upkeep].values are damaged")
+        raise ControllerConfigError(f"{path}: its [provenance.upkeep].values are damaged: "
+                                    "nothing applied")  # fmt: skip
     if up.get("digest") != _digest(values, up):
         raise ControllerConfigError(f"{path}: edited since the daemon wrote it (its values "
                                     "or provenance no longer match their digest): nothing "
