@@ -13,8 +13,15 @@ recordings, a config never calibrated), and that is said instead, once ("loops_o
 recordings end in included. ``--plot`` draws each sensor's estimated
 offset shift over time and the test statistic against the alarm threshold.
 
-Exit status: 0 the loops close (no change found), 1 a change was found or the loops never
-closed, 2 bad input.
+The same scans go to the daemon's upkeep in report mode (:mod:`loopcal.daemon.inspect.proposals`,
+``--upkeep-target-mm`` and ``--upkeep-threshold-mm``, the daemon's defaults): for each
+recalibration it would have proposed from the robot's own motion, the offsets, the values
+it would write with their std, the shifts, when the change began and the window of scans
+fitted ("proposals" in ``--json``). A proposal pending beside the config (the daemon's
+``.proposed`` file) is named, or why it cannot be read ("pending_proposal").
+
+Exit status: 0 the loops close and nothing would be proposed, 1 a change was found, the
+loops never closed or a recalibration would be proposed, 2 bad input.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ import sys
 from ..arguments import path_argument
 from ..config.controller import ControllerConfigError
 from ..inspect.loops import check, plot
+from ..inspect.proposals import UpkeepSettings, proposal_words
 from ..live.health import FALSE_ALARM
 from ..recording import RecordingError
 from ..recording.names import recording_paths
@@ -37,6 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--controller-config", type=path_argument, required=True, metavar="PATH",
                    help="the controller config to check the loops against")  # fmt: skip
     add_false_alarm_option(p)
+    add_upkeep_options(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--plot", type=path_argument, metavar="FILE.png",
                    help="draw each sensor's estimated shift and statistic over time")  # fmt: skip
@@ -56,9 +65,32 @@ def check_false_alarm(p: float) -> None:
         raise ValueError(f"--false-alarm {p:g}: give a probability in (0, 0.01)")
 
 
+def add_upkeep_options(p: argparse.ArgumentParser, *, what: str = "") -> None:
+    """``--upkeep-target-mm MM`` and ``--upkeep-threshold-mm MM``, the daemon's ``[upkeep]``
+    defaults (``loopcal check``, ``loopcal fleet check``, whose help says ``what`` first);
+    :func:`upkeep_settings` reads and checks them."""
+    d = UpkeepSettings()
+    p.add_argument("--upkeep-target-mm", type=float, default=d.target_mm, metavar="MM",
+                   help=f"{what}the standard deviation an offset the upkeep would propose must "
+                        f"reach, mm (default {d.target_mm:g}, the daemon's "
+                        "[upkeep].target_mm)")  # fmt: skip
+    p.add_argument("--upkeep-threshold-mm", type=float, default=d.threshold_mm, metavar="MM",
+                   help=f"{what}the smallest change of an offset the upkeep acts on, mm "
+                        f"(default {d.threshold_mm:g}, the daemon's "
+                        "[upkeep].threshold_mm)")  # fmt: skip
+
+
+def upkeep_settings(args: argparse.Namespace) -> UpkeepSettings:
+    """The upkeep's settings :func:`add_upkeep_options` parsed; raises ValueError naming
+    the option for a value outside the daemon's bounds."""
+    return UpkeepSettings(target_mm=args.upkeep_target_mm,
+                          threshold_mm=args.upkeep_threshold_mm).checked()  # fmt: skip
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         check_false_alarm(args.false_alarm)
+        upkeep = upkeep_settings(args)
         if args.plot is not None and args.plot.parent.exists() is False:
             raise ValueError(f"--plot {args.plot}: directory {args.plot.parent} does not exist")
         files = recording_paths(args.recordings)
@@ -66,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError("no recordings (loopcal-*.mcap) in " +
                              ", ".join(map(str, args.recordings)))  # fmt: skip
         doc = check(files, args.controller_config, args.false_alarm,
-                    trace=args.plot is not None)  # fmt: skip
+                    trace=args.plot is not None, upkeep=upkeep)  # fmt: skip
     except (RecordingError, ControllerConfigError, ValueError, OSError) as exc:
         print(f"loopcal check: error: {exc}", file=sys.stderr)
         return 2
@@ -97,6 +129,27 @@ def run(args: argparse.Namespace) -> int:
                   f"(+- {c['std_mm']:.3f}, {shape}), from {c['start_utc']} "
                   f"({c['start_offset_s']:,.0f} s into the recordings), detected "
                   f"{c['detected_utc']}{end}")  # fmt: skip
+        print_proposals(doc)
         if args.plot is not None:
             print(f"plot: {args.plot}")
-    return 0 if doc["loops_close"] else 1
+    return 0 if doc["loops_close"] and not doc["proposals"] else 1
+
+
+def print_proposals(doc: dict) -> None:
+    """The text of what the upkeep would propose, and of a proposal pending beside the
+    config."""
+    for p in doc["proposals"]:
+        into = ("" if p["since_offset_s"] is None
+                else f" ({p['since_offset_s']:,.0f} s into the recordings)")  # fmt: skip
+        print(f"upkeep would propose {proposal_words(p)}: changed since {p['since_utc']}"
+              f"{into}; fitted on {p['scans']:,} scans from {p['window_since_utc']} to "
+              f"{p['window_until_utc']}, every gate passed")  # fmt: skip
+    if not doc["proposals"]:
+        print("upkeep would propose no recalibration.")
+    if (pending := doc["pending_proposal"]) is not None:
+        if pending["error"] is not None:
+            where = "" if pending["path"] in pending["error"] else f" {pending['path']}"
+            print(f"pending proposal{where}: cannot be taken: {pending['error']}")
+        else:
+            values = ", ".join(f"{n} = {v:.4f} mm" for n, v in pending["values"].items())
+            print(f"pending proposal {pending['path']} since {pending['since_utc']}: {values}")

@@ -8,7 +8,10 @@ its recordings (directly, or in ``recordings/``). The tasks run on a local clust
 the workers must see the same paths). Progress goes to stderr; the table (one row per
 robot-day) to ``--table`` (CSV, or Parquet for a ``.parquet`` name), or to stdout as CSV, or
 with ``--json`` as one JSON object ``{"columns": [...], "rows": [{column: value}, ...]}``.
-Exit status: 0, 1 if ``fleet check`` found a change, 2 for bad input.
+``fleet check``'s ``proposals`` column holds what the daemon's upkeep would propose from the
+robot-day (``d03 +0.80``: the offset and its shift, mm; ``-``: nothing).
+Exit status: 0, 1 if ``fleet check`` found a change or a recalibration would be proposed,
+2 for bad input.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from ..inspect.fleet import (
     write_table,
 )
 from ..recording import RecordingError
-from .check import add_false_alarm_option, check_false_alarm
+from .check import add_false_alarm_option, add_upkeep_options, check_false_alarm, upkeep_settings
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -55,6 +58,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config-name", default=CONFIG_NAME, metavar="NAME",
                    help=f"each robot's controller config file (default {CONFIG_NAME})")  # fmt: skip
     add_false_alarm_option(p, what="check: ")
+    add_upkeep_options(p, what="check: ")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
         if args.workers < 1:
             raise FleetError(f"--workers {args.workers}: at least 1")
         check_false_alarm(args.false_alarm)
+        upkeep = upkeep_settings(args)
         if args.table is not None and args.json:
             raise FleetError("give --table or --json, not both")
         if args.table is not None and not args.table.parent.is_dir():
@@ -97,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
                            progress=progress)  # fmt: skip
         columns = INFO_COLUMNS
     else:
-        rows = run_on_dask(tasks, check_task, args.false_alarm, scheduler=args.scheduler,
+        rows = run_on_dask(tasks, check_task, args.false_alarm, upkeep, scheduler=args.scheduler,
                            workers=args.workers, progress=progress)  # fmt: skip
         columns = CHECK_COLUMNS
     if tty:
@@ -118,7 +123,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _status(args: argparse.Namespace, rows: list[dict]) -> int:
-    return 1 if args.what == "check" and any(r.get("changes") for r in rows) else 0
+    if args.what != "check":
+        return 0
+    found = any(r.get("changes") or r.get("proposals") not in (None, "", "-") for r in rows)
+    return 1 if found else 0
 
 
 def _jsonable(value):

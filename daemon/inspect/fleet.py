@@ -27,9 +27,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..recording import find_recordings, name_time_ns
+
+if TYPE_CHECKING:
+    from .proposals import UpkeepSettings
 
 CONFIG_NAME = "controller.toml"
 
@@ -41,7 +44,8 @@ INFO_COLUMNS = ("robot", "day", "files", "bytes", "scans", "start_utc", "end_utc
 #: damaged items a ``fleet info`` row's ``damage`` names (``loopcal info`` lists every one)
 DAMAGE_ITEMS = 3
 CHECK_COLUMNS = ("robot", "day", "files", "poses", "loops_close", "loops_open", "changes",
-                 "sensors", "shifts_mm", "first_change_utc", "warnings")  # fmt: skip
+                 "sensors", "shifts_mm", "first_change_utc", "proposals",
+                 "warnings")  # fmt: skip
 
 
 class FleetError(ValueError):
@@ -127,17 +131,21 @@ def damage_columns(doc: dict[str, Any]) -> dict[str, Any]:
             "scans_lost": doc["scans_lost"], "damage": text}  # fmt: skip
 
 
-def check_task(task: RobotDay, false_alarm: float) -> dict[str, Any]:
-    """One row of ``fleet check``: loop closure of a robot-day at its controller config."""
+def check_task(task: RobotDay, false_alarm: float,
+               upkeep: UpkeepSettings | None = None) -> dict[str, Any]:  # fmt: skip
+    """One row of ``fleet check``: loop closure of a robot-day at its controller config,
+    and what the daemon's upkeep would propose from it (``upkeep``: its settings, None the
+    daemon's defaults)."""
     from .loops import check
+    from .proposals import proposal_column
 
     if task.config is None:
         return {"robot": task.robot, "day": task.day, "files": len(task.files), "poses": 0,
                 "loops_close": None, "loops_open": None, "changes": 0, "sensors": "",
                 "shifts_mm": "",
-                "first_change_utc": "", "warnings": 0,
+                "first_change_utc": "", "proposals": "", "warnings": 0,
                 "error": "no controller config"}  # fmt: skip
-    doc = check(list(task.files), task.config, false_alarm)
+    doc = check(list(task.files), task.config, false_alarm, upkeep=upkeep)
     changes = doc["changes"]
     return {
         "robot": task.robot, "day": task.day, "files": len(task.files), "poses": doc["poses"],
@@ -146,6 +154,7 @@ def check_task(task: RobotDay, false_alarm: float) -> dict[str, Any]:
         "sensors": " ".join(str(c["sensor"]) for c in changes),
         "shifts_mm": " ".join(f"{c['shift_mm']:+.3f}" for c in changes),
         "first_change_utc": changes[0]["start_utc"] if changes else "",
+        "proposals": proposal_column(doc["proposals"]),
         "warnings": len(doc["warnings"]),
     }  # fmt: skip
 

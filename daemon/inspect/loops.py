@@ -1,7 +1,8 @@
 """Loop closure over archived recordings (``loopcal check``, ``loopcal fleet check``): the
 daemon's health monitor (:mod:`loopcal.daemon.live.health`, the same code and false-alarm rate) fed
 file by file, and what it found: which sensor moved, from when, by how much; optionally a
-trace of every test, and its plot."""
+trace of every test, and its plot. The same scans, in the same chunks, go to the daemon's
+upkeep in report mode (:mod:`.proposals`): the recalibrations it would have proposed."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from ..config.controller import load_controller_config
 from ..live.health import HealthMonitor
 from ..recording import read_recordings
 from ..scans import SCAN_DTYPE
+from .proposals import ReportedProposals, UpkeepSettings, pending_proposal
 from .summary import utc_iso
 
 
@@ -52,10 +54,31 @@ class Trace:
 
 
 def check(files: list[Path], config_path: Path, false_alarm: float, *,
-          trace: bool = False) -> dict[str, Any]:  # fmt: skip
-    """Run the monitor over the files, one at a time; the ``--json`` document (and, under
-    ``"_trace"``, a :class:`Trace` of every test if ``trace``)."""
+          trace: bool = False, upkeep: UpkeepSettings | None = None) -> dict[str, Any]:  # fmt: skip
+    """Run the monitor and the upkeep over the files, one at a time.
+
+    Parameters
+    ----------
+    files : list of Path
+        The recordings, oldest first.
+    config_path : Path
+        The controller config to check against.
+    false_alarm : float
+        The health monitor's probability of an alarm per still pose when nothing moved.
+    trace : bool, default False
+        Keep every test for the plot (under ``"_trace"``, a :class:`Trace`).
+    upkeep : UpkeepSettings or None
+        The upkeep's settings (None: the daemon's defaults).
+
+    Returns
+    -------
+    dict
+        The ``--json`` document (docs/tools.md), ``"_trace"`` included (None unless
+        ``trace``).
+    """
     config = load_controller_config(config_path)
+    pending = pending_proposal(config)
+    proposals = ReportedProposals(config, upkeep or UpkeepSettings())
     kept = Trace() if trace else None
     latest = [0]  # the newest pose's stamp when the monitor last tested
     changes: list[dict[str, Any]] = []
@@ -102,11 +125,16 @@ def check(files: list[Path], config_path: Path, false_alarm: float, *,
                 first_ns.append(int(rec.scans["stamp_ns"][0]))
             last_ns = int(rec.scans["stamp_ns"][-1])
             monitor.feed(rec.scans)
+            proposals.feed(rec.scans)
     monitor.feed(np.zeros(0, dtype=SCAN_DTYPE), final=True)  # the pose the recordings end in
+    if proposals.failed is not None:
+        warnings.append(proposals.failed)
     return {
         "changes": changes,
         "loops_open": opened[0] if opened else None,
         "loops_close": not changes and not opened,
+        "proposals": proposals.found(first_ns[0] if first_ns else None),
+        "pending_proposal": pending,
         "poses": monitor.state.poses,
         "threshold": round(monitor.threshold, 3),
         "false_alarm": false_alarm,

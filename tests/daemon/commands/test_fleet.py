@@ -72,6 +72,22 @@ def test_fleet_check_finds_the_robot_and_day_whose_sensor_moved(fleet, tmp_path)
     assert abs(float(moved["shifts_mm"]) - 0.6) < 0.15
     others = [r for key, r in rows.items() if key != ("robot-c", "2026-11-19")]
     assert len(others) == 5 and all(r["loops_close"] == "True" for r in others)
+    # the daemon's upkeep would propose sensor 2's offset, on that robot-day alone
+    name, shift = moved["proposals"].split()
+    assert name == "d02" and abs(float(shift) - 0.6) < 0.1, moved["proposals"]
+    assert all(r["proposals"] == "-" for r in others)
+    columns = list(moved)
+    assert columns.index("proposals") == columns.index("first_change_utc") + 1
+
+
+def test_fleet_check_json_has_the_proposals_column(fleet):
+    proc = loopcal("fleet", "check", fleet, "--json", "--workers", "2")
+    assert proc.returncode == 1, proc.stderr
+    doc = json.loads(proc.stdout)
+    assert "proposals" in doc["columns"]
+    column = {(r["robot"], r["day"]): r["proposals"] for r in doc["rows"]}
+    assert column.pop(("robot-c", "2026-11-19")).startswith("d02 +0.")
+    assert set(column.values()) == {"-"}
 
 
 def test_fleet_bad_input(tmp_path):
@@ -83,3 +99,5 @@ def test_fleet_bad_input(tmp_path):
     assert proc.returncode == 2 and "not a directory" in proc.stderr
     proc = loopcal("fleet", "check", empty, "--workers", "0")
     assert proc.returncode == 2 and "--workers 0" in proc.stderr
+    proc = loopcal("fleet", "check", empty, "--upkeep-threshold-mm", "20")
+    assert proc.returncode == 2 and "--upkeep-threshold-mm 20" in proc.stderr

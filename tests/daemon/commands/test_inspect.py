@@ -1,8 +1,10 @@
-"""``loopcal info`` and ``loopcal check`` on real recording files, as subprocesses."""
+"""``loopcal info`` and ``loopcal check`` on real recording files, as subprocesses; check's
+report of what the daemon's upkeep would propose, from a robot at work (a task loop)."""
 
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import time
 from datetime import UTC, datetime
@@ -10,17 +12,23 @@ from datetime import UTC, datetime
 import numpy as np
 import pytest
 
+from loopcal.calibration.parameters import INDEX
 from loopcal.daemon import recording as rec
-from loopcal.daemon.config.controller import write_initial_config
+from loopcal.daemon.config.controller import load_controller_config, write_initial_config
 from loopcal.daemon.events import Event, Level
+from loopcal.daemon.live.upkeep import Upkeep
+from loopcal.daemon.recorder.settings import DEFAULTS
 from loopcal.daemon.worker.poses import poses_of_scans
+from loopcal.daemon.worker.proposal import proposal_path
 from loopcal.simulator.drift import OffsetDrift
+from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.scenarios import HandMoves
+from loopcal.simulator.task import TaskLoop
 from tests.support.emulator import hand_emulator
 from tests.support.mutations import tear_chunk
 from tests.support.processes import loopcal, record
-from tests.support.recordings import write_rows
-from tests.support.rows import T0, make_rows
+from tests.support.recordings import write_directory, write_rows
+from tests.support.rows import T0, make_rows, rows_from
 from tests.support.sessions import PAUSE_S, truth_for, write_session
 
 pytestmark = pytest.mark.timeout(180)
@@ -191,3 +199,95 @@ def test_check_says_the_shape_and_whether_the_loops_closed_again(drifting):
     line = next(x for x in text.splitlines() if x.startswith("sensor 3: offset moved"))
     assert ", a step)" in line or ", a creep, still moving)" in line, line
     assert "the loops have not closed again" in line or "closed again at" in line, line
+
+
+def _robot_at_work(d, seed, seconds, drifts=()):
+    """A task loop's scans as a recorder leaves them (a file a minute) in ``d / "rec"``,
+    and a controller config at the mechanism's truth; (truth, rows, directory, config)."""
+    truth = truth_for(seed)
+    t_us, codes = mechanism_scans(TaskLoop(seed), truth, int(seconds * 20), seed=seed,
+                                  drifts=tuple(drifts))  # fmt: skip
+    rows = rows_from(t_us, codes)
+    write_directory(d / "rec", rows, scans_per_file=1200)
+    return truth, rows, d / "rec", write_initial_config(d / "controller.toml", params=truth)
+
+
+@pytest.fixture(scope="module")
+def swapped(tmp_path_factory):
+    """Five minutes of a robot at work whose sensor 3 offset steps by +0.8 mm at 120 s."""
+    return _robot_at_work(tmp_path_factory.mktemp("swapped"), 1, 300,
+                          [OffsetDrift("step", 3, 120.0, 0.8)])  # fmt: skip
+
+
+def test_check_reports_what_upkeep_would_propose(swapped):
+    truth, rows, rec_dir, config = swapped
+    proc = loopcal("check", rec_dir, "--controller-config", config, "--json")
+    assert proc.returncode == 1, proc.stderr
+    doc = json.loads(proc.stdout)
+    [p] = doc["proposals"]
+    assert p["names"] == ["d03"] and p["scans"] >= 300 and all(p["gates"].values())
+    want = truth[INDEX["d03"]] + 0.8
+    assert abs(p["values"]["d03"] - want) <= 0.05, (p, want)
+    assert abs(p["shift_mm"]["d03"] - 0.8) <= 0.05 and 0 < p["std"]["d03"] <= 0.05
+    began = T0 / 1e9 + 120
+    assert abs(datetime.fromisoformat(p["since_utc"]).timestamp() - began) <= 15
+    assert abs(p["since_offset_s"] - 120) <= 15
+    since, until = (datetime.fromisoformat(p[k]).timestamp()
+                    for k in ("window_since_utc", "window_until_utc"))  # fmt: skip
+    assert began - 15 <= since < until <= began + 240
+    assert doc["pending_proposal"] is None
+    text = loopcal("check", rec_dir, "--controller-config", config).stdout
+    line = next(x for x in text.splitlines() if x.startswith("upkeep would propose"))
+    assert f"d03 = {p['values']['d03']:.4f} mm (+0.8" in line and p["since_utc"] in line, line
+    assert f"from {p['window_since_utc']} to {p['window_until_utc']}" in line, line
+
+
+def test_check_proposes_nothing_for_a_robot_unchanged(tmp_path):
+    _, _, rec_dir, config = _robot_at_work(tmp_path, 2, 300)
+    proc = loopcal("check", rec_dir, "--controller-config", config, "--json")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    doc = json.loads(proc.stdout)
+    assert doc["proposals"] == [] and doc["loops_close"] and doc["pending_proposal"] is None
+    text = loopcal("check", rec_dir, "--controller-config", config).stdout
+    assert "upkeep would propose no recalibration." in text and "pending" not in text
+
+
+def test_check_names_the_proposal_pending_beside_the_config(swapped, tmp_path):
+    """The daemon's own proposal (its upkeep in propose mode over the same scans) is named
+    with its values and when it was proposed; one edited by hand, with why it cannot be
+    taken."""
+    truth, rows, rec_dir, _ = swapped
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    up = Upkeep(load_controller_config(config), lambda *a, **k: None, mode="propose",
+                target_mm=DEFAULTS["upkeep_target_mm"],
+                threshold_mm=DEFAULTS["upkeep_threshold_mm"],
+                min_interval_s=DEFAULTS["upkeep_min_interval_s"], threaded=False)  # fmt: skip
+    up.feed(rows)
+    assert up.state.pending is not None
+    doc = json.loads(loopcal("check", rec_dir, "--controller-config", config, "--json").stdout)
+    pending = doc["pending_proposal"]
+    assert pending["error"] is None and pending["path"] == str(proposal_path(config))
+    assert pending["values"] == up.state.pending.values and pending["since_utc"]
+    [p] = doc["proposals"]  # the reference is the config alone: the same change found
+    assert p["values"]["d03"] == pytest.approx(pending["values"]["d03"], abs=1e-4)
+    text = loopcal("check", rec_dir, "--controller-config", config).stdout
+    assert (f"pending proposal {pending['path']} since {pending['since_utc']}: "
+            f"d03 = {pending['values']['d03']:.4f} mm") in text  # fmt: skip
+    path = proposal_path(config)
+    edited = f"d03 = {pending['values']['d03'] + 0.1!r}"  # [parameters] edited by hand
+    path.write_text(re.sub(r"^d03 = .*$", edited, path.read_text(), count=1, flags=re.M))
+    doc = json.loads(loopcal("check", rec_dir, "--controller-config", config, "--json").stdout)
+    damaged = doc["pending_proposal"]
+    assert "edited" in damaged["error"] and damaged["values"] is None
+    text = loopcal("check", rec_dir, "--controller-config", config).stdout
+    assert "pending proposal" in text and "cannot be taken" in text and "edited" in text
+
+
+def test_check_takes_the_daemons_upkeep_settings_or_the_options(swapped):
+    """A threshold above the shift: nothing proposed; out of the daemon's bounds: bad input."""
+    _, _, rec_dir, config = swapped
+    proc = loopcal("check", rec_dir, "--controller-config", config, "--json",
+                   "--upkeep-threshold-mm", "5")  # fmt: skip
+    assert json.loads(proc.stdout)["proposals"] == []
+    bad = loopcal("check", rec_dir, "--controller-config", config, "--upkeep-target-mm", "0")
+    assert bad.returncode == 2 and "--upkeep-target-mm 0" in bad.stderr
