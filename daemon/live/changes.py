@@ -111,12 +111,16 @@ class OffsetTests:
     shift_mm, std_mm, statistic : ndarray, shape (4,)
         The shift from the baseline, its standard deviation, and T_i.
     changed : list of str
-        The offsets found moved (``"d03"``...): the best sensor when T, its margin over
-        the runner-up and its shift all reach their limits; then a second one likewise
-        with the first's shift taken out.
+        The offsets found moved (``"d03"``...): when something moved, the sensor the data
+        point at (its likelihood, the baseline's uncertainty left out, above the
+        runner-up's by the limit) with its shift at ``threshold_mm``; then a second one
+        likewise with the first's shift taken out.
     moved : bool
         Something moved (the best T at the limit and its shift at ``threshold_mm``),
         whichever sensor it was.
+    own_std_mm : ndarray, shape (4,)
+        The shifts' standard deviations from these scans alone (the baseline's left out:
+        what two sets of scans tested against the same baseline differ by).
     """
 
     shift_mm: np.ndarray
@@ -124,6 +128,7 @@ class OffsetTests:
     statistic: np.ndarray
     changed: list[str]
     moved: bool
+    own_std_mm: np.ndarray
 
     def as_dict(self) -> dict[str, dict[str, float]]:
         return {n: {"shift_mm": round(float(self.shift_mm[i]), 5),
@@ -174,13 +179,20 @@ def offset_tests(
     best = int(np.argmax(T))
     moved = bool(T[best] >= LIMIT and abs(shift[best]) >= threshold_mm)
     changed: list[str] = []
-    margin = float(T[best] - np.max(np.delete(T, best)))
-    if moved and margin >= LIMIT:
+    # which sensor: the data's own likelihood of each (the baseline's uncertainty, common
+    # to every hypothesis, would blur them all alike)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        own = np.where(ok, g * g / d, 0.0)
+    best = int(np.argmax(own))
+    margin = float(own[best] - np.max(np.delete(own, best)))
+    if moved and margin >= LIMIT and abs(shift[best]) >= threshold_mm:
         changed.append(OFFSETS[best])
         second = _second(N, g, var, best, threshold_mm)
         if second is not None:
             changed.append(OFFSETS[second])
-    return OffsetTests(shift, std, T, sorted(changed), moved)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        own_std = np.where(ok, 1.0 / np.sqrt(d), np.nan)
+    return OffsetTests(shift, std, T, sorted(changed), moved, own_std)
 
 
 def _second(N: np.ndarray, g: np.ndarray, var: np.ndarray, first: int,

@@ -338,7 +338,7 @@ class Upkeep:
         first = offset_tests(ch.first, self._base, self._reference, threshold_mm=0.0)
         b = int(np.argmax(later.statistic))
         partial = abs(first.shift_mm[b] - later.shift_mm[b]) > 3 * float(
-            np.hypot(first.std_mm[b], later.std_mm[b]))  # fmt: skip
+            np.hypot(first.own_std_mm[b], later.own_std_mm[b]))  # fmt: skip
         use = later if partial else whole
         ch.since_ns = ch.first_end_ns if partial else ch.since_ns
         ch.names = use.changed

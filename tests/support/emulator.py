@@ -13,6 +13,7 @@ from loopcal.simulator import Emulator
 from loopcal.simulator.clock import Clock, HeldClock
 from loopcal.simulator.drift import OffsetDrift
 from loopcal.simulator.mechanism import MechanismSource
+from loopcal.simulator.motion import Scenario
 from loopcal.simulator.open_points import OpenPoints
 from loopcal.simulator.scenarios import HandMoves
 from loopcal.simulator.source import ConstantSource
@@ -51,16 +52,18 @@ def hand_emulator(
     drifts: tuple[OffsetDrift, ...] = (),
     clock: Clock | None = None,
     open_points: OpenPoints | None = None,
+    motion: Scenario | None = None,
 ) -> Emulator:
     """An emulated LDQ-412 on a technician-moved shoulder joint (not started), whose clock
     (``speed`` times wall time) starts at the recorder's first request: however long the
     recorder subprocess takes to start on a busy machine, the FIFO (1.28 s deep at 200 Hz)
     does not overflow before it connects. ``clock``: another clock instead (``speed`` is
     then not used); ``open_points``: the emulator's settings for what the datasheet leaves
-    open."""
+    open; ``motion``: another scenario than the technician's hand (a task loop)."""
     if clock is None:
         clock = HeldClock(speed)  # the emulator starts it at the first request
-    source = MechanismSource(HandMoves(seed), NOMINAL, noise_volts=0.04, seed=seed, drifts=drifts)
+    source = MechanismSource(motion or HandMoves(seed), NOMINAL, noise_volts=0.04, seed=seed,
+                             drifts=drifts)  # fmt: skip
     return Emulator(transport, source, scan_rate_hz=rate, clock=clock, seed=seed,
                     open_points=open_points)  # fmt: skip
 

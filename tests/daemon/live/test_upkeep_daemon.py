@@ -1,0 +1,99 @@
+"""The daemon's upkeep end to end: ``loopcal daemon`` reading an emulated module on a robot
+at work (a task loop, the emulator's clock ten or twenty times wall time), a sensor swapped
+or not: it proposes once, writes once in write mode and then watches the new values, and
+writes nothing for a robot that did not change."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import pytest
+
+from loopcal.calibration.parameters import INDEX, NOMINAL
+from loopcal.daemon.config.controller import load_controller_config, write_initial_config
+from loopcal.daemon.recording import read_recordings
+from loopcal.daemon.worker.proposal import proposal_path, read_proposal
+from loopcal.simulator.drift import OffsetDrift
+from loopcal.simulator.task import TaskLoop
+from tests.support.emulator import hand_emulator
+from tests.support.processes import NotifySocket, Proc, loopcal, write_config
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
+
+
+def start(tmp_path, emu, mode: str | None = None) -> tuple[Proc, NotifySocket]:
+    controller = tmp_path / "controller.toml"
+    upkeep = "" if mode is None else f'\n[upkeep]\nmode = "{mode}"\n'
+    cfg = write_config(tmp_path / "daemon.toml", emu.url, tmp_path / "rec",
+                       f'\n[controller]\nconfig = "{controller}"\n{upkeep}')  # fmt: skip
+    notify = NotifySocket(tmp_path / "notify.sock")
+    return Proc(["daemon", "--config", str(cfg)], env={"NOTIFY_SOCKET": str(notify.path)}), notify
+
+
+def test_the_daemon_proposes_a_swapped_sensor_once(tmp_path):
+    config = write_initial_config(tmp_path / "controller.toml")  # the emulator's geometry
+    before = config.read_bytes()
+    swap = (OffsetDrift("step", 3, 45.0, 0.8),)
+    with hand_emulator(speed=10.0, seed=3, drifts=swap, motion=TaskLoop(3)) as emu:
+        daemon, notify = start(tmp_path, emu)
+        try:
+            line = daemon.lines[daemon.wait_for("recalibration_proposed", timeout=120)]
+            assert "d03" in line and "every gate passed" in line
+            deadline = time.monotonic() + 15
+            while "RECALIBRATION PROPOSED (d03)" not in notify.wait_for("STATUS",
+                                                                        timeout=10)["STATUS"]:
+                assert time.monotonic() < deadline, notify.messages[-3:]
+            status = loopcal("upkeep", "status", "--config", tmp_path / "daemon.toml", "--json")
+            time.sleep(6)  # a minute more of the robot's motion: nothing new
+            rc, _ = daemon.stop(30)
+        finally:
+            daemon.kill()
+    assert rc == 0, daemon.text
+    assert config.read_bytes() == before  # propose: the config in force untouched
+    p = read_proposal(load_controller_config(config))
+    assert p is not None and list(p.values) == ["d03"]
+    assert abs(p.values["d03"] - (NOMINAL[INDEX["d03"]] + 0.8)) <= 0.05
+    doc = json.loads(status.stdout)
+    assert status.returncode == 0 and doc["pending"] and doc["values"] == p.values
+    events = read_recordings(tmp_path / "rec").events_of("recalibration_proposed")
+    assert len(events) == 1 and events[0].details["path"] == str(proposal_path(config))
+    assert events[0].details["since_ns"] >= 0
+
+
+def test_write_mode_rewrites_the_config_once_and_the_daemon_follows_it(tmp_path):
+    config = write_initial_config(tmp_path / "controller.toml")
+    swap = (OffsetDrift("step", 1, 45.0, -0.6),)
+    with hand_emulator(speed=10.0, seed=4, drifts=swap, motion=TaskLoop(4)) as emu:
+        daemon, _ = start(tmp_path, emu, "write")
+        try:
+            daemon.wait_for(r"recalibrated: upkeep: wrote d01", timeout=120)
+            daemon.wait_for(r"config_reload: .*was replaced", timeout=30)
+            time.sleep(9)  # 90 s more of the robot's motion, watched at the new values
+            rc, _ = daemon.stop(30)
+        finally:
+            daemon.kill()
+    assert rc == 0, daemon.text
+    assert daemon.text.count("recalibrated: upkeep") == 1, daemon.text
+    new = load_controller_config(config)
+    assert abs(new.params[INDEX["d01"]] - (NOMINAL[INDEX["d01"]] - 0.6)) <= 0.05
+    assert new.provenance["upkeep"]["mode"] == "write"
+    assert len(list(tmp_path.glob("controller.toml.*.prev"))) == 1
+    assert not os.path.lexists(proposal_path(config))
+
+
+def test_an_unchanged_robot_gets_nothing_written(tmp_path):
+    config = write_initial_config(tmp_path / "controller.toml")
+    before = config.read_bytes()
+    with hand_emulator(speed=20.0, seed=5, motion=TaskLoop(5)) as emu:
+        daemon, _ = start(tmp_path, emu, "write")
+        try:
+            daemon.wait_for("recording to", timeout=30)
+            time.sleep(25)  # about 8 minutes of operation
+            rc, _ = daemon.stop(30)
+        finally:
+            daemon.kill()
+    assert rc == 0, daemon.text
+    assert "recalibrat" not in daemon.text, daemon.text
+    assert config.read_bytes() == before and not list(tmp_path.glob("controller.toml.*"))
