@@ -127,6 +127,8 @@ def test_the_daemon_unit_is_what_the_daemon_needs():
     assert s["IPAddressDeny"] == "any" and "192.168.0.0/16" in s["IPAddressAllow"]
     assert s["ExecStart"] == f"{INSTALLED_BINARY} daemon --config /etc/loopcal/daemon.toml"
     assert "-HUP" in s["ExecReload"] and s["StateDirectory"] == "loopcal"
+    # the upkeep's proposals and writes: the controller config's directory, nothing else
+    assert s["ReadWritePaths"].split() == ["/etc/loopcal/controller"]
     assert "OPENBLAS_NUM_THREADS=1" in s["Environment"]  # else TasksMax= kills numpy
     assert u["Install"]["WantedBy"] == "multi-user.target"
 
