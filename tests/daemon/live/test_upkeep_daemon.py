@@ -18,16 +18,16 @@ from loopcal.daemon.worker.proposal import proposal_path, read_proposal
 from loopcal.simulator.drift import OffsetDrift
 from loopcal.simulator.task import TaskLoop
 from tests.support.emulator import hand_emulator
-from tests.support.processes import NotifySocket, Proc, loopcal, write_config
+from tests.support.processes import NotifySocket, Proc, free_port, loopcal, scrape, write_config
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 
 
-def start(tmp_path, emu, mode: str | None = None) -> tuple[Proc, NotifySocket]:
+def start(tmp_path, emu, mode: str | None = None, extra: str = "") -> tuple[Proc, NotifySocket]:
     controller = tmp_path / "controller.toml"
     upkeep = "" if mode is None else f'\n[upkeep]\nmode = "{mode}"\n'
     cfg = write_config(tmp_path / "daemon.toml", emu.url, tmp_path / "rec",
-                       f'\n[controller]\nconfig = "{controller}"\n{upkeep}')  # fmt: skip
+                       f'\n[controller]\nconfig = "{controller}"\n{upkeep}{extra}')  # fmt: skip
     notify = NotifySocket(tmp_path / "notify.sock")
     return Proc(["daemon", "--config", str(cfg)], env={"NOTIFY_SOCKET": str(notify.path)}), notify
 
@@ -36,8 +36,9 @@ def test_the_daemon_proposes_a_swapped_sensor_once(tmp_path):
     config = write_initial_config(tmp_path / "controller.toml")  # the emulator's geometry
     before = config.read_bytes()
     swap = (OffsetDrift("step", 3, 45.0, 0.8),)
+    port = free_port()
     with hand_emulator(speed=10.0, seed=3, drifts=swap, motion=TaskLoop(3)) as emu:
-        daemon, notify = start(tmp_path, emu)
+        daemon, notify = start(tmp_path, emu, extra=f'\n[metrics]\nlisten = "127.0.0.1:{port}"\n')
         try:
             line = daemon.lines[daemon.wait_for("recalibration_proposed", timeout=120)]
             assert "d03" in line and "every gate passed" in line
@@ -46,6 +47,11 @@ def test_the_daemon_proposes_a_swapped_sensor_once(tmp_path):
                                                                         timeout=10)["STATUS"]:
                 assert time.monotonic() < deadline, notify.messages[-3:]
             status = loopcal("upkeep", "status", "--config", tmp_path / "daemon.toml", "--json")
+            m = scrape(port)
+            assert m["loopcal_upkeep_proposal_pending"][0][1] == 1.0
+            assert m["loopcal_upkeep_proposal_age_seconds"][0][1] >= 0
+            assert m["loopcal_upkeep_fits_total"][0][1] >= 3
+            assert m["loopcal_upkeep_fit_cpu_seconds_total"][0][1] > 0
             time.sleep(6)  # a minute more of the robot's motion: nothing new
             rc, _ = daemon.stop(30)
         finally:
