@@ -47,6 +47,7 @@ import os
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from typing import Any
@@ -58,6 +59,7 @@ from loopcal.calibration.parameters import INDEX
 from ..config.controller import ControllerConfig, ControllerConfigError
 from ..events import Level
 from ..recorder.engine import Recorder
+from ..recorder.settings import RecorderSettings
 from ..recording.filereader import utc_text
 from ..worker.offsets import OFFSETS, OffsetFit, refit_offsets
 from ..worker.proposal import (
@@ -135,6 +137,9 @@ class Upkeep:
         The recordings' directory, named in the proposal (for ``loopcal upkeep apply``).
     threaded : bool, default True
         Fit in a worker thread of the lowest priority; False: in :meth:`feed` (offline).
+    settings : callable, optional
+        The recorder's settings in force: a reload takes ``[upkeep]`` from them again (the
+        mode too: off, or on once the reload brings a controller config).
     """
 
     name = "upkeep"
@@ -150,13 +155,15 @@ class Upkeep:
         min_interval_s: float,
         directory: os.PathLike | None = None,
         threaded: bool = True,
+        settings: Callable[[], RecorderSettings] | None = None,
     ) -> None:
-        if mode not in ("propose", "write", "report"):
-            raise ValueError(f"upkeep mode must be propose, write or report, got {mode!r}")
+        if mode not in ("off", "propose", "write", "report"):
+            raise ValueError(f"upkeep mode must be off, propose, write or report, got {mode!r}")
         self.mode, self.emit = mode, emit
         self.target_mm, self.threshold_mm = float(target_mm), float(threshold_mm)
         self.min_interval_ns = int(min_interval_s * 1e9)
         self.directory = None if directory is None else str(directory)
+        self._settings = settings
         self.state = UpkeepState()
         self._rows: np.ndarray | None = None  # the scans kept: the fit window and a segment
         self._seg_start_ns: int | None = None
@@ -198,6 +205,8 @@ class Upkeep:
             names = ", ".join(st.pending.values)
             since = utc_text(st.pending_since_ns)[11:19]
             return f"RECALIBRATION PROPOSED ({names}) since {since} UTC: loopcal upkeep apply"
+        if self.mode == "off":
+            return "upkeep off"
         if st.change:
             return f"upkeep: {st.change}"
         return f"upkeep ({self.mode}): nothing changed"
@@ -250,8 +259,18 @@ class Upkeep:
                 self._rows, self._change, self._seg_start_ns = None, None, None
 
     def _reset(self, controller: ControllerConfig) -> None:
-        """Start over against ``controller``: a proposal beside it that is still valid
-        stays pending (a restarted daemon does not propose the same change again)."""
+        """Start over against ``controller`` (and the settings in force): a proposal
+        beside it that is still valid stays pending (a restarted daemon does not propose
+        the same change again); one that is not is set aside."""
+        if self._settings is not None:
+            st = self._settings()
+            self.mode = upkeep_mode(st.upkeep_mode, controller)
+            self.target_mm, self.threshold_mm = st.upkeep_target_mm, st.upkeep_threshold_mm
+            self.min_interval_ns = int(st.upkeep_min_interval_s * 1e9)
+            self.directory = str(st.directory)
+        if self.mode != "off" and controller.path is None:
+            log.warning("upkeep off: it needs the robot's controller config")
+            self.mode = "off"
         self.controller = controller
         self._change = None
         self._base = Normal()
@@ -259,15 +278,31 @@ class Upkeep:
         self.state.pending = None
         self._reference = controller
         try:
-            pending = None if self.mode == "report" else read_proposal(controller)
+            pending = None if self.mode in ("report", "off") else read_proposal(controller)
         except ControllerConfigError as exc:
-            log.warning("upkeep: %s", exc)
             pending = None
+            self._set_aside(f"it cannot be applied: {exc}")
         if pending is not None:
             self.state.pending = pending
             since = pending.upkeep.get("proposed_ns")
             self.state.pending_since_ns = since if isinstance(since, int) else time.time_ns()
             self._reference = self._with(pending.values)
+
+    def _set_aside(self, why: str) -> None:
+        """A proposal beside the config that can no longer be applied (the config changed
+        since, or it was damaged): renamed aside, said once, so that nobody applies it."""
+        try:
+            aside = discard_proposal(self.controller)
+        except OSError as exc:
+            log.error("upkeep: the proposal beside %s cannot be set aside: %s",
+                      self.controller.path, exc)  # fmt: skip
+            return
+        self.state.withdrawn += 1
+        self.emit("recalibration_withdrawn", Level.WARNING,
+                  f"upkeep: the proposal beside {self.controller.path} is withdrawn (kept as "
+                  f"{aside}): {why}", path=str(proposal_path(self.controller.path)),
+                  aside=str(aside), names=[],
+                  since_ns=time.time_ns())  # fmt: skip
 
     def _with(self, values: dict[str, float]) -> ControllerConfig:
         """The config in force with ``values`` in place of its own (and their std)."""
@@ -279,7 +314,8 @@ class Upkeep:
 
     def _take(self, rows: np.ndarray) -> None:
         """Keep the scans; screen each full segment."""
-        if not len(rows):
+        if not len(rows) or self.mode == "off":
+            self._rows = self._seg_start_ns = None
             return
         buf = rows if self._rows is None else np.concatenate([self._rows, rows])
         stamps = buf["stamp_ns"]
@@ -496,17 +532,16 @@ def upkeep_mode(mode: str | None, controller: ControllerConfig) -> str:
 
 
 def watch_upkeep(recorder: Recorder) -> Upkeep | None:
-    """Attach upkeep to a recorder as an observer, unless its mode is off (``[upkeep].mode``,
-    ``record --upkeep``; off without a controller config); returns it."""
+    """Attach upkeep to a recorder as an observer (``[upkeep].mode``, ``record --upkeep``;
+    off without a controller config: it then watches nothing until a reload turns it on);
+    returns it."""
     s = recorder.settings
     mode = upkeep_mode(s.upkeep_mode, recorder.controller)
-    if mode == "off":
-        return None
-    if recorder.controller.path is None:
+    if mode != "off" and recorder.controller.path is None:
         raise ControllerConfigError(f"[upkeep].mode = {mode!r} needs the robot's "
                                     "controller config ([controller].config)")  # fmt: skip
     up = Upkeep(recorder.controller, recorder.emit, mode=mode, target_mm=s.upkeep_target_mm,
                 threshold_mm=s.upkeep_threshold_mm, min_interval_s=s.upkeep_min_interval_s,
-                directory=s.directory)  # fmt: skip
+                directory=s.directory, settings=lambda: recorder.settings)  # fmt: skip
     recorder.add_observer(up)
     return up

@@ -151,3 +151,36 @@ def test_a_proposal_damaged_or_edited_by_hand_is_refused_and_nothing_written(tmp
     assert written.backup.exists() and not os.path.lexists(path)
     assert load_controller_config(config).params[INDEX["d02"]] == pytest.approx(
         truth[INDEX["d02"]] + 0.9, abs=0.05)  # fmt: skip
+
+
+def test_a_stale_proposal_is_set_aside_when_the_config_changes(tmp_path):
+    truth, rows = robot_at_work(9, 300, [OffsetDrift("step", 4, 60.0, 0.7)])
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    up = upkeep_for(config)
+    assert run(up, rows, until="recalibration_proposed") is not None
+    config.write_text(config.read_text() + "\n# edited by hand\n")  # another version
+    up.reload(load_controller_config(config))
+    assert up.emit.kinds()[-1] == "recalibration_withdrawn"
+    assert "another version" in up.emit[-1][1]
+    assert not os.path.lexists(proposal_path(config))
+    assert len(list(tmp_path.glob("controller.toml.proposed.*.discarded"))) == 1
+
+
+def test_a_reload_takes_the_upkeep_settings_again(tmp_path):
+    from dataclasses import replace
+
+    from loopcal.daemon.recorder.settings import RecorderSettings
+
+    truth, rows = robot_at_work(10, 300, [OffsetDrift("step", 2, 60.0, 0.8)])
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    settings = RecorderSettings(daq_url="modbus-tcp://127.0.0.1:1502", directory=tmp_path,
+                                controller_config=config, upkeep_mode="off")  # fmt: skip
+    current = [settings]
+    loaded = load_controller_config(config)
+    up = Upkeep(loaded, Events(), mode="off", target_mm=0.05, threshold_mm=0.1,
+                min_interval_s=600, threaded=False, settings=lambda: current[0])  # fmt: skip
+    run(up, rows)
+    assert up.emit == [] and up.status() == "upkeep off"
+    current[0] = replace(settings, upkeep_mode="propose")  # SIGHUP with the mode on
+    up.reload(loaded)
+    assert run(up, rows, until="recalibration_proposed") is not None
