@@ -373,10 +373,6 @@ def _convert(p: Path, name: str, v: Any) -> Any:
         if not isinstance(v, bool):
             raise bad(f"must be true or false, got {v!r}")
         return v
-    if kind == "probability":
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise bad(f"must be a probability, got {v!r}")
-        return float(v)
     if kind == "count":
         if isinstance(v, bool) or not isinstance(v, int):
             raise bad(f"must be an integer, got {v!r}")
@@ -385,17 +381,14 @@ def _convert(p: Path, name: str, v: Any) -> Any:
         if v not in SETTINGS[name].choices:
             raise bad(f"must be one of {', '.join(SETTINGS[name].choices)}, got {v!r}")
         return v
-    if kind == "mm":
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise bad(f"must be a length in mm, got {v!r}")
-        return float(v)
-    if kind == "days":
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise bad(f"must be a number of days (inf: never), got {v!r}")
-        return float(v)
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise bad(f"must be a number of seconds, got {v!r}")
+        raise bad(f"must be {_NUMBERS[kind]}, got {v!r}")
     return float(v)
+
+
+#: what a number of each kind is, in words (a TOML value of the wrong type names it)
+_NUMBERS = {"probability": "a probability", "mm": "a length in mm",
+            "days": "a number of days (inf: never)", "seconds": "a number of seconds"}  # fmt: skip
 
 
 def _size_option(text: str) -> int:
