@@ -480,8 +480,9 @@ class Upkeep:
                           f"{written.backup})", path=str(written.path),
                           previous=str(written.backup), **details)  # fmt: skip
         except ControllerConfigError as exc:
+            done = "written" if self.mode == "write" else "proposed"
             self.emit("recalibration_refused", Level.ERROR,
-                      f"upkeep: {words} identified but not {self.mode}d: {exc}",
+                      f"upkeep: {words} identified but not {done}: {exc}",
                       names=fit.changed, since_ns=ch.since_ns, refusal=str(exc))  # fmt: skip
             self._change = None
             return

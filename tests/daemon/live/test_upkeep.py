@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from loopcal.calibration.parameters import INDEX
 from loopcal.daemon.config.controller import (
@@ -184,3 +186,58 @@ def test_a_reload_takes_the_upkeep_settings_again(tmp_path):
     current[0] = replace(settings, upkeep_mode="propose")  # SIGHUP with the mode on
     up.reload(loaded)
     assert run(up, rows, until="recalibration_proposed") is not None
+
+
+@pytest.fixture(scope="module")
+def a_proposal(tmp_path_factory):
+    """(controller config path, the proposal's text) made by the upkeep once."""
+    tmp = tmp_path_factory.mktemp("proposal")
+    truth, rows = robot_at_work(13, 240, [OffsetDrift("step", 3, 60.0, 0.6)])
+    config = write_initial_config(tmp / "controller.toml", params=truth)
+    assert run(upkeep_for(config), rows, until="recalibration_proposed") is not None
+    return config, proposal_path(config).read_text()
+
+
+@given(st.data())
+@settings(max_examples=150, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
+def test_any_mutation_of_a_proposal_is_refused_or_reads_as_written(a_proposal, data):
+    """Fuzzed: a proposal cut, with bytes flipped, inserted or deleted anywhere reads back
+    as the daemon wrote it or is refused with ControllerConfigError, never anything else."""
+    config, text = a_proposal
+    raw = bytearray(text.encode())
+    for _ in range(data.draw(st.integers(1, 3))):
+        i = data.draw(st.integers(0, len(raw) - 1))
+        how = data.draw(st.sampled_from(["flip", "cut", "insert", "delete"]))
+        if how == "flip":
+            raw[i] ^= 1 << data.draw(st.integers(0, 7))
+        elif how == "cut":
+            del raw[i:]
+        elif how == "insert":
+            raw[i:i] = data.draw(st.binary(min_size=1, max_size=8))
+        else:
+            del raw[i:i + data.draw(st.integers(1, 40))]
+        if not raw:
+            break
+    path = proposal_path(config)
+    path.write_bytes(bytes(raw))
+    loaded = load_controller_config(config)
+    try:
+        p = read_proposal(loaded)
+    except ControllerConfigError:
+        return
+    finally:
+        path.write_text(text)
+    good = read_proposal(loaded)
+    assert p is not None and p.values == good.values and p.upkeep["digest"] == good.upkeep["digest"]
+
+
+def test_write_mode_never_overwrites_a_config_someone_else_wrote_meanwhile(tmp_path):
+    truth, rows = robot_at_work(14, 300, [OffsetDrift("step", 1, 60.0, 0.8)])
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    up = upkeep_for(config, mode="write")  # it read the config
+    theirs = config.read_text() + "\n# a person's calibration, written meanwhile\n"
+    config.write_text(theirs)
+    assert run(up, rows, until="recalibration_refused") is not None, up.emit
+    assert "changed since" in up.emit[-1][1] and "not written" in up.emit[-1][1]
+    assert config.read_text() == theirs and not list(tmp_path.glob("controller.toml.*"))
