@@ -190,6 +190,11 @@ def peer_of(sock: socket.socket) -> dict[str, Any]:
     return {"user": user, "uid": uid, "pid": pid}
 
 
+#: connections the kernel queues before the control thread accepts them (a burst of clients
+#: on a loaded controller waits there rather than being turned away)
+BACKLOG = 64
+
+
 def bind_control_socket(path: Path) -> socket.socket:
     """Listen on the unix socket ``path``, owner and group only (0660).
 
@@ -220,7 +225,7 @@ def bind_control_socket(path: Path) -> socket.socket:
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         sock.bind(str(path))
         os.chmod(path, 0o660)
-        sock.listen(8)
+        sock.listen(BACKLOG)
     except OSError as exc:
         raise ControlError(f"[control].socket {path}: cannot listen there: "
                            f"{exc.strerror or exc}") from None  # fmt: skip

@@ -21,6 +21,7 @@ from loopcal.daemon.events import Event, Level
 from loopcal.daemon.recorder.acquisition import TAKEN_REASON, Acquisition, Batch
 from loopcal.daemon.recorder.foreign import QUIET_S
 from loopcal.daemon.scans import SCAN_DTYPE
+from loopcal.drivers.modbus import FIFO_ANSWER_WAIT_S
 from loopcal.simulator.open_points import Latency
 from loopcal.simulator.testing import EmulatedLDQ412
 from tests.support.emulator import hand_emulator
@@ -185,9 +186,11 @@ def test_overflows_and_outages_are_not_another_master():
 
 
 def test_a_fifo_answer_lost_on_the_way_is_not_another_master():
-    """Half the answers 1.2 s late, past the FIFO read's 1 s wait: a FIFO read whose answer
-    never came took its scans with it. The gap is loopcal's own loss, not another master's."""
-    slow = Latency(min_ms=0.5, max_ms=1.0, slow_fraction=0.5, slow_ms=(1200.0, 1300.0))
+    """Half the answers late past the FIFO read's wait (FIFO_ANSWER_WAIT_S): a FIFO read whose
+    answer never came took its scans with it. The gap is loopcal's own loss, not another
+    master's."""
+    late_ms = FIFO_ANSWER_WAIT_S * 1000 + 200
+    slow = Latency(min_ms=0.5, max_ms=1.0, slow_fraction=0.5, slow_ms=(late_ms, late_ms + 100))
     with EmulatedLDQ412(clock="manual", scenario="static", scan_rate_hz=RATE) as module:
         with Recording(module) as rec:
             rec.caught_up()
