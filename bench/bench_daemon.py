@@ -11,13 +11,15 @@ process). Three figures, each against a baseline measured in the same run:
   ASCII transport (no FIFO, one poll per scan), the deviation from the 50 ms scan period.
 * ``features``: the recorder's share of one core at 20 Hz with each feature added in turn
   (none: ``--no-health``; health, with a controller config; metrics, scraped every 5 s; the
-  live view with one Foxglove client subscribed to everything), the steps taking turns,
-  medians of ``--repeats`` windows of ``--feature-seconds``. Target (issue 23): all on <=
-  1.5 %. Measured (2-core VM, 2 December 2026, the same recorder; docs/tools.md): in the
-  morning, recording alone 1.53 %, + health 1.97, + metrics 1.96, + live view 2.23 % (not
-  met; 1.50 .. 2.06 % under load); in the afternoon on a fresh VM, 1.07, 1.17, 1.23, 1.47 %
-  and 0.77, 0.87, 0.87, 1.07 % (met): what the recording alone costs on this VM varies
-  twofold from day to day, and the features add about 0.3 to 0.7 %.
+  live view with one Foxglove client subscribed to everything; the upkeep, ``--upkeep
+  propose``, off before), the steps taking turns, medians of ``--repeats`` windows of
+  ``--feature-seconds``; the upkeep's fits (its metric) and its worker thread apart.
+  Target (issue 23): all on <= 1.5 %, the upkeep's fits excepted. Measured (2-core VM,
+  2 December 2026, the same recorder, before the upkeep; docs/tools.md): in the morning,
+  recording alone 1.53 %, + health 1.97, + metrics 1.96, + live view 2.23 % (not met;
+  1.50 .. 2.06 % under load); in the afternoon on a fresh VM, 1.07, 1.17, 1.23, 1.47 % and
+  0.77, 0.87, 0.87, 1.07 % (met): what the recording alone costs on this VM varies twofold
+  from day to day, and the features add about 0.3 to 0.7 %.
 * ``memory``: resident memory of the recorder while it records ``--scans`` at an
   accelerated rate (``--rate`` Hz of device time, ``--speed`` times as fast), sampled as it
   goes; baseline: its resident memory over the first fifth of the samples after a warm-up
@@ -123,29 +125,45 @@ def bench_features(seconds: float, repeats: int) -> list[tuple[str, float]]:
     tmp = Path(tempfile.mkdtemp(prefix="loopcal-bench-"))
     config = write_initial_config(tmp / "controller.toml")  # the emulator's geometry
     health = ["--controller-config", str(config)]
-    steps = [  # (name, health, metrics scraped, live view watched)
-        ("recording alone (--no-health)", False, False, False),
-        ("+ loop-closure health", True, False, False),
-        ("+ metrics (scraped every 5 s)", True, True, False),
-        ("+ live view, one client", True, True, True),
+    steps = [  # (name, health, metrics scraped, live view watched, upkeep)
+        ("recording alone (--no-health)", False, False, False, False),
+        ("+ loop-closure health", True, False, False, False),
+        ("+ metrics (scraped every 5 s)", True, True, False, False),
+        ("+ live view, one client", True, True, True, False),
+        ("+ upkeep (propose)", True, True, True, True),
     ]
     shares: list[list[float]] = [[] for _ in steps]
+    fits: list[float] = []
+    threads: list[float] = []
     for r in range(repeats):
-        for i, (_, healthy, scraped, watched) in enumerate(steps):
+        for i, (_, healthy, scraped, watched, upkeep) in enumerate(steps):
             extra = health if healthy else ["--no-health"]
-            shares[i].append(feature_share(tmp / f"{i}-{r}", extra, seconds, scraped, watched))
+            extra = [*extra, "--upkeep", "propose" if upkeep else "off"] if healthy else extra
+            share, fit, thread = feature_share(tmp / f"{i}-{r}", extra, seconds, scraped,
+                                               watched)  # fmt: skip
+            shares[i].append(share)
+            if upkeep:
+                fits += [] if fit is None else [fit]
+                threads.append(thread)
     out = []
     for (name, *_), got in zip(steps, shares, strict=True):
         out.append((name, float(np.median(got))))
         print(f"  {name:34} {100 * out[-1][1]:5.2f} % of one core (median of {repeats}: "
               f"{', '.join(f'{100 * x:.2f}' for x in got)})", flush=True)  # fmt: skip
+    fit = float(np.median(fits)) if fits else 0.0
+    print(f"  {'  of which the upkeep fits':34} {100 * fit:5.3f} % (its metric "
+          "loopcal_upkeep_fit_cpu_seconds); its whole thread "
+          f"{100 * float(np.median(threads)) if threads else 0.0:.3f} %")  # fmt: skip
+    out.append(("the upkeep's fits", fit))
     return out
 
 
 def feature_share(out: Path, extra: list[str], seconds: float, scraped: bool,
-                  watched: bool) -> float:  # fmt: skip
+                  watched: bool) -> tuple[float, float | None, float]:  # fmt: skip
     """The recorder's share of one core at 20 Hz over ``seconds`` after a warm-up, with
-    ``extra`` options, its metrics scraped every 5 s, a Foxglove client watching."""
+    ``extra`` options, its metrics scraped every 5 s, a Foxglove client watching; over the
+    same window, the upkeep's fits' share (its metric; None if not scraped) and its
+    worker thread's (the recorder's one thread at nice 19)."""
     from tests.support.js import JS, npm_installed
     from tests.support.processes import free_port, scrape
 
@@ -170,19 +188,43 @@ def feature_share(out: Path, extra: list[str], seconds: float, scraped: bool,
                                           stdout=subprocess.DEVNULL)  # fmt: skip
             time.sleep(5.0)
             c0, t0 = cpu_seconds(rec.pid), time.monotonic()
+            u0 = _niced_cpu(rec.pid)
+            m0 = m = scrape(metrics) if scraped else {}
             while time.monotonic() - t0 < seconds:
                 time.sleep(5.0)
                 if rec.poll() is not None:
                     raise RuntimeError(f"the recorder stopped: {log.read_text()[-2000:]}")
                 if scraped:
-                    scrape(metrics)
-            share = (cpu_seconds(rec.pid) - c0) / (time.monotonic() - t0)
+                    m = scrape(metrics)
+            elapsed = time.monotonic() - t0
+            share = (cpu_seconds(rec.pid) - c0) / elapsed
+            fit = (_fit_cpu(m) - _fit_cpu(m0)) / elapsed if scraped else None
+            thread = (_niced_cpu(rec.pid) - u0) / elapsed
         finally:
             stop(rec)
             if client is not None:
                 client.kill()
                 client.wait()
-    return share
+    return share, fit, thread
+
+
+def _niced_cpu(pid: int, nice: int = 19) -> float:
+    """CPU seconds of a process's threads at ``nice`` (the upkeep's worker), so far."""
+    total = 0
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # the thread ended
+            continue
+        if int(fields[16]) == nice:
+            total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+def _fit_cpu(m: dict[str, list]) -> float:
+    """The upkeep's fit CPU seconds in a scrape (0 without upkeep)."""
+    got = m.get("loopcal_upkeep_fit_cpu_seconds_total") or m.get("loopcal_upkeep_fit_cpu_seconds")
+    return float(got[0][1]) if got else 0.0
 
 
 def bench_memory(n_scans: int, speed: float, *, live: bool = False, rate: int = 200
@@ -322,12 +364,12 @@ def cpu_and_jitter(args: argparse.Namespace) -> None:
 
 def features(args: argparse.Namespace) -> None:
     print(f"Each feature's share of one core at 20 Hz ({args.feature_seconds:g} s windows):")
-    steps = bench_features(args.feature_seconds, args.repeats)
+    *steps, (_, fit) = bench_features(args.feature_seconds, args.repeats)
     for (name, share), (_, before) in zip(steps[1:], steps[:-1], strict=True):
         print(f"  {name}: {100 * (share - before):+.2f} % of one core")
-    total = steps[-1][1]
-    print(f"  all on: {100 * total:.2f} % (target <= 1.5 %: "
-          f"{'met' if total <= 0.015 else 'NOT met'})")  # fmt: skip
+    total = steps[-1][1] - fit
+    print(f"  all on, the upkeep's fits excepted: {100 * total:.2f} % (target <= 1.5 %: "
+          f"{'met' if total <= 0.015 else 'NOT met'}); its fits {100 * fit:.3f} %")  # fmt: skip
     print()
 
 
