@@ -118,9 +118,6 @@ class OffsetTests:
     moved : bool
         Something moved (the best T at the limit and its shift at ``threshold_mm``),
         whichever sensor it was.
-    own_std_mm : ndarray, shape (4,)
-        The shifts' standard deviations from these scans alone (the baseline's left out:
-        what two sets of scans tested against the same baseline differ by).
     """
 
     shift_mm: np.ndarray
@@ -128,7 +125,6 @@ class OffsetTests:
     statistic: np.ndarray
     changed: list[str]
     moved: bool
-    own_std_mm: np.ndarray
 
     def as_dict(self) -> dict[str, dict[str, float]]:
         return {n: {"shift_mm": round(float(self.shift_mm[i]), 5),
@@ -190,9 +186,7 @@ def offset_tests(
         second = _second(N, g, var, best, threshold_mm)
         if second is not None:
             changed.append(OFFSETS[second])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        own_std = np.where(ok, 1.0 / np.sqrt(d), np.nan)
-    return OffsetTests(shift, std, T, sorted(changed), moved, own_std)
+    return OffsetTests(shift, std, T, sorted(changed), moved)
 
 
 def _second(N: np.ndarray, g: np.ndarray, var: np.ndarray, first: int,

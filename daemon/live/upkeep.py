@@ -5,27 +5,25 @@ recorder feeds every scan (:meth:`Upkeep.feed`, from the analysis thread); a wor
 of its own, at the lowest CPU priority, does the rest, so that neither the recording nor
 the other observers ever wait for a fit.
 
-1. **Screen.** Every :data:`SEGMENT_S` of scans, the four offsets are fitted on that
-   segment alone (maximum likelihood on every usable scan, the channel skew corrected;
-   every other parameter held at the reference:
-   :func:`~loopcal.daemon.worker.offsets.screen_offsets`). The reference is the controller
-   config in force, with the values of a pending proposal in place of its own (so that a
-   change is proposed once). A segment names the offsets whose shift is at least
-   ``threshold_mm`` and :data:`~loopcal.daemon.worker.offsets.SCREEN_Z` standard
-   deviations (the config's own uncertainty counted). A still plate names nothing: one
-   orientation cannot tell four offsets apart.
-2. **Change.** A segment that names offsets opens a candidate change; the next segment
-   that tells anything either names them too (the change stands) or not (a blip: dropped,
-   nothing said). The change began at the first segment whose shifts agree with the
-   latest's within 3 standard deviations (a segment the change fell inside of shows part of
-   it, and is left out).
-3. **Refit.** While the change stands, each new segment refits the changed offsets on every
-   scan since the change began (at most the latest :data:`FIT_WINDOW_S`, so that a creep
+1. **Test.** Every :data:`SEGMENT_S` of scans, loop closure on every usable scan (moving
+   or still, the channel skew corrected) is summed into the four offsets' normal
+   equations at the reference (:mod:`.changes`): the controller config in force, with the
+   values of a pending proposal in place of its own (so that a change is proposed once).
+   Each segment is tested against the baseline, the first unchanged segments since the
+   (re)start: has any offset moved by at least ``threshold_mm``, at a false-alarm
+   probability of 1e-8 per segment?
+2. **Change.** A segment that moved opens a candidate change; the next segment that tells
+   anything either moved too (the change stands) or not (a blip: dropped, nothing said).
+   The change began within the first segment; that segment is left out of what follows
+   (a few scans from before the change would bias it). Which offsets: the segments after
+   it, summed, point at one sensor (or two) clearly enough (:func:`.changes.offset_tests`).
+3. **Refit.** While the change stands, each new segment refits the named offsets on every
+   scan after the first segment (at most the latest :data:`FIT_WINDOW_S`, so that a creep
    is fitted where it is now) with the gates that apply
-   (:func:`~loopcal.daemon.worker.offsets.fit_changed_offsets`): the precision at
-   ``target_mm``, the holdout, the plausibility, the fit's own. Motion that does not make
-   the change identifiable within :data:`REFUSE_AFTER_S` is refused, said once
-   (``recalibration_refused``), and the refit goes on with the motion that comes.
+   (:func:`~loopcal.daemon.worker.offsets.refit_offsets`): the precision at
+   ``target_mm``, the holdout, the averaging, the plausibility, the fit's own. Motion that
+   does not make the change identifiable within :data:`REFUSE_AFTER_S` is refused, said
+   once (``recalibration_refused``), and the refit goes on with the motion that comes.
 4. **Act.** Accepted, and no offset named was proposed or written less than
    ``min_interval_s`` ago: in ``propose`` mode the complete config beside the one in force
    (:func:`~loopcal.daemon.worker.proposal.write_proposal`, event
@@ -333,12 +331,12 @@ class Upkeep:
         self._rows = buf[np.searchsorted(stamps, keep_ns) :].copy()
 
     def _fit(self, fn, *args, **kw):
-        t0 = time.process_time()
+        t0 = time.thread_time()
         try:
             return fn(*args, **kw)
         finally:
             self.state.fits += 1
-            self.state.fit_cpu_s += time.process_time() - t0
+            self.state.fit_cpu_s += time.thread_time() - t0
 
     def _segment(self, rows: np.ndarray, start_ns: int, end_ns: int, upto: np.ndarray) -> None:
         """One segment of scans ``rows`` [start_ns, end_ns); ``upto``: every scan kept
@@ -367,16 +365,9 @@ class Upkeep:
         if not ch.stood and self.state.pending is not None:
             self._withdraw(test, start_ns)
         ch.rest = ch.rest + seg
-        # the first segment is left out if the change fell inside it (its shift disagrees)
-        later = offset_tests(ch.rest, self._base, self._reference, threshold_mm=self.threshold_mm)
-        whole = offset_tests(ch.first + ch.rest, self._base, self._reference,
-                             threshold_mm=self.threshold_mm)  # fmt: skip
-        first = offset_tests(ch.first, self._base, self._reference, threshold_mm=0.0)
-        b = int(np.argmax(later.statistic))
-        partial = abs(first.shift_mm[b] - later.shift_mm[b]) > 3 * float(
-            np.hypot(first.own_std_mm[b], later.own_std_mm[b]))  # fmt: skip
-        use = later if partial else whole
-        ch.since_ns = ch.first_end_ns if partial else ch.since_ns
+        # the first segment, which the change may have fallen inside of, is left out of
+        # the attribution and the refit: a few scans from before it would bias both
+        use = offset_tests(ch.rest, self._base, self._reference, threshold_mm=self.threshold_mm)
         ch.names = use.changed
         words = ", ".join(f"{n} {use.shift_mm[OFFSETS.index(n)]:+.2f} mm" for n in use.changed)
         if not ch.names:
@@ -403,7 +394,7 @@ class Upkeep:
         assert ch is not None
         if not ch.names:
             return
-        since = max(ch.since_ns, end_ns - int(FIT_WINDOW_S * 1e9))
+        since = max(ch.first_end_ns, end_ns - int(FIT_WINDOW_S * 1e9))
         rows = upto[np.searchsorted(upto["stamp_ns"], since):]
         fit = self._fit(refit_offsets, rows, self.controller, ch.names, target_mm=self.target_mm)
         if not fit.accepted:
