@@ -238,7 +238,9 @@ def test_check_reports_what_upkeep_would_propose(swapped):
     assert doc["pending_proposal"] is None
     text = loopcal("check", rec_dir, "--controller-config", config).stdout
     line = next(x for x in text.splitlines() if x.startswith("upkeep would propose"))
-    assert f"d03 = {p['values']['d03']:.4f} mm (+0.8" in line and p["since_utc"] in line, line
+    shift = f"{p['shift_mm']['d03']:+.3f}"
+    assert f"d03 = {p['values']['d03']:.4f} mm ({shift} +- " in line, line
+    assert p["since_utc"] in line, line
     assert f"from {p['window_since_utc']} to {p['window_until_utc']}" in line, line
 
 
