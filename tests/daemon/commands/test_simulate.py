@@ -75,11 +75,14 @@ def test_scheduled_stall_and_restart_reach_the_driver(tmp_path):
         except Exception:  # the power cycle drops the TCP connection; the driver reconnects
             pass
         time.sleep(0.02)
+    late = daq.late_fifo_answers
     daq.close()
     assert proc.wait(10) == 0
     log = proc.stdout.read()
     assert "fault on: stall" in log and "fault on: restart" in log
-    assert timeouts >= 1
+    # the stall reached the driver: a read timed out, or a FIFO read (which waits longer,
+    # its scans having left the module) was answered after the timeout
+    assert timeouts + late >= 1
     assert restarted, "the driver must report the power cycle"
     _, truth = read_truth(out)
     assert {r["boot"] for r in truth} == {0, 1}
