@@ -105,9 +105,9 @@ def test_start_failure_raises_and_leaks_nothing():
 def test_scans_run_on_their_own_with_the_real_clock():
     with Emulator("modbus-tcp", scan_rate_hz=200) as emu:
         time.sleep(0.3)
-        with emu.lock:  # one look at the module: it goes on scanning meanwhile
-            n, now = len(emu.truth), emu.clock.now()
-            counters = [s.counter for s in emu.truth]
+        with emu.lock:  # one look: each read of emu.truth syncs the module to the clock
+            truth, now = emu.truth, emu.clock.now()
+        n, counters = len(truth), [s.counter for s in truth]
     assert n >= 50  # nobody read: the module scanned on its own
     # one scan per 5 ms of clock time from t = 0, as of the last housekeeping tick (every
     # TICK_S, later on a loaded machine): never ahead of the clock, at most a few ticks behind
