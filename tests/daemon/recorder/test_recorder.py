@@ -176,7 +176,9 @@ def test_rotation_and_retention_at_an_accelerated_rate(tmp_path):
         rc, _ = rec.stop()
     assert rc == 0, rec.text
     files = find_recordings(tmp_path)
-    assert 3 <= len(files) <= 6
+    # how many fit the budget depends on how full each got before its second was up (a
+    # loaded runner reads fewer scans a second: 7 smaller files seen); the budget decides
+    assert len(files) >= 3
     sizes = [p.stat().st_size for p in files]
     assert sum(sizes[:-1]) <= 600 * 1024 and sum(sizes) <= 600 * 1024 + max(sizes)
     out = read_recordings(tmp_path)
