@@ -172,7 +172,10 @@ def test_rotation_and_retention_at_an_accelerated_rate(tmp_path):
                      "--disk-budget", "600KiB", "--read-period", "0.05",
                      "--flush-period", "0.25")  # fmt: skip
         rec.wait_for("recording to")
-        time.sleep(7.0)
+        # until the budget was exceeded twice: how soon depends on how many of the module's
+        # scans a loaded machine reads (its FIFO holds 0.26 s at 1000 scans/s)
+        first = rec.wait_for("retention: ", timeout=90)
+        rec.wait_for("retention: ", timeout=90, after=first + 1)
         rc, _ = rec.stop()
     assert rc == 0, rec.text
     files = find_recordings(tmp_path)
