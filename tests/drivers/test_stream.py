@@ -80,7 +80,14 @@ def test_polls_follow_a_module_whose_clock_is_off(ldq412) -> None:
     with open_daq(ldq412.url, timeout=OK_TIMEOUT) as daq:
         scans = list(daq.scans(timeout=1.0, duration=4.0))
         answers = ldq412.emulator.wire.answers_sent
-    assert_every_scan_once(scans, ldq412)
+    # a poll the host's scheduler delays past the next scan misses one: a loaded runner
+    # decides how many (1 of about 80 seen); each must be declared by the next scan
+    counters = [s.counter64 for s in scans]
+    steps = [b - a for a, b in zip(counters, counters[1:], strict=False)]
+    assert all(d >= 1 and s.missed == d - 1 for d, s in zip(steps, scans[1:], strict=True))
+    assert sum(d - 1 for d in steps) <= len(scans) // 10, counters
+    produced = {t.counter: t.codes for t in ldq412.scans if t.boot == 0}
+    assert all(tuple(s.codes) == tuple(produced[s.counter]) for s in scans)
     assert answers <= 1.1 * len(scans) + 5  # one poll per scan, and a few to find the edges
 
 
