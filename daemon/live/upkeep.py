@@ -166,7 +166,6 @@ class Upkeep:
         self._rows: np.ndarray | None = None  # the scans kept: the fit window and a segment
         self._seg_start_ns: int | None = None
         self._change: _Change | None = None
-        self._segments = 0
         self._queue: queue.SimpleQueue | None = None
         self._thread: threading.Thread | None = None
         self._reset(controller)
