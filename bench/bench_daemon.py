@@ -5,10 +5,12 @@ process). Three figures, each against a baseline measured in the same run:
 
 * ``cpu``: share of one core the recorder uses at 20 Hz in steady state (after a warm-up),
   over ``--seconds``; baseline: a bare driver loop reading the same module the same way
-  (``read_scans()`` every 0.2 s, no recording) in a subprocess of its own. Target < 2 %.
+  (``read_scans()`` every read period, 0.5 s, no recording) in a subprocess of its own.
+  Target < 2 %.
 * ``jitter``: the recorder's read periods (arrival times of its FIFO reads, from the
-  recording itself) against the nominal 0.2 s: percentiles of the deviation; and for the
-  ASCII transport (no FIFO, one poll per scan), the deviation from the 50 ms scan period.
+  recording itself) against the nominal read period: percentiles of the deviation; and for
+  the ASCII transport (no FIFO, one poll per scan), the deviation from the 50 ms scan
+  period.
 * ``features``: the recorder's share of one core at 20 Hz with each feature added in turn
   (none: ``--no-health``; health, with a controller config; metrics, scraped every 5 s; the
   live view with one Foxglove client subscribed to everything; the upkeep, ``--upkeep
@@ -48,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from loopcal.daemon.recording import read_recordings
+from loopcal.drivers.pacing import FIFO_READ_PERIOD_S
 from loopcal.simulator import Emulator
 from loopcal.simulator.clock import HeldClock
 from loopcal.simulator.source import TestSource
@@ -59,11 +62,12 @@ LOOPCAL = [sys.executable, "-m", "loopcal.daemon.cli"]
 BARE_LOOP = """
 import sys, time
 from loopcal.drivers import open_daq
+from loopcal.drivers.pacing import FIFO_READ_PERIOD_S
 daq = open_daq(sys.argv[1])
 n = 0
 while True:
     n += len(daq.read_scans())
-    time.sleep(0.2)
+    time.sleep(FIFO_READ_PERIOD_S)
 """
 
 
@@ -108,7 +112,7 @@ def bench_cpu_and_jitter(seconds: float, transport: str) -> dict:
     else:  # FIFO scans of one read share its arrival time; the anchor keeps its snapshot's
         batch = rows["host_ns"][~rows["time_measured"]]
         arrivals = np.unique(batch) / 1e9
-        nominal = 0.2
+        nominal = FIFO_READ_PERIOD_S
     periods = np.diff(arrivals)[5:]
     dev = np.abs(periods - nominal) * 1000
     return {"cpu": share, "base": base, "dev_ms": np.percentile(dev, [50, 90, 99]),

@@ -20,7 +20,7 @@ truth. Scans are :mod:`loopcal.simulator.offline`'s, the emulator's own, bit for
   controller config with the truth's values; alarms before the fault (must be none) and the
   first after it, from the recording's events (its device time: the newest scan received
   when it was raised); baseline: the same scans fed offline. The daemon's own lag (a FIFO
-  read every 0.2 s, the monitor fed every 0.25 s) is multiplied by the speed in device time.
+  read every 0.5 s, the monitor fed every second) is multiplied by the speed in device time.
 
 Run: ``python -m bench.bench_health [--part clean detect live] [--hours 1] [--seeds N]``.
 """
@@ -344,8 +344,8 @@ def part_live(speed: float, fault_at: float, after: float, seed: int = 3) -> Non
         )
         print(
             f"live - offline: {(device_s(e.stamp_ns) - t):+.1f} device s = "
-            f"{(device_s(e.stamp_ns) - t) / speed:+.2f} wall s (FIFO read every 0.2 s, "
-            f"the monitor fed every 0.25 s: up to ~0.45 wall s, x{speed:g} in device time)"
+            f"{(device_s(e.stamp_ns) - t) / speed:+.2f} wall s (FIFO read every 0.5 s, "
+            f"the monitor fed every second: up to ~1.5 wall s, x{speed:g} in device time)"
         )
     else:
         print("offline, the same scans: no alarm")

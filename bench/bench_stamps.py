@@ -2,12 +2,12 @@
 simulated hours (pure arithmetic: tests/support/timeline.py; the datasheet's answer times,
 0.5-10 ms).
 
-Stamps (FIFO reads every 0.2 s): the recorder's stamp of every scan against the host time
-the scan was really taken, and, for the scans an answer carried as the latest, against the
-host receive time; baseline: the former map (the smallest arrival - device time of the
-last minute, reads every 0.2 s without the dither), in the same run. And what the floor
-that keeps stamps in order costs: how many stamps it raised above the map's line, by how
-much.
+Stamps (FIFO reads every read period, 0.5 s): the recorder's stamp of every scan against
+the host time the scan was really taken, and, for the scans an answer carried as the
+latest, against the host receive time; baseline: the former map (the smallest arrival -
+device time of the last minute, reads every read period without the dither), in the same
+run. And what the floor that keeps stamps in order costs: how many stamps it raised above
+the map's line, by how much.
 
 Polls (no FIFO, 20 Hz): polls per scan and scans missed by the phase lock; baseline: the
 former schedule (just after the next scan is due by the smallest arrival delay seen).
@@ -25,6 +25,7 @@ import time
 import numpy as np
 
 from loopcal.daemon.recorder.clockmap import ClockMap
+from loopcal.drivers.pacing import FIFO_READ_PERIOD_S
 from tests.support.timeline import Module, datasheet_latency, run_polls, run_stamps
 
 
@@ -120,7 +121,7 @@ def stamp_figures(hours: float, ppm: float, rate_hz: int = 20) -> None:
         f"minute, {np.abs(run.errors_ms).max():.1f} ms in it; former {old.max():.2f} ms "
         f"(p99 {np.percentile(old, 99):.2f}): ratio {old.max() / new.max():.1f}x"
     )
-    rcv = run.receive_ms[int(60 / 0.2) :]  # after the first minute
+    rcv = run.receive_ms[int(60 / FIFO_READ_PERIOD_S) :]  # after the first minute
     print(
         f"    receive - stamp for the latest scan of each read: min {rcv.min():.2f} ms "
         f"({run.receive_ms.min():.2f} in the first minute), median {np.median(rcv):.2f}, "

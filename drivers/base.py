@@ -531,7 +531,7 @@ class DAQ(ABC):
         """Every scan, once and in order, as the module makes them: a stream.
 
         The module is read at its own pace: over a FIFO every
-        :data:`~loopcal.drivers.pacing.FIFO_READ_PERIOD_S` (0.2 s), and without one
+        :data:`~loopcal.drivers.pacing.FIFO_READ_PERIOD_S` (0.5 s), and without one
         (ASCII, Modbus ``fifo=0``) once per scan, each poll between two scans
         (:mod:`loopcal.drivers.pacing`); in between the stream sleeps. Scans the module
         made that were not read (FIFO overflow, polls that came too late) are reported in

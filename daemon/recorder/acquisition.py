@@ -42,6 +42,7 @@ from collections.abc import Callable
 import numpy as np
 
 from loopcal.drivers import DAQ, DAQError, Scan, ldq412, open_daq
+from loopcal.drivers.pacing import FIFO_READ_PERIOD_S
 
 from ..events import Event, Level
 from ..scans import SCAN_DTYPE
@@ -87,7 +88,7 @@ class Acquisition:
         sink: Callable[[Batch], None],
         *,
         timeout: float = ldq412.HOST_TIMEOUT_S,
-        read_period: float = 0.2,
+        read_period: float = FIFO_READ_PERIOD_S,
         resume: ResumePoint | None = None,
     ) -> None:
         if not timeout > 0:

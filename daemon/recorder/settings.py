@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from loopcal.drivers import driver_for_url, ldq412
+from loopcal.drivers.pacing import FIFO_READ_PERIOD_S
 
 from ..arguments import path_argument
 from .ownership import runtime_directory
@@ -102,8 +103,8 @@ class RecorderSettings:
              "Modbus FIFO read, whose scans already left the module, waits up to 2.5 s); at "
              "most 10")  # fmt: skip
     read_period_s: float = _setting(
-        0.2, kind="seconds", key="[daq].read_period", option="--read-period", hi=5.0,
-        help="seconds between FIFO reads; at most 5 (the FIFO holds 12.8 s at 20 Hz); "
+        FIFO_READ_PERIOD_S, kind="seconds", key="[daq].read_period", option="--read-period",
+        hi=5.0, help="seconds between FIFO reads; at most 5 (the FIFO holds 12.8 s at 20 Hz); "
              "without a FIFO the module is polled once a scan")  # fmt: skip
     flush_period_s: float = _setting(
         1.0, kind="seconds", key="[recording].flush_period", option="--flush-period",

@@ -15,6 +15,7 @@ from functools import partial
 import numpy as np
 
 from loopcal.daemon.recorder.polling import PhaseLock
+from loopcal.drivers.pacing import FIFO_READ_PERIOD_S
 from loopcal.simulator.open_points import Latency
 
 from .rows import T0
@@ -121,7 +122,7 @@ def run_stamps(
     hours: float,
     latency_s: Callable[[], float],
     *,
-    read_period_s: float = 0.2,
+    read_period_s: float = FIFO_READ_PERIOD_S,
     utc0_ns: int = T0,
     jitter_s: float = 0.002,
     dither: bool = True,
