@@ -53,6 +53,7 @@ def test_the_daemon_proposes_a_swapped_sensor_once(tmp_path):
             assert m["loopcal_upkeep_fits_total"][0][1] >= 3
             assert m["loopcal_upkeep_fit_cpu_seconds_total"][0][1] > 0
             time.sleep(6)  # a minute more of the robot's motion: nothing new
+            last = scrape(port)
             rc, _ = daemon.stop(30)
         finally:
             daemon.kill()
@@ -63,9 +64,16 @@ def test_the_daemon_proposes_a_swapped_sensor_once(tmp_path):
     assert abs(p.values["d03"] - (NOMINAL[INDEX["d03"]] + 0.8)) <= 0.05
     doc = json.loads(status.stdout)
     assert status.returncode == 0 and doc["pending"] and doc["values"] == p.values
-    events = read_recordings(tmp_path / "rec").events_of("recalibration_proposed")
+    rec = read_recordings(tmp_path / "rec")
+    events = rec.events_of("recalibration_proposed")
     assert len(events) == 1 and events[0].details["path"] == str(proposal_path(config))
     assert events[0].details["since_ns"] >= 0
+    # the metrics count what the recording holds (nothing can happen between the last
+    # scrape and the stop: the proposal stands, and a minute showed nothing new)
+    for metric, kind in (("proposals", "recalibration_proposed"),
+                         ("withdrawals", "recalibration_withdrawn"),
+                         ("writes", "recalibrated"), ("refusals", "recalibration_refused")):
+        assert last[f"loopcal_upkeep_{metric}_total"][0][1] == len(rec.events_of(kind)), metric
 
 
 def test_write_mode_rewrites_the_config_once_and_the_daemon_follows_it(tmp_path):
