@@ -137,3 +137,14 @@ def test_daemon_configs_load_or_raise_their_error(tmp_path, data):
         load_daemon_config(path)
     except SettingsError as exc:
         assert str(path) in str(exc)
+
+
+def test_the_fuzzed_daemon_config_sets_every_key():
+    """A key the fuzzer's config leaves out is never mutated: every setting is in it."""
+    import tomllib
+
+    from loopcal.daemon.recorder.settings import SETTINGS
+
+    doc = tomllib.loads(DAEMON_TOML)
+    written = {f"[{table}].{key}" for table, keys in doc.items() for key in keys}
+    assert {s.key for s in SETTINGS.values() if s.key} == written

@@ -27,11 +27,11 @@ from .recordings import write_recording
 ASCII_ANSWERS = [b">0000123400ABCDEF800001FFFBB80004\r", b"!01LDQ412\r", b"!012.01\r",
                  b"!010014\r", b">800\r", b"?01\r"]  # fmt: skip
 
-#: a daemon config as an installation has it (the TOML fuzzers mutate it)
+#: a daemon config as an installation has it, every key set (the TOML fuzzers mutate it)
 DAEMON_TOML = """[daq]
 url = "modbus-tcp://192.168.1.50:502?unit=1"
 timeout = 0.1
-read_period = 0.2
+read_period = 0.5
 
 [recording]
 directory = "/var/lib/loopcal/recordings"
@@ -40,6 +40,8 @@ rotate_seconds = 3600
 rotate_size = "256 MiB"
 disk_budget = "20 GiB"
 max_backlog_scans = 500000
+compact = true
+keep_views_days = 30
 
 [controller]
 config = "/etc/loopcal/controller/controller.toml"
@@ -47,6 +49,22 @@ config = "/etc/loopcal/controller/controller.toml"
 [health]
 enabled = true
 false_alarm = 1e-8
+
+[upkeep]
+mode = "propose"
+target_mm = 0.05
+threshold_mm = 0.1
+min_interval = 600
+
+[metrics]
+listen = "127.0.0.1:9108"
+
+[live]
+listen = "127.0.0.1:8765"
+
+[control]
+socket = "/run/loopcal/control.sock"
+client_timeout = 30
 """
 
 
