@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 # must not pull in numpy and pymodbus for that.
 _LAZY = {
     "Clock": "clock", "ManualClock": "clock", "RealClock": "clock", "SimClock": "clock",
-    "LDQ412": "device", "DeviceError": "device", "TruthScan": "device",
+    "LDQ412": "device", "DeviceError": "registers", "TruthScan": "device",
     "Emulator": "emulator",
     "FaultInjector": "faults",
     "ConstantSource": "source", "SignalSource": "source", "TestSource": "source",
@@ -23,9 +23,10 @@ _LAZY = {
 
 if TYPE_CHECKING:
     from .clock import Clock, ManualClock, RealClock, SimClock
-    from .device import LDQ412, DeviceError, TruthScan
+    from .device import LDQ412, TruthScan
     from .emulator import Emulator
     from .faults import FaultInjector
+    from .registers import DeviceError
     from .source import ConstantSource, SignalSource, TestSource
 
 

@@ -21,7 +21,8 @@ import string
 
 from loopcal.drivers.ldq412 import MODEL_NAME, ascii_checksum
 
-from .device import LDQ412, DeviceError
+from .device import LDQ412
+from .registers import DeviceError
 
 CR = b"\r"
 _PRINTABLE = frozenset(string.printable.encode()) - frozenset(b"\t\n\r\x0b\x0c")

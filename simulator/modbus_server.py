@@ -55,9 +55,10 @@ from loopcal.drivers.ldq412 import (
     SERIAL_BAUD,
 )
 
-from .device import LDQ412, DeviceError, DeviceOffError
+from .device import LDQ412, DeviceOffError
 from .handle import DeviceHandle
 from .open_points import MODBUS_MAX_READ
+from .registers import DeviceError
 from .wire import Corrupter, corrupt_mbap, corrupt_rtu
 
 SUPPORTED_FUNCTIONS = (3, 4, 6, 16)

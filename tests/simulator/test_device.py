@@ -19,13 +19,11 @@ from loopcal.drivers.ldq412 import (
 )
 from loopcal.simulator.clock import ManualClock, RealClock, SimClock
 from loopcal.simulator.device import (
-    ILLEGAL_ADDRESS,
-    ILLEGAL_VALUE,
     LDQ412,
-    DeviceError,
     DeviceOffError,
     scans_due,
 )
+from loopcal.simulator.registers import ILLEGAL_ADDRESS, ILLEGAL_VALUE, DeviceError
 from loopcal.simulator.source import ConstantSource, TestSource
 from tests.support.emulator import mid_volts
 

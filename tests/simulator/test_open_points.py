@@ -15,14 +15,12 @@ from pymodbus.client import ModbusTcpClient
 from loopcal.drivers.ldq412 import FIFO_FILLER, IR_FIFO, join_u32
 from loopcal.simulator.clock import ManualClock
 from loopcal.simulator.device import (
-    ILLEGAL_ADDRESS,
-    ILLEGAL_VALUE,
     LDQ412,
-    DeviceError,
     DeviceOffError,
 )
 from loopcal.simulator.emulator import Emulator
 from loopcal.simulator.open_points import DATASHEET_LINES, Latency, OpenPoints
+from loopcal.simulator.registers import ILLEGAL_ADDRESS, ILLEGAL_VALUE, DeviceError
 from tests.support.emulator import golden_source
 from tests.support.processes import loopcal
 
