@@ -18,16 +18,7 @@ pay for them.
 import importlib
 
 from . import errors
-from .base import (
-    DAQ,
-    DaqUrl,
-    Identity,
-    Scan,
-    driver_for_url,
-    open_daq,
-    parse_url,
-    register_scheme,
-)
+from .base import DAQ
 from .errors import (
     DAQDisconnected,
     DAQError,
@@ -37,6 +28,9 @@ from .errors import (
     DAQProtocolError,
     DAQTimeout,
 )
+from .records import Identity, Scan
+from .registry import driver_for_url, open_daq, register_scheme
+from .url import DaqUrl, parse_url
 
 _LAZY = {"ModbusDAQ": "modbus", "ModbusTcpDAQ": "modbus_tcp", "ModbusRtuDAQ": "modbus_rtu",
          "AsciiDAQ": "ascii"}  # fmt: skip

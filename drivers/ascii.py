@@ -33,7 +33,7 @@ except ImportError:  # pragma: no cover - not POSIX
     _PORT_ERRORS = (serial.SerialException, OSError)
 
 from . import ldq412
-from .base import DAQ, DaqUrl, Identity, Scan, register_scheme, serial_options
+from .base import DAQ, Identity, Scan
 from .errors import (
     DAQDisconnected,
     DAQIdentityError,
@@ -41,7 +41,9 @@ from .errors import (
     DAQProtocolError,
     DAQTimeout,
 )
+from .registry import register_scheme
 from .sequence import RawSnapshot, Sequencer
+from .url import DaqUrl, serial_options
 
 CR = ldq412.ASCII_CR
 _HEX_UPPER = frozenset(b"0123456789ABCDEF")

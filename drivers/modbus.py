@@ -43,7 +43,7 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
 
 from . import ldq412
-from .base import DAQ, DaqUrl, Identity, Scan
+from .base import DAQ, Identity, Scan
 from .errors import (
     DAQDisconnected,
     DAQError,
@@ -53,6 +53,7 @@ from .errors import (
     DAQTimeout,
 )
 from .sequence import RawSnapshot, Sequencer
+from .url import DaqUrl
 
 #: s a FIFO window read waits for its answer (at most half the FIFO's depth in time at the
 #: module's rate, at least the timeout): a late answer still carries its scans

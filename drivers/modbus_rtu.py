@@ -15,8 +15,9 @@ from pymodbus.client.base import ModbusBaseSyncClient
 from pymodbus.framer import FramerType
 
 from . import ldq412
-from .base import DaqUrl, register_scheme, serial_options
 from .modbus import ModbusDAQ
+from .registry import register_scheme
+from .url import DaqUrl, serial_options
 
 #: silence on the line that ends a drain after an error, s (many RTU frame times)
 QUIET_S = 0.005

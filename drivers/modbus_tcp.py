@@ -11,8 +11,9 @@ from pymodbus.client import ModbusTcpClient
 from pymodbus.client.base import ModbusBaseSyncClient
 
 from . import ldq412
-from .base import DaqUrl, register_scheme
 from .modbus import ModbusDAQ
+from .registry import register_scheme
+from .url import DaqUrl
 
 
 @register_scheme("modbus-tcp")

@@ -11,9 +11,10 @@ import pytest
 
 from loopcal.drivers import ascii as asc
 from loopcal.drivers import ldq412, open_daq, parse_url
-from loopcal.drivers.base import Identity, Scan, registered_schemes
 from loopcal.drivers.errors import DAQError, DAQInvalidCommand, DAQProtocolError, DAQTimeout
 from loopcal.drivers.modbus import format_firmware, parse_fifo, parse_snapshot
+from loopcal.drivers.records import Identity, Scan
+from loopcal.drivers.registry import registered_schemes
 from loopcal.drivers.sequence import RawSnapshot, Sequencer, derived_status, period_ticks_us
 
 U32 = ldq412.U32_MOD
