@@ -12,7 +12,8 @@ of one's own.
 
 The driver classes (and pymodbus, pyserial behind them) are imported on first use: a program
 that needs only the datasheet's constants (``loopcal.drivers.ldq412``) or the URL parser does not
-pay for them.
+pay for them. Each is an entry point of the group ``loopcal.drivers``, where a package
+installed beside loopcal declares another transport (:mod:`loopcal.drivers.registry`).
 """
 
 import importlib
@@ -29,7 +30,7 @@ from .errors import (
     DAQTimeout,
 )
 from .records import Identity, Scan
-from .registry import driver_for_url, open_daq, register_scheme
+from .registry import DriverLoadError, driver_for_url, open_daq, register_scheme
 from .url import DaqUrl, parse_url
 
 _LAZY = {"ModbusDAQ": "modbus", "ModbusTcpDAQ": "modbus_tcp", "ModbusRtuDAQ": "modbus_rtu",
@@ -50,6 +51,7 @@ __all__ = [
     "driver_for_url",
     "parse_url",
     "register_scheme",
+    "DriverLoadError",
     "DAQ",
     "DaqUrl",
     "Identity",

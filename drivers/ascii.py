@@ -41,7 +41,6 @@ from .errors import (
     DAQProtocolError,
     DAQTimeout,
 )
-from .registry import register_scheme
 from .sequence import RawSnapshot, Sequencer
 from .url import DaqUrl, serial_options
 
@@ -282,7 +281,6 @@ def parse_rate(payload: bytes) -> int:
     return rate
 
 
-@register_scheme("ascii")
 class AsciiDAQ(DAQ):
     """LDQ-412 on RS-232/RS-485 speaking the vendor ASCII protocol,
     ``ascii:///dev/ttyUSB0?baud=115200&addr=01&checksum=0&parity=N&stopbits=1``.
@@ -317,6 +315,7 @@ class AsciiDAQ(DAQ):
         asks whether addr and checksum are the module's), or it is not an LDQ-412.
     """
 
+    scheme: ClassVar[str] = "ascii"
     url_params: ClassVar[frozenset[str]] = frozenset(
         {"baud", "addr", "checksum", "parity", "stopbits"}
     )

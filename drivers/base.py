@@ -66,17 +66,18 @@ class DAQ(ABC):
     since the previous call, at once) or by the stream :meth:`scans` (``for scan in
     daq``); a DAQ is a context manager that closes it.
 
-    A driver subclass registers its scheme
-    (:func:`~loopcal.drivers.registry.register_scheme`), lists its
-    :attr:`url_params`, turns a URL into its constructor's arguments
-    (:meth:`url_options`), sets :attr:`identity`, :attr:`url` and the sequencer at
-    connect, and implements :meth:`read_scans`, :meth:`snapshot`, :meth:`clear_restart`,
-    :meth:`close` and the scan rate's getter and setter.
+    A driver subclass is declared for its scheme (an entry point of the group
+    ``loopcal.drivers``, or :func:`~loopcal.drivers.registry.register_scheme`: see
+    :mod:`loopcal.drivers.registry`), lists its :attr:`url_params`, turns a URL into its
+    constructor's arguments (:meth:`url_options`), sets :attr:`identity`, :attr:`url` and
+    the sequencer at connect, and implements :meth:`read_scans`, :meth:`snapshot`,
+    :meth:`clear_restart`, :meth:`close` and the scan rate's getter and setter.
 
     Attributes
     ----------
     scheme : str
-        The URL scheme the class is registered for (class attribute).
+        The URL scheme the class is declared for (class attribute; the registry sets it
+        from the entry point's name, or :func:`~loopcal.drivers.registry.register_scheme`'s).
     url_params : frozenset of str
         The query parameters its URLs may carry (class attribute).
     identity : Identity

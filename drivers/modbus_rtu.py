@@ -16,14 +16,12 @@ from pymodbus.framer import FramerType
 
 from . import ldq412
 from .modbus import ModbusDAQ
-from .registry import register_scheme
 from .url import DaqUrl, serial_options
 
 #: silence on the line that ends a drain after an error, s (many RTU frame times)
 QUIET_S = 0.005
 
 
-@register_scheme("modbus-rtu")
 class ModbusRtuDAQ(ModbusDAQ):
     """LDQ-412 on RS-485,
     ``modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1&parity=N&stopbits=1&fifo=1``.
@@ -60,6 +58,7 @@ class ModbusRtuDAQ(ModbusDAQ):
         LDQ-412.
     """
 
+    scheme: ClassVar[str] = "modbus-rtu"
     url_params: ClassVar[frozenset[str]] = ModbusDAQ.url_params | {"baud", "parity", "stopbits"}
 
     def __init__(

@@ -6,17 +6,16 @@ URL: ``modbus-tcp://host[:port]?unit=1&fifo=1`` (port 502 and unit 1 by default)
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import ClassVar
 
 from pymodbus.client import ModbusTcpClient
 from pymodbus.client.base import ModbusBaseSyncClient
 
 from . import ldq412
 from .modbus import ModbusDAQ
-from .registry import register_scheme
 from .url import DaqUrl
 
 
-@register_scheme("modbus-tcp")
 class ModbusTcpDAQ(ModbusDAQ):
     """LDQ-412 on Ethernet, ``modbus-tcp://host[:port]?unit=1&fifo=1``.
 
@@ -45,6 +44,8 @@ class ModbusTcpDAQ(ModbusDAQ):
     DAQError
         If the module cannot be reached or read at connect, or is not an LDQ-412.
     """
+
+    scheme: ClassVar[str] = "modbus-tcp"
 
     def __init__(
         self,
