@@ -347,7 +347,7 @@ class AsciiDAQ(DAQ):
         try:
             self._open()
             self.identity = self._read_identity(check_identity)
-            self._seq = Sequencer(self._get_scan_rate())
+            self._seq = Sequencer(self.read_scan_rate())
         except BaseException:
             self.close()
             raise
@@ -525,10 +525,10 @@ class AsciiDAQ(DAQ):
             raise ValueError(f"channel {channel} outside 1..{ldq412.N_CHANNELS}")
         return parse_channel(self._command("#", str(channel)), self.addr)
 
-    def _get_scan_rate(self) -> int:
+    def read_scan_rate(self) -> int:
         return parse_rate(parse_ack(self._command("$", "R"), self.addr))
 
-    def _set_scan_rate(self, hz: int) -> None:
+    def _write_scan_rate(self, hz: int) -> None:
         payload = parse_ack(self._command("%", f"R{hz:04X}"), self.addr)
         if payload:
             raise DAQProtocolError(f"{self.url}: set scan rate: unexpected payload {payload!r}")

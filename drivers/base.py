@@ -71,7 +71,8 @@ class DAQ(ABC):
     :mod:`loopcal.drivers.registry`), lists its :attr:`url_params`, turns a URL into its
     constructor's arguments (:meth:`url_options`), sets :attr:`identity`, :attr:`url` and
     the sequencer at connect, and implements :meth:`read_scans`, :meth:`snapshot`,
-    :meth:`clear_restart`, :meth:`close` and the scan rate's getter and setter.
+    :meth:`clear_restart`, :meth:`close`, :meth:`read_scan_rate` and
+    :meth:`_write_scan_rate` (which :meth:`write_scan_rate` calls with a checked rate).
 
     Attributes
     ----------
@@ -318,8 +319,8 @@ class DAQ(ABC):
         """The scan rate the driver works with, Hz (1..200), without a request: read from
         the module at connect, followed when set, and re-read when the scans' spacing
         shows that the module changed it (a power cycle restores the power-on rate). What
-        a recorder stamps and a stream paces its polls by; :attr:`scan_rate` asks the
-        module."""
+        a recorder stamps and a stream paces its polls by; :meth:`read_scan_rate` asks
+        the module."""
         return self._seq.scan_rate_hz
 
     @property
@@ -328,39 +329,53 @@ class DAQ(ABC):
         ``missed_total``, ``epoch``, ``measured_period_us`` (read-only use)."""
         return self._seq
 
-    @property
-    def scan_rate(self) -> int:
-        """The module's configured scan rate, Hz (1..200), read from it at each access.
+    @abstractmethod
+    def read_scan_rate(self) -> int:
+        """The module's configured scan rate, read from it (a request on the wire, where
+        :attr:`scan_rate_hz` makes none).
 
-        Setting it writes the module (over a FIFO the scans made at the old rate are
-        read first: their derived times need it).
+        Returns
+        -------
+        int
+            The rate, Hz (1..200).
+
+        Raises
+        ------
+        DAQError
+            If the module cannot be read, or answers a rate outside 1..200 Hz.
+        """
+
+    def write_scan_rate(self, hz: int) -> None:
+        """Set the module's scan rate (a write on the wire); the driver follows it
+        (:attr:`scan_rate_hz`). Over a FIFO the scans made at the old rate are read first,
+        since their derived times need it: the next :meth:`read_scans` returns them.
+
+        Parameters
+        ----------
+        hz : int
+            The new rate, Hz (1..200).
 
         Raises
         ------
         TypeError
-            When set to anything but an int.
+            If ``hz`` is not an int.
         ValueError
-            When set outside 1..200 Hz.
+            If ``hz`` is outside 1..200 Hz.
         DAQError
             If the module cannot be read or written.
         """
-        return self._get_scan_rate()
-
-    @scan_rate.setter
-    def scan_rate(self, hz: int) -> None:
         if not isinstance(hz, int) or isinstance(hz, bool):
             raise TypeError(f"scan rate must be an int (Hz), got {hz!r}")
         if not ldq412.SCAN_RATE_MIN_HZ <= hz <= ldq412.SCAN_RATE_MAX_HZ:
             raise ValueError(
                 f"scan rate {hz} Hz outside {ldq412.SCAN_RATE_MIN_HZ}..{ldq412.SCAN_RATE_MAX_HZ}"
             )
-        self._set_scan_rate(hz)
+        self._write_scan_rate(hz)
 
     @abstractmethod
-    def _get_scan_rate(self) -> int: ...
-
-    @abstractmethod
-    def _set_scan_rate(self, hz: int) -> None: ...
+    def _write_scan_rate(self, hz: int) -> None:
+        """Write ``hz`` (checked: 1..200 Hz) to the module, and have the sequencer follow
+        it (``self._seq.set_rate``)."""
 
     @abstractmethod
     def clear_restart(self) -> bool:

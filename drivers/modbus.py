@@ -240,7 +240,7 @@ class ModbusDAQ(DAQ):
         try:
             self._connect()
             self.identity = self._read_identity(check_identity)
-            self._seq = Sequencer(self._read_rate())
+            self._seq = Sequencer(self.read_scan_rate())
         except BaseException:
             self.close()
             raise
@@ -430,7 +430,7 @@ class ModbusDAQ(DAQ):
         name = ldq412.MODEL_NAME if model == ldq412.MODEL_CODE else f"unknown-{model:#06x}"
         return Identity(name, format_firmware(fw), ldq412.join_u32(ser_hi, ser_lo), model)
 
-    def _read_rate(self) -> int:
+    def read_scan_rate(self) -> int:
         (rate,) = self.read_holding_registers(ldq412.HR_SCAN_RATE, 1)
         if not ldq412.SCAN_RATE_MIN_HZ <= rate <= ldq412.SCAN_RATE_MAX_HZ:
             raise DAQProtocolError(f"{self.url}: scan rate register reads {rate}")
@@ -502,7 +502,7 @@ class ModbusDAQ(DAQ):
         self._seq.begin_batch(snap, snap_time)
         if self._seq.period_mismatch():
             # Somebody changed the scan rate behind our back: derived times need the new one.
-            self._seq.set_rate(self._read_rate())
+            self._seq.set_rate(self.read_scan_rate())
         raw: list[tuple[int, tuple[int, int, int, int]]] = []
         out: list[Scan] = []
         remaining = snap.fifo_level or 0
@@ -553,10 +553,7 @@ class ModbusDAQ(DAQ):
         snap, host_time = self._read_snapshot()
         return self._seq.peek(snap, host_time)
 
-    def _get_scan_rate(self) -> int:
-        return self._read_rate()
-
-    def _set_scan_rate(self, hz: int) -> None:
+    def _write_scan_rate(self, hz: int) -> None:
         if self.use_fifo:
             # FIFO scans' times are derived from the rate: take the old-rate ones first.
             self._drain()

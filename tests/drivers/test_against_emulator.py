@@ -337,16 +337,20 @@ def test_scan_rate_change_keeps_times_exact(emu_factory, transport: str) -> None
     assert daq.scan_rate_hz == RATE  # what the driver works with, without a request
     for _ in range(10):
         got += advance_and_read(daq, clock, step)
-    daq.scan_rate = 50
-    assert daq.scan_rate == 50 and daq.scan_rate_hz == 50
+    daq.write_scan_rate(50)
+    assert daq.read_scan_rate() == 50 and daq.scan_rate_hz == 50
     for _ in range(10):
         clock.advance(step / 50)
         got += daq.read_scans()
     check_against_truth(got, emu)
     with pytest.raises(ValueError):
-        daq.scan_rate = 0
+        daq.write_scan_rate(0)
     with pytest.raises(ValueError):
-        daq.scan_rate = 201
+        daq.write_scan_rate(201)
+    with pytest.raises(TypeError):
+        daq.write_scan_rate(50.0)
+    assert daq.read_scan_rate() == 50  # nothing written
+    assert not hasattr(DAQ, "scan_rate")  # a request on the wire is a method call, not an attribute
 
 
 @pytest.mark.parametrize("transport", MODBUS)

@@ -104,7 +104,7 @@ def test_identity_at_connect(device) -> None:
         assert daq.identity.model == ldq412.MODEL_NAME
         assert daq.identity.firmware == "2.01"
         assert daq.identity.serial is None  # the ASCII protocol has no serial query
-        assert daq.scan_rate == 20
+        assert daq.read_scan_rate() == 20
         scans = daq.read_scans()
         assert [s.counter for s in scans] == [0x1234]
         assert scans[0].codes == (2048, 1, 4095, 3000) and scans[0].rail[2]

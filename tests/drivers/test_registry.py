@@ -46,10 +46,10 @@ class VirtualDAQ(DAQ):
     def snapshot(self):
         raise DAQDisconnected(f"{self.url}: a virtual module makes no scans")
 
-    def _get_scan_rate(self):
+    def read_scan_rate(self):
         return self._rate
 
-    def _set_scan_rate(self, hz):
+    def _write_scan_rate(self, hz):
         self._rate = hz
 
     def clear_restart(self):
