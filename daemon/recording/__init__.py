@@ -32,10 +32,18 @@ The modules, bottom up: :mod:`~loopcal.daemon.recording.schemas` (topics, channe
 :mod:`~loopcal.daemon.recording.cdr` (message layouts, scan blocks),
 :mod:`~loopcal.daemon.recording.views` (per-scan poses for people),
 :mod:`~loopcal.daemon.recording.names` (file names), :mod:`~loopcal.daemon.recording.writer`
-(:class:`RecordingWriter`), :mod:`~loopcal.daemon.recording.records` (MCAP records checked before
-they are trusted), :mod:`~loopcal.daemon.recording.filereader` (one file, and what it lost) and
-:mod:`~loopcal.daemon.recording.reader` (:func:`read_recordings`). Used by the recorder, the worker,
-replay and the inspection tools.
+(:class:`RecordingWriter`); the one parser of MCAP records, which the reader, ``loopcal
+verify`` and the compaction share: :mod:`~loopcal.daemon.recording.damage` (what could not be
+trusted), :mod:`~loopcal.daemon.recording.records` (records checked before they are trusted,
+chunks, indexes, resynchronisation), :mod:`~loopcal.daemon.recording.summary` (the summary
+section, by its CRC) and :mod:`~loopcal.daemon.recording.walk` (the data section record by
+record); then :mod:`~loopcal.daemon.recording.filereader` (one file, and what it lost:
+:mod:`~loopcal.daemon.recording.recordingfile`), :mod:`~loopcal.daemon.recording.reader`
+(:func:`read_recordings`), :mod:`~loopcal.daemon.recording.verify` (every record checked:
+:mod:`~loopcal.daemon.recording.verify_chunks`,
+:mod:`~loopcal.daemon.recording.verify_summary`) and
+:mod:`~loopcal.daemon.recording.compact` (closed files rewritten in chunks of a minute). Used
+by the recorder, the worker, replay and the inspection tools.
 
 Imports: calibration/ (kinematics for the views), mcap, numpy, and the base modules of
 :mod:`loopcal.daemon` (scans, events, version). Nothing else of daemon/.
@@ -51,9 +59,10 @@ from .cdr import (
     encode_scan_block,
 )
 from .errors import RecordingError
-from .filereader import Loss, RecordingFile
+from .losses import Loss
 from .names import find_recordings, name_time_ns, recording_name
 from .reader import Recording, message_time_range, read_recordings
+from .recordingfile import RecordingFile
 from .schemas import (
     BASE_FRAME,
     BLOCK_SPAN_NS,

@@ -1,9 +1,11 @@
 """Reading one recording file, trusting only what checks out, and saying what it lost.
 
 The records come from :mod:`~loopcal.daemon.recording.records` (every length, offset and CRC
-checked); this module turns them into scan rows and events: each scan once (within a file a
-scan is its power-on epoch and counter), the counter gaps no recorded ``missed`` explains
-reported as lost scans, and every damaged part named (:class:`RecordingFile`).
+checked; the summary through :mod:`~loopcal.daemon.recording.summary`, the data section
+record by record through :mod:`~loopcal.daemon.recording.walk`); this module turns them into
+scan rows and events: each scan once (within a file a scan is its power-on epoch and
+counter), the counter gaps no recorded ``missed`` explains reported as lost scans, and every
+damaged part named (:class:`~loopcal.daemon.recording.recordingfile.RecordingFile`).
 
 What a damaged file lost is counted from the file's own records: in a closed file, by its
 statistics record (one ``/joint/state`` message per scan written, and the events), whose
@@ -20,8 +22,6 @@ import json
 import mmap
 import os
 import stat
-from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import BinaryIO
 
@@ -32,216 +32,36 @@ from mcap.records import Channel, ChunkIndex, MessageIndex, Metadata, Statistics
 from .. import scans as scan_rows
 from ..events import Event
 from .columns import decode_scan_messages
+from .damage import Damage
 from .errors import RecordingError
-from .losses import Loss, losses, losses_within, view_keys
+from .losses import losses, losses_within, view_keys
 from .names import NAME_RE
+from .recordingfile import RecordingFile, utc_text
 from .records import (
     MAGIC,
     PARSE_ERRORS,
     RECORD_HEAD,
     ChunkRecords,
-    Damage,
-    Summary,
     is_chunk_body,
     is_ours,
     parse_record,
     read_chunk,
     read_header,
-    read_summary,
     record_at,
-    walk,
 )
 from .schemas import (
     BLOCK_SPAN_NS,
-    CHANNELS,
     COLUMNS_SPAN_NS,
-    NS_PER_S,
     READ_FORMATS,
     TOPIC_EVENTS,
     TOPIC_SCANS,
     TOPIC_STATE,
+    our_channel_id,
 )
+from .summary import Summary, read_summary
+from .walk import walk
 
-
-@dataclass
-class RecordingFile:
-    """What one file of a recording held, and what of it could not be read.
-
-    One per file in :attr:`Recording.files <loopcal.daemon.recording.reader.Recording.files>`.
-
-    Attributes
-    ----------
-    path : pathlib.Path
-        The file.
-    complete : bool
-        Closed normally (summary and index present and intact, the index matching the
-        chunks).
-    scans : int, default 0
-        Scans read from it: within the time window, each once, without those a file read
-        before it already gave.
-    first_stamp_ns : int or None, default None
-        The first scan's stamp, ns since the Unix epoch (None: no scan).
-    last_stamp_ns : int or None, default None
-        The last scan's stamp, ns since the Unix epoch (None: no scan).
-    metadata : dict of str to dict of str to str
-        Metadata records by name (``loopcal``, ``device``, ``controller_config``), each
-        ``{key: value}`` (docs/recording.md).
-    note : str, default ""
-        How the file was read when it was not closed normally (empty for a complete one).
-    damage : list of Damage
-        The parts that could not be trusted
-        (:class:`~loopcal.daemon.recording.records.Damage`: byte ranges, what was wrong,
-        the time span of the messages they held where known).
-    lost : list of Loss
-        Scans known to be missing from the file, by counter
-        (:class:`~loopcal.daemon.recording.losses.Loss`: counter gaps no ``missed``
-        explains, and scans whose views the file holds but not their raw scans).
-    lost_unplaced : int, default 0
-        Scans missing that :attr:`lost` does not place: the file's statistics record
-        counts them (one ``/joint/state`` message per scan written), their counters are
-        unknown.
-    lost_unknown : str, default ""
-        Where an unknown number of scans more may be missing (damage before the first or
-        after the last scan known, in a file without trusted statistics); empty when
-        :attr:`lost_scans` is the exact count.
-    lost_events : int, default 0
-        Events known to be missing (by the statistics record, or the message indexes
-        after a damaged chunk).
-    lost_events_unknown : bool, default False
-        Damaged parts may have held events that nothing in the file counts.
-    duplicates : int, default 0
-        Scans that appeared more than once in the file (each is returned once).
-    bad_messages : int, default 0
-        Scan blocks or events inside intact chunks that did not decode.
-    last_scan_chunk : int, default -1
-        Byte offset of the last intact chunk that held scans (-1: none).
-    """
-
-    path: Path
-    complete: bool
-    scans: int = 0
-    first_stamp_ns: int | None = None
-    last_stamp_ns: int | None = None
-    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
-    note: str = ""
-    damage: list[Damage] = field(default_factory=list)
-    lost: list[Loss] = field(default_factory=list)
-    lost_unplaced: int = 0
-    lost_unknown: str = ""
-    lost_events: int = 0
-    lost_events_unknown: bool = False
-    duplicates: int = 0
-    bad_messages: int = 0
-    # byte offset of the last intact chunk that held scans (-1: none)
-    last_scan_chunk: int = -1
-
-    @property
-    def lost_scans(self) -> int:
-        """How many scans are known to be missing: :attr:`lost`'s counts and
-        :attr:`lost_unplaced`; the exact count unless :attr:`lost_unknown` says where more
-        may be."""
-        return sum(x.count for x in self.lost) + self.lost_unplaced
-
-    @property
-    def intact(self) -> bool:
-        """Whether the file read whole (nothing damaged, missing, duplicated or undecodable)."""
-        return not (self.damage or self.lost_scans or self.lost_unknown or self.lost_events
-                    or self.lost_events_unknown or self.duplicates
-                    or self.bad_messages)  # fmt: skip
-
-    @property
-    def warning(self) -> str:
-        """One line naming the file and what of it was lost, or ``""`` if it read intact.
-
-        The scans missing (how many, exactly or "at least"; counters, epoch and UTC times of
-        up to three runs; where an unknown number more may be), the damaged parts, the
-        events lost, duplicates dropped and undecodable messages, separated by ``;``.
-        """
-        if self.intact:
-            return ""
-        parts = [self._scans_text(), self._damage_text(), self._events_text()]
-        if self.duplicates:
-            parts.append(f"{self.duplicates} duplicated scan(s) dropped (each kept once)")
-        if self.bad_messages:
-            parts.append(f"{self.bad_messages} undecodable message(s) skipped")
-        return f"{self.path}: " + "; ".join(p for p in parts if p)
-
-    def _scans_text(self) -> str:
-        n = self.lost_scans
-        if not n and not self.lost_unknown:
-            return ""
-        if not self.lost_unknown:
-            head = f"{n} scan(s) missing"
-        else:
-            head = f"at least {n} scan(s) missing" if n else "an unknown number of scans missing"
-        pieces = []
-        if self.lost:
-            spans = ", ".join(
-                f"counters {x.first}-{x.first + x.count - 1} of epoch {x.epoch} "
-                f"({utc_text(x.after_ns)} to {utc_text(x.before_ns)})"
-                for x in self.lost[:3]
-            )
-            more = f" and {len(self.lost) - 3} more run(s)" if len(self.lost) > 3 else ""
-            pieces.append(spans + more)
-        if self.lost_unplaced:
-            more = f"{self.lost_unplaced} more" if self.lost else f"{self.lost_unplaced}"
-            pieces.append(f"{more} whose counters are unknown (the file's statistics count "
-                          "them)")  # fmt: skip
-        if self.lost_unknown:
-            pieces.append(self.lost_unknown)
-        return head + (": " + ", ".join(pieces) if pieces else "")
-
-    def _damage_text(self) -> str:
-        if not self.damage:
-            return ""
-        what = "; ".join(f"{d.what} at byte {d.offset}{_span_text(d)}" for d in self.damage[:3])
-        more = f"; {len(self.damage) - 3} more" if len(self.damage) > 3 else ""
-        cost = " (no scan lost)" if not self.lost_scans and not self.lost_unknown else ""
-        return f"{len(self.damage)} damaged part(s): {what}{more}{cost}"
-
-    def _events_text(self) -> str:
-        n = self.lost_events
-        if self.lost_events_unknown:
-            return f"at least {n} event(s) lost" if n else "an unknown number of events lost"
-        return f"{n} event(s) lost" if n else ""
-
-
-def _span_text(d: Damage) -> str:
-    if d.start_ns is None or d.end_ns is None:
-        return ""
-    return f" (messages of {utc_text(d.start_ns)} to {utc_text(d.end_ns)})"
-
-
-def utc_text(ns: int | None) -> str:
-    """A time stamp for people: ``YYYY-mm-dd HH:MM:SS.ss UTC``.
-
-    Parameters
-    ----------
-    ns : int or None
-        ns since the Unix epoch.
-
-    Returns
-    -------
-    str
-        The UTC time to the hundredth of a second (truncated); ``"?"`` for None, and
-        ``"N ns"`` for a time a datetime cannot hold.
-    """
-    if ns is None:
-        return "?"
-    sec, rest = divmod(int(ns), NS_PER_S)
-    try:
-        t = datetime.fromtimestamp(sec, UTC)
-    except (OverflowError, OSError, ValueError):
-        return f"{ns} ns"
-    return f"{t:%Y-%m-%d %H:%M:%S}.{rest // 10_000_000:02d} UTC"
-
-
-#: channel ids our writer gives the topics (in CHANNELS order, from 1), for a file of ours
-#: whose channel records were lost with its first chunk
-_OUR_CHANNEL_IDS = {topic: i for i, topic in enumerate(CHANNELS, start=1)}
-
-
-#: what :func:`~loopcal.daemon.recording.records.walk` calls a file's damaged start
+#: what :func:`~loopcal.daemon.recording.walk.walk` calls a file's damaged start
 _NO_MAGIC = "no MCAP magic at the start"
 #: what it calls a stretch of bytes that is no record (it may have held anything)
 _STRETCHES = ("zeros where records should be", "no valid record")
@@ -409,7 +229,7 @@ class FileReader:
     def _ids(self, *topics: str) -> set[int]:
         ids = {i for i, c in self.channels.items() if c.topic in topics}
         if not ids and self.ours and not self.channels:
-            ids = {_OUR_CHANNEL_IDS[t] for t in topics}
+            ids = {our_channel_id(t) for t in topics}
         return ids
 
     def _in_window(self, start: int, end: int) -> bool:

@@ -16,17 +16,12 @@ from mcap.records import Statistics
 from .. import scans as scan_rows
 from ..events import Event
 from .errors import RecordingError
-from .filereader import FileReader, RecordingFile, utc_text
+from .filereader import FileReader
 from .names import recording_paths
-from .records import (
-    FOOTER_BYTES,
-    MAGIC,
-    RECORD_HEAD,
-    is_ours,
-    read_header,
-    read_statistics,
-)
+from .recordingfile import RecordingFile, utc_text
+from .records import FOOTER_BYTES, MAGIC, RECORD_HEAD, is_ours, read_header
 from .schemas import BLOCK_SPAN_NS, NS_PER_S
+from .summary import read_statistics
 
 
 @dataclass

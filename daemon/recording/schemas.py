@@ -200,6 +200,20 @@ CHANNELS: dict[str, tuple[str, str, str]] = {
 }
 
 
+def our_channel_id(topic: str) -> int:
+    """The channel id our writer gives ``topic`` (one of :data:`CHANNELS`): they are
+    registered in that order, from 1. Readers fall back on it for a file of ours whose
+    channel records were lost with its first chunk."""
+    return list(CHANNELS).index(topic) + 1
+
+
+def our_topic(channel_id: int) -> str | None:
+    """The topic our writer gives channel ``channel_id`` (:func:`our_channel_id`'s
+    inverse), or None for an id it never gives."""
+    topics = list(CHANNELS)
+    return topics[channel_id - 1] if 1 <= channel_id <= len(topics) else None
+
+
 def scan_columns_msgdef() -> str:
     """The ROS 2 message definition of ``/daq/scans`` in a compacted file (``ros2msg``
     schema text): the scans packed column by column (:mod:`.columns`)."""

@@ -17,7 +17,7 @@ from mcap.writer import Writer
 
 from loopcal.daemon import recording as rec
 from loopcal.daemon.recording.filereader import FileReader
-from loopcal.daemon.recording.records import walk
+from loopcal.daemon.recording.walk import walk
 from tests.support.mutations import chunk_spans, flip_bits, swap_chunks, zero_run
 from tests.support.recordings import write_recording, write_rows
 from tests.support.rows import T0, make_rows
