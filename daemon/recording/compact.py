@@ -19,11 +19,13 @@ shorter than it (a torn sector, a 4 KiB page) cannot reach two minutes of scans.
 (``bench/fuzz_compacted.py`` measures both layouts.)
 
 Nothing can be lost doing it: the new version goes to a temporary file beside the original
-(``.NAME.compact.tmp``), is read back with :func:`~loopcal.daemon.recording.read_recordings` and
-compared scan for scan and event for event with the original, and message count for message
-count with the original's own statistics record (every chunk's CRC checked as it is copied:
-the mcap library would skip a chunk it cannot read, or copy a corrupted one, without a word),
-fsynced, and only then renamed over it (atomic), and the directory fsynced. A file that is
+(``.NAME.compact.tmp``), is checked record by record by
+:func:`~loopcal.daemon.recording.verify.verify_file` (what ``loopcal verify`` runs), read back
+with :func:`~loopcal.daemon.recording.read_recordings` and compared scan for scan and event for
+event with the original, and message count for message count with the original's own
+statistics record (every chunk's CRC checked as it is copied: the mcap library would skip a
+chunk it cannot read, or copy a corrupted one, without a word), fsynced, and only then
+renamed over it (atomic), and the directory fsynced. A file that is
 not closed, has any record that does not check out, or is already compact is left as it
 is (already compact is told from its metadata record alone, without reading its chunks; a
 file compacted by an older loopcal into chunks of 4 MiB, whose record has no
@@ -81,6 +83,7 @@ from .schemas import (
     TOPIC_TRANSFORM,
     schema_bytes,
 )
+from .verify import verify_file
 
 log = logging.getLogger(__name__)
 
@@ -325,9 +328,9 @@ class _Damaged(Exception):
     library could not read, fewer messages than its statistics record)."""
 
 
-def _rewrite(path: Path, tmp: Path, scans_if_dropping: int | None) -> tuple[int, dict[int, int]]:
+def _rewrite(path: Path, tmp: Path, scans_if_dropping: int | None) -> tuple[int, dict[str, int]]:
     """Write the compacted copy; returns the original's chunk count and its message count
-    per channel id as its own statistics record them. Raises :class:`_Damaged` when the
+    per topic as its own statistics record them. Raises :class:`_Damaged` when the
     original's messages do not all read back (checked against those statistics, every
     chunk's CRC validated: the library skips what it cannot read without a word).
 
@@ -402,7 +405,7 @@ def _rewrite(path: Path, tmp: Path, scans_if_dropping: int | None) -> tuple[int,
             w.finish()
             out.flush()
             os.fsync(out.fileno())
-    return len(summary.chunk_indexes), recorded
+    return len(summary.chunk_indexes), {summary.channels[c].topic: n for c, n in recorded.items()}
 
 
 class _ChunkPair:
@@ -456,9 +459,16 @@ class _ChunkPair:
         return [packed, *(m for m in parts if m[0] not in self.scans)]
 
 
-def _verify(tmp: Path, original, counts: dict[int, int], drop_views: bool) -> tuple[int, str]:
+def _verify(tmp: Path, original, counts: dict[str, int], drop_views: bool) -> tuple[int, str]:
     """(chunks of the copy, "" or what differs from the original; with ``drop_views``, the
-    copy must hold none of the views it leaves out and say how many scans it holds)."""
+    copy must hold none of the views it leaves out and say how many scans it holds).
+
+    counts: the original's messages per topic, by its statistics record."""
+    checked = verify_file(tmp)
+    if not checked.ok:
+        return 0, f"the copy does not verify: {checked.damaged[0].text()}"
+    if not checked.closed:
+        return 0, "the copy was not closed"
     copy = read_recordings(tmp)
     f = copy.files[0]
     if not f.complete or not f.intact:
@@ -468,24 +478,19 @@ def _verify(tmp: Path, original, counts: dict[int, int], drop_views: bool) -> tu
         return 0, f"the copy holds {len(b)} scans, not the original's {len(a)} exactly"
     if [e.to_json() for e in copy.events] != [e.to_json() for e in original.events]:
         return 0, "the copy's events differ"
-    with open(tmp, "rb") as fh:
-        summary = make_reader(fh).get_summary()
-    got = dict(summary.statistics.channel_message_counts) if summary.statistics else {}
-    scans = {cid for cid, c in summary.channels.items() if c.topic == TOPIC_SCANS}
-    dropped = {cid for cid, c in summary.channels.items()
-               if drop_views and c.topic in DROPPED_VIEWS}  # fmt: skip
     if drop_views and f.metadata.get("loopcal", {}).get("scans") != str(len(b)):
         return 0, "the copy's loopcal record does not count its scans"
     # against the original's statistics (its scan blocks are packed: compared scan by scan)
-    want = {k: v for k, v in counts.items() if k not in scans | dropped}
-    if {k: v for k, v in got.items() if v and k not in scans} != want:
+    left_out = {TOPIC_SCANS, *(DROPPED_VIEWS if drop_views else ())}
+    want = {t: n for t, n in counts.items() if t not in left_out}
+    got = {t: n for t, n in checked.messages.items() if n and t != TOPIC_SCANS}
+    if got != want:
         return 0, f"message counts differ: {got} against the original's {counts}"
-    for ci in summary.chunk_indexes:
-        span = _chunk_span(ci.message_start_time, ci.message_end_time,
-                           bool(scans & set(ci.message_index_offsets)))  # fmt: skip
+    for start_ns, end_ns, topics in checked.chunk_spans:
+        span = _chunk_span(start_ns, end_ns, TOPIC_SCANS in topics)
         if span > CHUNK_SPAN_NS:
             return 0, f"a chunk spans {span / NS_PER_S:.1f} s, over {CHUNK_SPAN_NS / NS_PER_S} s"
-    return len(summary.chunk_indexes), ""
+    return checked.chunks, ""
 
 
 def _scan_span(data: bytes, log_time: int) -> tuple[int, int]:

@@ -106,6 +106,9 @@ class Verification:
         Messages per topic in the chunks that checked out.
     damaged : list of Damage
         What did not check out, by offset; empty when every record did.
+    chunk_spans : list of (int, int, tuple of str)
+        Of each chunk that checked out: its first and last message log times, ns since the
+        Unix epoch, and the topics of its messages (not in :meth:`as_json`).
     """
 
     path: Path
@@ -115,6 +118,7 @@ class Verification:
     chunks: int = 0
     messages: dict[str, int] = field(default_factory=dict)
     damaged: list[Damage] = field(default_factory=list)
+    chunk_spans: list[tuple[int, int, tuple[str, ...]]] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -219,6 +223,8 @@ class Verifier(ChunkChecks, SummaryChecks):
                 counts.update(c.counts)
         self.out.messages = {self.topics_of([cid])[0]: k for cid, k in counts.items()}
         self.out.chunks = len(self.chunks)
+        self.out.chunk_spans = [(c.start_ns, c.end_ns, self.topics_of(c.counts))
+                                for c in self.chunks if not c.problem]  # fmt: skip
         self.out.damaged = sorted(self.damaged, key=lambda d: (d.offset, d.record))
         return self.out
 
