@@ -86,13 +86,13 @@ class FormerPollSchedule:
         self._new = False
         self._sent = 0.0
 
-    def observe(self, sent: float, received: float, newest_us: int | None, new: bool) -> None:
-        self._sent, self._new = sent, new
-        if new and newest_us is not None:
-            self._newest_us = newest_us
-            self.clock.observe(received, round(received * 1e9), newest_us)
+    def observe(self, sent: float, received: float, scans: list) -> None:
+        self._sent, self._new = sent, bool(scans)
+        if scans:
+            self._newest_us = scans[-1].time64_us
+            self.clock.observe(received, round(received * 1e9), self._newest_us)
 
-    def next_poll(self, now: float) -> float:
+    def next_read(self, now: float) -> float:
         if not self._new or self._newest_us is None or self.clock.offset_ns is None:
             return now + min(0.005, self.period / 4)
         due = (self._newest_us * 1000 + self.clock.offset_ns) * 1e-9 + self.period + 0.003

@@ -2,8 +2,9 @@
 
 - :mod:`~loopcal.daemon.recorder.acquisition`: the thread that reads the module through a driver
   and turns its scans into rows with epochs, UTC stamps and events, handed on as
-  :mod:`~loopcal.daemon.recorder.batches`; without a FIFO it polls phase-locked to the module's
-  clock (:mod:`~loopcal.daemon.recorder.polling`), and it stamps device time as UTC through a map
+  :mod:`~loopcal.daemon.recorder.batches`; it reads at the pace of the driver's own pacers
+  (:mod:`loopcal.drivers.pacing`: without a FIFO, polls phase-locked to the module's clock),
+  and it stamps device time as UTC through a map
   that follows the module's clock error (:mod:`~loopcal.daemon.recorder.clockmap`); another
   Modbus master taking scans off the module's FIFO is told as one episode
   (:mod:`~loopcal.daemon.recorder.foreign`);

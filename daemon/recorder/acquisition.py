@@ -27,9 +27,14 @@ When the module stops answering, the loop retries every 0.05 s through the datas
 restart window (a power-cycled module answers again within 2 s), then with exponential
 backoff (0.1 s doubling to 2 s, or to a quarter of what the FIFO holds: far inside it), so
 a short outage loses nothing over Modbus and little over ASCII. The FIFO is read every
-``read_period`` (and again at once if it was more than half full); without a FIFO (ASCII,
-or Modbus with ``fifo=0``) the loop polls once per scan, phase-locked to the module's own
-clock (:mod:`loopcal.daemon.recorder.polling`).
+``read_period`` plus a dither (and again at once if it was more than half full); without a
+FIFO (ASCII, or Modbus with ``fifo=0``) the loop polls once per scan, phase-locked to the
+module's own clock: the pacers of the driver's own scan stream
+(:mod:`loopcal.drivers.pacing`). The loop does not read through that stream
+(:meth:`loopcal.drivers.DAQ.scans`): it stamps and hands on each read's scans as one batch,
+adds the events of a read (a gap, a link down) as they happen rather than after a
+timeout, and reconnects on its own schedule (the restart window, then backoff), none of
+which a stream of single scans tells.
 """
 
 from __future__ import annotations
@@ -42,14 +47,13 @@ from collections.abc import Callable
 import numpy as np
 
 from loopcal.drivers import DAQ, DAQError, Scan, ldq412, open_daq
-from loopcal.drivers.pacing import FIFO_READ_PERIOD_S
+from loopcal.drivers.pacing import FIFO_READ_PERIOD_S, FifoPacer, PollPacer
 
 from ..events import Event, Level
 from ..scans import SCAN_DTYPE
 from .batches import AcquisitionStats, Batch, DeviceInfo, ResumePoint
 from .clockmap import ClockMap, StampFloor
 from .foreign import ForeignReaders
-from .polling import PhaseLock
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +61,6 @@ BACKOFF_FAST_S = 0.05  # retry period while a power-cycled module may be coming 
 RESTART_WINDOW_S = ldq412.POWER_CYCLE_S + 0.5  # the datasheet's 2 s, and some
 BACKOFF_MIN_S = 0.1
 BACKOFF_MAX_S = 2.0
-READ_DITHER_STEP = 0.6180339887498949  # golden ratio: even coverage of a scan period
 FAULT_CLEAR_S = 1.0  # a rail or fault condition ends after this long of clear scans
 STILL_DOWN_LOG_S = 60.0
 #: the reason of a gap another Modbus master took (Scan.taken)
@@ -98,7 +101,6 @@ class Acquisition:
         self.url = url
         self.sink = sink
         self.timeout = timeout
-        self.read_period = read_period
         self.stats = AcquisitionStats()
         self.device: DeviceInfo | None = None
         #: monotonic time of the loop's last turn (a watchdog reads it)
@@ -117,9 +119,8 @@ class Acquisition:
         self._pending_events: list[Event] = []
         self._first_missed: int | None = None
         self._clock_hint: tuple[int, float, int, int] | None = None
-        self.poll_lock: PhaseLock | None = None  # without a FIFO: when to poll
-        self._poll_epoch = -1
-        self._newest_us: int | None = None  # device time of the newest scan polled
+        self.fifo_pacer = FifoPacer(read_period)  # with a FIFO: when to read
+        self.poll_pacer: PollPacer | None = None  # without a FIFO: when to poll
         self._seen_driver_epochs: set[int] = set()
         self._foreign = ForeignReaders()
 
@@ -187,10 +188,15 @@ class Acquisition:
         if len(rows) or self._pending_events:
             self._flush_events(rows)
         if daq.has_fifo:
-            if len(scans) >= ldq412.FIFO_DEPTH // 2:
-                return start  # falling behind: read again at once
-            return start + self.read_period + self._read_dither()
-        return self._next_poll(start, scans)
+            pacer = self.fifo_pacer
+            pacer.rate_hz = self._rate_hz
+        else:
+            if self.poll_pacer is None or self.poll_pacer.rate_hz != self._rate_hz:
+                self.poll_pacer = PollPacer(self._rate_hz)
+            pacer = self.poll_pacer
+        received = scans[-1].host_time if scans else time.monotonic()
+        pacer.observe(start, received, scans)
+        return pacer.next_read(time.monotonic())
 
     def _sync_clock(self, daq: DAQ) -> None:
         """Catch the moment a new scan appears (polling the latest scan for up to 1.5 scan
@@ -211,14 +217,6 @@ class Acquisition:
         except DAQError:
             return  # the next read reports it
 
-    def _read_dither(self) -> float:
-        """Up to one scan period added to the read period, spread evenly over reads (golden
-        ratio steps): a read period that is a whole number of scan periods would otherwise
-        find the latest scan at the same age read after read (for minutes, as the clocks
-        drift by a few hundred ppm), and the device-to-UTC offset needs some reads just
-        after a scan (:mod:`loopcal.daemon.recorder.clockmap`)."""
-        return (self.stats.reads * READ_DITHER_STEP) % 1.0 / self._rate_hz
-
     def _next_backoff(self, now: float) -> float:
         """Seconds to the next try: every BACKOFF_FAST_S through the restart window of an
         outage (a power-cycled module answers again within the datasheet's 2 s, and over
@@ -231,25 +229,6 @@ class Acquisition:
         wait = min(self._backoff, cap)
         self._backoff = min(cap, self._backoff * 2)
         return wait
-
-    def _next_poll(self, start: float, scans: list[Scan]) -> float:
-        """Without a FIFO: when to poll next, phase-locked to the module's clock (one poll
-        per scan, at a safe point between two scans:
-        :class:`loopcal.daemon.recorder.polling.PhaseLock`)."""
-        rate = self._rate_hz
-        lock = self.poll_lock
-        if lock is None or lock.rate_hz != rate:
-            lock = self.poll_lock = PhaseLock(rate)
-        received = time.monotonic()
-        if scans:
-            newest = scans[-1]
-            received = newest.host_time
-            if newest.epoch != self._poll_epoch:  # a restart: the scans' phase is new
-                self._poll_epoch = newest.epoch
-                lock.reset()
-            self._newest_us = newest.time64_us
-        lock.observe(start, received, self._newest_us, bool(scans))
-        return lock.next_poll(time.monotonic())
 
     # ------------------------------------------------------------------ link state
 
@@ -272,9 +251,8 @@ class Acquisition:
             daq.url, ident.model, ident.firmware, ident.serial, int(rate), daq.has_fifo
         )
         self._base_epoch = None
-        if self.poll_lock is not None:  # a new driver: epochs count from 0 again
-            self.poll_lock.reset()
-        self._poll_epoch, self._newest_us = -1, None
+        if self.poll_pacer is not None:  # a new driver: epochs count from 0 again
+            self.poll_pacer.reset()
         serial = "" if ident.serial is None else f", serial {ident.serial}"
         self._emit(
             "connect",

@@ -1,5 +1,5 @@
 """A module's scan timeline against the host's clock, in simulated time: for testing and
-benchmarking the poll schedule (daemon/recorder/polling.py) and the time stamps
+benchmarking the poll schedule (drivers/pacing.py) and the time stamps
 (daemon/recorder/clockmap.py) over hours in seconds. Pure arithmetic, the module as the
 datasheet and the emulator's open points describe it: scan k of a power-on at device time
 ``phase + k * period`` (its own µs), readable from host time
@@ -14,8 +14,8 @@ from functools import partial
 
 import numpy as np
 
-from loopcal.daemon.recorder.polling import PhaseLock
-from loopcal.drivers.pacing import FIFO_READ_PERIOD_S
+from loopcal.drivers import Scan
+from loopcal.drivers.pacing import FIFO_READ_PERIOD_S, READ_DITHER_STEP, PollPacer
 from loopcal.simulator.open_points import Latency
 
 from .rows import T0
@@ -62,24 +62,25 @@ def run_polls(
     seconds: float,
     latency_s: Callable[[], float],
     *,
-    lock: PhaseLock | None = None,
+    lock: PollPacer | None = None,
     transit_s: float = 0.0002,
 ) -> PollRun:
-    """Poll ``module`` for ``seconds`` of host time with a PhaseLock, sequentially (the next
-    poll after the previous answer), and count what was read."""
-    lock = lock or PhaseLock(module.rate_hz)
+    """Poll ``module`` for ``seconds`` of host time with a PollPacer (or anything with its
+    two methods), sequentially (the next poll after the previous answer), and count what
+    was read."""
+    lock = lock or PollPacer(module.rate_hz)
     out = PollRun()
     now, last_k, first_k, slow = module.boot_s + 0.01, None, None, False
     t_end = module.boot_s + seconds
-    newest_us = None
     while now < t_end:
-        sent = lock.next_poll(now)
+        sent = lock.next_read(now)
         arrival = sent + transit_s
         k = module.latest(arrival)
         lat = latency_s()
         received = arrival + lat
         out.polls += 1
         new = k >= 0 and (last_k is None or k > last_k)
+        scans = []
         if new:
             if last_k is not None:
                 gap = k - last_k - 1
@@ -90,9 +91,10 @@ def run_polls(
                 first_k = k
             last_k = k
             out.delivered += 1
-            newest_us = module.time_us(k)
+            time_us = module.time_us(k)
+            scans = [Scan(k, time_us, (0, 0, 0, 0), 0, k, time_us, host_time=received)]
             out.offsets_ms.append((sent - module.readable_s(k)) * 1e3)
-        lock.observe(sent, received, newest_us, new)
+        lock.observe(sent, received, scans)
         slow = lat + transit_s > 1.0 / module.rate_hz / 2
         now = received
     if first_k is not None and last_k is not None:
@@ -134,8 +136,6 @@ def run_stamps(
     latency) and the scans since the last read, stamped as the acquisition does (one
     observation per read, of the anchor); ``clockmap`` is a fresh
     :class:`loopcal.daemon.recorder.clockmap.ClockMap` or anything with its two methods."""
-    from loopcal.daemon.recorder.acquisition import READ_DITHER_STEP
-
     rng = rng or np.random.default_rng(0)
     n_reads = int(hours * 3600 / read_period_s)
     errors, receive, backwards = [], [], 0

@@ -1,4 +1,5 @@
-"""Polling without a FIFO, phase-locked to the module's clock (daemon/recorder/polling.py).
+"""Polling without a FIFO, phase-locked to the module's clock (drivers/pacing.py, the
+recorder's pacer as the scan stream's).
 
 The finding (a second, independent module over ASCII): polls were timed from the host's
 clock, a fixed but arbitrary time after a scan became readable (12 ms in one run, 36-48 ms
@@ -15,8 +16,8 @@ import time
 import numpy as np
 import pytest
 
-from loopcal.daemon.recorder.polling import PhaseLock
 from loopcal.daemon.recording import read_recordings
+from loopcal.drivers.pacing import PollPacer
 from loopcal.simulator.clock import RealClock
 from loopcal.simulator.emulator import Emulator
 from loopcal.simulator.open_points import Latency, OpenPoints
@@ -42,7 +43,7 @@ def test_once_per_scan_and_none_missed_over_an_hour(ppm, phase_us):
 
 def test_the_lock_measures_the_modules_rate():
     module = Module(rate_hz=20, ppm=-1000.0, phase_us=700)
-    lock = PhaseLock(20)
+    lock = PollPacer(20)
     run_polls(module, 600.0, datasheet_latency(np.random.default_rng(1)), lock=lock)
     assert lock.rate_error == pytest.approx(-1000e-6, abs=30e-6)
 
@@ -60,7 +61,7 @@ def test_slow_answers_cost_only_the_scans_they_span():
 
 def test_a_restart_is_locked_again_at_once():
     """After a power cycle the scans have a new phase; the acquisition resets the lock."""
-    lock = PhaseLock(20)
+    lock = PollPacer(20)
     rng = np.random.default_rng(2)
     first = run_polls(Module(phase_us=0), 30.0, datasheet_latency(rng), lock=lock)
     lock.reset()
