@@ -31,7 +31,7 @@ from loopcal.calibration.poses import pose_noise_volts
 from ..config.controller import ControllerConfig
 from ..scans import volts as scans_volts
 from ..worker import coverage as C
-from ..worker import gates as G
+from ..worker.gates.motion import MIN_POSES
 from ..worker.motion import RecordedScans, scans_for_fit
 from ..worker.run import run_worker
 
@@ -53,7 +53,7 @@ class GuidanceUpdate:
 
     elapsed_s: the plate's time since the first scan (scans over the scan rate); scans:
     collected so far; poses: the distinct positions the usable scans passed through
-    (:func:`loopcal.daemon.worker.gates.distinct_positions`, what the ``poses`` gate counts).
+    (:func:`loopcal.daemon.worker.coverage.distinct_positions`, what the ``poses`` gate counts).
     reach_deg: (4,) the largest tilt reached toward each sensor. twist_deg: (2,) the largest
     twist about the plate's own axis, clockwise and counter-clockwise seen from above
     (:func:`loopcal.daemon.worker.coverage.twist_coverage`). min_singular, condition:
@@ -107,7 +107,7 @@ class GuidanceUpdate:
         m, s = divmod(int(self.elapsed_s), 60)
         lines = [
             f"loopcal guidance  {m:d}:{s:02d}  scans {self.scans:,}  positions {self.poses}"
-            f" (need {G.MIN_POSES})",
+            f" (need {MIN_POSES})",
             f"coverage, largest tilt toward each sensor (aim for {C.GOOD_TILT_DEG:.0f} deg):",
         ]
         for i, r in enumerate(self.reach_deg):
@@ -205,11 +205,11 @@ class Guidance:
         elapsed = len(scans) / usable.scan_rate_hz  # of the plate's time, whatever the clock
         step = max(1, -(-len(usable) // COVERAGE_SCANS))
         reach, twist = C.reach_and_twist(usable.volts[::step], start)
-        positions = G.distinct_positions(usable.volts)
+        positions = C.distinct_positions(usable.volts)
         u = GuidanceUpdate(elapsed, len(scans), positions, [float(r) for r in reach], None,
                            None, {}, self.target_mm,
                            twist_deg=[float(t) for t in twist])  # fmt: skip
-        if positions >= G.MIN_POSES:
+        if positions >= MIN_POSES:
             self._from_worker(u, scans)
         else:
             u.std, indices = self._predicted_std(usable, start)

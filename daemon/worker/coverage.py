@@ -30,6 +30,27 @@ GOOD_TILT_DEG = 25.0  #: deg; the workspace allows 45, poses should reach this f
 #: deg; how far to twist the plate about its own axis each way: the parameters' weakest
 #: combination is learnt mostly from twisted positions (docs/calibration.md)
 GOOD_TWIST_DEG = 30.0
+POSITION_CELL_V = 1.0  #: V; scans count as distinct positions this far apart on a channel
+
+
+def distinct_positions(volts: np.ndarray) -> int:
+    """How many distinct positions scans passed through.
+
+    Parameters
+    ----------
+    volts : ndarray of float, shape (k, 4)
+        The scans' readings, V.
+
+    Returns
+    -------
+    int
+        The number of cells of :data:`POSITION_CELL_V` (1 V, about 4 mm of stroke) on
+        every channel that the readings fall in; 0 for no scans. The ``poses`` gate of a
+        fit on every scan counts these (:func:`loopcal.daemon.worker.gates.motion.scans_gate`).
+    """
+    if len(volts) == 0:
+        return 0
+    return len(np.unique(np.floor(volts / POSITION_CELL_V).astype(np.int64), axis=0))
 
 
 def _rotations(volts: np.ndarray, params: np.ndarray) -> np.ndarray:
@@ -400,10 +421,9 @@ def lazy_coverage_advice(
     -------
     LazyAdvice
         ``advice() -> str``, computing the advice once and then returning it again: an
-        :data:`~loopcal.daemon.worker.gates.Advice` for the gates
-        (:func:`~loopcal.daemon.worker.gates.condition_gate`,
-        :func:`~loopcal.daemon.worker.gates.min_singular_gate`,
-        :func:`~loopcal.daemon.worker.gates.precision_gate`); ``advice.move()`` is the same
-        decision as a :class:`NextMove`.
+        :data:`~loopcal.daemon.worker.gates.Advice` for the gates of
+        :mod:`loopcal.daemon.worker.gates.parameters` (``condition_gate``,
+        ``min_singular_gate``, ``precision_gate``); ``advice.move()`` is the same decision
+        as a :class:`NextMove`.
     """
     return LazyAdvice(volts, params, still=still)

@@ -15,7 +15,8 @@ per scan), so the whole of a technician's hand motion counts, not only the pause
 A recording with more usable scans than :data:`MAX_FIT_SCANS` (a day holds 1.7 million) is
 thinned to an even stride over its whole span (bench/bench_scans.py states what that costs
 in precision). Held-out stretches for the holdout gate are whole blocks of
-:data:`HOLDOUT_BLOCK_S` of time (every :data:`~loopcal.daemon.worker.gates.HOLDOUT_EVERY`-th),
+:data:`HOLDOUT_BLOCK_S` of time (every
+:data:`~loopcal.daemon.worker.gates.closure.HOLDOUT_EVERY`-th),
 so that the check is on motion the fit did not see, not on the neighbours of fitted scans.
 """
 
@@ -27,7 +28,7 @@ import numpy as np
 
 from loopcal.calibration.scans import CHANNEL_SKEW_S, deskew, difference_noise
 
-from .gates import HOLDOUT_BLOCK_S
+from .gates.closure import HOLDOUT_BLOCK_S
 from .poses import GAP_MARGIN_S, RecordedPoses, screen_scans
 
 #: at most this many scans go into one fit (10 minutes at 20 Hz)

@@ -5,8 +5,9 @@ MCAP -> poses -> fit -> gates: given the scans of the recordings (as
 (:func:`loopcal.daemon.worker.poses.poses_of_scans`), keeps every fifth out of the fit to check it
 against, selects the best of the others and identifies the free parameters from them
 (:func:`loopcal.calibration.pipeline.calibrate`, started from the controller config), and runs the
-acceptance gates (:mod:`loopcal.daemon.worker.gates`). Writing the result into the controller config
-is :mod:`loopcal.daemon.worker.writeback`'s job, and only done when every gate passed.
+acceptance gates that apply to the fit (:data:`loopcal.daemon.worker.gates.GATES`). Writing the
+result into the controller config is :mod:`loopcal.daemon.worker.writeback`'s job, and only
+done when every gate passed.
 """
 
 from __future__ import annotations
@@ -22,21 +23,20 @@ import numpy as np
 
 from loopcal.calibration.errors import CalibrationError
 from loopcal.calibration.identify import DEFAULT_METHOD
-from loopcal.calibration.implicit import score_test
-from loopcal.calibration.parameters import GROUPS, INDEX, NAMES, UNITS, ParameterModel
+from loopcal.calibration.parameters import INDEX, NAMES, UNITS, ParameterModel
 from loopcal.calibration.pipeline import (
     DEFAULT_N_SELECT,
     Calibration,
     calibrate,
     calibrate_scans,
 )
-from loopcal.calibration.scans import averaging_ratio, closure_misfit
 
 from ..config.controller import ControllerConfig
 from ..recording import RecordingFile
 from ..version import loopcal_version
-from . import gates as G
 from .coverage import LazyAdvice, lazy_coverage_advice
+from .gates import Gate, GateContext, measure_gates
+from .gates.closure import HOLDOUT_EVERY
 from .motion import scans_for_fit
 from .poses import RecordedPoses, poses_of_scans
 
@@ -68,7 +68,7 @@ class WorkerResult:
     previous: np.ndarray
     params: np.ndarray
     std: dict[str, float]
-    gates: list[G.Gate]
+    gates: list[Gate]
     poses: RecordedPoses
     fit: np.ndarray
     held_out: np.ndarray
@@ -87,7 +87,7 @@ class WorkerResult:
         return all(g.passed for g in self.gates)
 
     @property
-    def failed(self) -> list[G.Gate]:
+    def failed(self) -> list[Gate]:
         return [g for g in self.gates if not g.passed]
 
     def changed(self) -> list[str]:
@@ -230,27 +230,26 @@ def run_worker(
         thinned = f", every {poses.stride}th taken" if poses.stride > 1 else ""
         progress(f"{len(scans):,} scans: {poses.usable:,} usable ({poses.seconds:.0f} s)"
                  f"{thinned}")  # fmt: skip
-        held = poses.block % G.HOLDOUT_EVERY == G.HOLDOUT_EVERY // 2
-        gate = G.scans_gate(poses.volts, poses.seconds)
+        held = poses.block % HOLDOUT_EVERY == HOLDOUT_EVERY // 2
     else:
         poses = poses_of_scans(scans)
         progress(
             f"{len(scans):,} scans: {len(poses)} still poses "
             f"(median {int(np.median(poses.counts)) if len(poses) else 0} scans each)"
         )
-        held = np.arange(len(poses)) % G.HOLDOUT_EVERY == G.HOLDOUT_EVERY // 2
-        gate = G.poses_gate(poses.volts)
+        held = np.arange(len(poses)) % HOLDOUT_EVERY == HOLDOUT_EVERY // 2
     k = np.arange(len(poses))
     fit, held_out = k[~held], k[held]
     result = WorkerResult(model, start, start.copy(), {}, [], poses, fit, held_out, None,
                           len(scans), span, list(files))  # fmt: skip
     result.method = method
-    if positions:
-        result.gates.append(gate)
     still = not per_scan
     advice = lazy_coverage_advice(poses.volts, start, still=still)  # made only if a gate fails
     result.advice = advice
-    if positions and not gate.passed:
+    ctx = GateContext(poses, per_scan, model, start, advice, positions=positions,
+                      precision_mm=precision_mm)  # fmt: skip
+    result.gates += measure_gates(ctx, before_fit=True)
+    if not result.accepted:
         result.seconds = time.perf_counter() - t0
         return result
     n_free = len(model.free)
@@ -277,9 +276,7 @@ def run_worker(
                 scans_per_pose=poses.counts[fit],
             )  # fmt: skip
     except CalibrationError as exc:
-        result.gates.append(
-            G.Gate("converged", False, type(exc).__name__, "converged", str(exc), advice())
-        )
+        result.gates += measure_gates(replace(ctx, error=exc), before_fit=False)
         result.seconds = time.perf_counter() - t0
         return result
     ident = cal.identification
@@ -287,71 +284,17 @@ def run_worker(
     result.params = ident.params.copy()
     result.std = {n: float(s) for n, s in zip(model.free, ident.std, strict=True)}
     advice = result.advice = lazy_coverage_advice(poses.volts, ident.params, still=still)
-    chosen = fit[cal.indices]
-    # the paper's fit reports the noise of a pose's mean reading, ml that of one scan
-    result.expected_noise_volts = G.expected_noise(
-        poses.scan_noise[chosen], poses.counts[chosen], per_scan=ident.method == "ml"
-    )
     if not per_scan:
         checked = ident
-    z = G.holdout_residuals(
-        poses.volts[held_out],
-        checked.params,
-        poses.noise_volts[held_out],
-        model=model,
-        covariance=checked.covariance,
-    )
-    blocks = len(np.unique(poses.block[held_out])) if per_scan else None
-    checks: list[G.Gate] = []
-    if per_scan:
-        checks.append(G.averaging_gate(*_averaging(poses, chosen, ident)))
-        fixed_gains = [n for n in GROUPS["gains"] if n in model.fixed]
-        if fixed_gains:
-            checks.append(G.gains_gate(fixed_gains, *_gain_test(poses, chosen, ident, fixed_gains)))
-    result.gates += [
-        G.converged_gate(ident.converged, ident.message),
-        G.condition_gate(ident.indices.condition, advice),
-        G.min_singular_gate(ident.indices.min_singular, advice),
-        G.noise_gate(ident.sigma_volts, result.expected_noise_volts, still=still),
-        *checks,
-        G.holdout_gate(z, blocks=blocks),
-        G.plausible_gate(list(model.free), start, ident.params),
-        G.precision_gate(list(model.free), ident.std, advice,
-                         seconds=poses.seconds if per_scan else None,
-                         limit_mm=precision_mm),  # fmt: skip
-    ]
+    ctx = replace(ctx, fit=ident, checked=checked, chosen=fit[cal.indices], held_out=held_out,
+                  advice=advice)  # fmt: skip
+    result.expected_noise_volts = ctx.expected_noise
+    result.gates += measure_gates(ctx, before_fit=False)
+    z = ctx.holdout_z
     result.extra["holdout_rms_sigma"] = float(np.sqrt(np.mean(z**2))) if len(z) else None
     result.extra["samples"] = samples
     result.seconds = time.perf_counter() - t0
     return result
-
-
-def _averaging(poses: RecordedPoses, chosen: np.ndarray, ident) -> tuple[float, int]:
-    """The fit's misfit averaged over windows of :data:`~gates.AVERAGING_S` of consecutive
-    fitted scans against white noise (:func:`loopcal.calibration.scans.averaging_ratio`)."""
-    used = chosen[ident.used]
-    misfit = closure_misfit(poses.volts[used], ident.rotations, ident.params)
-    rows = poses.rows[used, 0]
-    stride = getattr(poses, "stride", 1)
-    run_starts = np.flatnonzero(np.diff(rows, prepend=rows[:1] - 2 * stride) != stride)
-    window = max(2, round(G.AVERAGING_S * poses.scan_rate_hz / stride))
-    return averaging_ratio(misfit, run_starts, window)
-
-
-def _gain_test(
-    poses: RecordedPoses, chosen: np.ndarray, ident, names: list[str]
-) -> tuple[float, np.ndarray, np.ndarray]:
-    """The score test of the fixed gains ``names`` at the fit
-    (:func:`loopcal.calibration.implicit.score_test`): the statistic (chi-square with one
-    degree of freedom per gain when they are right), and the change and standard deviation
-    of each gain if it were freed, mm/V."""
-    used = chosen[ident.used]
-    V = poses.volts[used]
-    E = np.zeros((len(NAMES), len(names)))
-    E[[INDEX[n] for n in names], np.arange(len(names))] = 1.0
-    t = score_test(V, np.ones_like(V), ident.rotations, ident.params, ident.model.tie_matrix, E)
-    sigma = ident.sigma_volts  # unit weights: the test is in V^2, the changes per 1/V
-    return t.statistic / sigma**2, t.change, t.std * sigma
 
 
 def describe_files(files: Sequence[RecordingFile]) -> str:

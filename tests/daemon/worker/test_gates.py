@@ -8,20 +8,22 @@ from scipy.special import chdtri
 
 from loopcal.calibration.simulate import simulate_poses
 from loopcal.daemon.worker import coverage as C
-from loopcal.daemon.worker import gates as G
+from loopcal.daemon.worker.gates import closure as G
+from loopcal.daemon.worker.gates import parameters as P
+from loopcal.daemon.worker.gates.chi2 import chi2_quantile
 
 
 @pytest.mark.parametrize("tail", [0.001, 0.01, 0.1, 1e-6])
 def test_chi2_quantile_is_scipys(tail):
     dofs = [*range(1, 400), 500, 1000, 1999, 5000, 6062, 10_000, 30_311, 100_000, 1_000_000]
     for dof in dofs:
-        assert G.chi2_quantile(dof, tail) == pytest.approx(chdtri(dof, tail), rel=1e-12, abs=0)
+        assert chi2_quantile(dof, tail) == pytest.approx(chdtri(dof, tail), rel=1e-12, abs=0)
 
 
 def test_chi2_quantile_refuses_what_it_was_not_made_for():
     for dof, tail in ((0, 0.001), (5, 0.5), (5, 0.0)):
         with pytest.raises(ValueError):
-            G.chi2_quantile(dof, tail)
+            chi2_quantile(dof, tail)
 
 
 def test_holdout_gate_as_before():
@@ -51,17 +53,17 @@ def test_advice_is_made_only_for_a_failing_gate(monkeypatch):
 
     monkeypatch.setattr(C, "coverage_move", counted)
     advice = C.lazy_coverage_advice(volts, params)
-    assert G.condition_gate(10.0, advice).passed
-    assert G.min_singular_gate(1.0, advice).passed
-    assert G.precision_gate(["d01"], np.array([0.01]), advice).passed
+    assert P.condition_gate(10.0, advice).passed
+    assert P.min_singular_gate(1.0, advice).passed
+    assert P.precision_gate(["d01"], np.array([0.01]), advice).passed
     assert calls == [] and not advice.made
     failed = [
-        G.condition_gate(1e4, advice),
-        G.min_singular_gate(0.01, advice),
-        G.precision_gate(["d01"], np.array([1.0]), advice),
+        P.condition_gate(1e4, advice),
+        P.min_singular_gate(0.01, advice),
+        P.precision_gate(["d01"], np.array([1.0]), advice),
     ]
     assert len(calls) == 1  # made once, for all three
     monkeypatch.undo()
     expected = C.coverage_advice(volts, params)
     assert all(not g.passed and g.advice == expected for g in failed)
-    assert G.condition_gate(1e4, expected).advice == expected  # the text still works
+    assert P.condition_gate(1e4, expected).advice == expected  # the text still works
