@@ -1,4 +1,15 @@
-"""The chi-square quantile the gates' limits are made of."""
+"""The chi-square quantile the gates' limits are made of, without scipy.
+
+Not ``scipy.special.chdtri``, for ``loopcal calibrate``'s start-up (issue 31 measured it:
+medians of 15 fresh processes, interleaved, on a loaded 2-core machine): scipy.special costs
+0.22 to 0.25 s of imports in that process (``python -X importtime``; nothing else in it
+imports any scipy), and ``loopcal calibrate`` of a two-minute recording would take 1.96x
+``import numpy, scipy.linalg`` instead of 1.51x, against a target of at most 2x
+(docs/architecture.md, "Start-up"; one run of 7 gave 2.02x). Imported with the module it
+would also cost ``loopcal calibrate --help`` 1.49x instead of about 0.95x. If scipy.special is
+ever imported on this path for another reason, :func:`chi2_quantile` should become
+``chdtri(dof, tail)``: tests/daemon/worker/test_gates.py holds the two equal.
+"""
 
 from __future__ import annotations
 
@@ -35,9 +46,9 @@ def chi2_quantile(dof: int, tail: float) -> float:
     """The upper ``tail`` quantile of the chi-square distribution with ``dof`` degrees.
 
     The value a chi-square variable of ``dof`` degrees of freedom exceeds with probability
-    ``tail``, as ``scipy.special.chdtri(dof, tail)`` gives it (scipy.special costs a fifth
-    of a second to import): Newton's method on log Q(dof / 2, x / 2) from the
-    Wilson-Hilferty approximation (tests/daemon/worker/test_gates.py compares the two).
+    ``tail``, as ``scipy.special.chdtri(dof, tail)`` gives it (why not that: the module's
+    docstring): Newton's method on log Q(dof / 2, x / 2) from the Wilson-Hilferty
+    approximation (tests/daemon/worker/test_gates.py compares the two).
 
     Parameters
     ----------
