@@ -7,9 +7,8 @@ import argparse
 import re
 import sys
 
-from loopcal.calibration.errors import CalibrationError
-
 from .commands import COMMANDS, load
+from .commands.errors import run_command
 from .version import loopcal_version
 
 #: the docs the help texts name (docs/daemon.md, ...) are installed with loopcal
@@ -55,6 +54,13 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run ``loopcal`` with ``argv`` (default: the process's arguments); the exit status.
+
+    A command's refusal (:class:`~loopcal.daemon.commands.errors.CommandError`, or a domain
+    error that means bad input) is printed here, ``loopcal CMD: error: MESSAGE`` one line per
+    line of its message, and its status returned; anything else raised is a bug and is
+    raised on (a traceback, exit status 1).
+    """
     argv = sys.argv[1:] if argv is None else list(argv)
     # the command is the first word that is not an option (loopcal has no global option
     # that takes a value)
@@ -63,11 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     args, extra = build_parser(command if command in names else None).parse_known_args(argv)
     if extra:  # said by the command's parser: "loopcal CMD: error: ...", exit 2
         args.parser.error(f"unrecognized arguments: {' '.join(extra)}")
-    try:
-        return args.func(args)
-    except (CalibrationError, ValueError) as exc:
-        print(f"loopcal {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+    return run_command(args.command, args.func, args)
 
 
 if __name__ == "__main__":

@@ -20,18 +20,18 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
-from loopcal.calibration.errors import CalibrationError
 from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
 from loopcal.calibration.parameters import DEFAULT_FREE, ParameterModel
 from loopcal.calibration.pipeline import DEFAULT_N_SELECT
 
 from ..arguments import path_argument
 from ..config import durable
-from ..config.controller import ControllerConfigError, load_controller_config
-from ..recording import RecordingError, find_recordings, read_recordings
+from ..config.controller import load_controller_config
+from ..recording import find_recordings, read_recordings
 from ..recording.names import recording_paths
 from ..worker.run import METHOD_NAMES, describe_files, run_worker
 from ..worker.writeback import Written, check_writable, write_back
+from .errors import CommandError
 from .model_options import add_model_options, add_select_option
 
 _DURATION = re.compile(r"^(\d+(?:\.\d+)?)\s*(s|m|min|h|d)$")
@@ -115,47 +115,35 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="write an HTML report with plots into DIR")  # fmt: skip
 
 
-class BadInput(Exception):
-    """Bad input: message for the user, exit status 2."""
-
-
 def _inputs(args: argparse.Namespace) -> tuple[list[Path], Path]:
     files: list[Path] = list(args.recordings)
     controller = args.controller_config
     if args.config is not None:
         # the daemon's settings check driver URLs (pymodbus): loaded only for --config
-        from ..recorder.settings import SettingsError, load_daemon_config
+        from ..recorder.settings import load_daemon_config
 
-        try:
-            settings = load_daemon_config(args.config)
-        except SettingsError as exc:
-            raise BadInput(str(exc)) from None
+        settings = load_daemon_config(args.config)
         if not files:
             files = [settings.directory]
         if controller is None:
             controller = settings.controller_config
     if controller is None:
-        raise BadInput(
+        raise CommandError(
             "no controller config: give --controller-config PATH (or --config with a "
             "[controller] config)"
         )
     if not files:
-        raise BadInput("no recordings given: name REC.mcap files or a directory, or use --config")
+        raise CommandError("no recordings given: name REC.mcap files or a directory, or use "
+                           "--config")
     out: list[Path] = []
     for f in files:
         if f.is_dir():
-            try:
-                found = find_recordings(f)
-            except RecordingError as exc:
-                raise BadInput(str(exc)) from None
+            found = find_recordings(f)
             if not found:
-                raise BadInput(f"{f}: no recordings (loopcal-*.mcap) in this directory")
+                raise CommandError(f"{f}: no recordings (loopcal-*.mcap) in this directory")
             out += found
         else:
-            try:
-                out += recording_paths([f])  # a regular file, or why not
-            except RecordingError as exc:
-                raise BadInput(str(exc)) from None
+            out += recording_paths([f])  # a regular file, or why not
     return out, controller
 
 
@@ -163,14 +151,15 @@ def check_report_dir(directory: Path) -> None:
     """The report's directory must be one (or creatable) and take files, before anything
     is computed or written."""
     if directory.exists() and not directory.is_dir():
-        raise BadInput(f"--report {directory}: exists and is not a directory")
+        raise CommandError(f"--report {directory}: exists and is not a directory")
     try:
         directory.mkdir(parents=True, exist_ok=True)
         probe = directory / f".loopcal-write-test.{os.getpid()}"
         probe.touch(exist_ok=False)
         probe.unlink()
     except OSError as exc:
-        raise BadInput(f"--report {directory}: cannot write there: {exc.strerror or exc}") from None
+        raise CommandError(f"--report {directory}: cannot write there: "
+                           f"{exc.strerror or exc}") from None  # fmt: skip
 
 
 def _window_text(since_ns: int | None, until_ns: int | None) -> str:
@@ -193,7 +182,6 @@ class Calibration:
     Unix epoch (None: open). last: the last stretch instead of
     ``since``. select, method: as the options. write, json, report: as the options.
     extra: more keys for the JSON document. json_indent: its indent (None: one line).
-    prog: the command named in errors.
     """
 
     files: list[Path]
@@ -210,17 +198,12 @@ class Calibration:
     report: Path | None = None
     extra: dict = field(default_factory=dict)
     json_indent: int | None = 1
-    prog: str = "calibrate"
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        if args.ties is not None and not args.free:
-            raise BadInput("--ties goes with --free (ties tie parameters of a custom free set)")
-        files, controller_path = _inputs(args)
-    except BadInput as exc:
-        print(f"loopcal calibrate: error: {exc}", file=sys.stderr)
-        return 2
+    if args.ties is not None and not args.free:
+        raise CommandError("--ties goes with --free (ties tie parameters of a custom free set)")
+    files, controller_path = _inputs(args)
     return calibrate(Calibration(
         files, controller_path, free=args.free, ties=args.ties, since_ns=_ns(args.since),
         until_ns=_ns(args.until), last=args.last, select=args.select, method=args.method,
@@ -229,47 +212,42 @@ def run(args: argparse.Namespace) -> int:
 
 def calibrate(job: Calibration) -> int:
     """Read, fit, check the gates, report, and write if asked and accepted: the exit
-    status (0 accepted, 1 refused, 2 bad input), everything said on stdout and stderr."""
+    status (0 accepted, 1 refused), everything said on stdout and stderr. Bad input
+    raises :class:`~loopcal.daemon.commands.errors.CommandError` (or a domain error that
+    means it: a controller config, a recording), before anything is written."""
 
     def progress(text: str) -> None:
         print(text, file=sys.stderr if job.json else sys.stdout, flush=True)
 
-    def fail(text: object) -> int:
-        print(f"loopcal {job.prog}: error: {text}", file=sys.stderr)
-        return 2
-
     since, until = job.since_ns, job.until_ns
-    try:
-        if job.report is not None:
-            check_report_dir(job.report)
-        config = load_controller_config(job.controller_path)
-        if job.write:
-            check_writable(config)
-        free = job.free or config.free or DEFAULT_FREE
-        ties = job.ties if job.free else (",".join(config.ties) or None)
-        model = ParameterModel.parse(free, ties or ())
-        if job.last is not None and since is not None:
-            raise BadInput("give --since or --last, not both")
-        if since is not None and until is not None and until <= since:
-            raise BadInput(f"empty time window: --until is not after --since "
-                        f"({_window_text(since, until)})")  # fmt: skip
-        if job.select < model.n_free:
-            raise BadInput(f"--select {job.select}: at least {model.n_free} poses are needed")
-        progress(f"reading {len(job.files)} recording file(s)")
-        rec = read_recordings(job.files, since=since, until=until, last=job.last)
-        if job.last is not None and rec.since_ns is not None:  # where --last began
-            since = rec.since_ns
-    except (BadInput, ControllerConfigError, RecordingError, CalibrationError, ValueError) as exc:
-        return fail(exc)
+    if job.report is not None:
+        check_report_dir(job.report)
+    config = load_controller_config(job.controller_path)
+    if job.write:
+        check_writable(config)
+    free = job.free or config.free or DEFAULT_FREE
+    ties = job.ties if job.free else (",".join(config.ties) or None)
+    model = ParameterModel.parse(free, ties or ())
+    if job.last is not None and since is not None:
+        raise CommandError("give --since or --last, not both")
+    if since is not None and until is not None and until <= since:
+        raise CommandError(f"empty time window: --until is not after --since "
+                           f"({_window_text(since, until)})")  # fmt: skip
+    if job.select < model.n_free:
+        raise CommandError(f"--select {job.select}: at least {model.n_free} poses are needed")
+    progress(f"reading {len(job.files)} recording file(s)")
+    rec = read_recordings(job.files, since=since, until=until, last=job.last)
+    if job.last is not None and rec.since_ns is not None:  # where --last began
+        since = rec.since_ns
     notes = describe_files(rec.files)
     if notes:
         progress(f"note: {notes}")
     for line in rec.warnings:
         progress(f"warning: {line}")
     if len(rec) == 0:
-        return fail("no scans in the recordings"
-                    + (f" {_window_text(since, until)}"
-                       if since is not None or until is not None else ""))  # fmt: skip
+        window = since is not None or until is not None
+        raise CommandError("no scans in the recordings"
+                           + (f" {_window_text(since, until)}" if window else ""))
     result = run_worker(
         rec.scans, config, model, files=rec.files, n_select=job.select, method=job.method,
         progress=progress,
@@ -280,19 +258,12 @@ def calibrate(job: Calibration) -> int:
         try:
             page = write_report(result, job.report, progress=progress)
         except OSError as exc:
-            return fail(f"cannot write the report in {job.report}: {exc.strerror or exc}; "
-                        "nothing written")  # fmt: skip
+            raise CommandError(f"cannot write the report in {job.report}: "
+                               f"{exc.strerror or exc}; nothing written") from None  # fmt: skip
         progress(f"report: {page}")
     written = None
     if job.write and result.accepted:
-        try:
-            written = write_back(
-                config,
-                result.params,
-                result.provenance(since=since, until=until),
-            )
-        except ControllerConfigError as exc:
-            return fail(exc)
+        written = write_back(config, result.params, result.provenance(since=since, until=until))
     if job.json:
         doc = result.as_json()
         doc.update(

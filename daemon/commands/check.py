@@ -28,15 +28,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 
 from ..arguments import path_argument
-from ..config.controller import ControllerConfigError
 from ..inspect.loops import check, plot
 from ..inspect.proposals import UpkeepSettings, proposal_words
 from ..live.health import FALSE_ALARM
-from ..recording import RecordingError
 from ..recording.names import recording_paths
+from .errors import CommandError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -60,9 +58,9 @@ def add_false_alarm_option(p: argparse.ArgumentParser, *, what: str = "") -> Non
 
 
 def check_false_alarm(p: float) -> None:
-    """Raises ValueError, naming the option, for a ``--false-alarm`` outside (0, 0.01)."""
+    """Raises CommandError, naming the option, for a ``--false-alarm`` outside (0, 0.01)."""
     if not 0 < p < 1e-2:
-        raise ValueError(f"--false-alarm {p:g}: give a probability in (0, 0.01)")
+        raise CommandError(f"--false-alarm {p:g}: give a probability in (0, 0.01)")
 
 
 def add_upkeep_options(p: argparse.ArgumentParser, *, what: str = "") -> None:
@@ -81,27 +79,29 @@ def add_upkeep_options(p: argparse.ArgumentParser, *, what: str = "") -> None:
 
 
 def upkeep_settings(args: argparse.Namespace) -> UpkeepSettings:
-    """The upkeep's settings :func:`add_upkeep_options` parsed; raises ValueError naming
+    """The upkeep's settings :func:`add_upkeep_options` parsed; raises CommandError naming
     the option for a value outside the daemon's bounds."""
-    return UpkeepSettings(target_mm=args.upkeep_target_mm,
-                          threshold_mm=args.upkeep_threshold_mm).checked()  # fmt: skip
+    try:
+        return UpkeepSettings(target_mm=args.upkeep_target_mm,
+                              threshold_mm=args.upkeep_threshold_mm).checked()  # fmt: skip
+    except ValueError as exc:  # the options' values, named by checked()
+        raise CommandError(exc) from None
 
 
 def run(args: argparse.Namespace) -> int:
+    check_false_alarm(args.false_alarm)
+    upkeep = upkeep_settings(args)
+    if args.plot is not None and args.plot.parent.exists() is False:
+        raise CommandError(f"--plot {args.plot}: directory {args.plot.parent} does not exist")
     try:
-        check_false_alarm(args.false_alarm)
-        upkeep = upkeep_settings(args)
-        if args.plot is not None and args.plot.parent.exists() is False:
-            raise ValueError(f"--plot {args.plot}: directory {args.plot.parent} does not exist")
         files = recording_paths(args.recordings)
         if not files:
-            raise ValueError("no recordings (loopcal-*.mcap) in " +
-                             ", ".join(map(str, args.recordings)))  # fmt: skip
+            raise CommandError("no recordings (loopcal-*.mcap) in " +
+                               ", ".join(map(str, args.recordings)))  # fmt: skip
         doc = check(files, args.controller_config, args.false_alarm,
                     trace=args.plot is not None, upkeep=upkeep)  # fmt: skip
-    except (RecordingError, ControllerConfigError, ValueError, OSError) as exc:
-        print(f"loopcal check: error: {exc}", file=sys.stderr)
-        return 2
+    except OSError as exc:  # a file named or found that cannot be read
+        raise CommandError(exc) from None
     if args.plot is not None:
         plot(doc, args.plot)
     doc.pop("_trace")

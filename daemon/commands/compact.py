@@ -30,13 +30,13 @@ import json
 import sys
 
 from ..arguments import path_argument
-from ..recording import RecordingError
 from ..recording.compact import (
     Compacted,
     compact,
     recordings_named,
     remove_stale_temporaries,
 )
+from .errors import CommandError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -49,19 +49,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="one JSON object on stdout: what was done to each file")  # fmt: skip
 
 
-def _error(message: object) -> None:
-    print(f"loopcal compact: error: {message}", file=sys.stderr)
-
-
 def run(args: argparse.Namespace) -> int:
     try:
         files = recordings_named(args.recordings)
         for p in args.recordings:
             if p.is_dir():
                 remove_stale_temporaries(p)  # left by compactions that were killed
-    except (RecordingError, OSError) as exc:
-        _error(exc)
-        return 2
+    except OSError as exc:
+        raise CommandError(exc) from None
     results: list[Compacted] = []
     for f in files:
         try:
@@ -95,9 +90,9 @@ def run(args: argparse.Namespace) -> int:
     elif before:
         print(f"{before:,} -> {after:,} bytes")
     strangers = [r for r in results if r.not_recording]
-    for r in strangers:
-        _error(r.reason)
     if failed > len(strangers) and not args.json:
         print(f"loopcal compact: {failed - len(strangers)} file(s) could not be compacted "
               "(kept as they were)", file=sys.stderr)  # fmt: skip
-    return 2 if strangers else 1 if failed else 0
+    if strangers:  # bad input found in a directory: each named, the others done
+        raise CommandError("\n".join(r.reason for r in strangers))
+    return 1 if failed else 0

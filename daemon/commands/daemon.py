@@ -11,19 +11,15 @@ and listens on its control socket (``[control].socket``) for a technician's sess
 from __future__ import annotations
 
 import argparse
-import sys
 
 from ..arguments import path_argument
-from ..config.controller import ControllerConfigError
-from ..live.control import ControlError
 from ..live.health import watch_health
 from ..live.sessions import ControlServer
 from ..live.upkeep import watch_upkeep
 from ..live.view import watch_live
 from ..recorder.engine import Recorder
-from ..recorder.ownership import ModuleHeld
 from ..recorder.process import run_recorder, setup_logging
-from ..recorder.settings import SettingsError, load_daemon_config
+from ..recorder.settings import load_daemon_config
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -54,11 +50,10 @@ def run(args: argparse.Namespace) -> int:
         control = ControlServer(recorder, settings.control_socket, live=live,
                                 client_timeout=settings.control_client_timeout_s)  # fmt: skip
         recorder.stop_listeners.append(control.stop_session)
-    except (SettingsError, ControllerConfigError, ModuleHeld, ControlError) as exc:
+    except BaseException:  # bad input (a refused config, a module held elsewhere) or a bug
         if live is not None:
             live.close()
-        print(f"loopcal daemon: error: {exc}", file=sys.stderr)
-        return 2
+        raise
     try:
         return run_recorder(recorder)
     finally:

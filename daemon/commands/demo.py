@@ -43,6 +43,7 @@ from loopcal.simulator.scenarios import HandMoves
 
 from ..arguments import path_argument
 from ..config.controller import ControllerConfig, load_controller_config
+from .errors import CommandError
 from .model_options import add_model_options, model_from_args
 
 PAUSE_S = (0.8, 1.5)  # a technician pausing about a second at each position
@@ -101,25 +102,25 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
     """The demo; ``report`` gets what --json prints: verdict, written, work, parameters."""
     if args.minutes <= 0:
-        raise ValueError("--minutes must be positive")
+        raise CommandError("--minutes must be positive")
     if args.twist_every < 0:
-        raise ValueError(f"--twist-every must be 0 or more moves, got {args.twist_every}")
+        raise CommandError(f"--twist-every must be 0 or more moves, got {args.twist_every}")
     if args.noise_mv < 0:
-        raise ValueError("--noise-mv must not be negative")
+        raise CommandError("--noise-mv must not be negative")
     speed = args.speed if args.speed is not None else (1.0 if args.transport == "ascii" else 10.0)
     if speed <= 0:
-        raise ValueError("--speed must be positive")
+        raise CommandError("--speed must be positive")
     model = model_from_args(args)
     if args.out is None:
         work = Path(tempfile.mkdtemp(prefix="loopcal-demo-"))
     else:
         work = args.out
         if work.exists() and not work.is_dir():
-            raise ValueError(f"--out {work}: exists and is not a directory")
+            raise CommandError(f"--out {work}: exists and is not a directory")
         try:
             work.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise ValueError(f"--out {work}: cannot create it: {exc.strerror or exc}") from None
+            raise CommandError(f"--out {work}: cannot create it: {exc.strerror or exc}") from None
     report.update(work=str(work), written=False, parameters={})
     t_start = time.perf_counter()
     truth = perturbed_truth(

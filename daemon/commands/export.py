@@ -52,7 +52,6 @@ from mcap.reader import make_reader
 from ..arguments import path_argument
 from ..config.controller import (
     ControllerConfig,
-    ControllerConfigError,
     load_controller_config,
     params_from_metadata,
 )
@@ -70,6 +69,7 @@ from ..recording import (
 from ..recording.compact import recordings_named
 from ..recording.schemas import NS_PER_S
 from ..version import loopcal_version
+from .errors import CommandError
 
 #: scan time fed to the writer at a time (one write: one chunk of scans, one of views)
 BATCH_NS = 60 * NS_PER_S
@@ -115,10 +115,6 @@ class Exported:
         return {"path": str(self.path), "out": None if self.out is None else str(self.out),
                 "scans": self.scans, "views": self.views, "warning": self.warning or None,
                 "error": self.error or None}  # fmt: skip
-
-
-def _error(message: object) -> None:
-    print(f"loopcal export: error: {message}", file=sys.stderr)
 
 
 def _metadata(
@@ -244,7 +240,7 @@ def run(args: argparse.Namespace) -> int:
         files = recordings_named(args.recordings)
         out: Path = args.out
         if os.path.lexists(out) and not out.is_dir():
-            raise RecordingError(f"--out {out}: exists and is not a directory")
+            raise CommandError(f"--out {out}: exists and is not a directory")
         config = None
         if args.controller_config is not None:
             config = load_controller_config(args.controller_config)
@@ -252,15 +248,14 @@ def run(args: argparse.Namespace) -> int:
         for f in files:
             target = out / f.name
             if target in targets:
-                raise RecordingError(f"{f} and {targets[target]}: both would be exported to "
-                                     f"{target}")  # fmt: skip
+                raise CommandError(f"{f} and {targets[target]}: both would be exported to "
+                                   f"{target}")  # fmt: skip
             if os.path.lexists(target):
-                raise RecordingError(f"{target}: exists")
+                raise CommandError(f"{target}: exists")
             targets[target] = f
         out.mkdir(parents=True, exist_ok=True)
-    except (RecordingError, ControllerConfigError, OSError) as exc:
-        _error(exc)
-        return 2
+    except OSError as exc:
+        raise CommandError(exc) from None
     results: list[Exported] = []
     for target, f in targets.items():
         try:
@@ -283,9 +278,9 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"files": [r.as_json() for r in results], "failed": failed}, indent=1))
     strangers = [r for r in results if r.not_recording]
-    for r in strangers:
-        _error(r.error)
     not_whole = failed - len(strangers)
     if not_whole and not args.json:
         print(f"loopcal export: {not_whole} file(s) not exported or damaged", file=sys.stderr)
-    return 2 if strangers else 1 if failed else 0
+    if strangers:  # bad input found in a directory: each named, the others exported
+        raise CommandError("\n".join(r.error for r in strangers))
+    return 1 if failed else 0

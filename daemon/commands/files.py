@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 
 from ..shipped import shipped
+from .errors import CommandError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -31,9 +31,8 @@ def run(args: argparse.Namespace) -> int:
     by_name = {f.name: f for f in files}
     unknown = [n for n in args.names if n not in by_name]
     if unknown:
-        print(f"loopcal files: error: not shipped: {', '.join(unknown)} "
-              f"(shipped: {', '.join(by_name)})", file=sys.stderr)  # fmt: skip
-        return 2
+        raise CommandError(f"not shipped: {', '.join(unknown)} "
+                           f"(shipped: {', '.join(by_name)})")  # fmt: skip
     chosen = [by_name[n] for n in args.names] if args.names else files
     if args.json:
         print(json.dumps({"files": [

@@ -27,7 +27,6 @@ from ..inspect.fleet import (
     CHECK_COLUMNS,
     CONFIG_NAME,
     INFO_COLUMNS,
-    FleetError,
     check_task,
     info_task,
     robot_days,
@@ -35,8 +34,8 @@ from ..inspect.fleet import (
     table_columns,
     write_table,
 )
-from ..recording import RecordingError
 from .check import add_false_alarm_option, add_upkeep_options, check_false_alarm, upkeep_settings
+from .errors import CommandError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -65,23 +64,20 @@ def run(args: argparse.Namespace) -> int:
     try:
         import dask.distributed  # noqa: F401 - the optional extra
     except ImportError:
-        print("loopcal fleet: error: Dask is not installed: pip install 'loopcal[fleet]'",
-              file=sys.stderr)  # fmt: skip
-        return 2
+        raise CommandError("Dask is not installed: pip install 'loopcal[fleet]'") from None
+    if args.workers < 1:
+        raise CommandError(f"--workers {args.workers}: at least 1")
+    check_false_alarm(args.false_alarm)
+    upkeep = upkeep_settings(args)
+    if args.table is not None and args.json:
+        raise CommandError("give --table or --json, not both")
+    if args.table is not None and not args.table.parent.is_dir():
+        raise CommandError(f"--table {args.table}: directory {args.table.parent} does not "
+                           "exist")  # fmt: skip
     try:
-        if args.workers < 1:
-            raise FleetError(f"--workers {args.workers}: at least 1")
-        check_false_alarm(args.false_alarm)
-        upkeep = upkeep_settings(args)
-        if args.table is not None and args.json:
-            raise FleetError("give --table or --json, not both")
-        if args.table is not None and not args.table.parent.is_dir():
-            raise FleetError(f"--table {args.table}: directory {args.table.parent} does not "
-                             "exist")  # fmt: skip
         tasks = [t for root in args.roots for t in robot_days(root, args.config_name)]
-    except (ValueError, RecordingError, OSError) as exc:  # FleetError is a ValueError
-        print(f"loopcal fleet: error: {exc}", file=sys.stderr)
-        return 2
+    except OSError as exc:
+        raise CommandError(exc) from None
     n_robots = len({t.robot for t in tasks})
     where = args.scheduler or f"a local cluster of {args.workers} worker(s)"
     print(f"{len(tasks)} robot-days of {n_robots} robot(s) on {where}", file=sys.stderr)
@@ -114,9 +110,8 @@ def run(args: argparse.Namespace) -> int:
     out = args.table if args.table is not None else Path("/dev/stdout")
     try:
         write_table(rows, columns, out)
-    except (FleetError, OSError) as exc:
-        print(f"loopcal fleet: error: {exc}", file=sys.stderr)
-        return 2
+    except OSError as exc:
+        raise CommandError(exc) from None
     if args.table is not None:
         print(f"{len(rows)} rows: {args.table}", file=sys.stderr)
     return _status(args, rows)

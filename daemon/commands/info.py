@@ -18,11 +18,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 
 from ..arguments import path_argument
 from ..inspect.summary import collect, render
-from ..recording import RecordingError
+from .errors import CommandError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -36,9 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         s = collect(args.recordings, poses=not args.no_poses)
-    except (RecordingError, OSError) as exc:
-        print(f"loopcal info: error: {exc}", file=sys.stderr)
-        return 2
+    except OSError as exc:
+        raise CommandError(exc) from None
     doc = s.as_json()
     if args.json:
         print(json.dumps(doc, indent=1))

@@ -10,7 +10,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..config.controller import ControllerConfigError, write_initial_config
+from ..config.controller import write_initial_config
+from .errors import run_command
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -19,11 +20,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        path = write_initial_config(args.path, force=args.force)
-    except ControllerConfigError as exc:
-        print(f"loopcal init-config: error: {exc}", file=sys.stderr)
-        return 2
+    path = write_initial_config(args.path, force=args.force)
     where = str(path)
     if path != Path(args.path):
         where += f" (through the symlink {args.path}, which stays a link)"
@@ -41,4 +38,4 @@ if __name__ == "__main__":
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_arguments(_parser)
-    sys.exit(run(_parser.parse_args()))
+    sys.exit(run_command("init-config", run, _parser.parse_args()))

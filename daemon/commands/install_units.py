@@ -21,12 +21,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 from pathlib import Path
 
 from ..arguments import path_argument
 from ..config.durable import replace
 from ..shipped import UNITS
+from .errors import CommandError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -41,8 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     root: Path = args.root
     if not root.is_dir():
-        print(f"loopcal install-units: error: {str(root)!r} is not a directory", file=sys.stderr)
-        return 2
+        raise CommandError(f"{str(root)!r} is not a directory")
     kept = []
     for unit in UNITS:
         assert unit.installs_to is not None
@@ -51,9 +50,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             current = target.read_bytes() if target.exists() else None
         except OSError as exc:
-            print(f"loopcal install-units: error: cannot read {target}: {exc.strerror}",
-                  file=sys.stderr)  # fmt: skip
-            return 2
+            raise CommandError(f"cannot read {target}: {exc.strerror or exc}") from None
         if current == data:
             print(f"unchanged {target}")
             continue
@@ -66,13 +63,11 @@ def run(args: argparse.Namespace) -> int:
                 target.parent.mkdir(parents=True, exist_ok=True)
                 replace(target, data, mode=0o644)
             except OSError as exc:
-                print(f"loopcal install-units: error: cannot write {target}: "
-                      f"{exc.strerror or exc}", file=sys.stderr)  # fmt: skip
-                return 2
+                raise CommandError(f"cannot write {target}: {exc.strerror or exc}") from None
         print(f"{verb} {target}")
-    for target in kept:
-        print(f"loopcal install-units: error: {target} differs from loopcal's and was kept "
-              "(--force replaces it)", file=sys.stderr)  # fmt: skip
-    if not args.dry_run and not kept and os.geteuid() == 0 and root.resolve() == Path("/"):
+    if kept:  # exit status 1: the others are in place
+        raise CommandError("\n".join(f"{target} differs from loopcal's and was kept (--force "
+                           "replaces it)" for target in kept), status=1)  # fmt: skip
+    if not args.dry_run and os.geteuid() == 0 and root.resolve() == Path("/"):
         print("next: systemd-sysusers && systemd-tmpfiles --create && systemctl daemon-reload")
-    return 1 if kept else 0
+    return 0

@@ -17,6 +17,7 @@ from loopcal.calibration.observability import CONDITION_OK, analyse_identifiabil
 from loopcal.calibration.selection import candidate_jacobian
 from loopcal.calibration.simulate import simulate_poses
 
+from .errors import CommandError
 from .model_options import add_model_options, model_from_args
 
 
@@ -42,9 +43,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.poses < 1:
-        raise ValueError(f"--poses {args.poses}: at least 1")
+        raise CommandError(f"--poses {args.poses}: at least 1")
     if args.twist_every < 0:
-        raise ValueError(f"--twist-every must be 0 or more moves, got {args.twist_every}")
+        raise CommandError(f"--twist-every must be 0 or more moves, got {args.twist_every}")
     model = model_from_args(args)
     if args.session is not None:
         J = _session_information(args.session, args.seed, model, args.twist_every)
@@ -82,7 +83,7 @@ def _session_information(seconds: float, seed: int, model, twist_every: int) -> 
     does, twisting every ``twist_every``-th move, 20 Hz, its true rotations at each scan's
     instant)."""
     if not (math.isfinite(seconds) and 1 <= seconds <= 86400):
-        raise ValueError(f"--session {seconds!r}: between 1 and 86400 seconds")
+        raise CommandError(f"--session {seconds!r}: between 1 and 86400 seconds")
     from loopcal.calibration import implicit
     from loopcal.calibration.parameters import NOMINAL
     from loopcal.simulator.scenarios import HandMoves

@@ -14,20 +14,18 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 
-from loopcal.calibration.errors import ParameterError
-
-from ..config.controller import ControllerConfigError
 from ..events import Level
 from ..live.guidance import OFFSETS, TARGET_MM, Guidance, GuidanceUpdate
 from ..live.health import watch_health
 from ..live.upkeep import watch_upkeep
 from ..live.view import watch_live
 from ..recorder.engine import Recorder
-from ..recorder.ownership import ModuleHeld
 from ..recorder.process import run_recorder, setup_logging
 from ..recorder.settings import SettingsError, add_options, option_name, settings_from_args
+from .errors import CommandError
 from .guidance_display import Display
 
 
@@ -58,9 +56,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     setup_logging(args.verbose)
     guide: Guidance | None = None
+    if args.target_mm is not None:
+        if not args.until_enough:
+            raise CommandError("--target-mm goes with --until-enough")
+        if not (math.isfinite(args.target_mm) and args.target_mm > 0):
+            raise CommandError(f"--target-mm {args.target_mm:g}: the target must be a positive "
+                               "number of mm")
     try:
-        if args.target_mm is not None and not args.until_enough:
-            raise SettingsError("--target-mm goes with --until-enough")
         settings = settings_from_args(args)
         recorder = Recorder(settings, command="loopcal record " + " ".join(sys.argv[2:]))
         monitor = watch_health(recorder)
@@ -82,11 +84,7 @@ def run(args: argparse.Namespace) -> int:
             )  # fmt: skip
             recorder.add_observer(guide)
     except SettingsError as exc:
-        print(f"loopcal record: error: {exc.named(option_name)}", file=sys.stderr)
-        return 2
-    except (ControllerConfigError, ParameterError, ValueError, ModuleHeld) as exc:
-        print(f"loopcal record: error: {exc}", file=sys.stderr)
-        return 2
+        raise CommandError(exc.named(option_name)) from None
     try:
         status = run_recorder(recorder)
     finally:

@@ -24,8 +24,9 @@ from loopcal.simulator.replay import Player, RecordedPowerOn
 from loopcal.simulator.run import add_transport_option, listen_host, tcp_port
 
 from ..arguments import path_argument
-from ..recording import RecordingError, read_recordings
+from ..recording import read_recordings
 from ..scans import scan_rate_hz
+from .errors import CommandError
 
 OFF_MIN_S = 0.1  # shortest power cycle replayed
 
@@ -81,31 +82,36 @@ def power_ons(scans: np.ndarray) -> list[RecordedPowerOn]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if not args.speed > 0:
+        raise CommandError("--speed must be positive")
     try:
-        if not args.speed > 0:
-            raise ValueError("--speed must be positive")
         open_points = open_points_from_arguments(args)
+    except ValueError as exc:  # the open points' options, named
+        raise CommandError(exc) from None
+    try:
         rec = read_recordings(args.recordings)
-        if len(rec) == 0:
-            names = ", ".join(str(p) for p in args.recordings)
-            raise ValueError(f"{names}: no scans in the recording(s)")
-        for line in rec.warnings:
-            print(f"warning: {line}", file=sys.stderr, flush=True)
-        meta_rate = rec.files[0].metadata.get("device", {}).get("scan_rate_hz")
-        rate = int(meta_rate) if meta_rate else round(scan_rate_hz(rec.scans))
-        player = Player(
-            power_ons(rec.scans),
-            transport=args.transport,
-            rate_hz=rate,
-            speed=args.speed,
-            host=args.host,
-            port=args.port,
-            open_points=open_points,
-        )
+    except OSError as exc:
+        raise CommandError(exc) from None
+    if len(rec) == 0:
+        names = ", ".join(str(p) for p in args.recordings)
+        raise CommandError(f"{names}: no scans in the recording(s)")
+    for line in rec.warnings:
+        print(f"warning: {line}", file=sys.stderr, flush=True)
+    meta_rate = rec.files[0].metadata.get("device", {}).get("scan_rate_hz")
+    rate = int(meta_rate) if meta_rate else round(scan_rate_hz(rec.scans))
+    player = Player(
+        power_ons(rec.scans),
+        transport=args.transport,
+        rate_hz=rate,
+        speed=args.speed,
+        host=args.host,
+        port=args.port,
+        open_points=open_points,
+    )
+    try:
         player.start()
-    except (RecordingError, ValueError, OSError, RuntimeError) as exc:
-        print(f"loopcal replay: error: {exc}", file=sys.stderr)
-        return 2
+    except (RuntimeError, OSError) as exc:  # the servers cannot start: the port is in use
+        raise CommandError(exc) from None
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):

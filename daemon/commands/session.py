@@ -27,14 +27,16 @@ from datetime import UTC, datetime
 from types import FrameType
 from typing import Any
 
+from loopcal.calibration.errors import ParameterError
 from loopcal.calibration.parameters import ParameterModel
 
 from ..arguments import duration_argument, path_argument
-from ..config.controller import ControllerConfigError, load_controller_config
-from ..live.control import MAX_NOTE_CHARS, MAX_TARGET_MM, ControlClient, ControlError
+from ..config.controller import load_controller_config
+from ..live.control import MAX_NOTE_CHARS, MAX_TARGET_MM, ControlClient
 from ..live.guidance import TARGET_MM
 from ..worker.writeback import check_writable
-from .calibrate import BadInput, Calibration, calibrate, check_report_dir
+from .calibrate import Calibration, calibrate, check_report_dir
+from .errors import CommandError
 from .guidance_display import Display
 
 #: s between two messages to the daemon: it abandons a session whose client is silent for
@@ -72,53 +74,43 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        job, client = _prepare(args)
-    except (BadInput, ControlError, ControllerConfigError) as exc:
-        print(f"loopcal session: error: {exc}", file=sys.stderr)
-        return 2
+    job, client = _prepare(args)
     with client:
-        try:
-            ended = _follow(client, args)
-        except (BadInput, ControlError) as exc:
-            print(f"loopcal session: error: {exc}", file=sys.stderr)
-            return 2
+        ended = _follow(client, args)
     return calibrate(_window(job, ended))
 
 
 def _prepare(args: argparse.Namespace) -> tuple[Calibration, ControlClient]:
     """Everything checked before the daemon is asked: the daemon's config, the controller
     config (writable, with --write), the report's directory, the options."""
-    from ..recorder.settings import SettingsError, load_daemon_config  # brings the drivers
+    from ..recorder.settings import load_daemon_config  # brings the drivers
 
     if not 0 < args.target_mm <= MAX_TARGET_MM:
-        raise BadInput(f"--target-mm {args.target_mm:g}: must be > 0 and <= {MAX_TARGET_MM:g} mm")
+        raise CommandError(f"--target-mm {args.target_mm:g}: must be > 0 and "
+                           f"<= {MAX_TARGET_MM:g} mm")  # fmt: skip
     if len(args.note) > MAX_NOTE_CHARS:
-        raise BadInput(f"--note: at most {MAX_NOTE_CHARS} characters")
+        raise CommandError(f"--note: at most {MAX_NOTE_CHARS} characters")
     if any(ord(c) < 0x20 or ord(c) == 0x7F for c in args.note):
-        raise BadInput("--note: control characters (a newline, say) are not taken")
-    try:
-        settings = load_daemon_config(args.config)
-    except SettingsError as exc:
-        raise BadInput(str(exc)) from None
+        raise CommandError("--note: control characters (a newline, say) are not taken")
+    settings = load_daemon_config(args.config)
     if settings.controller_config is None:
-        raise BadInput(f"{args.config}: no [controller].config: a session calibrates the "
-                    "controller config the daemon records with")  # fmt: skip
+        raise CommandError(f"{args.config}: no [controller].config: a session calibrates the "
+                           "controller config the daemon records with")  # fmt: skip
     config = load_controller_config(settings.controller_config)
     if args.write:
         check_writable(config)
     if args.free is not None:
         try:
             ParameterModel.parse(args.free, ())
-        except ValueError as exc:
-            raise BadInput(f"--free: {exc}") from None
+        except ParameterError as exc:
+            raise CommandError(f"--free: {exc}") from None
     if args.report is not None:
         check_report_dir(args.report)
     assert settings.control_socket is not None
     client = ControlClient(settings.control_socket)
     job = Calibration([settings.directory], settings.controller_config, free=args.free,
-                      write=args.write, json=args.json, report=args.report, json_indent=None,
-                      prog="session")  # fmt: skip
+                      write=args.write, json=args.json, report=args.report,
+                      json_indent=None)  # fmt: skip
     return job, client
 
 
@@ -129,9 +121,9 @@ def _follow(client: ControlClient, args: argparse.Namespace) -> dict[str, Any]:
                 free=args.free)  # fmt: skip
     reply = client.receive(timeout=10.0)
     if reply is None:
-        raise BadInput(f"the daemon at {client.path} did not answer within 10 s")
+        raise CommandError(f"the daemon at {client.path} did not answer within 10 s")
     if reply.get("type") != "started":
-        raise BadInput(f"the daemon refused the session: {reply.get('error', reply)}")
+        raise CommandError(f"the daemon refused the session: {reply.get('error', reply)}")
     session = reply["session"]
     say = _say(args.json)
     say(f"session {session['id']} started through the daemon: move the plate as the guidance "
@@ -170,8 +162,8 @@ def _follow(client: ControlClient, args: argparse.Namespace) -> dict[str, Any]:
             elif kind == "error":
                 say(f"the daemon says: {msg.get('error')}")
     except KeyboardInterrupt:
-        raise BadInput("interrupted twice: the session was left to the daemon, which ends it "
-                    "as abandoned; nothing calibrated") from None  # fmt: skip
+        raise CommandError("interrupted twice: the session was left to the daemon, which ends it "
+                           "as abandoned; nothing calibrated") from None  # fmt: skip
     finally:
         signal.signal(signal.SIGINT, previous)
 
@@ -189,11 +181,12 @@ def _ended(session: dict[str, Any], say) -> dict[str, Any]:
     say(f"session {session['id']} ended: {session['reason']}{why}; "
         f"{session.get('scans', 0):,} scans")  # fmt: skip
     if session.get("since_ns") is None:
-        raise BadInput("the session saw no scan: is the module connected? (`systemctl status "
-                    "loopcal` shows the daemon's state)")  # fmt: skip
+        raise CommandError("the session saw no scan: is the module connected? (`systemctl status "
+                           "loopcal` shows the daemon's state)")  # fmt: skip
     if not session.get("flushed"):
-        raise BadInput("the daemon could not write the session's scans to disk: "
-                    f"{session.get('flush_error', 'unknown')}; nothing calibrated")  # fmt: skip
+        why = session.get("flush_error", "unknown")
+        raise CommandError(f"the daemon could not write the session's scans to disk: {why}; "
+                           "nothing calibrated")
     return session
 
 

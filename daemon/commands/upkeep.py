@@ -27,6 +27,7 @@ from ..arguments import path_argument
 from ..config.controller import ControllerConfigError, load_controller_config
 from ..recorder.settings import DEFAULTS, load_daemon_config
 from ..worker.proposal import Proposal, apply_proposal, discard_proposal, read_proposal
+from .errors import CommandError
 
 ACTIONS = ("status", "apply", "discard")
 
@@ -49,14 +50,14 @@ def _where(args: argparse.Namespace) -> tuple[Path, Path | None, float]:
     """(controller config, recordings directory, target_mm) from the options."""
     if args.config is not None:
         if args.controller_config is not None or args.recordings is not None:
-            raise ValueError("give --config, or --controller-config and --recordings, not both")
+            raise CommandError("give --config, or --controller-config and --recordings, not both")
         s = load_daemon_config(args.config)
         if s.controller_config is None:
-            raise ValueError(f"{args.config}: no [controller].config: the daemon proposes "
-                             "nothing without one")  # fmt: skip
+            raise CommandError(f"{args.config}: no [controller].config: the daemon proposes "
+                               "nothing without one")  # fmt: skip
         return s.controller_config, s.directory, s.upkeep_target_mm
     if args.controller_config is None:
-        raise ValueError("give --config DAEMON.toml, or --controller-config PATH")
+        raise CommandError("give --config DAEMON.toml, or --controller-config PATH")
     return args.controller_config, args.recordings, DEFAULTS["upkeep_target_mm"]
 
 
@@ -112,8 +113,8 @@ def run(args: argparse.Namespace) -> int:
         text, status = describe(proposal, config_path, recordings), 0
     else:
         if recordings is None:
-            raise ValueError("apply needs the recordings to check the proposal on: "
-                             "--config DAEMON.toml, or --recordings DIR")  # fmt: skip
+            raise CommandError("apply needs the recordings to check the proposal on: "
+                               "--config DAEMON.toml, or --recordings DIR")  # fmt: skip
         try:
             written = apply_proposal(config, proposal, recordings, target_mm=target_mm)
         except ControllerConfigError as exc:

@@ -15,13 +15,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 from ..arguments import path_argument
-from ..recording import RecordingError
 from ..recording.names import recording_paths
 from ..recording.verify import verify_file
+from .errors import CommandError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -34,12 +33,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         files = recording_paths(args.recordings)
         if not files:
-            raise RecordingError(f"{', '.join(map(str, args.recordings))}: no recordings "
-                                 "(loopcal-*.mcap)")  # fmt: skip
+            raise CommandError(f"{', '.join(map(str, args.recordings))}: no recordings "
+                               "(loopcal-*.mcap)")  # fmt: skip
         checked = [verify_file(f) for f in files]
-    except (RecordingError, OSError) as exc:
-        print(f"loopcal verify: error: {exc}", file=sys.stderr)
-        return 2
+    except OSError as exc:
+        raise CommandError(exc) from None
     damaged = sum(len(v.damaged) for v in checked)
     if args.json:
         print(json.dumps({"files": [v.as_json() for v in checked], "damaged": damaged,
