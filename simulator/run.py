@@ -38,7 +38,6 @@ import numpy as np
 
 from loopcal.calibration.kinematics import euler_zyz
 from loopcal.calibration.parameters import NAMES, to_dict
-from loopcal.calibration.simulate import NOISE_VOLTS
 
 from .clock import Clock, HeldClock, clock_for
 from .drift import OffsetDrift
@@ -47,6 +46,7 @@ from .faults import FaultInjector
 from .mechanism import MechanismSource, ReplaySource, true_parameters
 from .open_points import add_arguments as add_open_point_arguments
 from .open_points import from_arguments as open_points_from_arguments
+from .options import add_simulation_options, check_simulation_options
 from .scenarios import SCENARIOS, scenario_named
 
 _FAULT = re.compile(
@@ -375,16 +375,6 @@ def task_settings(args: argparse.Namespace) -> dict[str, float]:
     return {key: given[opt] for opt, _, key in TASK_OPTIONS if opt in given}
 
 
-def _pause(text: str) -> tuple[float, float]:
-    try:
-        lo, hi = (float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: give MIN,MAX seconds, e.g. 0.8,1.5") from None
-    if not 0 < lo <= hi:
-        raise argparse.ArgumentTypeError(f"{text!r}: need 0 < MIN <= MAX")
-    return lo, hi
-
-
 def int_in(lo: int, hi: int, *, base: int = 10) -> Callable[[str], int]:
     """An argparse type: an integer in lo..hi (hexadecimal digits with base 16).
 
@@ -464,8 +454,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """Add ``loopcal simulate``'s options to its parser.
 
     The transport and listening address, the module's identity and power-on settings, the
-    speed, the simulated mechanism (seed, scenario, noise, pauses, the task loop, true
-    parameters), the fault schedule, the duration, the truth file, and the open points
+    speed, the simulated mechanism (scenario, the task loop, true parameters; the seed,
+    noise, pauses, twists and offset error of :mod:`loopcal.simulator.options`), the fault
+    schedule, the duration, the truth file, and the open points
     (:func:`~loopcal.simulator.open_points.add_arguments`).
 
     Parameters
@@ -492,8 +483,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="switch the module on at a client's first request (default: at once)",
     )
-    p.add_argument("--seed", type=int, default=0, help="random seed of the motion and the noise "
-                   "(default 0)")  # fmt: skip
     p.add_argument("--scenario", choices=(*SCENARIOS, "replay"), default="hand",
                    help="how the plate moves: hand (a technician, pausing), static, sweep, "
                         "task (the controller's task loop, for ever), or replay (a "
@@ -504,23 +493,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="with --scenario replay: a --truth-out file to play back (loops)",
     )
-    p.add_argument("--noise-mv", type=float, default=1000 * NOISE_VOLTS, metavar="MV",
-                   help=f"sensor noise, mV rms (default {1000 * NOISE_VOLTS:g})")  # fmt: skip
-    p.add_argument(
-        "--pause",
-        type=_pause,
-        default=(1.0, 3.0),
-        metavar="MIN,MAX",
-        help="with --scenario hand: seconds the hand holds each position (default 1,3)",
-    )
-    p.add_argument(
-        "--twist-every",
-        type=int,
-        default=0,
-        metavar="N",
-        help="with --scenario hand: every N-th move twists the plate about its own axis, as "
-        "the live guidance asks (default 0: never)",
-    )
+    add_simulation_options(p, what="with --scenario hand: ")
     p.add_argument(
         "--task-waypoints",
         type=int,
@@ -543,12 +516,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="S",
         help="with --scenario task: seconds the plate stays at each waypoint, 0 for none "
         "(default 0.5)",
-    )
-    p.add_argument(
-        "--offset-error",
-        type=float,
-        default=3.0,
-        help="true offsets differ from the blueprint by up to this, mm (3)",
     )
     p.add_argument("--truth", default=None, help="true parameters, e.g. 'd01=99.1,A1x=68.9'")
     p.add_argument(
@@ -604,10 +571,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         truth = truth_parameters(args)
         if args.speed <= 0:
             raise ValueError("--speed must be positive")
-        if args.noise_mv < 0:
-            raise ValueError("--noise-mv must not be negative")
-        if args.twist_every < 0:
-            raise ValueError(f"--twist-every must be 0 or more moves, got {args.twist_every}")
+        check_simulation_options(args)
         task = task_settings(args)
         drifts = tuple(d for d in (e.drift() for e in faults) if d is not None)
         open_points = open_points_from_arguments(args)

@@ -38,6 +38,7 @@ from loopcal.calibration.simulate import perturbed_truth
 from loopcal.simulator import Emulator
 from loopcal.simulator.clock import HeldClock
 from loopcal.simulator.mechanism import MechanismSource
+from loopcal.simulator.options import add_simulation_options, check_simulation_options
 from loopcal.simulator.run import add_transport_option
 from loopcal.simulator.scenarios import HandMoves
 
@@ -46,7 +47,6 @@ from ..config.controller import ControllerConfig, load_controller_config
 from .errors import CommandError
 from .model_options import add_model_options, model_from_args
 
-PAUSE_S = (0.8, 1.5)  # a technician pausing about a second at each position
 PROGRESS_S = 5.0  # wall seconds between progress lines while recording
 
 
@@ -59,17 +59,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="device time per real second (default 10; 1 over ASCII, which polls)",
     )
-    p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
-    p.add_argument("--twist-every", type=int, default=2, metavar="N",
-                   help="the technician twists the plate about its own axis every N-th move "
-                        "(default 2, as the guidance asks; 0: never)")  # fmt: skip
-    p.add_argument("--noise-mv", type=float, default=40.0, help="sensor noise, mV (40)")
-    p.add_argument(
-        "--offset-error",
-        type=float,
-        default=3.0,
-        help="how far the refitted sensors' offsets moved, mm (3)",
-    )
+    add_simulation_options(p)
     add_model_options(p)
     p.add_argument(
         "--method",
@@ -101,14 +91,14 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
     """The demo; ``report`` gets what --json prints: verdict, written, work, parameters."""
-    if args.minutes <= 0:
+    if not args.minutes > 0:
         raise CommandError("--minutes must be positive")
-    if args.twist_every < 0:
-        raise CommandError(f"--twist-every must be 0 or more moves, got {args.twist_every}")
-    if args.noise_mv < 0:
-        raise CommandError("--noise-mv must not be negative")
+    try:
+        check_simulation_options(args)
+    except ValueError as exc:  # the option and its value, named
+        raise CommandError(exc) from None
     speed = args.speed if args.speed is not None else (1.0 if args.transport == "ascii" else 10.0)
-    if speed <= 0:
+    if not speed > 0:
         raise CommandError("--speed must be positive")
     model = model_from_args(args)
     if args.out is None:
@@ -134,7 +124,7 @@ def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
         + f". Working in {work}."
     )
     source = MechanismSource(
-        HandMoves(args.seed, params=truth, pause_s=PAUSE_S, twist_every=args.twist_every),
+        HandMoves(args.seed, params=truth, pause_s=args.pause, twist_every=args.twist_every),
         truth,
         noise_volts=args.noise_mv / 1000,
         seed=args.seed,

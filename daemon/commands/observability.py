@@ -16,6 +16,7 @@ import numpy as np
 from loopcal.calibration.observability import CONDITION_OK, analyse_identifiability
 from loopcal.calibration.selection import candidate_jacobian
 from loopcal.calibration.simulate import simulate_poses
+from loopcal.simulator.options import add_simulation_options, check_simulation_options
 
 from .errors import CommandError
 from .model_options import add_model_options, model_from_args
@@ -26,13 +27,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--poses", type=int, default=450, metavar="N",
                    help="simulated poses spread over the workspace (default 450)")  # fmt: skip
     p.add_argument("--session", type=float, default=None, metavar="SECONDS",
-                   help="judge every scan of a simulated hand session this long (20 Hz, "
-                        "40 mV) by its maximum-likelihood information, as the worker fits "
-                        "it, instead of --poses still poses by the paper's Jacobian")  # fmt: skip
-    p.add_argument("--twist-every", type=int, default=2, metavar="N",
-                   help="with --session: the technician twists the plate about its own axis "
-                        "every N-th move (default 2, as the guidance asks; 0: never)")  # fmt: skip
-    p.add_argument("--seed", type=int, default=1, help="random seed of the poses (default 1)")
+                   help="judge every scan of a simulated hand session this long (20 Hz; "
+                        "its pauses, twists and noise as --pause, --twist-every and "
+                        "--noise-mv say) by its maximum-likelihood information, as the worker "
+                        "fits it, instead of --poses still poses by the paper's "
+                        "Jacobian")  # fmt: skip
+    add_simulation_options(p, truth=False, what="with --session: ")
     p.add_argument("--condition-limit", type=float, default=CONDITION_OK, metavar="C",
                    help="the largest condition number a free set may have "
                         f"(default {CONDITION_OK:g})")  # fmt: skip
@@ -44,11 +44,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.poses < 1:
         raise CommandError(f"--poses {args.poses}: at least 1")
-    if args.twist_every < 0:
-        raise CommandError(f"--twist-every must be 0 or more moves, got {args.twist_every}")
+    if not (math.isfinite(args.condition_limit) and args.condition_limit >= 1):
+        raise CommandError(f"--condition-limit {args.condition_limit:g}: a condition number, "
+                           "1 or more")
+    try:
+        check_simulation_options(args)
+    except ValueError as exc:  # the option and its value, named
+        raise CommandError(exc) from None
     model = model_from_args(args)
     if args.session is not None:
-        J = _session_information(args.session, args.seed, model, args.twist_every)
+        J = _session_information(args, model)
     else:
         ps = simulate_poses(args.poses, seed=args.seed, noise_volts=0.0, quantize=False)
         cand = candidate_jacobian(ps.volts, model, ps.truth)
@@ -77,18 +82,23 @@ def run(args: argparse.Namespace) -> int:
     return 0 if report.observable else 1
 
 
-def _session_information(seconds: float, seed: int, model, twist_every: int) -> np.ndarray:
+def _session_information(args: argparse.Namespace, model) -> np.ndarray:
     """The maximum-likelihood information rows (m, 1, n) of every scan of a simulated hand
-    session (the reference mechanism, moved as :class:`loopcal.simulator.scenarios.HandMoves`
-    does, twisting every ``twist_every``-th move, 20 Hz, its true rotations at each scan's
-    instant)."""
+    session ``args.session`` s long (the reference mechanism, moved as
+    :class:`loopcal.simulator.scenarios.HandMoves` does with the options' seed, pauses and
+    twists, 20 Hz, its true rotations at each scan's instant, weighed by ``--noise-mv``)."""
+    seconds = args.session
     if not (math.isfinite(seconds) and 1 <= seconds <= 86400):
         raise CommandError(f"--session {seconds!r}: between 1 and 86400 seconds")
+    if not args.noise_mv > 0:
+        raise CommandError(f"--session needs noise to weigh the scans: --noise-mv "
+                           f"{args.noise_mv:g}")
     from loopcal.calibration import implicit
     from loopcal.calibration.parameters import NOMINAL
     from loopcal.simulator.scenarios import HandMoves
 
     t = np.arange(round(seconds * 20)) / 20.0
-    R = HandMoves(seed, params=NOMINAL, twist_every=twist_every).rotation(t)
-    w = np.full((len(R), 4), 1.0 / 0.040)
+    R = HandMoves(args.seed, params=NOMINAL, pause_s=args.pause,
+                  twist_every=args.twist_every).rotation(t)  # fmt: skip
+    w = np.full((len(R), 4), 1000.0 / args.noise_mv)
     return implicit.weighted_information(R, NOMINAL, model.tie_matrix, w)[:, None, :]

@@ -97,6 +97,8 @@ def _record_sessions(root: Path, seeds: list[int], wanted: int, speed: float) ->
                     f"{speed:g}",
                     "--pause",
                     f"{PAUSE_S[0]},{PAUSE_S[1]}",
+                    "--twist-every",
+                    "0",
                     "--noise-mv",
                     "40",
                     "--truth",

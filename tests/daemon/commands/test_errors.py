@@ -106,3 +106,27 @@ def test_main_prints_a_domain_error_found_deep_inside(tmp_path: Path, capsys) ->
     out, err = capsys.readouterr()
     assert out == "" and len(err.splitlines()) == 1
     assert err.startswith(f"loopcal upkeep: error: {config}"), err
+
+
+@pytest.mark.parametrize(("argv", "words"), [
+    (["observability", "--noise-mv", "-1"], "--noise-mv must not be negative, got -1"),
+    (["observability", "--session", "60", "--noise-mv", "0"], "--noise-mv 0"),
+    (["observability", "--poses", "0"], "--poses 0: at least 1"),
+    (["demo", "--offset-error", "nan"], "--offset-error must be 0 or more mm, got nan"),
+    (["demo", "--twist-every", "-2"], "--twist-every must be 0 or more moves, got -2"),
+])  # fmt: skip
+def test_the_simulation_options_are_checked_the_same_in_each_command(argv, words,
+                                                                      capsys) -> None:  # fmt: skip
+    assert main(argv) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and len(err.splitlines()) == 1, err
+    assert err.startswith(f"loopcal {argv[0]}: error: ") and words in err, err
+
+
+@pytest.mark.parametrize("command", ["demo", "simulate", "observability"])
+def test_a_bad_pause_is_refused_by_the_parser(command: str, capsys) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main([command, "--pause", "2,1"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert f"loopcal {command}: error: argument --pause: '2,1': need 0 < MIN <= MAX" in err

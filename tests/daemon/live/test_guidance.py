@@ -91,7 +91,8 @@ def test_until_enough_stops_by_itself_and_calibrate_agrees(tmp_path):
     every = ",".join(f"{n}={float(truth[i])!r}" for i, n in enumerate(NAMES))
     config = fresh_config(tmp_path / "controller.toml")
     sim = Proc(["simulate", "--seed", str(seed), "--speed", "10", "--wait-for-client",
-                "--pause", f"{PAUSE_S[0]},{PAUSE_S[1]}", "--truth", every])  # fmt: skip
+                "--pause", f"{PAUSE_S[0]},{PAUSE_S[1]}", "--twist-every", "0",
+                "--truth", every])  # fmt: skip
     try:
         rec = record(listening_url(sim), tmp_path / "rec", "--controller-config", str(config),
                      "--until-enough", "--json", "--read-period", "0.05")  # fmt: skip

@@ -267,7 +267,8 @@ def _robot_not_at_the_reference(tmp_path, *record_args: str) -> tuple[Proc, list
     truth = truth_for(11)
     every = ",".join(f"{n}={float(truth[i])!r}" for i, n in enumerate(NAMES))
     sim = Proc(["simulate", "--seed", "11", "--speed", "10", "--pause", "0.8,1.5",
-                "--noise-mv", "40", "--truth", every, "--wait-for-client"])  # fmt: skip
+                "--twist-every", "0", "--noise-mv", "40", "--truth", every,
+                "--wait-for-client"])  # fmt: skip
     from tests.support.processes import listening_url
 
     try:
