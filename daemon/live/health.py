@@ -58,6 +58,7 @@ from loopcal.calibration.poses import pose_noise_volts
 from ..config.controller import ControllerConfig
 from ..events import Level
 from ..recorder.engine import Recorder
+from ..recorder.settings import DEFAULTS
 from ..worker.poses import RecordedPoses, completed_poses, margin_scans, window_scans
 
 WINDOW = 30  # poses per test
@@ -72,7 +73,8 @@ EARLY_POSES = 3
 REPORT_EVERY_S = 60.0  # a growing shift of the same sensor is reported at most this often
 #: the offsets' standard deviation assumed for a config without a calibration's provenance
 DEFAULT_CONFIG_STD_MM = 0.05
-FALSE_ALARM = 1e-8
+#: probability per still pose of an alarm when nothing moved: the daemon's [health].false_alarm
+FALSE_ALARM: float = DEFAULTS["health_false_alarm"]
 
 log = logging.getLogger(__name__)
 
