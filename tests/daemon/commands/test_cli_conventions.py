@@ -1,8 +1,8 @@
 """One convention for every ``loopcal`` command, checked by walking every command's parser
 and help: every option has a help, no reST markup reaches ``--help``, ``--out`` is a
 directory, the commands that report take ``--json``, ``--free`` takes one syntax, errors
-read ``loopcal CMD: error: ...`` with exit status 2, and docs/daemon.md's table of keys is
-the settings' own."""
+read ``loopcal CMD: error: ...`` with exit status 2, docs/daemon.md's table of keys is
+the settings' own, and its example config holds their defaults."""
 
 from __future__ import annotations
 
@@ -17,7 +17,12 @@ import pytest
 
 from loopcal.daemon.cli import build_parser
 from loopcal.daemon.commands import COMMANDS
-from loopcal.daemon.recorder.settings import markdown_table
+from loopcal.daemon.recorder.settings import (
+    DEFAULTS,
+    SETTINGS,
+    load_daemon_config,
+    markdown_table,
+)
 from tests.support import ROOT
 
 NAMES = [name for name, _ in COMMANDS]
@@ -113,6 +118,33 @@ def test_bad_input_is_exit_2_with_one_error_line(argv: list[str]) -> None:
 
 def test_the_docs_table_of_keys_is_the_settings_own() -> None:
     assert markdown_table() in (ROOT / "docs" / "daemon.md").read_text()
+
+
+def test_the_docs_example_config_holds_the_settings_defaults(tmp_path: Path) -> None:
+    """docs/daemon.md's example config is a config the daemon takes, and each of its
+    values is the setting's default, but for those whose line says why not (a comment: a
+    required key, or an example of a value to choose)."""
+    text = (ROOT / "docs" / "daemon.md").read_text()
+    block = re.search(r"^## The config file\n.*?^```toml\n(.*?)^```", text, re.M | re.S)
+    assert block, "docs/daemon.md: no ```toml block under '## The config file'"
+    example = tmp_path / "daemon.toml"
+    example.write_text(block.group(1))
+    settings = load_daemon_config(example)  # every key known, every value taken
+    table = ""
+    checked = []
+    for line in block.group(1).splitlines():
+        if m := re.match(r"^\[(\w+)\]\s*$", line):
+            table = m.group(1)
+        elif m := re.match(r"^(\w+)\s*=\s*(.*?)\s*(#.*)?$", line):
+            key, why = f"[{table}].{m.group(1)}", m.group(3)
+            (name,) = [n for n, spec in SETTINGS.items() if spec.key == key]
+            if why is None:
+                assert name in DEFAULTS, f"{key} has no default: say why in a comment"
+                assert getattr(settings, name) == DEFAULTS[name], \
+                    (f"docs/daemon.md's example sets {key} = {m.group(2)}, the default is "
+                     f"{DEFAULTS[name]!r}: change it, or say why in a comment")  # fmt: skip
+                checked.append(key)
+    assert len(checked) >= 8, checked
 
 
 @pytest.mark.parametrize("command", ["info", "check", "compact", "calibrate"])
