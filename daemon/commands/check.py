@@ -33,6 +33,7 @@ from ..arguments import path_argument
 from ..inspect.loops import check, plot
 from ..inspect.proposals import UpkeepSettings, proposal_words
 from ..live.health import FALSE_ALARM
+from ..recorder.settings import FALSE_ALARM_MAX
 from ..recording.names import recording_paths
 from .errors import CommandError
 
@@ -59,8 +60,8 @@ def add_false_alarm_option(p: argparse.ArgumentParser, *, what: str = "") -> Non
 
 def check_false_alarm(p: float) -> None:
     """Raises CommandError, naming the option, for a ``--false-alarm`` outside (0, 0.01)."""
-    if not 0 < p < 1e-2:
-        raise CommandError(f"--false-alarm {p:g}: give a probability in (0, 0.01)")
+    if not 0 < p < FALSE_ALARM_MAX:
+        raise CommandError(f"--false-alarm {p:g}: give a probability in (0, {FALSE_ALARM_MAX:g})")
 
 
 def add_upkeep_options(p: argparse.ArgumentParser, *, what: str = "") -> None:

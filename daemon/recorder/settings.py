@@ -37,6 +37,7 @@ _MAX_SIZE = float(1 << 62)
 CONTROL_SOCKET_NAME = "control.sock"
 #: the most scans the backlog may hold in memory (about 560 MB)
 MAX_BACKLOG_SCANS = 10_000_000
+FALSE_ALARM_MAX = 1e-2  #: the health monitor's false-alarm rate is below this
 
 class SettingsError(ValueError):
     """A bad setting. ``field`` is the :class:`RecorderSettings` field at fault (None when
@@ -237,8 +238,10 @@ class RecorderSettings:
         if str(self.directory) == "":
             raise bad("directory", "is empty")
         fa = self.health_false_alarm
-        if isinstance(fa, bool) or not isinstance(fa, (int, float)) or not 0 < fa < 1e-2:
-            raise bad("health_false_alarm", f"must be a probability in (0, 0.01), got {fa!r}")
+        if (isinstance(fa, bool) or not isinstance(fa, (int, float))
+                or not 0 < fa < FALSE_ALARM_MAX):  # fmt: skip
+            raise bad("health_false_alarm",
+                      f"must be a probability in (0, {FALSE_ALARM_MAX:g}), got {fa!r}")  # fmt: skip
         for name in ("metrics_listen", "live_listen"):
             if getattr(self, name) is not None:
                 try:
