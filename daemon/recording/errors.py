@@ -9,6 +9,6 @@ class RecordingError(Exception):
     path that names no recording: missing, unreadable, not a regular file, not MCAP at
     all, an MCAP file of something else, or a recording of another format version. A
     damaged recording is no error: it is read as far as it checks out, and the damage is
-    reported (:class:`~loopcal.daemon.recording.filereader.RecordingFile`).
+    reported (:class:`~loopcal.daemon.recording.recordingfile.RecordingFile`).
     """
 

@@ -589,3 +589,7 @@ def _unique_scans(rows: np.ndarray) -> tuple[np.ndarray, int]:
     keep = np.ones(len(rows), dtype=bool)
     keep[1:] = (e[1:] != e[:-1]) | (c[1:] != c[:-1])
     return rows[keep], int(len(rows) - keep.sum())
+
+
+# RecordingFile and utc_text live in .recordingfile; importable from here as before
+__all__ = ["FileReader", "RecordingFile", "utc_text"]

@@ -81,7 +81,7 @@ class Recording:
     def warnings(self) -> list[str]:
         """One line per damaged or partly read file, naming it and what was lost.
 
-        A list of str: the :attr:`~loopcal.daemon.recording.filereader.RecordingFile.warning`
+        A list of str: the :attr:`~loopcal.daemon.recording.recordingfile.RecordingFile.warning`
         of each file that did not read intact; empty when every file read intact.
         """
         return [f.warning for f in self.files if f.warning]

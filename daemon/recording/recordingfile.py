@@ -43,7 +43,7 @@ class RecordingFile:
         How the file was read when it was not closed normally (empty for a complete one).
     damage : list of Damage
         The parts that could not be trusted
-        (:class:`~loopcal.daemon.recording.records.Damage`: byte ranges, what was wrong,
+        (:class:`~loopcal.daemon.recording.damage.Damage`: byte ranges, what was wrong,
         the time span of the messages they held where known).
     lost : list of Loss
         Scans known to be missing from the file, by counter
