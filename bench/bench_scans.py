@@ -6,7 +6,7 @@ Each session is a technician's hand moving the simulated shoulder joint (pausing
 second between moves, 40 mV of noise, 12-bit codes, channels converted 250 µs apart: the
 offline emulator's scans, :func:`tests.support.sessions.hand_rows`), of a mechanism whose
 offsets and geometry are off the blueprint (:func:`tests.support.sessions.truth_for`). The
-same worker code runs on each (:func:`loopcal.daemon.worker.run.run_worker`), from the
+same worker code runs on each (:func:`loopcal.daemon.worker.job.run_worker`), from the
 reference config, the paper's seven free parameters:
 
 ``mc``: per parameter, the RMS error over ``--sessions`` sessions of
@@ -59,7 +59,7 @@ parameters is learnt (its scaled components, and the share of its information in
 longer than 75 s, and twisting ones do not: docs/model.md section 9.2.
 
 ``thin``: an hour of hand motion (72,000 scans): the fit on every usable scan against the
-worker's thinning to :data:`~loopcal.daemon.worker.motion.MAX_FIT_SCANS` (12,000): the
+worker's thinning to :data:`~loopcal.daemon.worker.scan_poses.MAX_FIT_SCANS` (12,000): the
 reported standard deviations (the precision the thinning costs) and the time.
 
 ``--twist-every N``: the simulated technicians also twist the plate about its own axis
@@ -85,8 +85,8 @@ from loopcal.calibration.parameters import INDEX, PAPER7, ParameterModel
 from loopcal.calibration.pipeline import calibrate_scans
 from loopcal.daemon.config.controller import ControllerConfig, nominal_config
 from loopcal.daemon.live.guidance import Guidance
-from loopcal.daemon.worker.motion import scans_for_fit
-from loopcal.daemon.worker.run import run_worker
+from loopcal.daemon.worker.job import run_worker
+from loopcal.daemon.worker.scan_poses import scans_for_fit
 from tests.support.sessions import GuidedSession, hand_rows, truth_for
 
 FREE = list(PAPER7.free)

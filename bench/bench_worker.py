@@ -13,7 +13,8 @@ measured in the same run, is reading the recording alone: the growth of the rest
 shows how the worker scales. Target (issue #16): a day in under 3 s.
 
 Then a line per stage of the worker with its median over the repeats, a column per
-recording (:func:`loopcal.daemon.worker.run.run_worker` on the scans read, the stages timed where it
+recording (:func:`loopcal.daemon.worker.job.run_worker` on the scans read, the stages timed
+where it
 calls them): the usable scans (screening, channel skew, thinning), the held-out split and the
 gates, the identification (both fits: without the held-out stretches, then all), and the
 worker's total; and the command's total, with the share of it
@@ -32,11 +33,11 @@ import time
 from pathlib import Path
 
 import loopcal.calibration.pipeline as pipeline
-import loopcal.daemon.worker.run as worker_run
+import loopcal.daemon.worker.job as worker_run
 from loopcal.daemon.config.controller import load_controller_config, write_initial_config
 from loopcal.daemon.recording import find_recordings, read_recordings
-from loopcal.daemon.worker.motion import scans_for_fit
-from loopcal.daemon.worker.run import run_worker
+from loopcal.daemon.worker.job import run_worker
+from loopcal.daemon.worker.scan_poses import scans_for_fit
 from loopcal.simulator.scenarios import HandMoves
 from tests.support.recordings import compacted_copy
 from tests.support.sessions import PAUSE_S, truth_for, write_session

@@ -1,7 +1,8 @@
 """loopcal's daemon and commands: the data flow DAQ -> scans -> MCAP -> poses -> fit -> gates
 -> config, one sub-package per job (docs/architecture.md draws the map):
 
-- :mod:`loopcal.daemon.scans`, :mod:`loopcal.daemon.events`, :mod:`loopcal.daemon.version`: the base
+- :mod:`loopcal.daemon.scan_rows`, :mod:`loopcal.daemon.events`, :mod:`loopcal.daemon.version`: the
+  base
   every job shares (a scan row, an event, the version);
 - :mod:`loopcal.daemon.config`: the controller config and durable writes;
 - :mod:`loopcal.daemon.recording`: the recording format (schemas, CDR, views, writer, reader);

@@ -29,7 +29,7 @@ from ..config import durable
 from ..config.controller import load_controller_config
 from ..recording import find_recordings, read_recordings
 from ..recording.names import recording_paths
-from ..worker.run import METHOD_NAMES, describe_files, run_worker
+from ..worker.job import METHOD_NAMES, describe_files, run_worker
 from ..worker.writeback import Written, check_writable, write_back
 from .errors import CommandError
 from .model_options import add_model_options, add_select_option

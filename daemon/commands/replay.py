@@ -25,7 +25,7 @@ from loopcal.simulator.run import add_transport_option, listen_host, tcp_port
 
 from ..arguments import path_argument
 from ..recording import read_recordings
-from ..scans import scan_rate_hz
+from ..scan_rows import scan_rate_hz
 from .errors import CommandError
 
 OFF_MIN_S = 0.1  # shortest power cycle replayed

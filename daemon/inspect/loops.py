@@ -17,7 +17,7 @@ from loopcal.calibration.closure import DriftTest
 from ..config.controller import load_controller_config
 from ..live.health import HealthMonitor
 from ..recording import read_recordings
-from ..scans import SCAN_DTYPE
+from ..scan_rows import SCAN_DTYPE
 from .proposals import ReportedProposals, UpkeepSettings, pending_proposal
 from .summary import utc_iso
 

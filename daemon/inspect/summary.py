@@ -30,8 +30,8 @@ from ..recording import RecordingError, read_recordings
 from ..recording.names import recording_paths
 from ..recording.reader import identities
 from ..recording.verify import verify_file
-from ..scans import scan_rate_hz
-from ..worker.poses import completed_poses
+from ..scan_rows import scan_rate_hz
+from ..worker.recorded_poses import completed_poses
 
 _TAIL = 512  # scans of a file's end compared with the next file's start
 

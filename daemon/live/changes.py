@@ -32,8 +32,8 @@ from loopcal.calibration.poses import pose_noise_volts
 from loopcal.calibration.simulate import NOISE_VOLTS
 
 from ..config.controller import ControllerConfig
-from ..worker.motion import scans_for_fit
 from ..worker.offsets import OFFSETS, config_std
+from ..worker.scan_poses import scans_for_fit
 
 #: a segment with fewer usable scans than this is not tested
 MIN_SEGMENT_SCANS = 100

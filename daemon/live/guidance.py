@@ -2,7 +2,7 @@
 collected, how well it identifies the parameters, what to do next, and when it is enough.
 
 About once a second the guidance runs the calibration worker itself
-(:func:`loopcal.daemon.worker.run.run_worker`: every usable scan, moving or still, held-out
+(:func:`loopcal.daemon.worker.job.run_worker`: every usable scan, moving or still, held-out
 stretches, maximum-likelihood fit, acceptance gates) on every scan recorded so far, so its
 prediction is what ``loopcal calibrate`` will report on the recording. Before the scans pass
 through enough distinct positions for the worker, each free parameter's standard deviation
@@ -29,11 +29,11 @@ from loopcal.calibration.parameters import INDEX, SL_OFFSET, UNITS, ParameterMod
 from loopcal.calibration.poses import pose_noise_volts
 
 from ..config.controller import ControllerConfig
-from ..scans import volts as scans_volts
+from ..scan_rows import volts as scans_volts
 from ..worker import coverage as C
-from ..worker.gates.motion import MIN_POSES
-from ..worker.motion import RecordedScans, scans_for_fit
-from ..worker.run import run_worker
+from ..worker.gates.samples import MIN_POSES
+from ..worker.job import run_worker
+from ..worker.scan_poses import RecordedScans, scans_for_fit
 
 PERIOD_S = 1.0
 #: the default target: every offset's predicted standard deviation, mm

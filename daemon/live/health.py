@@ -3,7 +3,8 @@ config in force, and names the sensor whose offset moved.
 
 Scans -> still poses -> loop closure -> drift test -> events. The recorder feeds every scan
 it receives (:meth:`HealthMonitor.feed`); still poses are found as the worker finds them
-(:func:`loopcal.daemon.worker.poses.poses_of_scans`), each as soon as the plate moves on, and each
+(:func:`loopcal.daemon.worker.recorded_poses.poses_of_scans`), each as soon as the plate moves on,
+and each
 new pose runs the likelihood-ratio test of :mod:`loopcal.calibration.closure` over the last 30
 poses: "sensor i's offset moved, and the latest k poses show it", for each sensor and every k (as a
 step, and as a creep growing over those poses), against the noise of the poses' own
@@ -59,7 +60,7 @@ from ..config.controller import ControllerConfig
 from ..events import Level
 from ..recorder.engine import Recorder
 from ..recorder.settings import DEFAULTS
-from ..worker.poses import RecordedPoses, completed_poses, margin_scans, window_scans
+from ..worker.recorded_poses import RecordedPoses, completed_poses, margin_scans, window_scans
 
 WINDOW = 30  # poses per test
 MIN_AFFECTED = 6  # a shift must show in at least this many of the latest poses
@@ -210,7 +211,7 @@ class HealthMonitor:
     def _settle(self, buf: np.ndarray, P: RecordedPoses, open_pose: bool, keep_from: int) -> int:
         """Where to keep ``buf`` from for the next search, so that a feed searches its new
         scans and a bounded context, not every scan since the last pose (up to
-        :data:`~loopcal.daemon.worker.poses.POSE_BUFFER_S` while the plate moves).
+        :data:`~loopcal.daemon.worker.recorded_poses.POSE_BUFFER_S` while the plate moves).
 
         A row the plate was not still at, whose every still window is in ``buf`` (settled),
         is in no later pose: the open pose begins after it (the row before the open pose),

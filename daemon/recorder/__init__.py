@@ -24,6 +24,6 @@
   notification, logging and signals for the long-running commands.
 
 Imports: drivers/, the recording format (:mod:`loopcal.daemon.recording`), the shared config
-(:mod:`loopcal.daemon.config`) and the base modules (:mod:`loopcal.daemon.scans`,
+(:mod:`loopcal.daemon.config`) and the base modules (:mod:`loopcal.daemon.scan_rows`,
 :mod:`loopcal.daemon.events`). Never the worker, live analysis or the commands.
 """

@@ -2,7 +2,7 @@
 
 :class:`Acquisition` runs in a thread of its own and never waits for the disk: it reads the
 module, turns the driver's :class:`loopcal.drivers.Scan` records into rows of
-:data:`loopcal.daemon.scans.SCAN_DTYPE` and gives each batch to a sink (the recorder's queue).
+:data:`loopcal.daemon.scan_rows.SCAN_DTYPE` and gives each batch to a sink (the recorder's queue).
 
 What it adds to the driver's scans:
 
@@ -50,7 +50,7 @@ from loopcal.drivers import DAQ, DAQError, Scan, ldq412, open_daq
 from loopcal.drivers.pacing import FIFO_READ_PERIOD_S, FifoPacer, PollPacer
 
 from ..events import Event, Level
-from ..scans import SCAN_DTYPE
+from ..scan_rows import SCAN_DTYPE
 from .batches import AcquisitionStats, Batch, DeviceInfo, ResumePoint
 from .clockmap import ClockMap, StampFloor
 from .foreign import ForeignReaders

@@ -33,7 +33,7 @@ from ..events import Event, Level
 from ..recording import RecordingWriter, find_recordings, metadata_records, recording_name
 from ..recording.compact import directory_lock
 from ..recording.views import WrittenViews
-from ..scans import SCAN_DTYPE
+from ..scan_rows import SCAN_DTYPE
 from .acquisition import Batch, DeviceInfo
 from .compactor import Compactor
 from .settings import RecorderSettings, SettingsError

@@ -36,7 +36,7 @@ from .observers import AnalysisThread
 from .settings import RecorderSettings, SettingsError, parse_listen
 
 
-class Recorder(Protocol):
+class MetricsSource(Protocol):
     """What the metrics read of a recorder (:class:`loopcal.daemon.recorder.engine.Recorder`)."""
 
     status: RecorderStatus
@@ -62,7 +62,7 @@ DIRECTORY_EVERY_S = 30.0
 class RecorderCollector(Collector):
     """The recorder's metrics, read at each scrape."""
 
-    def __init__(self, recorder: Recorder) -> None:
+    def __init__(self, recorder: MetricsSource) -> None:
         self.rec = recorder
         self._dir_bytes = (0.0, 0)  # (monotonic time measured, bytes)
 
@@ -221,7 +221,7 @@ class MetricsServer:
     once: a port that is taken is a SettingsError naming ``[metrics].listen``. An address
     that is not loopback is served, with a warning in the log saying what it exposes."""
 
-    def __init__(self, recorder: Recorder, listen: str) -> None:
+    def __init__(self, recorder: MetricsSource, listen: str) -> None:
         host, port = parse_listen(listen)
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(RecorderCollector(recorder))

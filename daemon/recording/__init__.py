@@ -25,7 +25,8 @@ Layout, chosen for crash safety and for fast reading: every flush (about once pe
 writes two chunks, first the raw block with any events, then the per-scan views, and fsyncs.
 A reader that only wants the scans skips the view chunks by the chunk index, and decodes each
 block with one ``numpy.frombuffer``: the block's CDR body is the rows of
-:data:`loopcal.daemon.scans.SCAN_DTYPE` back to back. A file cut short by a crash or a power loss
+:data:`loopcal.daemon.scan_rows.SCAN_DTYPE` back to back. A file cut short by a crash or a power
+loss
 still reads back up to its last complete chunk.
 
 The modules, bottom up: :mod:`~loopcal.daemon.recording.schemas` (topics, channels, schemas),
@@ -34,8 +35,8 @@ The modules, bottom up: :mod:`~loopcal.daemon.recording.schemas` (topics, channe
 :mod:`~loopcal.daemon.recording.names` (file names), :mod:`~loopcal.daemon.recording.writer`
 (:class:`RecordingWriter`); the one parser of MCAP records, which the reader, ``loopcal
 verify`` and the compaction share: :mod:`~loopcal.daemon.recording.damage` (what could not be
-trusted), :mod:`~loopcal.daemon.recording.records` (records checked before they are trusted,
-chunks, indexes, resynchronisation), :mod:`~loopcal.daemon.recording.summary` (the summary
+trusted), :mod:`~loopcal.daemon.recording.mcap_records` (records checked before they are trusted,
+chunks, indexes, resynchronisation), :mod:`~loopcal.daemon.recording.mcap_summary` (the summary
 section, by its CRC) and :mod:`~loopcal.daemon.recording.walk` (the data section record by
 record); then :mod:`~loopcal.daemon.recording.filereader` (one file, and what it lost:
 :mod:`~loopcal.daemon.recording.recordingfile`), :mod:`~loopcal.daemon.recording.reader`

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ..scans import SCAN_DTYPE
+from ..scan_rows import SCAN_DTYPE
 from .schemas import BASE_FRAME, CDR_LE, PLATE_FRAME
 
 # CDR (little endian) of messages with fixed-size fields only, vectorised: a numpy dtype

@@ -38,7 +38,7 @@ import struct
 import numpy as np
 import zstandard
 
-from ..scans import SCAN_DTYPE
+from ..scan_rows import SCAN_DTYPE
 from .schemas import CDR_LE
 
 #: the codec byte of this layout

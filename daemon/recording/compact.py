@@ -68,9 +68,9 @@ from numpy.lib.recfunctions import repack_fields
 from ..config import durable
 from .columns import decode_columns, decode_scan_messages, encode_columns, is_columns
 from .errors import RecordingError
+from .mcap_records import MAGIC
 from .names import find_recordings, recording_paths
 from .reader import read_recordings
-from .records import MAGIC
 from .schemas import (
     BLOCK_SPAN_NS,
     COMPACT_FORMAT,

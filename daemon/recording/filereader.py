@@ -1,7 +1,7 @@
 """Reading one recording file, trusting only what checks out, and saying what it lost.
 
-The records come from :mod:`~loopcal.daemon.recording.records` (every length, offset and CRC
-checked; the summary through :mod:`~loopcal.daemon.recording.summary`, the data section
+The records come from :mod:`~loopcal.daemon.recording.mcap_records` (every length, offset and CRC
+checked; the summary through :mod:`~loopcal.daemon.recording.mcap_summary`, the data section
 record by record through :mod:`~loopcal.daemon.recording.walk`); this module turns them into
 scan rows and events: each scan once (within a file a scan is its power-on epoch and
 counter), the counter gaps no recorded ``missed`` explains reported as lost scans, and every
@@ -29,15 +29,13 @@ import numpy as np
 from mcap.opcode import Opcode
 from mcap.records import Channel, ChunkIndex, MessageIndex, Metadata, Statistics
 
-from .. import scans as scan_rows
+from .. import scan_rows
 from ..events import Event
 from .columns import decode_scan_messages
 from .damage import Damage
 from .errors import RecordingError
 from .losses import losses, losses_within, view_keys
-from .names import NAME_RE
-from .recordingfile import RecordingFile, utc_text
-from .records import (
+from .mcap_records import (
     MAGIC,
     PARSE_ERRORS,
     RECORD_HEAD,
@@ -49,6 +47,9 @@ from .records import (
     read_header,
     record_at,
 )
+from .mcap_summary import SummarySection, read_summary
+from .names import NAME_RE
+from .recordingfile import RecordingFile, utc_text
 from .schemas import (
     BLOCK_SPAN_NS,
     COLUMNS_SPAN_NS,
@@ -58,7 +59,6 @@ from .schemas import (
     TOPIC_STATE,
     our_channel_id,
 )
-from .summary import Summary, read_summary
 from .walk import walk
 
 #: what :func:`~loopcal.daemon.recording.walk.walk` calls a file's damaged start
@@ -251,7 +251,7 @@ class FileReader:
             self.channels.setdefault(ch.id, ch)
         self._messages += [(got.offset, cid, data) for cid, _t, data in got.messages]
 
-    def _read_metadata(self, buf: memoryview, summary: Summary) -> None:
+    def _read_metadata(self, buf: memoryview, summary: SummarySection) -> None:
         for idx in summary.metadata_indexes:
             at = record_at(buf, idx.offset, len(buf))
             if at is None or at[0] != Opcode.METADATA or idx.length != RECORD_HEAD + at[1]:
@@ -269,7 +269,7 @@ class FileReader:
                 continue
             self.metadata[rec.name] = dict(rec.metadata)
 
-    def _read_indexed(self, buf: memoryview, summary: Summary) -> bool:
+    def _read_indexed(self, buf: memoryview, summary: SummarySection) -> bool:
         """The chunks the index names that hold scans or events. Where one does not check
         out, the file is read record by record instead (every intact chunk, wherever it
         is); False if that found chunks the index does not describe (moved)."""
@@ -295,7 +295,7 @@ class FileReader:
             self._take(got)
         return not (damaged and self._read_unindexed(buf, summary))
 
-    def _read_unindexed(self, buf: memoryview, summary: Summary) -> bool:
+    def _read_unindexed(self, buf: memoryview, summary: SummarySection) -> bool:
         """A closed file with a chunk that is not what its index says: every intact chunk
         read wherever it is (chunks moved, or a torn one), the views included. Where no
         intact chunk is where the index says, the index's account of it (its time span)

@@ -13,15 +13,15 @@ from pathlib import Path
 import numpy as np
 from mcap.records import Statistics
 
-from .. import scans as scan_rows
+from .. import scan_rows
 from ..events import Event
 from .errors import RecordingError
 from .filereader import FileReader
+from .mcap_records import FOOTER_BYTES, MAGIC, RECORD_HEAD, is_ours, read_header
+from .mcap_summary import read_statistics
 from .names import recording_paths
 from .recordingfile import RecordingFile, utc_text
-from .records import FOOTER_BYTES, MAGIC, RECORD_HEAD, is_ours, read_header
 from .schemas import BLOCK_SPAN_NS, NS_PER_S
-from .summary import read_statistics
 
 
 @dataclass
@@ -33,7 +33,7 @@ class Recording:
     Attributes
     ----------
     scans : ndarray of SCAN_DTYPE, shape (n,)
-        One row per scan (:data:`loopcal.daemon.scans.SCAN_DTYPE`), each scan once (a scan
+        One row per scan (:data:`loopcal.daemon.scan_rows.SCAN_DTYPE`), each scan once (a scan
         in two files is kept once): files in the order of their first scan, each file's
         scans in (epoch, counter) order.
     events : list of Event

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from ..scans import SCAN_FIELDS
+from ..scan_rows import SCAN_FIELDS
 
 #: the format of files as the recorder writes them (raw scans as ScanBlock rows)
 FORMAT_VERSION = "1"

@@ -36,7 +36,7 @@ record's shape reads as a different value. The header's library
 is checked against the ``loopcal`` metadata's version and that record's format against the
 format version; other metadata values are taken as they are.
 
-The records are parsed by :mod:`~loopcal.daemon.recording.records`, the parser the reader
+The records are parsed by :mod:`~loopcal.daemon.recording.mcap_records`, the parser the reader
 shares; the chunks and message indexes are checked by
 :mod:`~loopcal.daemon.recording.verify_chunks`, the summary against the data section by
 :mod:`~loopcal.daemon.recording.verify_summary`.
@@ -59,7 +59,7 @@ from mcap.records import Channel, ChunkIndex, Footer, Header, Schema, Statistics
 
 from .damage import Damage, span_text
 from .errors import RecordingError
-from .records import (
+from .mcap_records import (
     DATA_END_BYTES,
     FOOTER_BYTES,
     MAGIC,

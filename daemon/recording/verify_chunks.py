@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from mcap.opcode import Opcode
 
-from .records import (
+from .mcap_records import (
     HEAD,
     MAX_CHUNK_BYTES,
     MESSAGE_FIXED,
@@ -35,7 +35,7 @@ from .records import (
 #: intact chunks are checked through their message indexes with numpy in batches of this many
 #: bytes (decompressed): a file as written has two chunks of some 20 messages each a second
 _BATCH_BYTES = 1 << 20
-#: what :func:`~loopcal.daemon.recording.records.checked_chunk` says, as verify names it
+#: what :func:`~loopcal.daemon.recording.mcap_records.checked_chunk` says, as verify names it
 _PROBLEMS = {"without CRC": "no CRC written (our writer always writes one)"}
 
 

@@ -11,7 +11,7 @@ from collections import Counter
 from mcap.opcode import Opcode
 from mcap.records import ChunkIndex
 
-from .records import DATA_END_BYTES, FOOTER_BYTES, opcode_name
+from .mcap_records import DATA_END_BYTES, FOOTER_BYTES, opcode_name
 from .verify_chunks import ChunkAt
 
 

@@ -17,7 +17,7 @@ from loopcal.calibration.kinematics import (
     volts_to_lengths,
 )
 
-from .. import scans as scan_rows
+from .. import scan_rows
 from .cdr import FRAME_TRANSFORM_DTYPE, JOINT_STATE_DTYPE, cdr_messages, fill_string_fields
 from .schemas import BASE_FRAME, NS_PER_S, PLATE_FRAME
 

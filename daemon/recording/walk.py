@@ -2,7 +2,7 @@
 
 :func:`walk` yields each intact chunk, each other record and each stretch that cannot be
 trusted, in file order, resynchronising on the next intact chunk after damage. The records
-are :mod:`~loopcal.daemon.recording.records`'.
+are :mod:`~loopcal.daemon.recording.mcap_records`'.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from mcap.opcode import Opcode
 from mcap.records import McapRecord
 
 from .damage import Damage
-from .records import (
+from .mcap_records import (
     FOOTER_BYTES,
     MAGIC,
     PARSE_ERRORS,

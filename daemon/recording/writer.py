@@ -19,7 +19,7 @@ from loopcal.calibration.parameters import check_vector
 
 from ..config.durable import fsync_dir
 from ..events import Event
-from ..scans import SCAN_DTYPE
+from ..scan_rows import SCAN_DTYPE
 from ..version import loopcal_version
 from .cdr import encode_scan_block
 from .schemas import (

@@ -46,7 +46,7 @@ def distinct_positions(volts: np.ndarray) -> int:
     int
         The number of cells of :data:`POSITION_CELL_V` (1 V, about 4 mm of stroke) on
         every channel that the readings fall in; 0 for no scans. The ``poses`` gate of a
-        fit on every scan counts these (:func:`loopcal.daemon.worker.gates.motion.scans_gate`).
+        fit on every scan counts these (:func:`loopcal.daemon.worker.gates.samples.scans_gate`).
     """
     if len(volts) == 0:
         return 0
@@ -422,7 +422,7 @@ def lazy_coverage_advice(
     LazyAdvice
         ``advice() -> str``, computing the advice once and then returning it again: an
         :data:`~loopcal.daemon.worker.gates.Advice` for the gates of
-        :mod:`loopcal.daemon.worker.gates.parameters` (``condition_gate``,
+        :mod:`loopcal.daemon.worker.gates.fit` (``condition_gate``,
         ``min_singular_gate``, ``precision_gate``); ``advice.move()`` is the same decision
         as a :class:`NextMove`.
     """

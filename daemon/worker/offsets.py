@@ -6,7 +6,7 @@ parameter held at the controller config, from every usable scan since the change
 moved the plate (a task loop, a hand, nothing):
 
 1. **screen**: the four offsets fitted together (maximum likelihood on every scan, the
-   channel skew corrected: :func:`~loopcal.daemon.worker.motion.scans_for_fit`). An offset
+   channel skew corrected: :func:`~loopcal.daemon.worker.scan_poses.scans_for_fit`). An offset
    has changed when its shift from the config is at least ``threshold_mm`` and at least
    :data:`SCREEN_Z` standard deviations, counting the config's own uncertainty (its
    ``[provenance]`` std, else :data:`DEFAULT_CONFIG_STD_MM`). Where the motion cannot tell
@@ -33,8 +33,8 @@ from loopcal.calibration.pipeline import calibrate_scans
 
 from ..config.controller import ControllerConfig
 from .gates import Gate
-from .motion import scans_for_fit
-from .run import WorkerResult, run_worker
+from .job import WorkerResult, run_worker
+from .scan_poses import scans_for_fit
 
 OFFSETS = ("d01", "d02", "d03", "d04")
 #: standard deviations a shift must reach to count as a change (the config's counted)

@@ -30,8 +30,8 @@ from loopcal.calibration.observability import column_scales  # noqa: E402
 from loopcal.calibration.parameters import INDEX, UNITS  # noqa: E402
 from loopcal.calibration.selection import candidate_jacobian, select_poses  # noqa: E402
 
-from .gates.closure import holdout_residuals  # noqa: E402
-from .run import METHOD_NAMES, WorkerResult  # noqa: E402
+from .gates.residual import holdout_residuals  # noqa: E402
+from .job import METHOD_NAMES, WorkerResult  # noqa: E402
 
 
 def save_figure(fig: plt.Figure, path: Path) -> None:

@@ -1,4 +1,4 @@
-"""Scan rows (``loopcal.daemon.scans.SCAN_DTYPE``) as the recorder makes them, built from
+"""Scan rows (``loopcal.daemon.scan_rows.SCAN_DTYPE``) as the recorder makes them, built from
 device times and codes: one builder (:func:`rows_from`), and the few sets of rows the tests
 and bench scripts share.
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from loopcal.calibration.simulate import simulate_poses
-from loopcal.daemon import scans as S
+from loopcal.daemon import scan_rows as S
 from loopcal.drivers.ldq412 import volts_to_code
 
 from .plate import held_and_moved

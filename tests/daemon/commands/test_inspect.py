@@ -18,8 +18,8 @@ from loopcal.daemon.config.controller import load_controller_config, write_initi
 from loopcal.daemon.events import Event, Level
 from loopcal.daemon.live.upkeep import Upkeep
 from loopcal.daemon.recorder.settings import DEFAULTS
-from loopcal.daemon.worker.poses import poses_of_scans
 from loopcal.daemon.worker.proposal import proposal_path
+from loopcal.daemon.worker.recorded_poses import poses_of_scans
 from loopcal.simulator.drift import OffsetDrift
 from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.scenarios import HandMoves

@@ -13,8 +13,8 @@ from loopcal.daemon.config.controller import nominal_config
 from loopcal.daemon.live.guidance import COVERAGE_SCANS, Guidance
 from loopcal.daemon.recording import read_recordings
 from loopcal.daemon.worker import coverage as C
-from loopcal.daemon.worker.motion import scans_for_fit
-from loopcal.daemon.worker.run import run_worker
+from loopcal.daemon.worker.job import run_worker
+from loopcal.daemon.worker.scan_poses import scans_for_fit
 from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.scenarios import HandMoves, Static
 from tests.support.processes import Proc, calibrate_json, fresh_config, listening_url, record

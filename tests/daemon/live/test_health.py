@@ -318,7 +318,7 @@ def test_poses_fed_a_second_at_a_time_are_those_of_one_search_over_the_session()
     time and keeping only what a later pose can need, are those one search over the whole
     session completes."""
     from loopcal.daemon.live.health import MIN_AFFECTED
-    from loopcal.daemon.worker.poses import completed_poses
+    from loopcal.daemon.worker.recorded_poses import completed_poses
 
     scenario = HandMoves(3, params=TRUTH, pause_s=PAUSE_S)
     t_us, codes = mechanism_scans(scenario, TRUTH, 20 * 900, noise_volts=0.04, seed=3)

@@ -20,7 +20,7 @@ import pytest
 from loopcal.daemon.events import Event, Level
 from loopcal.daemon.recorder.acquisition import TAKEN_REASON, Acquisition, Batch
 from loopcal.daemon.recorder.foreign import QUIET_S
-from loopcal.daemon.scans import SCAN_DTYPE
+from loopcal.daemon.scan_rows import SCAN_DTYPE
 from loopcal.drivers.modbus import FIFO_ANSWER_WAIT_S
 from loopcal.simulator.open_points import Latency
 from loopcal.simulator.testing import EmulatedLDQ412

@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.lib.recfunctions import repack_fields
 
-from loopcal.daemon import scans as S
+from loopcal.daemon import scan_rows as S
 from loopcal.daemon.recording.cdr import encode_scan_block
 from loopcal.daemon.recording.columns import (
     decode_columns,

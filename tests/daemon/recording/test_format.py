@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from loopcal.calibration.parameters import NOMINAL
 from loopcal.calibration.simulate import simulate_poses
 from loopcal.daemon import recording as rec
-from loopcal.daemon import scans as S
+from loopcal.daemon import scan_rows as S
 from loopcal.daemon.events import Event, Level
 from loopcal.drivers.ldq412 import volts_to_code
 from tests.support.recordings import write_rows

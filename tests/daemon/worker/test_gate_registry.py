@@ -9,7 +9,7 @@ import numpy as np
 from loopcal.calibration.parameters import PAPER7
 from loopcal.daemon.worker.coverage import lazy_coverage_advice
 from loopcal.daemon.worker.gates import GATES, GateContext, measure_gates
-from loopcal.daemon.worker.poses import RecordedPoses
+from loopcal.daemon.worker.recorded_poses import RecordedPoses
 from tests.support import ROOT
 
 ROW = re.compile(r"^\| `(\w+)` \|(.*)\|$")

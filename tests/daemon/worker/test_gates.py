@@ -8,8 +8,8 @@ from scipy.special import chdtri
 
 from loopcal.calibration.simulate import simulate_poses
 from loopcal.daemon.worker import coverage as C
-from loopcal.daemon.worker.gates import closure as G
-from loopcal.daemon.worker.gates import parameters as P
+from loopcal.daemon.worker.gates import fit as P
+from loopcal.daemon.worker.gates import residual as G
 from loopcal.daemon.worker.gates.chi2 import chi2_quantile
 
 

@@ -1,4 +1,4 @@
-"""The worker's usable scans (daemon/worker/motion.py) against what its docstring says, each
+"""The worker's usable scans (daemon/worker/scan_poses.py) against what its docstring says, each
 part computed here independently, row by row, from the scan rows' fields:
 
 - a scan is left out if a channel is at the rail or faulted, or it lies within the gap
@@ -20,7 +20,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from loopcal.daemon.worker.motion import scans_for_fit
+from loopcal.daemon.worker.scan_poses import scans_for_fit
 from tests.support.rows import near_a_break, readings, synthetic_scans, untrustworthy
 
 SKEW_S = 250e-6

@@ -1,4 +1,4 @@
-"""The worker's still poses (daemon/worker/poses.py) against what its docstrings say, each
+"""The worker's still poses (daemon/worker/recorded_poses.py) against what its docstrings say, each
 part computed here independently from the scan rows' fields:
 
 - a scan is left out if a channel is at the rail (status bits 0-3, or a code of 0 or
@@ -20,7 +20,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from loopcal.calibration.poses import still_poses
-from loopcal.daemon.worker.poses import poses_of_scans
+from loopcal.daemon.worker.recorded_poses import poses_of_scans
 from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.scenarios import HandMoves
 from tests.support.rows import (

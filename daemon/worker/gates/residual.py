@@ -14,7 +14,7 @@ from loopcal.calibration.residuals import loop_residuals, noise_directions, refe
 from loopcal.calibration.simulate import NEAR_SINGULAR_MM
 
 from .chi2 import chi2_quantile
-from .record import Gate
+from .gate import Gate
 
 NOISE_RATIO = 1.5  #: largest fitted noise over the noise the poses predict
 HOLDOUT_EVERY = 5  #: every fifth pose is kept out of the fit to validate it

@@ -4,7 +4,7 @@
 a file whose footer is intact and whose summary's CRC matches: its chunk index is then what
 the writer wrote when it closed the file. :func:`read_statistics` gives the statistics
 record alone, through the summary offsets. Records are parsed by
-:mod:`~loopcal.daemon.recording.records`.
+:mod:`~loopcal.daemon.recording.mcap_records`.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from mcap.opcode import Opcode
 from mcap.records import Channel, ChunkIndex, Footer, MetadataIndex, Statistics
 
-from .records import (
+from .mcap_records import (
     FOOTER_BYTES,
     MAGIC,
     PARSE_ERRORS,
@@ -28,7 +28,7 @@ from .records import (
 
 
 @dataclass
-class Summary:
+class SummarySection:
     """A summary section whose CRC matched."""
 
     channels: dict[int, Channel]
@@ -68,7 +68,7 @@ def _footer(buf: memoryview, *, strict: bool, base: int) -> tuple[Footer | None,
 
 def read_summary(
     buf: memoryview, *, strict: bool, base: int = 0
-) -> tuple[Summary | None, str]:
+) -> tuple[SummarySection | None, str]:
     """The summary of a closed file, or (None, why not).
 
     buf: the file's bytes from offset ``base`` to its end (the whole file by default; a
@@ -80,7 +80,7 @@ def read_summary(
     if footer is None:
         return None, why
     fpos = len(buf) - 8 - FOOTER_BYTES
-    summary = Summary({}, None, [], [])
+    summary = SummarySection({}, None, [], [])
     pos = footer.summary_start - base
     while pos < fpos:
         at = record_at(buf, pos, fpos)
@@ -135,4 +135,4 @@ def read_statistics(buf: memoryview, *, strict: bool, base: int = 0) -> Statisti
     return None
 
 
-__all__ = ["Summary", "read_statistics", "read_summary"]
+__all__ = ["SummarySection", "read_statistics", "read_summary"]

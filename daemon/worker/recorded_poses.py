@@ -18,7 +18,7 @@ import numpy as np
 
 from loopcal.calibration.poses import pose_noise_volts, running_sums_at, still_poses
 
-from .. import scans as scan_rows
+from .. import scan_rows
 
 STILL_WINDOW_S = 0.5  # a pose spans at least this long
 GAP_MARGIN_S = 0.25  # scans this close to a gap or restart are not used

@@ -2,7 +2,8 @@
 
 MCAP -> poses -> fit -> gates: given the scans of the recordings (as
 :func:`loopcal.daemon.recording.read_recordings` returns them), the worker takes their still poses
-(:func:`loopcal.daemon.worker.poses.poses_of_scans`), keeps every fifth out of the fit to check it
+(:func:`loopcal.daemon.worker.recorded_poses.poses_of_scans`), keeps every fifth out of the fit to
+check it
 against, selects the best of the others and identifies the free parameters from them
 (:func:`loopcal.calibration.pipeline.calibrate`, started from the controller config), and runs the
 acceptance gates that apply to the fit (:data:`loopcal.daemon.worker.gates.GATES`). Writing the
@@ -36,9 +37,9 @@ from ..recording import RecordingFile
 from ..version import loopcal_version
 from .coverage import LazyAdvice, lazy_coverage_advice
 from .gates import Gate, GateContext, measure_gates
-from .gates.closure import HOLDOUT_EVERY
-from .motion import scans_for_fit
-from .poses import RecordedPoses, poses_of_scans
+from .gates.residual import HOLDOUT_EVERY
+from .recorded_poses import RecordedPoses, poses_of_scans
+from .scan_poses import scans_for_fit
 
 #: what a fit takes its samples from: every usable scan, or still poses (averaged, selected)
 SAMPLES = ("scans", "poses")
@@ -53,7 +54,7 @@ class WorkerResult:
     params: (20,) the new values (= previous if the identification failed).
     std: {name: standard deviation} of the free parameters. gates: the acceptance gates in
     order. poses, fit, held_out: the poses found (for a fit on every scan: the usable scans,
-    :class:`~loopcal.daemon.worker.motion.RecordedScans`), and indices of those fitted and
+    :class:`~loopcal.daemon.worker.scan_poses.RecordedScans`), and indices of those fitted and
     held out (every scan is in the final fit on scans: the held-out ones were left out of a
     first fit, which the holdout gate checks). calibration: the selection and
     identification, or None if it could not run.
@@ -213,7 +214,7 @@ def run_worker(
 
     method: the estimator (:func:`loopcal.calibration.identify.identify`). samples: what it
     fits, ``"scans"`` (every usable scan, moving or still, each a pose of its own:
-    :mod:`loopcal.daemon.worker.motion`; ml only, its default) or ``"poses"`` (still poses,
+    :mod:`loopcal.daemon.worker.scan_poses`; ml only, its default) or ``"poses"`` (still poses,
     averaged, of which ``n_select`` are selected: the paper's method, and ml on request).
     positions: the ``poses`` gate applies (False: an offset refitted with everything else
     held needs no spread of positions, the daemon's upkeep; the fit's own gates judge).

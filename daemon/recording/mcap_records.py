@@ -18,7 +18,7 @@ writer wrote, and reports what it cannot trust as a
   its records; :func:`chunk_checks_out`, the same without splitting it;
 - :func:`next_chunk`: where the next intact chunk starts (resynchronising after damage).
 
-The summary section is :mod:`~loopcal.daemon.recording.summary`'s, the data section record
+The summary section is :mod:`~loopcal.daemon.recording.mcap_summary`'s, the data section record
 by record :mod:`~loopcal.daemon.recording.walk`'s.
 
 ``strict`` (a file our own writer wrote: its header names loopcal) makes a CRC of 0 count as

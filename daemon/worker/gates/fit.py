@@ -14,7 +14,7 @@ import numpy as np
 from loopcal.calibration.observability import CONDITION_OK
 from loopcal.calibration.parameters import INDEX, UNITS
 
-from .record import Advice, Gate, advice_text
+from .gate import Advice, Gate, advice_text
 
 MIN_SINGULAR = 0.05  #: smallest minimum singular value of the scaled Jacobian
 #: largest believable change per parameter group (a refitted LVDT moves its offset by mm)

@@ -13,7 +13,7 @@ import numpy as np
 from loopcal.calibration.parameters import GAIN_NOMINAL
 
 from ..coverage import POSITION_CELL_V, distinct_positions
-from .record import Gate
+from .gate import Gate
 
 MIN_POSES = 30  #: still poses the ``poses`` gate needs at least
 MIN_CHANNEL_RANGE_V = 0.5  #: V; a channel that moves less than this over all poses is stuck

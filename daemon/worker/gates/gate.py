@@ -22,7 +22,7 @@ class Gate:
     ----------
     name : str
         The gate: the name of its entry in
-        :data:`~loopcal.daemon.worker.gates.registry.GATES` (``"poses"``, ``"converged"``,
+        :data:`~loopcal.daemon.worker.gates.checks.GATES` (``"poses"``, ``"converged"``,
         ..., ``"precision"``).
     passed : bool
         Whether the check passed.

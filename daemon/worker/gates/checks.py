@@ -3,8 +3,8 @@ has, says whether it applies to this kind of fit, and judges it.
 
 :data:`GATES` is the list, in the order the worker reports them; :func:`measure_gates` runs
 the ones that apply to a :class:`GateContext`. A new gate is one new :class:`Check` in
-:data:`GATES` (its judgement beside its kind: :mod:`~loopcal.daemon.worker.gates.motion`,
-:mod:`~loopcal.daemon.worker.gates.parameters`, :mod:`~loopcal.daemon.worker.gates.closure`)
+:data:`GATES` (its judgement beside its kind: :mod:`~loopcal.daemon.worker.gates.samples`,
+:mod:`~loopcal.daemon.worker.gates.fit`, :mod:`~loopcal.daemon.worker.gates.residual`)
 and one row in docs/calibration.md's table of gates, which a test holds to
 :meth:`Check.documented`.
 """
@@ -24,9 +24,11 @@ from loopcal.calibration.parameters import GROUPS, INDEX, NAMES, ParameterModel
 from loopcal.calibration.scans import averaging_ratio, closure_misfit
 
 from ..coverage import POSITION_CELL_V
-from ..poses import RecordedPoses
-from . import closure, motion, parameters
-from .record import Advice, Gate, advice_text
+from ..recorded_poses import RecordedPoses
+from . import fit as parameters
+from . import residual as closure
+from . import samples as motion
+from .gate import Advice, Gate, advice_text
 
 
 @dataclass(frozen=True)
@@ -37,7 +39,7 @@ class GateContext:
     ----------
     samples : RecordedPoses
         The still poses, or for a fit on every scan the usable scans
-        (:class:`~loopcal.daemon.worker.motion.RecordedScans`).
+        (:class:`~loopcal.daemon.worker.scan_poses.RecordedScans`).
     per_scan : bool
         The fit is on every scan (else on still poses).
     model : ParameterModel
@@ -81,7 +83,7 @@ class GateContext:
     @cached_property
     def expected_noise(self) -> float:
         """The noise the fitted samples' own scatter predicts, on the fit's footing, V
-        (:func:`~loopcal.daemon.worker.gates.closure.expected_noise`; NaN before the fit):
+        (:func:`~loopcal.daemon.worker.gates.residual.expected_noise`; NaN before the fit):
         the paper's fit reports the noise of a pose's mean reading, maximum likelihood that
         of one scan."""
         if self.fit is None:
@@ -93,7 +95,7 @@ class GateContext:
     @cached_property
     def holdout_z(self) -> np.ndarray:
         """The held-out samples' loop-closure errors at ``checked``, each over its predicted
-        standard deviation (:func:`~loopcal.daemon.worker.gates.closure.holdout_residuals`),
+        standard deviation (:func:`~loopcal.daemon.worker.gates.residual.holdout_residuals`),
         dimensionless."""
         assert self.checked is not None and self.held_out is not None
         s, h = self.samples, self.held_out
@@ -110,7 +112,7 @@ _BOUND = f"{100 * (1 - closure.CHI2_TAIL):g} %"
 class Check:
     """One acceptance gate: its name, where it applies, what it measures, how it is judged.
 
-    A subclass sets :attr:`name` (its :class:`~loopcal.daemon.worker.gates.record.Gate`'s)
+    A subclass sets :attr:`name` (its :class:`~loopcal.daemon.worker.gates.gate.Gate`'s)
     and :attr:`before_fit`, and defines :meth:`documented` and :meth:`measure`;
     :meth:`applies` says for which fits.
     """

@@ -2,7 +2,8 @@
 
 The maximum-likelihood fit takes each scan as a pose of its own (one unknown plate rotation
 per scan), so the whole of a technician's hand motion counts, not only the pauses
-(docs/calibration.md). Before that, as for still poses (:mod:`loopcal.daemon.worker.poses`):
+(docs/calibration.md). Before that, as for still poses
+(:mod:`loopcal.daemon.worker.recorded_poses`):
 
 - scans with a channel at the rail or faulted, and scans within ``gap_margin_s`` of a gap or
   restart, are left out;
@@ -16,7 +17,7 @@ A recording with more usable scans than :data:`MAX_FIT_SCANS` (a day holds 1.7 m
 thinned to an even stride over its whole span (bench/bench_scans.py states what that costs
 in precision). Held-out stretches for the holdout gate are whole blocks of
 :data:`HOLDOUT_BLOCK_S` of time (every
-:data:`~loopcal.daemon.worker.gates.closure.HOLDOUT_EVERY`-th),
+:data:`~loopcal.daemon.worker.gates.residual.HOLDOUT_EVERY`-th),
 so that the check is on motion the fit did not see, not on the neighbours of fitted scans.
 """
 
@@ -28,8 +29,8 @@ import numpy as np
 
 from loopcal.calibration.scans import CHANNEL_SKEW_S, deskew, difference_noise
 
-from .gates.closure import HOLDOUT_BLOCK_S
-from .poses import GAP_MARGIN_S, RecordedPoses, screen_scans
+from .gates.residual import HOLDOUT_BLOCK_S
+from .recorded_poses import GAP_MARGIN_S, RecordedPoses, screen_scans
 
 #: at most this many scans go into one fit (10 minutes at 20 Hz)
 MAX_FIT_SCANS = 12_000
