@@ -73,6 +73,7 @@ def test_paper7_condition_below_1000(design):
     )
 
 
+@pytest.mark.slow
 def test_little_gain_past_about_50_poses(design):
     J = jac(design, PAPER7)
     h = column_scales(J)

@@ -38,6 +38,7 @@ def test_only_d03_after_replacing_sensor_3():
     assert np.array_equal(res.params[others], NOMINAL[others])
 
 
+@pytest.mark.slow
 def test_paper_noise_50_selected_poses_offsets_within_3_sigma_over_seeds():
     z_all = []
     for seed in range(12):
@@ -115,6 +116,7 @@ def test_gain_error_beyond_tolerance_is_reported_not_hidden(method, misfit, exac
     assert exact.rms_residual < exact_fit
 
 
+@pytest.mark.slow
 def test_readings_that_do_not_fit_are_flagged():
     ps = simulate_poses(300, seed=1)
     good = identify(ps.volts, PAPER7)

@@ -85,6 +85,7 @@ def test_noise_free_recovery_from_offsets_three_mm_off(model):
     assert np.abs(res.rotations - ps.rotations).max() < 1e-9
 
 
+@pytest.mark.slow
 def test_the_bound_matches_a_monte_carlo_run_and_ml_is_unbiased():
     """300 noisy readings of the same 50 poses: the estimates' covariance is the Cramér-Rao
     bound within its sampling error, their mean is the truth within its standard error."""
@@ -155,6 +156,7 @@ def test_selection_designs_on_the_ml_information():
     assert np.linalg.eigvalsh(rows.T @ rows)[0] > 2 * np.linalg.eigvalsh(info_rand.T @ info_rand)[0]
 
 
+@pytest.mark.slow
 def test_ml_is_the_default_and_beats_the_paper_on_the_same_poses():
     errs = {"ml": [], "paper": []}
     for seed in range(6):

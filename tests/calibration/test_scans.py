@@ -135,6 +135,7 @@ def _fit(gain_error: float, seed: int):
     return ident, noisy, test
 
 
+@pytest.mark.slow
 def test_the_score_test_finds_a_wrong_gain_and_not_a_right_one():
     stats = []
     for seed in (1, 2, 3):

@@ -243,6 +243,7 @@ def synthetic_pools(draw):
     return G, k
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None, derandomize=True, database=None)
 @given(synthetic_pools(), st.sampled_from(CRITERIA))
 def test_random_pools_every_subset_and_every_swap(pool, criterion):
@@ -313,6 +314,7 @@ def test_the_same_input_gives_the_same_selection(pools, pool, info):
         b.value, b.upper_bound, b.swaps, b.passes)  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("pool", "k", "criterion", "info", "bound"),
     [
@@ -354,6 +356,7 @@ def test_more_exchange_passes_never_make_it_worse(pools):
     assert all(b >= a for a, b in itertools.pairwise(swaps))
 
 
+@pytest.mark.slow
 def test_the_same_information_in_other_factors_gives_the_same_choice(pools):
     """Only A_k = G_k^T G_k matters: each pose's four rows turned by an orthogonal 4x4
     (column norms kept, so the scaling too), or padded with rows of zeros, change nothing

@@ -197,6 +197,7 @@ def streams(draw):
     return V, {"window": window, "band_volts": band, "valid": valid, "max_scans": max_scans}
 
 
+@pytest.mark.slow
 @settings(max_examples=400, deadline=None, derandomize=True, database=None)
 @given(streams())
 def test_small_streams_meet_the_definition(stream):
@@ -204,6 +205,7 @@ def test_small_streams_meet_the_definition(stream):
     check_poses(V, still_poses(V, **kw), **kw)
 
 
+@pytest.mark.slow
 @settings(max_examples=100, deadline=None, derandomize=True, database=None)
 @given(streams(), st.floats(-1e3, 1e3))
 def test_readings_of_invalid_scans_do_not_matter(stream, junk):

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import string
 
+import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
@@ -40,6 +41,7 @@ def _answer_bytes():
     return st.one_of(near, st.binary(max_size=48))
 
 
+@pytest.mark.slow
 @settings(max_examples=400, deadline=None)
 @given(line=_answer_bytes(), checksum=st.booleans(), addr=st.integers(0, 255))
 def test_ascii_answers_parse_or_raise_protocol_errors(line, checksum, addr):
@@ -76,6 +78,7 @@ _QUERY = st.lists(
 ).map(lambda kv: "&".join(f"{k}={v}" for k, v in kv))
 
 
+@pytest.mark.slow
 @settings(max_examples=400, deadline=None)
 @given(
     head=_URL_PARTS,
@@ -108,6 +111,7 @@ def _toml_like(base: str):
     ).map(lambda s: s.encode("utf-8", errors="surrogatepass"))
 
 
+@pytest.mark.slow
 @settings(max_examples=250, deadline=None, suppress_health_check=_FIXTURE)
 @given(data=st.one_of(_toml_like(_CONTROLLER), st.binary(max_size=300)))
 def test_controller_configs_load_or_raise_their_error(tmp_path, data):

@@ -45,6 +45,7 @@ def advance_and_read(daq: DAQ, clock: ManualClock, scans: int) -> list[Scan]:
 # --------------------------------------------------------------------------- ground truth
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", TRANSPORTS)
 def test_2000_consecutive_scans_equal_truth(emu_factory, transport: str) -> None:
     emu, daq, clock = emu_factory(transport)
@@ -65,6 +66,7 @@ def test_2000_consecutive_scans_equal_truth(emu_factory, transport: str) -> None
         assert any(s.time_measured for s in got) and not all(s.time_measured for s in got)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", TRANSPORTS)
 def test_real_time_sim_clock(emu_factory, transport: str) -> None:
     """Free-running clock (5x real time, 1000 device scans/s): the FIFO drivers deliver
@@ -93,6 +95,7 @@ def test_identity(emu_factory, transport: str) -> None:
     assert daq.identity.serial == (None if transport == "ascii" else 0x12345678)
 
 
+@pytest.mark.slow
 def test_wrong_unit_or_address_times_out_at_open() -> None:
     with Emulator("modbus-tcp", clock=ManualClock(), unit=5) as emu:
         t0 = time.monotonic()
@@ -118,6 +121,7 @@ def test_nothing_there() -> None:
 # --------------------------------------------------------------------------- wire faults
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", TRANSPORTS)
 def test_stall_times_out_within_bound_then_recovers(emu_factory, transport: str) -> None:
     emu, daq, clock = emu_factory(transport, TIMEOUT)
@@ -136,6 +140,7 @@ def test_stall_times_out_within_bound_then_recovers(emu_factory, transport: str)
         assert [s.counter for s in got] == [t.counter for t in emu.truth]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", TRANSPORTS)
 def test_disconnect_then_reconnect(emu_factory, transport: str) -> None:
     emu, daq, clock = emu_factory(transport, TIMEOUT)
@@ -158,6 +163,7 @@ def test_disconnect_then_reconnect(emu_factory, transport: str) -> None:
         assert got[-2].missed == 19  # 20 scans passed between the two polls
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", TRANSPORTS)
 def test_corrupt_answer_is_a_protocol_error_then_recovers(emu_factory, transport: str) -> None:
     emu, daq, clock = emu_factory(transport, TIMEOUT)
@@ -189,6 +195,7 @@ def test_corrupt_fifo_answer_reports_the_lost_scans(emu_factory, transport: str)
     assert got[-7].missed == 3 and sum(s.missed for s in got) == 3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", TRANSPORTS)
 def test_garbage_before_an_answer(emu_factory, transport: str) -> None:
     emu, daq, clock = emu_factory(transport, TIMEOUT)
@@ -211,6 +218,7 @@ def test_garbage_before_an_answer(emu_factory, transport: str) -> None:
         assert [s.counter for s in got] == [t.counter for t in emu.truth]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", TRANSPORTS)
 def test_restart_is_reported_and_cleared(emu_factory, transport: str) -> None:
     emu, daq, clock = emu_factory(transport, TIMEOUT)

@@ -106,6 +106,7 @@ OPS = st.one_of(
 )
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(first=st.integers(1, 300), ops=st.lists(OPS, min_size=1, max_size=40), lag=st.booleans())
 def test_taken_only_for_gaps_another_master_made_and_always_for_them(first, ops, lag):

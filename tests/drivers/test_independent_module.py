@@ -17,7 +17,7 @@ from tests.support.processes import record
 from tests.support.recordings import read_scans
 from tests.support.replay import assert_same_scans, finish, replay_and_record
 
-pytestmark = pytest.mark.timeout(180)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
 
 def _read_for(daq, seconds: float, out: list) -> None:

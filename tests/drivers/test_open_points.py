@@ -21,6 +21,8 @@ from loopcal.simulator.emulator import Emulator
 from loopcal.simulator.open_points import Latency, OpenPoints
 from tests.support.drivers import OK_TIMEOUT, PERIOD, RATE, TRANSPORTS, check_against_truth, read_ok
 
+pytestmark = pytest.mark.slow  # docs/architecture.md, "The fast loop"
+
 OPEN_POINTS = {
     "scan-0-late": OpenPoints(scan_phase_us=1809),
     "clock-fast": OpenPoints(clock_ppm=200, scan_phase_us=700),

@@ -16,6 +16,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+import pytest
+
 #: a third party's transport: a module that is not there (its scans never come), enough
 #: for open_daq to hand it a parsed URL and for its own URL parameters to be checked
 VIRTUAL = '''
@@ -150,6 +152,7 @@ def test_a_package_installed_beside_loopcal_adds_a_scheme(tmp_path: Path) -> Non
     assert got["schemes"] == ["ascii", "modbus-rtu", "modbus-tcp", "virtual"]
 
 
+@pytest.mark.slow
 def test_a_scheme_claimed_by_two_packages_names_both(tmp_path: Path) -> None:
     install(tmp_path, "loopcal-virtual", {"virtual": "loopcal_virtual:VirtualDAQ"},
             {"loopcal_virtual": VIRTUAL})  # fmt: skip
@@ -170,6 +173,7 @@ def test_a_scheme_claimed_by_two_packages_names_both(tmp_path: Path) -> None:
     assert error_of(tmp_path, "ascii:///dev/ttyUSB0?addr=01") is None  # the others unharmed
 
 
+@pytest.mark.slow
 def test_a_driver_that_fails_to_load_names_its_package(tmp_path: Path) -> None:
     install(tmp_path, "broken-drivers", {"broken": "broken_driver:VirtualDAQ",
                                          "absent": "virtual_driver:NoSuchDAQ",

@@ -51,6 +51,7 @@ def assert_every_scan_once(scans: list[Scan], ldq412) -> None:
 # --------------------------------------------------------------------------- the stream
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("ldq412", "polled"),
     [("modbus-tcp", False), ("modbus-tcp", True), ("modbus-rtu", False), ("ascii", False)],
@@ -70,6 +71,7 @@ def test_stream_yields_every_scan_once_until_duration(ldq412, polled: bool) -> N
     assert newest - scans[-1].counter <= 1  # a last read at the end: nothing left behind
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "ldq412",
     [{"transport": "ascii", "open_points": OpenPoints(clock_ppm=ppm)} for ppm in (1000, -1000)],
@@ -93,6 +95,7 @@ def test_polls_follow_a_module_whose_clock_is_off(ldq412) -> None:
     assert answers <= len(scans) + 30, (answers, len(scans))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
 def test_iterating_the_daq_is_the_stream(ldq412) -> None:
     with open_daq(ldq412.url, timeout=OK_TIMEOUT) as daq:
@@ -106,6 +109,7 @@ def test_iterating_the_daq_is_the_stream(ldq412) -> None:
     assert_every_scan_once(scans, ldq412)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ldq412", MODBUS, indirect=True)
 def test_a_stream_left_mid_batch_keeps_the_rest_for_the_next_read(ldq412) -> None:
     with open_daq(ldq412.url, timeout=OK_TIMEOUT) as daq:
@@ -119,6 +123,7 @@ def test_a_stream_left_mid_batch_keeps_the_rest_for_the_next_read(ldq412) -> Non
     assert_every_scan_once(first + rest + again, ldq412)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
 def test_a_stalled_module_raises_daqtimeout_after_the_timeout(ldq412) -> None:
     timeout = 0.6
@@ -140,6 +145,7 @@ def test_a_stalled_module_raises_daqtimeout_after_the_timeout(ldq412) -> None:
     assert_every_scan_once(scans, ldq412)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
 def test_a_stall_shorter_than_the_timeout_is_ridden_out(ldq412) -> None:
     with open_daq(ldq412.url, timeout=STALL_TIMEOUT) as daq:
@@ -174,6 +180,7 @@ def test_a_module_that_answers_but_makes_no_scans_raises_daqtimeout(ldq412) -> N
     assert scans and scans[-1].counter == ldq412.scans[-1].counter
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
 @pytest.mark.ldq412(speed=4)  # a power cycle's 2 s dark take 0.5 s
 def test_a_power_cycle_in_the_stream(ldq412) -> None:
@@ -238,6 +245,7 @@ def readme_drivers_example() -> str:
     return "\n".join(lines).strip() + "\n"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
 def test_the_readme_example_streams_scans(ldq412) -> None:
     code = readme_drivers_example()

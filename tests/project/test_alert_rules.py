@@ -141,6 +141,7 @@ def alerts_on(text: str, tmp: Path, expected: dict[str, list[dict]]) -> subproce
     return promtool("test", "rules", "live.test.yml", cwd=tmp)
 
 
+@pytest.mark.slow
 def test_a_recorder_never_calibrated_fires_the_alert(tmp_path):
     text = live_scrape(tmp_path / "rec")
     assert samples(text, "loopcal_controller_config_calibrated") == [0.0]
@@ -158,6 +159,7 @@ def test_a_recorder_never_calibrated_fires_the_alert(tmp_path):
     assert run.returncode == 0, run.stdout + run.stderr
 
 
+@pytest.mark.slow
 def test_a_recorder_calibrated_a_moment_ago_fires_nothing_about_it(tmp_path):
     path = write_initial_config(tmp_path / "controller.toml")
     written_utc = datetime.now(UTC).isoformat(timespec="seconds")

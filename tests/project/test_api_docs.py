@@ -98,6 +98,7 @@ def public_objects(package: str) -> list[tuple[str, object]]:
     return found
 
 
+@pytest.mark.slow
 def test_the_reference_builds_with_warnings_as_errors(
     build: tuple[subprocess.CompletedProcess, Path],
 ) -> None:
@@ -107,6 +108,7 @@ def test_the_reference_builds_with_warnings_as_errors(
         assert (out / f"{page}.html").is_file(), page
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("package", NUMPY_STYLE)
 def test_every_public_object_is_in_the_reference(package: str, documented: set[int]) -> None:
     objects = public_objects(package)

@@ -8,6 +8,8 @@ import ast
 import subprocess
 import sys
 
+import pytest
+
 from tests.support import ROOT
 
 TESTS = ROOT / "tests"
@@ -42,6 +44,7 @@ def test_every_folder_of_tests_is_a_package():
             assert (folder / "__init__.py").is_file(), f"{folder} has no __init__.py"
 
 
+@pytest.mark.slow
 def test_no_test_module_imports_another_and_no_helper_lies_outside_support():
     for path in TESTS.rglob("*.py"):
         rel = path.relative_to(ROOT)
@@ -58,6 +61,7 @@ def test_bench_scripts_leave_sys_path_alone():
         assert "sys.path." not in path.read_text(encoding="utf-8"), path.name
 
 
+@pytest.mark.slow
 def test_each_bench_script_runs_as_a_module():
     """``python -m bench.NAME --help`` from the root, all at once: imports resolve, options
     parse."""

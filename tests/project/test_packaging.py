@@ -67,6 +67,7 @@ def built(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     return wheel, sdist
 
 
+@pytest.mark.slow
 def test_the_wheel_holds_one_top_level_package_and_its_data(built: tuple[Path, Path]) -> None:
     wheel, _ = built
     names = zipfile.ZipFile(wheel).namelist()
@@ -96,6 +97,7 @@ def test_the_wheel_holds_one_top_level_package_and_its_data(built: tuple[Path, P
     assert "ldq412 = loopcal.simulator.pytest_plugin" in entry
 
 
+@pytest.mark.slow
 def test_the_sdist_holds_every_tracked_file(built: tuple[Path, Path]) -> None:
     """What the tests and the docs need comes with the sdist: every file git tracks."""
     _, sdist = built
@@ -112,6 +114,7 @@ def _run(cmd: list[str], **kw) -> subprocess.CompletedProcess:
     return subprocess.run(cmd, capture_output=True, text=True, timeout=600, **kw)
 
 
+@pytest.mark.slow
 def test_the_wheel_installs_beside_python_daemon(built: tuple[Path, Path],
                                                   tmp_path: Path) -> None:  # fmt: skip
     """python-daemon's ``daemon`` and loopcal's ``loopcal.daemon`` side by side in a fresh
@@ -176,6 +179,7 @@ def test_the_plugin_serves_a_module(ldq412):
 """
 
 
+@pytest.mark.slow
 def test_a_project_with_its_own_simulator_drivers_daemon_runs_with_our_plugin(
     pytester: pytest.Pytester,
 ) -> None:

@@ -38,6 +38,7 @@ def _off(azimuth: np.ndarray, toward: float) -> np.ndarray:
     return (azimuth - toward + 180.0) % 360.0 - 180.0
 
 
+@pytest.mark.slow
 def test_a_tilt_asked_for_is_reached_roughly_more_often_than_not():
     for sensor in (1, 2, 3, 4):
         h = GuidedHand(sensor, params=NOMINAL)
@@ -66,6 +67,7 @@ def test_a_twist_asked_for_goes_that_way_more_often_than_not():
         assert tilt.max() <= h.side_deg + 1e-9  # a twist barely tilts
 
 
+@pytest.mark.slow
 def test_a_change_of_advice_is_followed_a_move_or_two_late_at_most_mostly():
     first_late, third_late = [], []
     for seed in range(30):

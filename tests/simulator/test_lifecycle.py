@@ -145,6 +145,7 @@ RTU_SESSION = [
 ASCII_SESSION = [b"#01\r", b"#012\r", b"%01R0064\r", b"#01\r", b"#01\r"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("transport", "session"),
     [("modbus-tcp", MODBUS_SESSION), ("modbus-rtu", RTU_SESSION), ("ascii", ASCII_SESSION)],

@@ -26,6 +26,7 @@ def test_hand_moves_are_deterministic_in_any_query_order():
     assert not np.allclose(a, HandMoves(4).rotation(t))
 
 
+@pytest.mark.slow
 def test_a_hand_streaming_for_hours_keeps_a_bounded_history_and_can_go_back():
     """The emulator asks for one scan at a time, forward, for months: what HandMoves keeps
     (and so each call's cost and its memory) stays bounded; an early time asked for after
@@ -52,6 +53,7 @@ def _swivel_deg(R: np.ndarray) -> np.ndarray:
     return np.degrees(np.angle(np.exp(1j * (a + g))))
 
 
+@pytest.mark.slow
 def test_a_twisting_technician_twists_every_other_move_and_stays_in_the_workspace():
     truth = perturbed_truth(np.random.default_rng(2))
     plain, twisting = HandMoves(5, params=truth), HandMoves(5, params=truth, twist_every=2)
@@ -123,6 +125,7 @@ def test_bad_sweep_or_noise_is_refused():
         MechanismSource(Static(), NOMINAL, noise_volts=-1.0)
 
 
+@pytest.mark.slow
 def test_calibration_from_wire_data_recovers_the_offsets():
     """Five minutes of a technician moving the plate, read over Modbus TCP, still stretches
     averaged, best 50 poses selected, paper's seven parameters identified."""

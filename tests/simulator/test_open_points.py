@@ -59,6 +59,7 @@ def test_scan_zero_comes_at_the_phase_and_the_module_is_silent_before():
     assert dev.truth[-1].counter == 0 and dev.truth[-1].boot == 1
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ppm", [200.0, -200.0, 1000.0])
 def test_a_clock_error_changes_the_rate_against_the_host_not_the_device_times(ppm):
     dev = device(OpenPoints(clock_ppm=ppm))
@@ -126,6 +127,7 @@ def _rtt(send, n: int = 40) -> list[float]:
     return out
 
 
+@pytest.mark.slow
 def test_latency_on_the_wire():
     """Answers wait the drawn delay: at least the minimum, about the datasheet's spread."""
     op = OpenPoints(latency=Latency(min_ms=4.0, max_ms=10.0))
@@ -158,6 +160,7 @@ def test_slow_answers_come_late_but_come():
     assert min(rtt) >= 0.050
 
 
+@pytest.mark.slow
 def test_loopcal_simulate_takes_the_settings_and_names_them(tmp_path):
     args = ["simulate", "--duration", "0.3", "--scan-phase-us", "1809", "--clock-ppm", "-150",
             "--latency", "datasheet", "--slow-answers", "0.01", "--fifo-underrun", "short",

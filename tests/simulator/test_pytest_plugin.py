@@ -11,6 +11,8 @@ import pytest
 
 from tests.support import ROOT
 
+pytestmark = pytest.mark.slow  # docs/architecture.md, "The fast loop"
+
 pytest_plugins = ("pytester",)
 
 

@@ -140,6 +140,7 @@ def test_two_minutes_of_the_loop_identify_lost_offsets_well_conditioned(seed):
 _LOOPS: dict[tuple, TaskLoop] = {}
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None, derandomize=True, database=None)
 @given(st.lists(st.floats(-1e9, 1e9, allow_nan=False, allow_infinity=False),
                 min_size=1, max_size=20),
@@ -184,6 +185,7 @@ def test_bad_settings_are_refused_naming_the_problem():
             LDQ412Options(scenario="task", **option)
 
 
+@pytest.mark.slow
 def test_loopcal_simulate_refuses_task_options_out_of_place_or_range():
     for args, message in [
         (["--task-dwell", "0"], "--task-dwell only with --scenario task, not --scenario hand"),
@@ -222,6 +224,7 @@ def test_the_fixture_serves_the_task_loop_round_and_round(ldq412):
     assert len({tuple(c) for c in codes[:period]}) > period // 2  # while it moves
 
 
+@pytest.mark.slow
 def test_loopcal_simulate_serves_the_task_loop_over_tcp():
     """``loopcal simulate --scenario task --task-dwell 0`` as a subprocess, read by a plain
     driver for 2 s of the emulator's own clock (its scans' stamps): the plate never stops,

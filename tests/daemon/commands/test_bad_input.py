@@ -21,6 +21,7 @@ def refused(proc, *words: str) -> None:
         assert w in text, (w, text)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("url", "words"),
     [
@@ -42,6 +43,7 @@ def test_bad_driver_urls_are_refused_before_anything_starts(tmp_path, url, words
     refused(loopcal("daemon", "--config", cfg), "[daq].url", *words)
 
 
+@pytest.mark.slow
 def test_an_absurd_controller_config_is_refused_naming_the_key(tmp_path):
     config = fresh_config(tmp_path / "controller.toml")
     config.write_text(config.read_text().replace("A1x = 68.7", "A1x = 1e300"))
@@ -67,6 +69,7 @@ def test_an_absurd_controller_config_is_refused_naming_the_key(tmp_path):
     assert "Eigenvalues" not in proc.stderr
 
 
+@pytest.mark.slow
 def test_calibrate_options(tmp_path):
     config = fresh_config(tmp_path / "controller.toml")
     recording = tmp_path / rec.recording_name(T0)
@@ -84,6 +87,7 @@ def test_calibrate_options(tmp_path):
     assert " ns" not in proc.stderr
 
 
+@pytest.mark.slow
 def test_report_path_is_checked_before_the_config_is_written(tmp_path):
     config = fresh_config(tmp_path / "controller.toml")
     before = config.read_bytes()
@@ -97,6 +101,7 @@ def test_report_path_is_checked_before_the_config_is_written(tmp_path):
     assert config.read_bytes() == before and not list(tmp_path.glob("*.prev"))
 
 
+@pytest.mark.slow
 def test_replay_and_simulate_options(tmp_path):
     recording = tmp_path / rec.recording_name(T0)
     write_recording(recording, make_rows(100))
@@ -116,6 +121,7 @@ def test_replay_and_simulate_options(tmp_path):
     refused(loopcal("replay", eight), str(eight), "no scans")
 
 
+@pytest.mark.slow
 def test_demo_out_must_be_a_directory(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("x")

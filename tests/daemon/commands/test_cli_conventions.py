@@ -87,6 +87,7 @@ def _loopcal(*argv: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=120)  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", NAMES)
 def test_a_bad_option_is_exit_2_naming_the_command(name: str) -> None:
     proc = _loopcal(name, "--no-such-option")
@@ -94,6 +95,7 @@ def test_a_bad_option_is_exit_2_naming_the_command(name: str) -> None:
     assert f"loopcal {name}: error: " in proc.stderr, proc.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("argv", [
     ["info", "/nonexistent/x.mcap"],
     ["check", "/nonexistent/x.mcap", "--controller-config", "/nonexistent/c.toml"],
@@ -147,6 +149,7 @@ def test_the_docs_example_config_holds_the_settings_defaults(tmp_path: Path) -> 
     assert len(checked) >= 8, checked
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["info", "check", "compact", "calibrate"])
 def test_what_is_not_a_regular_file_is_refused_at_once(command: str, tmp_path: Path) -> None:
     """A device never ends (/dev/zero), a FIFO blocks its reader, an empty path would be
@@ -165,6 +168,7 @@ def test_what_is_not_a_regular_file_is_refused_at_once(command: str, tmp_path: P
         assert "Traceback" not in proc.stderr
 
 
+@pytest.mark.slow
 def test_observability_json_says_what_its_text_says_and_exits_1_when_unobservable() -> None:
     import json
 
@@ -183,6 +187,7 @@ def test_observability_json_says_what_its_text_says_and_exits_1_when_unobservabl
     assert "unobservable" in doc["status"].values() and doc["suggested_free"]
 
 
+@pytest.mark.slow
 def test_observability_of_a_session_follows_how_the_technician_moves() -> None:
     """--twist-every changes the simulated session whose scans are judged: the same seed
     moved with and without twists gives different information (and both are observable)."""

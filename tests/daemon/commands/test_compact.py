@@ -53,6 +53,7 @@ def _foreign_mcap(path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_what_is_not_a_recording_is_bad_input(tmp_path):
     strangers = not_recordings(tmp_path)
     text = tmp_path / "x.mcap"
@@ -68,6 +69,7 @@ def test_what_is_not_a_recording_is_bad_input(tmp_path):
     assert not list(tmp_path.glob(".*.tmp"))
 
 
+@pytest.mark.slow
 def test_bad_input_is_refused_before_any_file_is_touched(tmp_path):
     good = _recording(tmp_path)
     data = good.read_bytes()
@@ -79,6 +81,7 @@ def test_bad_input_is_refused_before_any_file_is_touched(tmp_path):
     assert good.read_bytes() == data
 
 
+@pytest.mark.slow
 def test_a_stranger_found_in_a_directory_is_named_and_exits_2(tmp_path):
     """A file named like a recording that is an MCAP file of something else: the
     recordings beside it are compacted, the stranger is left as it is and named."""
@@ -92,6 +95,7 @@ def test_a_stranger_found_in_a_directory_is_named_and_exits_2(tmp_path):
     assert "compacted_utc" in rec.read_recordings(good).files[0].metadata["loopcal"]
 
 
+@pytest.mark.slow
 def test_a_fifo_in_a_directory_is_not_waited_on(tmp_path):
     """A FIFO named like a recording in the directory is not a recording file: skipped,
     never opened (a reader would block on it)."""
@@ -102,6 +106,7 @@ def test_a_fifo_in_a_directory_is_not_waited_on(tmp_path):
     assert f"{good}: " in proc.stdout and "chunks ->" in proc.stdout, proc.stdout
 
 
+@pytest.mark.slow
 def test_a_damaged_recording_is_left_alone_and_exits_1(tmp_path):
     damaged = _recording(tmp_path)
     data = tear_chunk(damaged, 4)

@@ -101,6 +101,7 @@ def table(out: str) -> dict[str, tuple[float, ...]]:
     return {name: tuple(float(v) for v in cols.split()) for name, cols in rows}
 
 
+@pytest.mark.slow
 def test_demo_writes_offsets_close_to_the_truth(tmp_path):
     demo = run_demo("--out", str(tmp_path / "a dir"), "--seed", "2")
     out = demo.stdout
@@ -124,6 +125,7 @@ def test_demo_writes_offsets_close_to_the_truth(tmp_path):
     assert "pymodbus" not in demo.stderr and "Cancel send" not in demo.stderr, demo.stderr
 
 
+@pytest.mark.slow
 def test_demo_shows_the_commands_it_really_runs(tmp_path):
     """The printed command lines paste into a shell as they are: split by shlex or by bash
     (the URL's `?`, a path with a space), they are the argv of the processes the demo ran."""
@@ -142,6 +144,7 @@ def test_demo_shows_the_commands_it_really_runs(tmp_path):
     assert record[record.index("--out") + 1] == str(tmp_path / "with space" / "recordings")
 
 
+@pytest.mark.slow
 def test_demo_too_short_says_nothing_was_written(tmp_path):
     demo = run_demo("--out", str(tmp_path), "--minutes", "0.1")
     out = demo.stdout
@@ -165,6 +168,7 @@ def test_demo_too_short_says_nothing_was_written(tmp_path):
     ]
 
 
+@pytest.mark.slow
 def test_ascii_demo_shows_progress_while_it_records(tmp_path):
     """Over ASCII the module runs in real time: the demo says how far it has come at least
     every few seconds, in the session's own time: never more than has passed, nor beyond
@@ -193,17 +197,20 @@ def test_ascii_demo_shows_progress_while_it_records(tmp_path):
     assert all(abs(z) < 3.5 for *_, z in table(demo.stdout).values())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("args", "message"),
     [(["--minutes", "0"], "--minutes must be positive"), (["--free", "Q7"], "unknown parameter"),
      (["--twist-every", "-1"], "--twist-every must be 0 or more moves, got -1")],
 )  # fmt: skip
-def test_demo_bad_options(args, message):
-    proc = subprocess.run([*ENTRY, "demo", *args], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 2
-    assert message in proc.stderr
+def test_demo_bad_options(args, message, capsys):
+    from loopcal.daemon.cli import main  # in this process: refused before anything starts
+
+    assert main(["demo", *args]) == 2
+    assert message in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_demo_json_is_one_object_that_matches_the_config_written(tmp_path):
     import json
 

@@ -32,7 +32,7 @@ from tests.support.recordings import not_recordings, write_recording, write_rows
 from tests.support.rows import T0, make_rows
 from tests.support.sessions import hand_rows
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
 VIEWS = (rec.TOPIC_STATE, rec.TOPIC_TRANSFORM, rec.TOPIC_SCENE)
 

@@ -14,7 +14,7 @@ from tests.support.processes import loopcal
 from tests.support.rows import T0
 from tests.support.sessions import PAUSE_S, truth_for, write_session
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 DAY_NS = 86_400 * 10**9
 
 

@@ -31,7 +31,7 @@ from tests.support.recordings import write_directory, write_rows
 from tests.support.rows import T0, make_rows, rows_from
 from tests.support.sessions import PAUSE_S, truth_for, write_session
 
-pytestmark = pytest.mark.timeout(180)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
 
 def _write(path, rows, events=()):

@@ -29,6 +29,7 @@ def read_truth(path):
     return lines[0], [r for r in lines[1:] if r["type"] == "scan"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", ["modbus-tcp", "ascii"])
 def test_scans_read_match_the_ground_truth_file(tmp_path, transport):
     out = tmp_path / "truth.jsonl"
@@ -59,6 +60,7 @@ def test_scans_read_match_the_ground_truth_file(tmp_path, transport):
         assert [s.counter for s in scans] == list(range(scans[0].counter, scans[-1].counter + 1))
 
 
+@pytest.mark.slow
 def test_scheduled_stall_and_restart_reach_the_driver(tmp_path):
     out = tmp_path / "truth.jsonl"
     proc, url = start("--speed", "4", "--fault", "stall@1+1", "--fault", "restart@3",
@@ -91,6 +93,7 @@ def test_scheduled_stall_and_restart_reach_the_driver(tmp_path):
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -102,12 +105,14 @@ def test_scheduled_stall_and_restart_reach_the_driver(tmp_path):
         (["--twist-every", "-3"], "--twist-every must be 0 or more moves, got -3"),
     ],
 )
-def test_bad_options_are_named(args, message):
-    proc = subprocess.run([*CMD, *args], capture_output=True, text=True, timeout=30)
-    assert proc.returncode == 2
-    assert message in proc.stderr
+def test_bad_options_are_named(args, message, capsys):
+    from loopcal.daemon.cli import main  # in this process: refused before anything starts
+
+    assert main(["simulate", *args]) == 2
+    assert message in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_replay_of_a_truth_file(tmp_path):
     rec = tmp_path / "rec.jsonl"
     first, _ = start("--speed", "10", "--duration", "3", "--truth-out", str(rec))

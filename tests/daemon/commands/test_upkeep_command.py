@@ -47,6 +47,7 @@ def proposed(tmp_path):
     return truth, config, recordings, daemon
 
 
+@pytest.mark.slow
 def test_status_shows_the_proposal_and_apply_writes_it(proposed):
     truth, config, recordings, daemon = proposed
     before = config.read_bytes()
@@ -69,6 +70,7 @@ def test_status_shows_the_proposal_and_apply_writes_it(proposed):
     assert again.returncode == 1 and "no recalibration proposed" in again.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", ["edit a value", "truncate", "edit the provenance",
                                     "config changed since"])  # fmt: skip
 def test_a_damaged_or_edited_proposal_is_refused_and_nothing_written(proposed, damage):
@@ -92,6 +94,7 @@ def test_a_damaged_or_edited_proposal_is_refused_and_nothing_written(proposed, d
     assert not list(config.parent.glob("controller.toml.*.prev"))
 
 
+@pytest.mark.slow
 def test_discard_sets_it_aside(proposed):
     _, config, _, daemon = proposed
     d = loopcal("upkeep", "discard", "--config", daemon, "--json")
@@ -102,6 +105,7 @@ def test_discard_sets_it_aside(proposed):
     assert loopcal("upkeep", "status", "--config", daemon).returncode == 1
 
 
+@pytest.mark.slow
 def test_bad_options_are_named():
     p = loopcal("upkeep", "status")
     assert p.returncode == 2 and "--config" in p.stderr and "Traceback" not in p.stderr

@@ -69,6 +69,7 @@ def test_init_config_writes_the_reference_geometry_with_comments(tmp_path):
         assert comment.startswith("# ") and comment.endswith(f", {UNITS[name]}"), name
 
 
+@pytest.mark.slow
 def test_init_config_refuses_to_overwrite_unless_forced(tmp_path):
     path = tmp_path / "controller.toml"
     mine = b"# my own \xff\x00 config\n"
@@ -86,6 +87,7 @@ def test_init_config_refuses_to_overwrite_unless_forced(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["controller.toml"]
 
 
+@pytest.mark.slow
 def test_init_config_creates_no_directories(tmp_path):
     target = tmp_path / "no" / "such" / "controller.toml"
     proc = init_config(str(target))
@@ -325,6 +327,7 @@ def replace_params(config, params):
     return replace(config, params=tuple(float(x) for x in params))
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(record=st.dictionaries(st.sampled_from([*NAMES, "path", "junk"]),
                               st.one_of(st.text(max_size=12), st.sampled_from(

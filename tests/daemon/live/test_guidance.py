@@ -24,6 +24,7 @@ from tests.support.sessions import PAUSE_S, hand_rows, trim, truth_for
 pytestmark = pytest.mark.timeout(180)
 
 
+@pytest.mark.slow
 def test_guidance_predicts_what_the_worker_reports_and_stops_when_enough():
     truth = truth_for(5)
     t_us, codes = mechanism_scans(HandMoves(5, params=truth, pause_s=PAUSE_S), truth, 20 * 300,
@@ -85,6 +86,7 @@ def test_a_plate_left_still_is_asked_to_move_and_a_moving_one_where_to():
     assert updates[-1].instruction.startswith(("tilt the plate further", "twist the plate"))
 
 
+@pytest.mark.slow
 def test_until_enough_stops_by_itself_and_calibrate_agrees(tmp_path):
     seed = 7
     truth = truth_for(seed)
@@ -128,6 +130,7 @@ def test_until_enough_stops_by_itself_and_calibrate_agrees(tmp_path):
             assert abs(p["value"] - truth[INDEX[name]]) <= 3 * p["std"], name
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("args", "message"),
     [

@@ -28,6 +28,7 @@ def _session(rows: np.ndarray, target_mm: float) -> list[GuidanceUpdate]:
     return updates
 
 
+@pytest.mark.slow
 def test_every_update_tells_a_program_what_it_tells_the_technician():
     # a technician twisting every other move, judged at 0.25 mm: in a minute the guidance asks
     # for a side, passes on a failing gate's own advice, asks for motion anywhere, and stops
@@ -73,6 +74,7 @@ def test_a_plate_left_still_is_told_to_move_anywhere():
     }
 
 
+@pytest.mark.slow
 def test_a_technician_doing_what_it_says_covers_what_it_asks_for_and_is_done():
     """The loop closed offline: the advice of each second steers the guided technician's
     next moves (tests.support.sessions.GuidedSession), as bench_scans --part enough runs it."""

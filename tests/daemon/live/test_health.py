@@ -48,6 +48,7 @@ def monitor_run(drifts, seconds, *, seed=3, truth=TRUTH):
     return mon, events
 
 
+@pytest.mark.slow
 def test_clean_data_raises_nothing():
     mon, events = monitor_run((), 900)
     assert mon.state.poses > 250 and events == []
@@ -56,6 +57,7 @@ def test_clean_data_raises_nothing():
     assert 0.7 < mon.state.last.chi2_rms < 1.3  # RMS of 30: +- 0.13
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sensor", [1, 2, 3, 4])
 @pytest.mark.parametrize(("kind", "amount"), [("step", 0.5), ("creep", 1.0)])
 def test_a_moved_offset_is_attributed_to_its_sensor(sensor, kind, amount):
@@ -74,6 +76,7 @@ def test_a_moved_offset_is_attributed_to_its_sensor(sensor, kind, amount):
     assert f"OFFSET DRIFT sensor {sensor}" in mon.status()
 
 
+@pytest.mark.slow
 def test_a_step_that_goes_away_is_cleared():
     drift = OffsetDrift("step", 2, 60.0, 0.8, duration=90.0)
     _, events = monitor_run((drift,), 420)
@@ -117,6 +120,7 @@ def test_offset_faults_parse_and_are_drifts():
             FaultEvent.parse(bad)
 
 
+@pytest.mark.slow
 def test_simulate_refuses_a_drift_on_a_replay(tmp_path):
     p = Proc(["simulate", "--scenario", "replay", "--replay", str(tmp_path / "x.jsonl"),
               "--fault", "offset@3:1=0.5"])  # fmt: skip
@@ -137,6 +141,7 @@ def test_health_settings_are_checked(tmp_path):
             load_daemon_config(cfg)
 
 
+@pytest.mark.slow
 def test_the_daemon_raises_offset_drift_in_events_log_and_status(tmp_path):
     """An emulated module whose sensor 2 core slips 0.8 mm after 20 s of device time: the
     daemon's event names sensor 2, in the MCAP events, the log and the STATUS line."""
@@ -169,6 +174,7 @@ def test_the_daemon_raises_offset_drift_in_events_log_and_status(tmp_path):
     assert events[0].details["statistic"] > events[0].details["threshold"]
 
 
+@pytest.mark.slow
 def test_record_without_health_raises_nothing(tmp_path):
     drift = (OffsetDrift("step", 1, 2.0, 2.0),)
     with hand_emulator(rate=20, speed=10.0, drifts=drift) as emu:
@@ -219,6 +225,7 @@ def _config_off(by: dict[str, float]):
     return tuple(params)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "config",
     [
@@ -280,6 +287,7 @@ def _robot_not_at_the_reference(tmp_path, *record_args: str) -> tuple[Proc, list
     return proc, read_recordings(tmp_path / "rec").events
 
 
+@pytest.mark.slow
 def test_a_recorder_without_a_controller_config_raises_no_alarm(tmp_path):
     proc, events = _robot_not_at_the_reference(tmp_path)
     assert "loop-closure health watches nothing: it needs the robot's controller config" \
@@ -288,6 +296,7 @@ def test_a_recorder_without_a_controller_config_raises_no_alarm(tmp_path):
     assert not kinds & {"offset_drift", "loops_open"}, kinds
 
 
+@pytest.mark.slow
 def test_a_recorder_whose_config_never_fitted_says_so_not_a_drift(tmp_path):
     never = tmp_path / "controller.toml"
     assert Proc(["init-config", str(never)]).wait(60) == 0  # the reference geometry
@@ -313,6 +322,7 @@ def test_a_feed_searches_its_new_scans_not_every_scan_since_the_last_pose():
     assert mon.state.poses == 0 and max(kept) == 2 * 10 + 5 - 1, kept
 
 
+@pytest.mark.slow
 def test_poses_fed_a_second_at_a_time_are_those_of_one_search_over_the_session():
     """Across gaps and a restart, the poses the monitor tests, fed a second of scans at a
     time and keeping only what a later pose can need, are those one search over the whole

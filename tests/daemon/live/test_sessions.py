@@ -42,6 +42,7 @@ pytestmark = pytest.mark.timeout(180)
 # ---------------------------------------------------------------------------- protocol
 
 
+@pytest.mark.slow
 @settings(max_examples=500, deadline=None)
 @given(st.one_of(
     st.binary(max_size=300),
@@ -154,6 +155,7 @@ def no_scan_lost(out) -> None:
     assert np.all(np.diff(rows["counter64"].astype(np.int64)) == 1), why
 
 
+@pytest.mark.slow
 def test_hostile_clients_never_cost_the_recording_a_scan(daemon):
     daemon.wait_scans(20)
     # a client that sends much and reads nothing, one that sends a huge line, many idle
@@ -208,6 +210,7 @@ def test_hostile_clients_never_cost_the_recording_a_scan(daemon):
     no_scan_lost(daemon.stop())
 
 
+@pytest.mark.slow
 def test_one_session_at_a_time_its_owner_stops_it_and_its_window_is_exact(daemon):
     daemon.wait_scans(20)
     with daemon.client() as owner, daemon.client() as other:
@@ -240,6 +243,7 @@ def test_one_session_at_a_time_its_owner_stops_it_and_its_window_is_exact(daemon
     assert end.details["reason"] == "stopped" and end.details["since_ns"] == ended["since_ns"]
 
 
+@pytest.mark.slow
 def test_a_session_lasts_its_duration_of_the_modules_scans(daemon):
     daemon.wait_scans(20)
     with daemon.client() as c:
@@ -250,6 +254,7 @@ def test_a_session_lasts_its_duration_of_the_modules_scans(daemon):
     assert ended["last"]["counter64"] - ended["first"]["counter64"] == 99
 
 
+@pytest.mark.slow
 def test_a_vanished_client_abandons_its_session(tmp_path, runtime_directory):
     d = Daemon(tmp_path, runtime_directory, client_timeout=1.5)
     try:
@@ -285,6 +290,7 @@ def test_a_vanished_client_abandons_its_session(tmp_path, runtime_directory):
     no_scan_lost(out)
 
 
+@pytest.mark.slow
 def test_a_daemon_that_stops_ends_the_session_and_writes_its_scans(daemon):
     daemon.wait_scans(20)
     c = daemon.client()
@@ -304,6 +310,7 @@ def test_a_daemon_that_stops_ends_the_session_and_writes_its_scans(daemon):
 # ---------------------------------------------------------------------------- end to end
 
 
+@pytest.mark.slow
 def test_no_daemon_says_so_and_how_to_record_without_one(tmp_path, runtime_directory):
     config = fresh_config(tmp_path / "controller.toml")
     cfg = tmp_path / "daemon.toml"
@@ -317,6 +324,7 @@ def test_no_daemon_says_so_and_how_to_record_without_one(tmp_path, runtime_direc
         ControlClient(runtime_directory / "control.sock")
 
 
+@pytest.mark.slow
 def test_a_session_through_the_daemon_writes_a_config_that_the_daemon_follows(tmp_path):
     seed = 7
     truth = truth_for(seed)
@@ -376,6 +384,7 @@ def test_a_session_through_the_daemon_writes_a_config_that_the_daemon_follows(tm
     assert "session_start" in daemon_text
 
 
+@pytest.mark.slow
 def test_session_refuses_bad_input_before_asking_the_daemon(tmp_path):
     config = fresh_config(tmp_path / "controller.toml")
     cfg = tmp_path / "daemon.toml"
@@ -398,6 +407,7 @@ def test_session_refuses_bad_input_before_asking_the_daemon(tmp_path):
         assert re.search(why, proc.stderr), (argv, proc.stderr)
 
 
+@pytest.mark.slow
 def test_the_live_view_shows_a_sessions_guidance(tmp_path, runtime_directory):
     """With [live] on, a technician's session is watched in Foxglove as record's is: its
     guidance on /loopcal/guidance, decoded by the protocol's own client."""
@@ -426,6 +436,7 @@ def test_the_live_view_shows_a_sessions_guidance(tmp_path, runtime_directory):
     assert guidance["last"]["scans"] > 0 and guidance["last"]["instruction"]
 
 
+@pytest.mark.slow
 def test_ctrl_c_ends_the_session_and_calibrates_what_it_recorded(daemon, tmp_path):
     daemon.wait_scans(20)
     s = daemon.settings

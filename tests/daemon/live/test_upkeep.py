@@ -82,6 +82,7 @@ def test_a_swapped_sensor_is_proposed_once_within_two_minutes(tmp_path, seed, se
     assert "RECALIBRATION PROPOSED" in up.status()
 
 
+@pytest.mark.slow
 def test_an_unchanged_robot_gets_no_proposal(tmp_path):
     truth, rows = robot_at_work(4, 1800)
     config = write_initial_config(tmp_path / "controller.toml", params=truth)
@@ -103,6 +104,7 @@ def test_two_sensors_swapped_at_once_are_both_found(tmp_path):
         assert abs(p.values[name] - (truth[INDEX[name]] + mm)) <= 0.05
 
 
+@pytest.mark.slow
 def test_write_mode_rewrites_the_config_once_and_watches_the_new_values(tmp_path):
     truth, rows = robot_at_work(6, 600, [OffsetDrift("step", 3, 100.0, 1.0)])
     config = write_initial_config(tmp_path / "controller.toml", params=truth)
@@ -119,6 +121,7 @@ def test_write_mode_rewrites_the_config_once_and_watches_the_new_values(tmp_path
     assert load_controller_config(config).sha256 == new.sha256
 
 
+@pytest.mark.slow
 def test_a_discarded_proposal_is_not_made_again(tmp_path):
     truth, rows = robot_at_work(7, 540, [OffsetDrift("step", 1, 60.0, 0.7)])
     config = write_initial_config(tmp_path / "controller.toml", params=truth)
@@ -130,6 +133,7 @@ def test_a_discarded_proposal_is_not_made_again(tmp_path):
     assert up.emit.kinds() == ["recalibration_proposed"]
 
 
+@pytest.mark.slow
 def test_a_proposal_damaged_or_edited_by_hand_is_refused_and_nothing_written(tmp_path):
     truth, rows = robot_at_work(8, 300, [OffsetDrift("step", 2, 60.0, 0.9)])
     recordings = write_directory(tmp_path / "rec", rows, rate=RATE)
@@ -198,6 +202,7 @@ def a_proposal(tmp_path_factory):
     return config, proposal_path(config).read_text()
 
 
+@pytest.mark.slow
 @given(st.data())
 @settings(max_examples=150, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip

@@ -36,6 +36,7 @@ TOPICS = {
 }  # fmt: skip
 
 
+@pytest.mark.slow
 def test_a_foxglove_client_sees_every_channel_decoded_at_the_scan_rate(tmp_path):
     config = write_initial_config(tmp_path / "controller.toml")  # the emulator's geometry
     port = free_port()
@@ -89,6 +90,7 @@ def test_a_foxglove_client_sees_every_channel_decoded_at_the_scan_rate(tmp_path)
                               float | int), path  # fmt: skip
 
 
+@pytest.mark.slow
 def test_stalled_and_many_viewers_cost_the_recording_no_scan(tmp_path):
     port, metrics = free_port(), free_port()
     while metrics == port:
@@ -129,6 +131,7 @@ def test_stalled_and_many_viewers_cost_the_recording_no_scan(tmp_path):
     assert not out.events_of("gap") and not out.events_of("overflow")
 
 
+@pytest.mark.slow
 def test_another_address_than_loopback_warns_what_it_exposes(tmp_path):
     port = free_port()
     with hand_emulator(speed=SPEED) as emu:
@@ -137,6 +140,7 @@ def test_another_address_than_loopback_warns_what_it_exposes(tmp_path):
     assert f"the live view on ws://0.0.0.0:{port} is served to every interface" in rec.text
 
 
+@pytest.mark.slow
 def test_a_bad_or_taken_live_address_is_refused(tmp_path):
     proc = record("modbus-tcp://127.0.0.1:1", tmp_path / "r", "--live", "8765")
     assert proc.wait(30) == 2 and "--live" in proc.text and "HOST:PORT" in proc.text

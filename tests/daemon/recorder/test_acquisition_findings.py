@@ -18,7 +18,7 @@ from loopcal.simulator.emulator import Emulator
 from loopcal.simulator.source import TestSource
 from tests.support.processes import record
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
 
 def test_a_power_cycled_module_is_read_again_as_soon_as_it_answers(tmp_path):

@@ -15,6 +15,7 @@ from loopcal.daemon.recorder.clockmap import ClockMap
 from tests.support.timeline import Module, datasheet_latency, run_stamps
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ppm", [200.0, -200.0])
 def test_stamps_follow_a_drifting_module_clock(ppm):
     run = run_stamps(
@@ -115,6 +116,7 @@ _answers = st.tuples(
 )
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(st.lists(_answers, min_size=1, max_size=120), st.integers(0, 10**17))
 def test_stamps_never_go_back_whatever_the_answers(answers, utc0):

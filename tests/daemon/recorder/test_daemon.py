@@ -138,6 +138,7 @@ def test_sizes():
         RecorderSettings("ascii:///dev/ttyS0", Path("/x"), duration_s=-1).checked()
 
 
+@pytest.mark.slow
 def test_daemon_exits_2_naming_the_problem(tmp_path):
     cfg = write_config(tmp_path / "d.toml", "modbus-tcp://10.0.0.5", tmp_path, "colour = 1\n")
     proc = subprocess.run([*LOOPCAL, "daemon", "--config", str(cfg)],
@@ -149,6 +150,7 @@ def test_daemon_exits_2_naming_the_problem(tmp_path):
 # ---------------------------------------------------------------------------- systemd
 
 
+@pytest.mark.slow
 def test_daemon_speaks_the_notify_protocol_and_reloads_on_sighup(tmp_path):
     out = tmp_path / "rec"
     controller = tmp_path / "controller.toml"
@@ -212,6 +214,7 @@ def test_daemon_speaks_the_notify_protocol_and_reloads_on_sighup(tmp_path):
 # ---------------------------------------------------------------------------- disks
 
 
+@pytest.mark.slow
 def test_a_file_size_limit_is_a_disk_error_and_nothing_is_lost(tmp_path):
     """RLIMIT_FSIZE makes writes fail with EFBIG, like a full disk; raising it again is
     like space coming back."""
@@ -241,6 +244,7 @@ def test_a_file_size_limit_is_a_disk_error_and_nothing_is_lost(tmp_path):
     assert all(f.scans for f in out.files)  # no empty husks left behind
 
 
+@pytest.mark.slow
 def test_a_directory_that_cannot_be_made_is_refused_at_start(tmp_path):
     blocker = tmp_path / "rec"
     blocker.write_text("a file where the directory should be")
@@ -254,6 +258,7 @@ def test_a_directory_that_cannot_be_made_is_refused_at_start(tmp_path):
     assert "[recording].directory" in proc.text and "Not a directory" in proc.text
 
 
+@pytest.mark.slow
 def test_a_directory_that_becomes_unwritable_recovers_when_fixed(tmp_path):
     top = tmp_path / "rec"
     port = free_port()
@@ -285,6 +290,7 @@ def _can_mount() -> bool:
     return os.geteuid() == 0 and Path("/proc/filesystems").read_text().count("tmpfs") > 0
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not _can_mount(), reason="mounting a small tmpfs needs root")
 def test_a_full_filesystem_recovers_when_space_returns(tmp_path):
     mnt = tmp_path / "small"
@@ -325,6 +331,7 @@ int fsync(int fd) {
 """
 
 
+@pytest.mark.slow
 def test_a_stalling_disk_does_not_delay_reading(tmp_path):
     """fsync takes 1.5 s (a shim around the C library's fsync); the ASCII protocol has no
     FIFO, so a read held up by the disk would miss scans (10 Hz: see the transport test)."""

@@ -90,6 +90,7 @@ def missing(rows: np.ndarray) -> set[int]:
     return set(range(int(c[0]), int(c[-1]))) - set(c.tolist())
 
 
+@pytest.mark.slow
 def test_another_master_is_one_episode_and_every_scan_it_took_is_counted():
     """The module sat unread past its FIFO before loopcal connected (the overflow bit
     latched, as it normally is), then another master reads the FIFO window now and then:
@@ -156,6 +157,7 @@ def test_another_master_is_one_episode_and_every_scan_it_took_is_counted():
     assert not rows["overflow"][1:].any() and len(rec.events("overflow")) == 1  # at connect
 
 
+@pytest.mark.slow
 def test_overflows_and_outages_are_not_another_master():
     """Left unread past its FIFO at connect and again later (a stall of 14 s at 20 Hz),
     and cut off for less than the FIFO holds: overflows and a link that came back, no
@@ -185,6 +187,7 @@ def test_overflows_and_outages_are_not_another_master():
     assert rec.events("disconnect") and len(missing(rows)) == 280 - 256
 
 
+@pytest.mark.slow
 def test_a_fifo_answer_lost_on_the_way_is_not_another_master():
     """Half the answers late past the FIFO read's wait (FIFO_ANSWER_WAIT_S): a FIFO read whose
     answer never came took its scans with it. The gap is loopcal's own loss, not another
@@ -216,6 +219,7 @@ def test_a_fifo_answer_lost_on_the_way_is_not_another_master():
     assert not rows["overflow"].any()
 
 
+@pytest.mark.slow
 def test_the_metrics_count_what_another_master_took(tmp_path):
     """`loopcal record --metrics` while a plain Modbus client reads the FIFO window: the
     episode is on while it reads, off once the module made 15 s of scans without it, and

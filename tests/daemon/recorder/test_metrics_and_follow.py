@@ -15,7 +15,7 @@ from tests.support.emulator import hand_emulator
 from tests.support.processes import Proc, free_port, record, scrape, taken_port, value, write_config
 from tests.support.sessions import truth_for
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
 
 def test_record_serves_prometheus_metrics(tmp_path):

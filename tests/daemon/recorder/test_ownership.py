@@ -150,6 +150,7 @@ def test_a_runtime_directory_that_cannot_be_made_is_said(tmp_path, monkeypatch):
 # ---------------------------------------------------------------------------- processes
 
 
+@pytest.mark.slow
 def test_a_second_recorder_of_the_daemons_module_is_refused_naming_it(tmp_path):
     sim = Proc(["simulate", "--speed", "4"])
     daemon = None

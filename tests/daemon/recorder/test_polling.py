@@ -26,6 +26,7 @@ from tests.support.processes import record
 from tests.support.timeline import Module, datasheet_latency, run_polls
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ppm", [0.0, 200.0, -200.0, 1000.0, -1000.0])
 @pytest.mark.parametrize("phase_us", [1809, 36_000])
 def test_once_per_scan_and_none_missed_over_an_hour(ppm, phase_us):
@@ -70,6 +71,7 @@ def test_a_restart_is_locked_again_at_once():
     assert again.polls <= again.scans + 30
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(120)
 def test_the_recorder_polls_once_per_scan_whatever_the_modules_clock(tmp_path):
     """Over ASCII, the datasheet's answer times (0.5-10 ms), scan 0 late after power-on,

@@ -22,6 +22,7 @@ def consecutive(rows: np.ndarray) -> bool:
     return bool(np.all(np.diff(c) == 1))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu", "ascii"])
 def test_a_recording_holds_exactly_the_modules_scans(tmp_path, transport):
     # ASCII has no FIFO: the recorder polls each scan just after it is due, which a real
@@ -59,6 +60,7 @@ def test_a_recording_holds_exactly_the_modules_scans(tmp_path, transport):
     assert kinds[0] == "recorder_start" and "connect" in kinds and kinds[-1] == "recorder_stop"
 
 
+@pytest.mark.slow
 def test_sigterm_closes_an_indexed_file_within_two_seconds(tmp_path):
     with hand_emulator() as emu:
         rec = record(emu.url, tmp_path)
@@ -72,6 +74,7 @@ def test_sigterm_closes_an_indexed_file_within_two_seconds(tmp_path):
     assert consecutive(out.scans) and out.scans["counter64"][0] == 0
 
 
+@pytest.mark.slow
 def test_sigstop_for_five_seconds_loses_nothing(tmp_path):
     with hand_emulator() as emu:
         rec = record(emu.url, tmp_path)
@@ -91,6 +94,7 @@ def test_sigstop_for_five_seconds_loses_nothing(tmp_path):
     assert_matches_truth(rows, emu)
 
 
+@pytest.mark.slow
 def test_sigkill_then_restart_fills_the_gap_from_the_fifo(tmp_path):
     with hand_emulator() as emu:
         first = record(emu.url, tmp_path)
@@ -123,6 +127,7 @@ def test_sigkill_then_restart_fills_the_gap_from_the_fifo(tmp_path):
     assert len(rows) >= c[-1] + 1 - 20
 
 
+@pytest.mark.slow
 def test_a_module_restart_is_recorded_and_followed(tmp_path):
     with hand_emulator() as emu:
         rec = record(emu.url, tmp_path)
@@ -145,6 +150,7 @@ def test_a_module_restart_is_recorded_and_followed(tmp_path):
     assert np.all(np.diff(rows["stamp_ns"]) > 0)  # two seconds off: stamps keep going
 
 
+@pytest.mark.slow
 def test_a_link_outage_is_an_event_and_costs_no_scan(tmp_path):
     with hand_emulator() as emu:
         rec = record(emu.url, tmp_path)
@@ -165,6 +171,7 @@ def test_a_link_outage_is_an_event_and_costs_no_scan(tmp_path):
     assert "pymodbus" not in rec.text  # its ERROR lines on timeouts are ours now
 
 
+@pytest.mark.slow
 def test_rotation_and_retention_at_an_accelerated_rate(tmp_path):
     # 200 Hz of device time, five times as fast: 1000 scans/s
     with hand_emulator(rate=200, speed=5.0) as emu:
@@ -193,6 +200,7 @@ def test_rotation_and_retention_at_an_accelerated_rate(tmp_path):
     assert_matches_truth(out.scans, emu)
 
 
+@pytest.mark.slow
 def test_channel_faults_are_events_and_views_mark_them(tmp_path):
     with hand_emulator() as emu:
         rec = record(emu.url, tmp_path)
@@ -217,6 +225,7 @@ def test_channel_faults_are_events_and_views_mark_them(tmp_path):
     assert bad.sum() >= 15 and np.all(out.scans["status"][bad] & (1 << 6))
 
 
+@pytest.mark.slow
 def test_a_stop_longer_than_the_fifo_is_counted_exactly(tmp_path):
     with hand_emulator(rate=100) as emu:  # 256 scans: 2.56 s
         rec = record(emu.url, tmp_path)
@@ -237,6 +246,7 @@ def test_a_stop_longer_than_the_fifo_is_counted_exactly(tmp_path):
     assert rows["missed"].sum() > 100 and out.events_of("overflow") and out.events_of("gap")
 
 
+@pytest.mark.slow
 def test_a_stalled_module_is_ridden_out(tmp_path):
     with hand_emulator() as emu:
         rec = record(emu.url, tmp_path)
@@ -252,6 +262,7 @@ def test_a_stalled_module_is_ridden_out(tmp_path):
     assert "pymodbus" not in rec.text
 
 
+@pytest.mark.slow
 def test_rotation_by_size(tmp_path):
     with hand_emulator(rate=200) as emu:
         rec = record(emu.url, tmp_path, "--rotate-size", "100KiB", "--read-period", "0.05")
@@ -272,6 +283,7 @@ def _summary(rec) -> dict:
     return docs[-1]
 
 
+@pytest.mark.slow
 def test_a_daq_that_never_answers(tmp_path):
     rec = record(f"modbus-tcp://127.0.0.1:{free_port()}?unit=1", tmp_path, "--duration", "2",
                  "--json")  # fmt: skip
@@ -296,6 +308,7 @@ def _damaged(kind: str, data: bytes) -> bytes:
     return bad_length(data, 6, 1 << 62)  # "huge chunk length"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["30 bytes", "summary bit", "huge chunk length"])
 def test_a_damaged_newest_recording_never_stops_the_recorder(tmp_path, kind):
     from loopcal.daemon.recording import recording_name
@@ -325,6 +338,7 @@ def test_a_damaged_newest_recording_never_stops_the_recorder(tmp_path, kind):
         assert warned, [e.message for e in out.events]
 
 
+@pytest.mark.slow
 def test_the_daemon_too_starts_over_a_damaged_newest_recording(tmp_path):
     from loopcal.daemon.recording import recording_name
     from tests.support.processes import Proc, write_config

@@ -48,6 +48,7 @@ def test_the_recorded_module_makes_exactly_the_recorded_scans():
         RecordedPowerOn(np.array([1, 1]), np.array([0, 1]), np.zeros((2, 4), int))
 
 
+@pytest.mark.slow
 def test_round_trip_on_every_transport(tmp_path):
     """All three transports at once: ASCII through ``loopcal replay`` at the recording's own
     pace (polled once per scan, phase-locked); Modbus at twice it, served by modules that

@@ -49,6 +49,7 @@ def test_any_rows_come_back_bit_for_bit(data):
     assert fields(decode_columns(message)) == fields(rows)
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.tuples(st.integers(0, 400), st.integers(0, 2**32 - 1)), min_size=1,
                 max_size=8))  # fmt: skip
@@ -76,6 +77,7 @@ def test_a_replayed_recording_with_wraps_and_restarts_comes_back():
     assert fields(decode_columns(encode_columns(rows))) == fields(rows)
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(st.integers(0, 2**31))
 def test_a_flipped_bit_raises_and_never_yields_other_rows(bit):
@@ -95,6 +97,7 @@ def test_a_flipped_bit_raises_and_never_yields_other_rows(bit):
         assert fields(got) == fields(rows)
 
 
+@pytest.mark.slow
 def test_a_technicians_hour_takes_under_6_bytes_a_scan(hour):
     messages = [encode_columns(hour[a : a + 1200]) for a in range(0, len(hour), 1200)]
     size = sum(map(len, messages)) / len(hour)

@@ -33,6 +33,7 @@ def _recording(tmp_path, n=3000, close=True):
     return path
 
 
+@pytest.mark.slow
 def test_a_compacted_file_holds_the_same_and_reads_everywhere(tmp_path, node_reader):
     path = _recording(tmp_path)
     before = rec.read_recordings(path)
@@ -66,6 +67,7 @@ def test_a_compacted_file_holds_the_same_and_reads_everywhere(tmp_path, node_rea
     assert not compact(path).done  # already compact
 
 
+@pytest.mark.slow
 def test_files_not_closed_or_damaged_are_left_alone(tmp_path):
     (tmp_path / "open").mkdir()
     open_file = _recording(tmp_path / "open", close=False)
@@ -77,6 +79,7 @@ def test_files_not_closed_or_damaged_are_left_alone(tmp_path):
     assert not r.done and "damaged" in r.reason and damaged.read_bytes() == raw
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("step", ["compact-written", "compact-verified", "compact-renamed"])
 def test_killed_while_compacting_loses_nothing(tmp_path, step):
     path = _recording(tmp_path)
@@ -93,6 +96,7 @@ def test_killed_while_compacting_loses_nothing(tmp_path, step):
     assert identities(rec.read_recordings(path).scans) == identities(rows)
 
 
+@pytest.mark.slow
 def test_a_file_deleted_while_compacted_stays_deleted(tmp_path):
     """The retention deleting a file during its compaction: the compacted copy must not
     bring it back."""
@@ -114,6 +118,7 @@ def test_a_file_deleted_while_compacted_stays_deleted(tmp_path):
     assert not list(tmp_path.glob(".*.tmp"))
 
 
+@pytest.mark.slow
 def test_the_recorder_compacts_the_files_it_closes(tmp_path):
     with hand_emulator(rate=50, speed=1.0) as emu:
         proc = record(emu.url, tmp_path, "--rotate-seconds", "2", "--read-period", "0.05")
@@ -156,6 +161,7 @@ print(release_free_heap(), before, rss_mb())
 """
 
 
+@pytest.mark.slow
 def test_the_compactor_gives_what_it_freed_back_to_the_system():
     out = subprocess.run([sys.executable, "-c", TRIM], capture_output=True, text=True,
                          timeout=60, check=True).stdout.split()  # fmt: skip
@@ -163,6 +169,7 @@ def test_the_compactor_gives_what_it_freed_back_to_the_system():
     assert trimmed and before - after > 120, (before, after)
 
 
+@pytest.mark.slow
 def test_the_recorders_compactions_run_in_a_child_whose_crash_costs_only_that_file(
     tmp_path, monkeypatch, caplog
 ):
@@ -195,6 +202,7 @@ def test_the_recorders_compactions_run_in_a_child_whose_crash_costs_only_that_fi
     assert identities(out.scans) == rows and "compacted_utc" in out.files[0].metadata["loopcal"]
 
 
+@pytest.mark.slow
 def test_a_compaction_replaces_its_file_only_while_the_directory_is_not_locked(tmp_path):
     """The retention deletes under the directory's lock; a compaction in another process
     waits for it before it checks and replaces the file."""
@@ -213,6 +221,7 @@ def test_a_compaction_replaces_its_file_only_while_the_directory_is_not_locked(t
     assert "compacted_utc" in rec.read_recordings(path).files[0].metadata["loopcal"]
 
 
+@pytest.mark.slow
 def test_the_command_exits_1_when_a_file_fails_and_says_so_in_json(tmp_path):
     good = _recording(tmp_path)
     junk = tmp_path / rec.recording_name(T0 + 10**12)
@@ -230,6 +239,7 @@ def test_the_command_exits_1_when_a_file_fails_and_says_so_in_json(tmp_path):
     assert again.returncode == 0 and "already compact" in again.stdout, again.stdout
 
 
+@pytest.mark.slow
 def test_a_second_compaction_leaves_a_running_ones_file_alone(tmp_path):
     """Two `loopcal compact` on one directory: the second neither deletes the first's
     temporary file nor compacts its file; the first then finishes as if alone."""
@@ -257,6 +267,7 @@ def test_a_second_compaction_leaves_a_running_ones_file_alone(tmp_path):
     assert not list(tmp_path.glob(".*.tmp"))
 
 
+@pytest.mark.slow
 def test_two_compactions_at_once_never_crash(tmp_path):
     originals = {}
     for k in range(3):
@@ -290,6 +301,7 @@ def _views_only_chunk(path) -> int:
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", ["zeroed", "one bit"])
 def test_damage_in_the_views_is_never_laundered(tmp_path, damage):
     """A closed file whose damage is in a views-only chunk: the mcap library skips or
@@ -311,6 +323,7 @@ def test_damage_in_the_views_is_never_laundered(tmp_path, damage):
     assert proc.returncode == 1 and "damaged" in proc.stdout, proc.stdout + proc.stderr
 
 
+@pytest.mark.slow
 def test_a_time_window_of_a_compacted_file_holds_every_scan_inside_it(tmp_path):
     """A block of columns holds a minute, all before its log time: a window that ends
     inside it or starts inside it still gets every scan stamped in it, and only those."""

@@ -53,6 +53,7 @@ def _chunks(path: Path) -> list[tuple[int, int, set[str], list[tuple[str, Messag
     return out
 
 
+@pytest.mark.slow
 def test_every_chunk_of_a_compacted_file_spans_at_most_the_bound(tmp_path):
     path, original = _compacted(tmp_path)
     chunks = _chunks(path)
@@ -76,6 +77,7 @@ def test_every_chunk_of_a_compacted_file_spans_at_most_the_bound(tmp_path):
     assert int(meta["chunk_span_s"]) * 10**9 == CHUNK_SPAN_NS and "compacted_utc" in meta
 
 
+@pytest.mark.slow
 def test_one_flipped_bit_in_a_scan_chunk_loses_at_most_the_bound(tmp_path):
     path, original = _compacted(tmp_path)
     data = path.read_bytes()
@@ -103,6 +105,7 @@ def test_one_flipped_bit_in_a_scan_chunk_loses_at_most_the_bound(tmp_path):
                 assert d.offset == off and d.end_ns - d.start_ns < CHUNK_SPAN_NS
 
 
+@pytest.mark.slow
 def test_events_without_scans_are_bounded_too(tmp_path):
     """A module that does not answer for three minutes: events only, their chunks bounded
     as the scans' are."""
@@ -123,6 +126,7 @@ def test_events_without_scans_are_bounded_too(tmp_path):
         assert max(times) - min(times) <= CHUNK_SPAN_NS, topics
 
 
+@pytest.mark.slow
 def test_a_file_compacted_into_chunks_of_4_mib_is_compacted_again(tmp_path):
     """Files compacted by an older loopcal hold an hour in one chunk: the compactor takes
     them again (their loopcal record has no chunk_span_s)."""

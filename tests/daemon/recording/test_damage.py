@@ -56,6 +56,7 @@ MUTATION = st.one_of(
 _FIXTURES_OK = [HealthCheck.function_scoped_fixture]  # tmp_path is reused: each example rewrites
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None, suppress_health_check=_FIXTURES_OK)
 @given(closed=st.booleans(), mutation=MUTATION)
 def test_any_damage_gives_the_intact_scans_once_or_a_declared_error(
@@ -83,6 +84,7 @@ def test_any_small_file_is_read_or_refused_by_name(tmp_path, data):
         assert len(out) == 0
 
 
+@pytest.mark.slow
 def test_every_prefix_of_a_recording_start_reads(tmp_path, originals):
     _, data = originals
     path = tmp_path / rec.recording_name(T0)
@@ -97,6 +99,7 @@ def _scan_chunks(data: bytes) -> list[tuple[int, int]]:
     return chunk_spans(data)[0::2]
 
 
+@pytest.mark.slow
 def test_a_zeroed_run_inside_a_chunk_is_reported_with_the_scans_lost(tmp_path):
     rows = make_rows(2628)
     path = tmp_path / rec.recording_name(T0)

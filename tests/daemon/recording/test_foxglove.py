@@ -132,6 +132,7 @@ def py(written) -> rec.Recording:
     return rec.read_recordings(written.path)
 
 
+@pytest.mark.slow
 def test_a_complete_recording_opens_indexed_with_the_documented_channels(ts, py, written):
     assert ts["indexed"] and not ts["truncated"]
     assert ts["header"]["profile"] == "" and ts["header"]["library"].startswith("loopcal ")
@@ -215,6 +216,7 @@ def test_the_json_schemas_are_ones_foxglove_can_parse(ts):
     assert not errors, "Foxglove's parseJsonSchema would reject:\n" + "\n".join(errors)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cut", ["after_a_write", "mid_file"])
 def test_a_cut_recording_streams_the_same_in_typescript(tmp_path, node_reader, written, py, cut):
     if cut == "after_a_write":
@@ -241,6 +243,7 @@ def test_a_cut_recording_streams_the_same_in_typescript(tmp_path, node_reader, w
         assert len(cut_py) == written.cut_scans == CUT_AFTER * PER
 
 
+@pytest.mark.slow
 def test_the_reader_fails_loudly_on_what_it_cannot_read(tmp_path, node_reader):
     not_mcap = tmp_path / "not.mcap"
     not_mcap.write_bytes(b"PAR1 this is not an MCAP file at all")

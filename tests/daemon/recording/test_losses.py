@@ -105,6 +105,7 @@ def test_a_crash_inside_the_last_raw_chunk_says_the_end_is_lost(tmp_path, rows):
     assert f.scans == N - 32
 
 
+@pytest.mark.slow
 def test_a_crash_inside_the_last_views_chunk_loses_nothing(tmp_path, rows):
     path, data = _written(tmp_path, rows, closed=False)
     off, length = chunk_spans(data)[-1]
@@ -116,6 +117,7 @@ def test_a_crash_inside_the_last_views_chunk_loses_nothing(tmp_path, rows):
     assert "cut off" in f.warning and "(no scan lost)" in f.warning
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("k", [0, 1, 7, 20, 37])
 def test_intact_chunks_of_a_closed_file_out_of_order_are_all_read(tmp_path, rows, k):
     """Two intact chunks swapped (a raw and a views chunk, or two flushes'): the summary is

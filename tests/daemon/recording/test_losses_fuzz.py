@@ -18,6 +18,8 @@ from tests.support.mutations import MUTATIONS, chunk_spans, flip_bits, identitie
 from tests.support.recordings import write_recording
 from tests.support.rows import T0, make_rows
 
+pytestmark = pytest.mark.slow  # docs/architecture.md, "The fast loop"
+
 N, PER = 1457, 75
 
 

@@ -108,6 +108,7 @@ def record_cases(cases: list[tuple], root: Path) -> dict[tuple, bool]:
     return got
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(180)
 def test_time_never_goes_back_in_a_file_at_any_speed_or_clock_error(tmp_path):
     todo = list(CASES)

@@ -213,6 +213,7 @@ def mutants(original, tmp_path_factory) -> dict[str, Path]:
 # ---------------------------------------------------------------------------- the tests
 
 
+@pytest.mark.slow
 def test_a_clean_file_checks_out_every_record(original):
     v = verify_file(original.path)
     assert v.ok and v.damaged == [] and v.closed
@@ -229,6 +230,7 @@ def test_a_clean_file_checks_out_every_record(original):
     assert doc["damaged"] == [] and doc["files"][0]["damaged"] == []
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(MUTANTS))
 def test_views_only_damage_is_named_with_its_topics_and_time_span(name, original, mutants):
     _, record, topics, _ = MUTANTS[name]
@@ -266,6 +268,7 @@ def test_views_only_damage_is_named_with_its_topics_and_time_span(name, original
     assert as_json.returncode == 1 and json.loads(as_json.stdout)["ok"] is False
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(MUTANTS))
 def test_foxglove_refuses_what_we_name_and_we_name_all_it_refuses(name, mutants, node_reader):
     """@mcap/core (as tests/js/read_mcap.mjs uses it: indexed, else record by record) on the
@@ -360,6 +363,7 @@ def _messages(data: bytes) -> tuple[list, list]:
     return stream, indexed
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
 @given(at=st.integers(min_value=0), xor=st.integers(min_value=1, max_value=255))

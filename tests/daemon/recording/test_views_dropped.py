@@ -55,6 +55,7 @@ def _counts(path) -> dict[str, int]:
     return {c.topic: stats.get(i, 0) for i, c in summary.channels.items()}
 
 
+@pytest.mark.slow
 def test_every_scan_and_event_stays_in_a_twentieth_of_the_bytes(thinned, node_reader):
     rows, written, thin = thinned
     before, after = rec.read_recordings(written), rec.read_recordings(thin)
@@ -87,6 +88,7 @@ def test_every_scan_and_event_stays_in_a_twentieth_of_the_bytes(thinned, node_re
     assert json.loads(loopcal("info", written, "--json").stdout)["files"][0]["views"]
 
 
+@pytest.mark.slow
 def test_a_compact_file_with_views_is_thinned_again_and_the_command_says_so(thinned, tmp_path):
     rows, written, _ = thinned
     path = tmp_path / written.name
@@ -115,6 +117,7 @@ def _lost_said(path) -> tuple[int, bool, int]:
     return f.lost_scans, bool(f.lost_unknown), len(out.scans)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", ["flip", "zeros", "swap"])
 def test_what_damage_costs_is_counted_against_the_files_own_count(thinned, tmp_path, damage):
     """Without views nothing describes each scan but the raw chunks; the file's own count
@@ -138,6 +141,7 @@ def test_what_damage_costs_is_counted_against_the_files_own_count(thinned, tmp_p
         assert N - read <= 60 * 20  # one damaged chunk costs a minute at most
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
 @given(mutation=st.one_of(
@@ -176,6 +180,7 @@ def _named(directory, days_ago: float, rows) -> object:
     return path
 
 
+@pytest.mark.slow
 def test_the_daemons_compactor_thins_the_files_past_their_age(tmp_path):
     rows = hand_rows(2400, seed=6)
     old, older, recent, newest = (_named(tmp_path, d, rows) for d in (8, 30, 1, 0))
@@ -210,6 +215,7 @@ def test_the_daemons_compactor_thins_the_files_past_their_age(tmp_path):
     assert recent in later._settled
 
 
+@pytest.mark.slow
 def test_the_recorder_thins_what_it_closes_when_told_to_keep_no_views(tmp_path):
     with hand_emulator(rate=50, speed=1.0) as emu:
         proc = record(emu.url, tmp_path, "--rotate-seconds", "2", "--read-period", "0.05",
@@ -224,6 +230,7 @@ def test_the_recorder_thins_what_it_closes_when_told_to_keep_no_views(tmp_path):
     assert all(f.metadata["loopcal"]["scans"] == str(f.scans) for f in thin)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("value", ["-1", "nan", "soon"])
 def test_a_bad_age_is_refused_naming_the_option(tmp_path, value):
     proc = loopcal("record", "--daq", "modbus-tcp://127.0.0.1:1", "--out", tmp_path,
@@ -231,6 +238,7 @@ def test_a_bad_age_is_refused_naming_the_option(tmp_path, value):
     assert proc.returncode == 2 and "--keep-views-days" in proc.stderr, proc.stderr
 
 
+@pytest.mark.slow
 def test_every_older_layout_reads_and_thins(thinned, tmp_path):
     """Files as written (format 1), compacted by the first loopcal that compacted (format 1,
     rows in chunks of 4 MiB), compacted with views (format 2) and without: the same scans

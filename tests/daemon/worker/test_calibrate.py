@@ -47,6 +47,7 @@ def offline(tmp_path_factory):
     return d, truth
 
 
+@pytest.mark.slow
 def test_sessions_calibrate_within_three_standard_deviations(sessions, tmp_path, capsys):
     errors = []
     for s in sessions:
@@ -78,6 +79,7 @@ def test_sessions_calibrate_within_three_standard_deviations(sessions, tmp_path,
         assert rc == 1 and not doc["accepted"]
 
 
+@pytest.mark.slow
 def test_write_keeps_comments_and_the_previous_version(offline, tmp_path):
     rec_dir, truth = offline
     config = fresh_config(tmp_path / "controller.toml")
@@ -110,6 +112,7 @@ def test_write_keeps_comments_and_the_previous_version(offline, tmp_path):
     assert prov["previous"]["d01"] == 97.4
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("case", "method", "gate", "words"),
     [
@@ -163,6 +166,7 @@ def test_degenerate_recordings_are_refused(tmp_path, case, method, gate, words):
     assert words in failed[0]["reason"] + failed[0]["advice"]
 
 
+@pytest.mark.slow
 def test_a_loose_gain_fails_validation_not_silently(offline, tmp_path):
     """A wrong gain in the config (S3 off by 5 %): the loops cannot close; refused."""
     rec_dir, _ = offline
@@ -181,6 +185,7 @@ def test_a_loose_gain_fails_validation_not_silently(offline, tmp_path):
     assert rc == 1 and "noise" in {g["name"] for g in out["gates"] if not g["passed"]}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("step", STEPS)
 def test_killed_while_writing_leaves_the_old_config_or_the_new(offline, tmp_path, step):
     rec_dir, _ = offline
@@ -204,6 +209,7 @@ def test_killed_while_writing_leaves_the_old_config_or_the_new(offline, tmp_path
         assert abs(cfg.params[INDEX["d01"]] - 97.4) > 0.01
 
 
+@pytest.mark.slow
 def test_window_and_free_set(offline, tmp_path):
     rec_dir, truth = offline
     config = fresh_config(tmp_path / "controller.toml")
@@ -222,6 +228,7 @@ def test_window_and_free_set(offline, tmp_path):
     assert doc["poses"]["scans"] == 400 and rc == 1  # 20 s: too few poses, refused
 
 
+@pytest.mark.slow
 def test_report(offline, tmp_path):
     rec_dir, _ = offline
     config = fresh_config(tmp_path / "controller.toml")
@@ -238,6 +245,7 @@ def test_report(offline, tmp_path):
     assert "usable scans, every one fitted" in page
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu"])
 def test_replay_round_trip_is_exact_and_calibrates(sessions, tmp_path, transport):
     # 50 s from the middle of a session: the module was powered on before the first scan
@@ -260,6 +268,7 @@ def test_replay_round_trip_is_exact_and_calibrates(sessions, tmp_path, transport
         assert abs(p["value"] - sessions[0].truth[INDEX[name]]) <= 3 * p["std"], name
 
 
+@pytest.mark.slow
 def test_bad_input_is_named(tmp_path, offline):
     rec_dir, _ = offline
     config = fresh_config(tmp_path / "controller.toml")
@@ -298,6 +307,7 @@ def test_bad_input_is_named(tmp_path, offline):
     assert bad_time.returncode == 2 and "not a time" in bad_time.stderr
 
 
+@pytest.mark.slow
 def test_every_parameter_named_in_json(offline, tmp_path):
     rec_dir, _ = offline
     config = fresh_config(tmp_path / "controller.toml")
@@ -307,6 +317,7 @@ def test_every_parameter_named_in_json(offline, tmp_path):
     assert any("converged" == g["name"] and not g["passed"] for g in doc["gates"])
 
 
+@pytest.mark.slow
 def test_the_worker_units_way_and_the_configs_free_set(offline, tmp_path):
     """--config takes the directory and controller config from the daemon's config (as the
     systemd unit runs it); [calibration].free in the controller config picks the free set."""
@@ -329,6 +340,7 @@ def test_the_worker_units_way_and_the_configs_free_set(offline, tmp_path):
     assert doc["config"] == str(config)
 
 
+@pytest.mark.slow
 def test_a_cut_recording_with_faults_and_gaps(offline, tmp_path):
     """A file cut short by a crash, with a sensor fault and a gap in it: the scans around
     them are dropped and counted, and the rest still calibrates."""
@@ -363,6 +375,7 @@ def _locked_by_someone(config) -> bool:
         return True
 
 
+@pytest.mark.slow
 def test_two_writers_at_once_never_lose_an_update(offline, tmp_path):
     """A holds the config's lock (paused right after taking it); B starts then, reads the
     old config, calibrates and waits for the lock; A writes; B must see that the file
@@ -386,6 +399,7 @@ def test_two_writers_at_once_never_lose_an_update(offline, tmp_path):
     assert load_controller_config(config).provenance is not None
 
 
+@pytest.mark.slow
 def test_a_symlinked_config_stays_a_link_and_its_target_is_written(offline, tmp_path):
     rec_dir, _ = offline
     robot = tmp_path / "opt" / "robot"
@@ -410,6 +424,7 @@ def test_a_symlinked_config_stays_a_link_and_its_target_is_written(offline, tmp_
     assert load_controller_config(link).provenance is None  # the reference config again
 
 
+@pytest.mark.slow
 def test_backups_never_share_a_name(offline, tmp_path):
     from loopcal.daemon.worker.writeback import write_back
 
@@ -423,6 +438,7 @@ def test_backups_never_share_a_name(offline, tmp_path):
     assert len(set(written)) == 3 and all(b.exists() for b in written)
 
 
+@pytest.mark.slow
 def test_json_warnings_name_the_damaged_file(offline, tmp_path):
     import shutil
 
@@ -443,6 +459,7 @@ def test_json_warnings_name_the_damaged_file(offline, tmp_path):
     assert rc in (0, 1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("case", "gates"),
     [
@@ -474,6 +491,7 @@ def test_moving_scans_that_no_mechanism_explains_are_refused(tmp_path, case, gat
     assert load_controller_config(config).provenance is None
 
 
+@pytest.mark.slow
 def test_too_little_motion_says_for_how_long(offline, tmp_path):
     """Twenty seconds of the session: every channel moved, but not enough to know the
     seven well; the refusal says which way and for about how long to go on."""
@@ -489,6 +507,7 @@ def test_too_little_motion_says_for_how_long(offline, tmp_path):
     assert m and 5 <= int(m.group(1)) <= 600, failed["precision"]
 
 
+@pytest.mark.slow
 def test_a_technician_who_never_pauses_is_calibrated_in_75_seconds(tmp_path):
     """The plate kept moving the whole time: no still poses for the paper's method, and
     every scan for the fit."""

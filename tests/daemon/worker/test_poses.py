@@ -126,6 +126,7 @@ def damaged_scans(seed: int, minutes: float = 20.0) -> np.ndarray:
     return s
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2])
 def test_poses_of_a_damaged_recording(seed):
     s = damaged_scans(seed)
@@ -175,6 +176,7 @@ def test_synthetic_recordings(recording):
     check_recorded_poses(s, got, **kw)
 
 
+@pytest.mark.slow
 def test_a_long_recording():
     """A few hundred thousand scans (conversions and checks in blocks, if so, cut it)."""
     rng = np.random.default_rng(5)

@@ -15,7 +15,7 @@ from tests.support.js import JS, npm_installed
 from tests.support.processes import fresh_config, loopcal
 from tests.support.sessions import PAUSE_S, truth_for, write_session
 
-pytestmark = pytest.mark.timeout(180)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
 
 def chromium() -> str:
