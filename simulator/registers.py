@@ -93,9 +93,12 @@ class ModbusRegisters:
     latest: Any  # a TruthScan (the latest scan)
     status: int
 
-    def _require_power(self) -> None: ...
+    # the model's own (LDQ412 defines both): a subclass without them fails loudly, not silently
+    def _require_power(self) -> None:
+        raise NotImplementedError
 
-    def set_scan_rate(self, rate_hz: int) -> None: ...
+    def set_scan_rate(self, rate_hz: int) -> None:
+        raise NotImplementedError
 
     def snapshot_registers(self) -> list[int]:
         """Input registers 0..9: one consistent view of the latest scan.
