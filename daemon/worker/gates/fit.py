@@ -89,15 +89,9 @@ def condition_gate(condition: float, advice: Advice) -> Gate:
     parameters reach below it, about 15 to 70 in simulation). It fails for poses bunched in
     one part of the workspace.
     """
-    ok = condition <= CONDITION_OK
-    return Gate(
-        "condition",
-        ok,
-        condition,
-        f"<= {CONDITION_OK:g}",
-        "" if ok else "some combination of parameters is barely seen by these poses",
-        "" if ok else advice_text(advice),
-    )
+    return Gate.judged("condition", condition <= CONDITION_OK, condition, f"<= {CONDITION_OK:g}",
+                       "some combination of parameters is barely seen by these poses",
+                       advice)  # fmt: skip
 
 
 def min_singular_gate(s_min: float, advice: Advice) -> Gate:
@@ -124,15 +118,8 @@ def min_singular_gate(s_min: float, advice: Advice) -> Gate:
     of any size. The paper judges a pose set by this value together with the condition
     number.
     """
-    ok = s_min >= MIN_SINGULAR
-    return Gate(
-        "min_singular",
-        ok,
-        s_min,
-        f">= {MIN_SINGULAR:g}",
-        "" if ok else "the poses hardly tell some parameters apart",
-        "" if ok else advice_text(advice),
-    )
+    return Gate.judged("min_singular", s_min >= MIN_SINGULAR, s_min, f">= {MIN_SINGULAR:g}",
+                       "the poses hardly tell some parameters apart", advice)  # fmt: skip
 
 
 def plausible_gate(free: list[str], previous: np.ndarray, new: np.ndarray) -> Gate:
@@ -241,17 +228,13 @@ def precision_gate(
     limits = {**PRECISION, "mm": PRECISION["mm"] if limit_mm is None else limit_mm}
     ratios = [std[j] / limits[UNITS[n]] for j, n in enumerate(free)]
     j = int(np.argmax(ratios))
-    ok = ratios[j] <= 1.0
     name = free[j]
-    limit = f"<= {limits['mm']:g} mm, {limits['mm/V']:g} mm/V"
-    return Gate(
-        "precision",
-        ok,
-        f"{name} {std[j]:.3f} {UNITS[name]}",
-        limit,
-        "" if ok else f"{name} is known only to +-{std[j]:.3f} {UNITS[name]} (1 sigma)",
-        "" if ok else advice_text(advice) + _for_how_long(seconds, ratios[j]),
-    )
+    return Gate.judged(
+        "precision", ratios[j] <= 1.0, f"{name} {std[j]:.3f} {UNITS[name]}",
+        f"<= {limits['mm']:g} mm, {limits['mm/V']:g} mm/V",
+        f"{name} is known only to +-{std[j]:.3f} {UNITS[name]} (1 sigma)",
+        lambda: advice_text(advice) + _for_how_long(seconds, ratios[j]),
+    )  # fmt: skip
 
 
 def _for_how_long(seconds: float | None, ratio: float) -> str:

@@ -70,14 +70,39 @@ class Gate:
             text += f"\n         why: {self.reason}\n         do:  {self.advice}"
         return text
 
+    @classmethod
+    def judged(
+        cls, name: str, passed: bool, value: float | int | str | None, limit: str,
+        reason: Advice, advice: Advice,
+    ) -> Gate:  # fmt: skip
+        """A gate that carries its reason and advice only if it failed, made only then.
 
-#: advice for a failing gate, the text or a function that makes it (called only on failure:
-#: :func:`loopcal.daemon.worker.coverage.lazy_coverage_advice`)
+        Parameters
+        ----------
+        name, passed, value, limit
+            As the attributes of the same names.
+        reason, advice : Advice
+            Why it failed and what to do, each the text or a function making it (called
+            only if it failed: the advice may be costly, and a reason's figures may mean
+            nothing for a gate that passed).
+
+        Returns
+        -------
+        Gate
+            With ``reason`` and ``advice`` as text if it failed, both empty if it passed.
+        """
+        if passed:
+            return cls(name, passed, value, limit)
+        return cls(name, passed, value, limit, advice_text(reason), advice_text(advice))
+
+
+#: a failing gate's reason or advice, the text or a function that makes it (called only on
+#: failure: :func:`loopcal.daemon.worker.coverage.lazy_coverage_advice`)
 Advice = str | Callable[[], str]
 
 
 def advice_text(advice: Advice) -> str:
-    """The text of an advice.
+    """The text of an advice (or of a reason).
 
     Parameters
     ----------

@@ -86,19 +86,14 @@ def noise_gate(sigma_fit: float, expected: float, *, still: bool = True) -> Gate
     more), a swapped or sticking channel, or a parameter missing from the free set.
     """
     limit = NOISE_RATIO * expected
-    ok = sigma_fit <= limit
-    return Gate(
+    return Gate.judged(
         "noise",
-        ok,
+        sigma_fit <= limit,
         f"{1000 * sigma_fit:.2f} mV",
         f"<= {NOISE_RATIO:g} x {1000 * expected:.2f} mV = {1000 * limit:.2f} mV",
-        ""
-        if ok
-        else f"the loops close only to {1000 * sigma_fit:.1f} mV of equivalent sensor "
+        f"the loops close only to {1000 * sigma_fit:.1f} mV of equivalent sensor "
         f"noise, where the readings' own scatter predicts {1000 * expected:.1f} mV",
-        ""
-        if ok
-        else "check every sensor's wiring and its gain S in the controller config "
+        "check every sensor's wiring and its gain S in the controller config "
         "(a swapped, sticking or mis-scaled channel)"
         + (", and hold the plate still in each pose" if still else ""),
     )
@@ -141,20 +136,16 @@ def averaging_gate(ratio: float, windows: int) -> Gate:
             "record for longer, without interruptions",
         )  # fmt: skip
     limit = AVERAGING_MARGIN * chi2_quantile(windows, CHI2_TAIL) / windows
-    ok = ratio <= limit
-    return Gate(
+    return Gate.judged(
         "averaging",
-        ok,
+        ratio <= limit,
         ratio,
         f"<= {limit:.2f} (misfit variance of {AVERAGING_S:g}-s means x scans per window over "
         f"a scan's, {windows} windows)",
-        ""
-        if ok
-        else f"the fit's misfit averages down over {AVERAGING_S:g} s of motion only "
+        # made only on failure: a ratio that passed may be 0
+        lambda: f"the fit's misfit averages down over {AVERAGING_S:g} s of motion only "
         f"{1 / ratio:.2f} as much as noise would: something systematic is left in it",
-        ""
-        if ok
-        else "check every sensor's gain S in the controller config (a replaced sensor), "
+        "check every sensor's gain S in the controller config (a replaced sensor), "
         "its wiring, and whether a channel sticks; or free the parameters that may have "
         "changed",
     )
@@ -191,22 +182,17 @@ def gains_gate(names: list[str], statistic: float, change: np.ndarray, std: np.n
     """
     k = len(names)
     limit = chi2_quantile(k, CHI2_TAIL)
-    ok = statistic <= limit
     j = int(np.argmax(np.abs(change) / std))
     name = names[j]
-    return Gate(
+    return Gate.judged(
         "gains",
-        ok,
+        statistic <= limit,
         statistic,
         f"<= {limit:.1f} (chi-square, {k} fixed gains)",
-        ""
-        if ok
-        else f"the loops would close better with {name} changed by {change[j]:+.4f} mm/V "
+        f"the loops would close better with {name} changed by {change[j]:+.4f} mm/V "
         f"(+-{std[j]:.4f}, {100 * change[j] / GAIN_NOMINAL:+.2f} %): sensor {name[1:]}'s "
         "gain in the config is wrong, or a parameter held fixed is",
-        ""
-        if ok
-        else f"check sensor {name[1:]}'s gain {name} against its calibration sheet; if it "
+        f"check sensor {name[1:]}'s gain {name} against its calibration sheet; if it "
         "is right, free the parameters that may have changed (a fixed geometry value, or "
         f"{name} itself: --free with {name} added)",
     )
@@ -308,22 +294,17 @@ def holdout_gate(z: np.ndarray, *, blocks: int | None = None) -> Gate:
         )
     rms = float(np.sqrt(np.mean(z**2)))
     limit = HOLDOUT_MARGIN * float(np.sqrt(chi2_quantile(n, CHI2_TAIL) / n))
-    ok = rms <= limit
     where = (f"{n} poses" if blocks is None
              else f"{n} scans in {blocks} stretches of {HOLDOUT_BLOCK_S:g} s")  # fmt: skip
-    return Gate(
+    return Gate.judged(
         "holdout",
-        ok,
+        rms <= limit,
         rms,
         f"<= {limit:.2f} (RMS in predicted standard deviations, {where})",
-        ""
-        if ok
-        else f"{where} kept out of the fit open their loops {rms:.1f} times as wide "
+        f"{where} kept out of the fit open their loops {rms:.1f} times as wide "
         "as their noise predicts: the fit describes its own "
         f"{'poses' if blocks is None else 'motion'}, not the mechanism",
-        ""
-        if ok
-        else "free the parameters that changed (for example the gain of a replaced "
+        "free the parameters that changed (for example the gain of a replaced "
         "sensor) or check the mechanism for play"
         + ("; hold each position still" if blocks is None else ""),
     )
