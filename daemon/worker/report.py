@@ -133,15 +133,10 @@ def _plot_singular_values_scans(res: WorkerResult, path: Path) -> None:
         ts.append(seconds[k - 1])
         s_min.append(sv[-1])
         s_max.append(sv[0])
-    fig, ax = plt.subplots(figsize=(7, 3.6))
-    ax.plot(ts, s_min, "o-", label="smallest singular value")
-    ax.plot(ts, s_max, "s--", label="largest singular value", alpha=0.6)
-    ax.set_xlabel("seconds of the recording (every usable scan up to then)")
-    ax.set_ylabel("singular value (scaled information)")
-    ax.set_yscale("log")
-    ax.set_title("Observability as the motion went on")
-    ax.legend(fontsize=8)
-    save_figure(fig, path)
+    _plot_singular_value_growth(
+        ts, s_min, s_max, path, "seconds of the recording (every usable scan up to then)",
+        "singular value (scaled information)", "Observability as the motion went on",
+    )  # fmt: skip
 
 
 def _plot_singular_values(res: WorkerResult, path: Path, progress: Callable[[str], None]) -> None:
@@ -161,16 +156,28 @@ def _plot_singular_values(res: WorkerResult, path: Path, progress: Callable[[str
         sel = select_poses(cand.jacobian, k, information=cand.information, certify=False)
         s_min.append(sel.indices_own.min_singular)
         s_max.append(float(sel.indices_own.singular_values[0]))
+    _plot_singular_value_growth(
+        ks, s_min, s_max, path, "poses selected (best of the recording)",
+        "singular value (scaled Jacobian)", "Observability against the number of poses",
+        selected=len(res.calibration.indices) if res.calibration is not None else None,
+    )  # fmt: skip
+
+
+def _plot_singular_value_growth(
+    x: list, s_min: list[float], s_max: list[float], path: Path, xlabel: str, ylabel: str,
+    title: str, *, selected: int | None = None,
+) -> None:  # fmt: skip
+    """The smallest and largest singular values against how much of the motion was taken
+    (poses selected, or seconds of scans), log scale; a dotted line at ``selected`` poses."""
     fig, ax = plt.subplots(figsize=(7, 3.6))
-    ax.plot(ks, s_min, "o-", label="smallest singular value")
-    ax.plot(ks, s_max, "s--", label="largest singular value", alpha=0.6)
-    chosen = len(res.calibration.indices) if res.calibration is not None else None
-    if chosen:
-        ax.axvline(chosen, color="grey", lw=0.8, ls=":", label=f"{chosen} selected")
-    ax.set_xlabel("poses selected (best of the recording)")
-    ax.set_ylabel("singular value (scaled Jacobian)")
+    ax.plot(x, s_min, "o-", label="smallest singular value")
+    ax.plot(x, s_max, "s--", label="largest singular value", alpha=0.6)
+    if selected:
+        ax.axvline(selected, color="grey", lw=0.8, ls=":", label=f"{selected} selected")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
     ax.set_yscale("log")
-    ax.set_title("Observability against the number of poses")
+    ax.set_title(title)
     ax.legend(fontsize=8)
     save_figure(fig, path)
 
