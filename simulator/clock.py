@@ -48,15 +48,17 @@ class Clock(Protocol):
     def now(self) -> float:
         """Current time in seconds (``now_ns() / 1e9``).
 
+        Every clock here subclasses :class:`Clock` and so has this one.
+
         Returns
         -------
         float
             Seconds since the clock was created.
         """
-        ...
+        return self.now_ns() / NS_PER_S
 
 
-class RealClock:
+class RealClock(Clock):
     """Wall time from :func:`time.monotonic_ns`, starting at 0 on creation."""
 
     def __init__(self) -> None:
@@ -72,22 +74,13 @@ class RealClock:
         """
         return time.monotonic_ns() - self._origin_ns
 
-    def now(self) -> float:
-        """Monotonic wall time since creation.
 
-        Returns
-        -------
-        float
-            Seconds since the clock was created.
-        """
-        return self.now_ns() / NS_PER_S
-
-
-class SimClock:
+class SimClock(Clock):
     """Simulated time running ``speed`` times as fast as wall time.
 
     ``SimClock(10.0)`` makes one real second count as ten device seconds, so a 2 s power
-    cycle takes 0.2 s of a test's wall time.
+    cycle takes 0.2 s of a test's wall time. The base of the clocks that run that fast
+    only at times (:class:`HeldClock`, :class:`PlayClock`).
 
     Parameters
     ----------
@@ -109,7 +102,12 @@ class SimClock:
         if not speed > 0:
             raise ValueError(f"speed must be > 0, got {speed!r}")
         self.speed = float(speed)
-        self._origin_ns = time.monotonic_ns()
+        self._origin_ns = time.monotonic_ns()  # the wall time it runs from
+
+    def _run_since(self, origin_ns: int) -> int:
+        """Wall nanoseconds since ``origin_ns`` (:func:`time.monotonic_ns`) times
+        :attr:`speed`, truncated."""
+        return int((time.monotonic_ns() - origin_ns) * self.speed)
 
     def now_ns(self) -> int:
         """Simulated time since creation.
@@ -119,17 +117,7 @@ class SimClock:
         int
             Wall nanoseconds since creation times :attr:`speed`, truncated.
         """
-        return int((time.monotonic_ns() - self._origin_ns) * self.speed)
-
-    def now(self) -> float:
-        """Simulated time since creation.
-
-        Returns
-        -------
-        float
-            Seconds (``now_ns() / 1e9``).
-        """
-        return self.now_ns() / NS_PER_S
+        return self._run_since(self._origin_ns)
 
 
 def clock_for(speed: float) -> RealClock | SimClock:
@@ -153,8 +141,8 @@ def clock_for(speed: float) -> RealClock | SimClock:
     return RealClock() if speed == 1.0 else SimClock(speed)
 
 
-class HeldClock:
-    """Wall time, ``speed`` times as fast, standing at 0 until :meth:`release`.
+class HeldClock(SimClock):
+    """A :class:`SimClock` standing at 0 until :meth:`release`.
 
     An emulator on a HeldClock releases it at the first request it receives
     (:meth:`~loopcal.simulator.handle.DeviceHandle.note_request`): the module is switched
@@ -163,31 +151,20 @@ class HeldClock:
     Parameters
     ----------
     speed : float, default 1.0
-        Simulated seconds per wall-clock second once released, > 0.
-
-    Attributes
-    ----------
-    speed : float
-        As given.
-
-    Raises
-    ------
-    ValueError
-        If ``speed`` is not > 0.
+        Simulated seconds per wall-clock second once released (:class:`SimClock`'s).
     """
 
     def __init__(self, speed: float = 1.0) -> None:
-        if not speed > 0:
-            raise ValueError(f"speed must be > 0, got {speed!r}")
-        self.speed = float(speed)
-        self._origin_ns: int | None = None
+        super().__init__(speed)
+        self._released = False
         self._lock = threading.Lock()
 
     def release(self) -> None:
         """Start the clock (later calls do nothing); thread-safe."""
         with self._lock:
-            if self._origin_ns is None:
+            if not self._released:
                 self._origin_ns = time.monotonic_ns()
+                self._released = True  # after the origin: a reader never sees an old one
 
     def now_ns(self) -> int:
         """Time since :meth:`release`.
@@ -198,21 +175,10 @@ class HeldClock:
             0 before :meth:`release`; after it, wall nanoseconds since the release times
             :attr:`speed`, truncated.
         """
-        origin = self._origin_ns
-        return 0 if origin is None else int((time.monotonic_ns() - origin) * self.speed)
-
-    def now(self) -> float:
-        """Time since :meth:`release`.
-
-        Returns
-        -------
-        float
-            Seconds (``now_ns() / 1e9``); 0.0 before the release.
-        """
-        return self.now_ns() / NS_PER_S
+        return self._run_since(self._origin_ns) if self._released else 0
 
 
-class ManualClock:
+class ManualClock(Clock):
     """A clock that only moves when told to; safe to advance from any thread.
 
     It starts at 0 and stands still between calls of :meth:`advance`: the basis of every
@@ -252,19 +218,9 @@ class ManualClock:
         with self._lock:
             return self._ns
 
-    def now(self) -> float:
-        """The time the advances so far add up to.
 
-        Returns
-        -------
-        float
-            Seconds (``now_ns() / 1e9``).
-        """
-        return self.now_ns() / NS_PER_S
-
-
-class PlayClock:
-    """Wall time ``speed`` times as fast, up to a limit its owner moves.
+class PlayClock(SimClock):
+    """A :class:`SimClock` that runs only up to a limit its owner moves.
 
     :meth:`run_until` lets it run from where it stands to ``limit_ns`` and stop there
     until the next call. Read at any instant it is exact (no steps), however late its
@@ -274,26 +230,13 @@ class PlayClock:
     Parameters
     ----------
     speed : float, default 1.0
-        Simulated seconds per wall-clock second while it runs, > 0.
-
-    Attributes
-    ----------
-    speed : float
-        As given.
-
-    Raises
-    ------
-    ValueError
-        If ``speed`` is not > 0.
+        Simulated seconds per wall-clock second while it runs (:class:`SimClock`'s).
     """
 
     def __init__(self, speed: float = 1.0) -> None:
-        if not speed > 0:
-            raise ValueError(f"speed must be > 0, got {speed!r}")
-        self.speed = float(speed)
+        super().__init__(speed)
         self._lock = threading.Lock()
-        self._base_ns = 0  # where it stood when last told to run
-        self._base_mono = time.monotonic_ns()
+        self._base_ns = 0  # where it stood when last told to run (at _origin_ns)
         self._limit_ns = 0
 
     def run_until(self, limit_ns: int) -> None:
@@ -307,12 +250,11 @@ class PlayClock:
         """
         with self._lock:
             now = self._now_locked()
-            self._base_ns, self._base_mono = now, time.monotonic_ns()
+            self._base_ns, self._origin_ns = now, time.monotonic_ns()
             self._limit_ns = max(limit_ns, now)
 
     def _now_locked(self) -> int:
-        run = int((time.monotonic_ns() - self._base_mono) * self.speed)
-        return min(self._limit_ns, self._base_ns + run)
+        return min(self._limit_ns, self._base_ns + self._run_since(self._origin_ns))
 
     def now_ns(self) -> int:
         """Where the clock stands.
@@ -325,13 +267,3 @@ class PlayClock:
         """
         with self._lock:
             return self._now_locked()
-
-    def now(self) -> float:
-        """Where the clock stands.
-
-        Returns
-        -------
-        float
-            Seconds (``now_ns() / 1e9``).
-        """
-        return self.now_ns() / NS_PER_S
