@@ -18,6 +18,7 @@ from loopcal.calibration.simulate import NOISE_VOLTS, perturbed_truth
 
 from .drift import OffsetDrift, offset_shift
 from .scenarios import Scenario
+from .source import NoisySource
 
 _DIAG = np.arange(4)
 
@@ -76,12 +77,13 @@ def true_parameters(
     return from_dict({k: float(v) for k, v in overrides.items()}, p)
 
 
-class MechanismSource:
+class MechanismSource(NoisySource):
     """:class:`~loopcal.simulator.source.SignalSource` of a simulated mechanism.
 
     Each conversion samples the plate's orientation at each channel's own instant, takes
     the four actuator lengths by inverse kinematics of the true parameters, subtracts the
-    offset drifts, turns them into volts ``V = (d - d0) / S`` and adds noise.
+    offset drifts, turns them into volts ``V = (d - d0) / S`` and adds noise (a
+    :class:`~loopcal.simulator.source.NoisySource`).
 
     Parameters
     ----------
@@ -104,7 +106,7 @@ class MechanismSource:
     truth : ndarray of float, shape (20,)
         A copy of the true parameters.
     noise_volts : float
-        As given.
+        As given (read-only).
     drifts : list of OffsetDrift
         The drifts; more can be appended later (each acts from its own start time).
 
@@ -128,47 +130,23 @@ class MechanismSource:
             raise ValueError(f"noise must be a non-negative number of volts, got {noise_volts}")
         self.scenario = scenario
         self.truth = check_vector(truth).copy()
-        self.noise_volts = float(noise_volts)
-        self._rng = np.random.default_rng(seed)
         self.drifts: list[OffsetDrift] = list(drifts)
+        super().__init__(seed, noise_volts)
+
+    @property
+    def noise_volts(self) -> float:
+        """Standard deviation of the noise per conversion, V."""
+        return self._noise_sd
 
     def clean(self, t: np.ndarray) -> np.ndarray:
-        """Noise-free volts of the four channels at their instants; draws no noise.
-
-        Parameters
-        ----------
-        t : array_like of float, shape (4,)
-            Channel 1..4's instants, source time, s.
-
-        Returns
-        -------
-        ndarray of float, shape (4,)
-            Channel i's volts for the plate's orientation at channel i's instant, drifts
-            included, V.
-        """
+        """Channel i's volts for the plate's orientation at channel i's instant ``t[i]``,
+        drifts included, V (:meth:`~loopcal.simulator.source.NoisySource.clean`)."""
         t = np.asarray(t, dtype=float)
         R = self.scenario.rotation(t)  # one rotation per channel
         d = inverse_kinematics(R, self.truth)[_DIAG, _DIAG]  # channel i at its own instant
         if self.drifts:
             d = d - offset_shift(self.drifts, t)
         return lengths_to_volts(d, self.truth)
-
-    def convert(self, t: np.ndarray) -> np.ndarray:
-        """One conversion of the four channels.
-
-        See :meth:`~loopcal.simulator.source.SignalSource.convert`.
-
-        Parameters
-        ----------
-        t : ndarray of float, shape (4,)
-            Channel 1..4's instants, source time, s.
-
-        Returns
-        -------
-        ndarray of float, shape (4,)
-            :meth:`clean` plus four normal draws of standard deviation ``noise_volts``, V.
-        """
-        return self.clean(t) + self._rng.normal(0.0, self.noise_volts, 4)
 
 
 class ReplaySource:

@@ -53,14 +53,53 @@ class SignalSource(Protocol):
         ...
 
 
-class TestSource:
+class NoisySource:
+    """A :class:`SignalSource` whose conversions are its :meth:`clean` volts plus noise.
+
+    The noise is Gaussian, from ``numpy.random.default_rng(seed)``: each conversion draws
+    exactly four normals, so the noise stream depends only on the seed and the number of
+    calls. Subclasses give :meth:`clean`.
+
+    Parameters
+    ----------
+    seed : int
+        Seed of the noise stream.
+    noise_sd : float
+        Standard deviation of the noise per conversion, V.
+    """
+
+    def __init__(self, seed: int, noise_sd: float) -> None:
+        self._rng = np.random.default_rng(seed)
+        self._noise_sd = float(noise_sd)
+
+    def clean(self, t: np.ndarray) -> np.ndarray:
+        """Channel 1..4's noise-free volts, shape (4,), V, at their instants ``t``, shape
+        (4,), source time, s; draws no random numbers (each subclass gives its own)."""
+        raise NotImplementedError
+
+    def convert(self, t: np.ndarray) -> np.ndarray:
+        """One conversion of the four channels (:meth:`SignalSource.convert`).
+
+        Parameters
+        ----------
+        t : ndarray of float, shape (4,)
+            Channel 1..4's instants, source time, s.
+
+        Returns
+        -------
+        ndarray of float, shape (4,)
+            :meth:`clean` plus four fresh normal draws of the noise's standard deviation, V.
+        """
+        return self.clean(t) + self._rng.normal(0.0, self._noise_sd, N_CHANNELS)
+
+
+class TestSource(NoisySource):
     """Slow sines per channel plus Gaussian noise from ``numpy.random.default_rng(seed)``.
 
     Channel i: ``offset[i] + amplitude[i] * sin(2 pi freq[i] t + phase[i]) + N(0, noise_v)``.
     The defaults stay well inside ±10 V (no rail) and move by less than one code between
-    the conversions of one scan. Each call draws exactly four normals, so the noise stream
-    depends only on the seed and the number of calls. The emulator's source when it is
-    given none.
+    the conversions of one scan (a :class:`NoisySource`: four normals a call). The
+    emulator's source when it is given none.
 
     Parameters
     ----------
@@ -88,7 +127,7 @@ class TestSource:
     phase_rad : ndarray of float, shape (4,)
         As given, rad.
     noise_v : float
-        As given.
+        As given (read-only).
 
     Raises
     ------
@@ -115,41 +154,20 @@ class TestSource:
         for name in ("amplitude_v", "freq_hz", "offset_v", "phase_rad"):
             if getattr(self, name).shape != (N_CHANNELS,):
                 raise ValueError(f"{name} needs {N_CHANNELS} values")
-        self.noise_v = float(noise_v)
-        self._rng = np.random.default_rng(seed)
+        super().__init__(seed, noise_v)
+
+    @property
+    def noise_v(self) -> float:
+        """Standard deviation of the noise per conversion, V."""
+        return self._noise_sd
 
     def clean(self, t: np.ndarray) -> np.ndarray:
-        """The noise-free volts at instants ``t``; draws no random numbers.
-
-        Parameters
-        ----------
-        t : array_like of float, shape (4,)
-            Each channel's instant, s.
-
-        Returns
-        -------
-        ndarray of float, shape (4,)
-            ``offset_v + amplitude_v * sin(2 pi freq_hz t + phase_rad)``, V.
-        """
+        """``offset_v + amplitude_v * sin(2 pi freq_hz t + phase_rad)``, V, at instants ``t``
+        (:meth:`NoisySource.clean`)."""
         t = np.asarray(t, dtype=float)
         return self.offset_v + self.amplitude_v * np.sin(
             2.0 * np.pi * self.freq_hz * t + self.phase_rad
         )
-
-    def convert(self, t: np.ndarray) -> np.ndarray:
-        """One conversion of the four channels (:meth:`SignalSource.convert`).
-
-        Parameters
-        ----------
-        t : ndarray of float, shape (4,)
-            Each channel's instant, s.
-
-        Returns
-        -------
-        ndarray of float, shape (4,)
-            :meth:`clean` plus four fresh normal draws of standard deviation ``noise_v``, V.
-        """
-        return self.clean(t) + self._rng.normal(0.0, self.noise_v, N_CHANNELS)
 
 
 class ConstantSource:
