@@ -41,7 +41,7 @@ from .errors import (
     DAQProtocolError,
     DAQTimeout,
 )
-from .sequence import RawSnapshot, Sequencer
+from .sequence import RawSnapshot
 from .url import DaqUrl, serial_options
 
 CR = ldq412.ASCII_CR
@@ -344,13 +344,7 @@ class AsciiDAQ(DAQ):
         self._ser: serial.SerialBase | None = None
         self._closed = False
         self._pending: list[Scan] = []
-        try:
-            self._open()
-            self.identity = self._read_identity(check_identity)
-            self._seq = Sequencer(self.read_scan_rate())
-        except BaseException:
-            self.close()
-            raise
+        self._connect_and_identify(self._open, check_identity)
 
     @classmethod
     def url_options(cls, url: DaqUrl) -> dict[str, object]:
@@ -486,19 +480,7 @@ class AsciiDAQ(DAQ):
         return out
 
     def snapshot(self) -> Scan:
-        """Poll ``#AA``: the latest scan. A new scan seen here is also returned by the
-        next :meth:`read_scans`.
-
-        Returns
-        -------
-        Scan
-            ``source="snapshot"``.
-
-        Raises
-        ------
-        DAQError
-            As :meth:`read_scans`.
-        """
+        """Poll ``#AA`` (:meth:`~loopcal.drivers.base.DAQ.snapshot`)."""
         return self._poll()
 
     def read_channel(self, channel: int) -> int:

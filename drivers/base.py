@@ -19,7 +19,7 @@ import math
 import numbers
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import ClassVar, TypeVar
 
 from . import ldq412
@@ -150,6 +150,39 @@ class DAQ(ABC):
             If the module cannot be reached or is not an LDQ-412.
         """
         return cls(**cls.url_options(url), timeout=timeout, check_identity=check_identity)
+
+    def _connect_and_identify(self, open_link: Callable[[], None], check_identity: bool) -> None:
+        """At connect: open the link, read what the module is (:attr:`identity`) and its
+        scan rate (the sequencer's); any error closes the driver before it is raised.
+
+        Parameters
+        ----------
+        open_link : callable
+            Opens the transport; raises a DAQError if it cannot.
+        check_identity : bool
+            Passed on to :meth:`_read_identity`.
+        """
+        try:
+            open_link()
+            self.identity = self._read_identity(check_identity)
+            self._seq = Sequencer(self.read_scan_rate())
+        except BaseException:
+            self.close()
+            raise
+
+    def _read_identity(self, check: bool) -> Identity:
+        """What the module says it is, read from it (for :meth:`_connect_and_identify`).
+
+        Parameters
+        ----------
+        check : bool
+            Raise DAQIdentityError unless the module is an LDQ-412.
+
+        Returns
+        -------
+        Identity
+        """
+        raise NotImplementedError(f"{type(self).__name__} does not read an identity")
 
     @abstractmethod
     def read_scans(self) -> list[Scan]:

@@ -52,7 +52,7 @@ from .errors import (
     DAQProtocolError,
     DAQTimeout,
 )
-from .sequence import RawSnapshot, Sequencer
+from .sequence import RawSnapshot
 from .url import DaqUrl
 
 #: s a FIFO window read waits for its answer (at most half the FIFO's depth in time at the
@@ -237,13 +237,7 @@ class ModbusDAQ(DAQ):
         self.fifo_chunk = ldq412.FIFO_MAX_SCANS_PER_READ
         self.late_fifo_answers = 0
         self._client = self._make_client(self._trace_packet)
-        try:
-            self._connect()
-            self.identity = self._read_identity(check_identity)
-            self._seq = Sequencer(self.read_scan_rate())
-        except BaseException:
-            self.close()
-            raise
+        self._connect_and_identify(self._connect, check_identity)
 
     # -- transport hooks -----------------------------------------------------------------
 
