@@ -9,72 +9,24 @@ From a stream of scans ``volts``, shape (n, 4) in V::
 The names listed in ``__all__`` are importable from here; each is documented in its module.
 """
 
-import importlib
+import lazy_loader as lazy
 
-from .errors import (
-    CalibrationError,
-    ConvergenceError,
-    InputError,
-    ParameterError,
-    UnobservableError,
-)
-
-# The rest of the API is imported on first use (PEP 562), so that ``from calibration.errors
-# import ...`` or a command that needs one module does not pay for scipy everywhere.
-_LAZY = {
-    "METHODS": "identify", "Identification": "identify", "identify": "identify",
-    "cramer_rao": "implicit",
-    "euler_zyz": "kinematics", "forward_kinematics": "kinematics",
-    "inverse_kinematics": "kinematics",
-    "analyse_identifiability": "observability", "observability_indices": "observability",
-    "NAMES": "parameters", "NOMINAL": "parameters", "PAPER7": "parameters",
-    "PRESETS": "parameters", "ParameterModel": "parameters", "Tie": "parameters",
-    "Calibration": "pipeline", "calibrate": "pipeline",
-    "still_poses": "poses",
-    "candidate_jacobian": "selection", "ml_candidates": "selection", "select_poses": "selection",
-    "simulate_poses": "simulate",
-}  # fmt: skip
-
-
-def __getattr__(name: str):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(__all__)
-
-
-__all__ = [
-    "METHODS",
-    "NAMES",
-    "NOMINAL",
-    "PAPER7",
-    "PRESETS",
-    "Calibration",
-    "CalibrationError",
-    "ConvergenceError",
-    "Identification",
-    "InputError",
-    "ParameterError",
-    "ParameterModel",
-    "Tie",
-    "UnobservableError",
-    "analyse_identifiability",
-    "calibrate",
-    "candidate_jacobian",
-    "cramer_rao",
-    "euler_zyz",
-    "forward_kinematics",
-    "identify",
-    "inverse_kinematics",
-    "ml_candidates",
-    "observability_indices",
-    "select_poses",
-    "simulate_poses",
-    "still_poses",
-]
+# The API is imported on first use (PEP 562, by lazy_loader), so that ``from
+# loopcal.calibration.errors import ...`` or a command that needs one module does not pay for
+# scipy everywhere.
+__getattr__, __dir__, __all__ = lazy.attach(
+    __name__,
+    submod_attrs={
+        "errors": ["CalibrationError", "ConvergenceError", "InputError", "ParameterError",
+                   "UnobservableError"],
+        "identify": ["METHODS", "Identification", "identify"],
+        "implicit": ["cramer_rao"],
+        "kinematics": ["euler_zyz", "forward_kinematics", "inverse_kinematics"],
+        "observability": ["analyse_identifiability", "observability_indices"],
+        "parameters": ["NAMES", "NOMINAL", "PAPER7", "PRESETS", "ParameterModel", "Tie"],
+        "pipeline": ["Calibration", "calibrate"],
+        "poses": ["still_poses"],
+        "selection": ["candidate_jacobian", "ml_candidates", "select_poses"],
+        "simulate": ["simulate_poses"],
+    },
+)  # fmt: skip

@@ -16,35 +16,22 @@ pay for them. Each is an entry point of the group ``loopcal.drivers``, where a p
 installed beside loopcal declares another transport (:mod:`loopcal.drivers.registry`).
 """
 
-import importlib
+import lazy_loader as lazy
 
 from . import errors
 from .base import DAQ
-from .errors import (
-    DAQDisconnected,
-    DAQError,
-    DAQIdentityError,
-    DAQInvalidCommand,
-    DAQModbusException,
-    DAQProtocolError,
-    DAQTimeout,
-)
+from .errors import *  # noqa: F403 (the exceptions: errors.__all__)
 from .records import Identity, Scan
 from .registry import DriverLoadError, driver_for_url, open_daq, register_scheme
 from .url import DaqUrl, parse_url
 
-_LAZY = {"ModbusDAQ": "modbus", "ModbusTcpDAQ": "modbus_tcp", "ModbusRtuDAQ": "modbus_rtu",
-         "AsciiDAQ": "ascii"}  # fmt: skip
-
-
-def __getattr__(name: str):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
-    globals()[name] = value
-    return value
-
+# the driver classes, loaded on first use (PEP 562, by lazy_loader)
+__getattr__, _, _driver_classes = lazy.attach(
+    __name__,
+    submod_attrs={"modbus": ["ModbusDAQ"], "modbus_tcp": ["ModbusTcpDAQ"],
+                  "modbus_rtu": ["ModbusRtuDAQ"], "ascii": ["AsciiDAQ"]},
+)  # fmt: skip
+del _
 
 __all__ = [
     "open_daq",
@@ -57,15 +44,6 @@ __all__ = [
     "Identity",
     "Scan",
     "errors",
-    "DAQError",
-    "DAQTimeout",
-    "DAQProtocolError",
-    "DAQInvalidCommand",
-    "DAQModbusException",
-    "DAQIdentityError",
-    "DAQDisconnected",
-    "ModbusDAQ",
-    "ModbusTcpDAQ",
-    "ModbusRtuDAQ",
-    "AsciiDAQ",
+    *errors.__all__,
+    *_driver_classes,
 ]

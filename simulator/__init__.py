@@ -7,53 +7,35 @@
         ...  # open_daq(emu.url), emu.clock.advance(1.0), emu.faults.restart(), emu.truth
 """
 
-import importlib
 from typing import TYPE_CHECKING
+
+import lazy_loader as lazy
 
 # Loaded on first use, as calibration/ and drivers/ do: the pytest plugin
 # (loopcal.simulator.pytest_plugin) is imported by every pytest run where loopcal is installed and
 # must not pull in numpy and pymodbus for that.
-_LAZY = {
-    "Clock": "clock", "ManualClock": "clock", "RealClock": "clock", "SimClock": "clock",
-    "LDQ412": "device", "DeviceError": "registers", "TruthScan": "device",
-    "Emulator": "emulator",
-    "FaultInjector": "faults",
-    "ConstantSource": "source", "SignalSource": "source", "TestSource": "source",
-}  # fmt: skip
+__getattr__, __dir__, __all__ = lazy.attach(
+    __name__,
+    submod_attrs={
+        "clock": ["Clock", "ManualClock", "RealClock", "SimClock"],
+        "device": ["LDQ412", "TruthScan"],
+        "emulator": ["Emulator"],
+        "faults": ["FaultInjector"],
+        "registers": ["DeviceError"],
+        "source": ["ConstantSource", "SignalSource", "TestSource"],
+    },
+)
 
-if TYPE_CHECKING:
-    from .clock import Clock, ManualClock, RealClock, SimClock
-    from .device import LDQ412, TruthScan
-    from .emulator import Emulator
-    from .faults import FaultInjector
-    from .registers import DeviceError
-    from .source import ConstantSource, SignalSource, TestSource
-
-
-def __getattr__(name: str):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(__all__)
-
-
-__all__ = [
-    "LDQ412",
-    "Clock",
-    "ConstantSource",
-    "DeviceError",
-    "Emulator",
-    "FaultInjector",
-    "ManualClock",
-    "RealClock",
-    "SignalSource",
-    "SimClock",
-    "TestSource",
-    "TruthScan",
-]
+if TYPE_CHECKING:  # the same names for type checkers, re-exported explicitly (``X as X``)
+    from .clock import Clock as Clock
+    from .clock import ManualClock as ManualClock
+    from .clock import RealClock as RealClock
+    from .clock import SimClock as SimClock
+    from .device import LDQ412 as LDQ412
+    from .device import TruthScan as TruthScan
+    from .emulator import Emulator as Emulator
+    from .faults import FaultInjector as FaultInjector
+    from .registers import DeviceError as DeviceError
+    from .source import ConstantSource as ConstantSource
+    from .source import SignalSource as SignalSource
+    from .source import TestSource as TestSource
