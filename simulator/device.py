@@ -532,59 +532,27 @@ class LDQ412(ModbusRegisters):
         self._next_j = 1
 
     # ------------------------------------------------------------------ channel faults
+    # The model's side of FaultInjector's stuck_channel, sensor_fault and saturate (the
+    # contract is documented there, once): each checks its arguments, a ValueError naming
+    # the bad one, before it changes anything.
 
     def set_stuck(self, channel: int, code: int | None) -> None:
-        """Channel ``channel`` reports ``code`` on every scan from now on.
-
-        Parameters
-        ----------
-        channel : int
-            1..4.
-        code : int or None
-            The code, 0..4095; None releases the channel.
-
-        Raises
-        ------
-        ValueError
-            If ``channel`` is not 1..4 or ``code`` not 0..4095.
-        """
+        """Channel ``channel`` (1..4) reports ``code`` (0..4095; None releases it) on every
+        scan from now on (:meth:`~loopcal.simulator.faults.FaultInjector.stuck_channel`)."""
         ch = _channel_index(channel)
         if code is not None and not 0 <= code <= CODE_MAX:
             raise ValueError(f"code must be 0..{CODE_MAX}")
         self._stuck[ch] = code
 
     def set_sensor_fault(self, channel: int, on: bool) -> None:
-        """Sensor fault on a channel: it reads 4095 with its fault bit set.
-
-        Parameters
-        ----------
-        channel : int
-            1..4.
-        on : bool
-            True from the next scan on; False ends it.
-
-        Raises
-        ------
-        ValueError
-            If ``channel`` is not 1..4.
-        """
+        """Channel ``channel`` (1..4) reads 4095 with its fault bit set, or not
+        (:meth:`~loopcal.simulator.faults.FaultInjector.sensor_fault`)."""
         self._sensor_fault[_channel_index(channel)] = bool(on)
 
     def set_saturation(self, channel: int, mode: str | None) -> None:
-        """The channel's conditioner output sits beyond the rail, or not.
-
-        Parameters
-        ----------
-        channel : int
-            1..4.
-        mode : {"high", "low"} or None
-            ``"high"``: 1 V above +10 V (code 4095); ``"low"``: 1 V below -10 V (code 0);
-            None: the source's volts again.
-
-        Raises
-        ------
-        ValueError
-            If ``channel`` is not 1..4 or ``mode`` is none of those.
+        """Channel ``channel``'s (1..4) conditioner output sits 1 V beyond the rail,
+        ``mode`` ``"high"`` (+11 V, code 4095) or ``"low"`` (-11 V, code 0), or (None) is
+        the source's volts again (:meth:`~loopcal.simulator.faults.FaultInjector.saturate`).
         """
         if mode not in (None, "high", "low"):
             raise ValueError('mode must be "high", "low" or None')
