@@ -32,6 +32,7 @@ from loopcal.drivers.ldq412 import POWER_CYCLE_S
 
 from .handle import DeviceHandle
 from .open_points import Latency
+from .wire import check_not_negative
 
 
 class FaultInjector:
@@ -87,8 +88,7 @@ class FaultInjector:
         ValueError
             If ``seconds`` is negative.
         """
-        if seconds < 0:
-            raise ValueError("seconds must be >= 0")
+        check_not_negative("seconds", seconds)
         with self._handle.synced() as device:
             self._handle.wire.stalled_until_ns = device.now_ns + round(seconds * 1e9)
 
@@ -156,8 +156,7 @@ class FaultInjector:
         ValueError
             If ``n`` is negative.
         """
-        if n < 0:
-            raise ValueError("n must be >= 0")
+        check_not_negative("n", n)
         with self._handle.lock:
             self._handle.wire.corrupt += n
 

@@ -463,18 +463,8 @@ class EmulatedLDQ412:
         self.faults.reconnect()
 
     def stall(self, seconds: float) -> None:
-        """No answers for ``seconds`` of device time; the module keeps scanning.
-
-        Parameters
-        ----------
-        seconds : float
-            Device seconds, >= 0.
-
-        Raises
-        ------
-        ValueError
-            If ``seconds`` is negative.
-        """
+        """No answers for ``seconds`` (>= 0) of device time; the module keeps scanning
+        (:meth:`~loopcal.simulator.faults.FaultInjector.stall`: what ends it, its errors)."""
         self.faults.stall(seconds)
 
     def offset_step(self, sensor: int, mm: float, duration: float | None = None) -> OffsetDrift:

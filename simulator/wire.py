@@ -18,6 +18,25 @@ from .open_points import Latency
 Corrupter = Callable[[bytes], bytes]
 
 
+def check_not_negative(name: str, value: float) -> None:
+    """Refuse a negative count or duration of a fault.
+
+    Parameters
+    ----------
+    name : str
+        The argument's name, for the message.
+    value : float
+        Its value.
+
+    Raises
+    ------
+    ValueError
+        ``NAME must be >= 0`` if ``value`` is negative.
+    """
+    if value < 0:
+        raise ValueError(f"{name} must be >= 0")
+
+
 @dataclass
 class WireFaults:
     """Mutable wire fault state, consulted by the servers under the emulator's lock.
@@ -99,8 +118,7 @@ class WireFaults:
         ValueError
             If ``nbytes`` is negative.
         """
-        if nbytes < 0:
-            raise ValueError("nbytes must be >= 0")
+        check_not_negative("nbytes", nbytes)
         self.garbage += self.rng.integers(0, 256, nbytes, dtype=np.uint8).tobytes()
 
     def outgoing(self, answer: bytes, corrupter: Corrupter) -> bytes:
