@@ -100,6 +100,13 @@ class ModbusRegisters:
     def set_scan_rate(self, rate_hz: int) -> None:
         raise NotImplementedError
 
+    def _check_request(self, count: int, limit: int) -> None:
+        """What every register request passes first: the power (DeviceOffError), then
+        its count, 1..``limit`` (03)."""
+        self._require_power()
+        if not 1 <= count <= limit:
+            raise DeviceError(ILLEGAL_VALUE, f"count {count} outside 1..{limit}")
+
     def snapshot_registers(self) -> list[int]:
         """Input registers 0..9: one consistent view of the latest scan.
 
@@ -170,9 +177,7 @@ class ModbusRegisters:
         0, the FIFO window 0xFFFF without taking a scan); ``snapshot_reads="whole"``
         refuses a read of part of 0..9 with 02 (:mod:`loopcal.simulator.open_points`).
         """
-        self._require_power()
-        if not 1 <= count <= MODBUS_MAX_READ:
-            raise DeviceError(ILLEGAL_VALUE, f"count {count} outside 1..{MODBUS_MAX_READ}")
+        self._check_request(count, MODBUS_MAX_READ)
         op = self.open
         if count > op.max_read_registers:
             if op.over_limit == "refuse":
@@ -266,19 +271,9 @@ class ModbusRegisters:
         return [self._scan_rate, self._oversampling, 0, 0, int(self._ascii_checksum)]
 
     def read_holding_registers(self, address: int, count: int) -> list[int]:
-        """Function 03, read holding registers.
-
-        Parameters
-        ----------
-        address : int
-            First register, zero-based.
-        count : int
-            Registers asked for.
-
-        Returns
-        -------
-        list of int
-            ``count`` registers of :meth:`holding_registers` from ``address``.
+        """Function 03, read holding registers: ``count`` registers of
+        :meth:`holding_registers` from ``address`` (as :meth:`read_input_registers` takes
+        them).
 
         Raises
         ------
@@ -287,13 +282,8 @@ class ModbusRegisters:
         DeviceOffError
             While the module is not :attr:`ready`.
         """
-        self._require_power()
-        if not 1 <= count <= MODBUS_MAX_READ:
-            raise DeviceError(ILLEGAL_VALUE, f"count {count} outside 1..{MODBUS_MAX_READ}")
-        if not (0 <= address and address + count <= HR_COUNT):
-            raise DeviceError(
-                ILLEGAL_ADDRESS, f"holding registers {address}..{address + count - 1}"
-            )
+        self._check_request(count, MODBUS_MAX_READ)
+        _check_holding_span(address, count)
         return self.holding_registers()[address : address + count]
 
     def write_registers(self, address: int, values: list[int]) -> None:
@@ -319,13 +309,8 @@ class ModbusRegisters:
         DeviceOffError
             While the module is not :attr:`ready`.
         """
-        self._require_power()
-        if not 1 <= len(values) <= MODBUS_MAX_WRITE:
-            raise DeviceError(ILLEGAL_VALUE, f"count {len(values)} outside 1..{MODBUS_MAX_WRITE}")
-        if not (0 <= address and address + len(values) <= HR_COUNT):
-            raise DeviceError(
-                ILLEGAL_ADDRESS, f"holding registers {address}..{address + len(values) - 1}"
-            )
+        self._check_request(len(values), MODBUS_MAX_WRITE)
+        _check_holding_span(address, len(values))
         for reg, value in enumerate(values, start=address):
             if not _holding_value_ok(reg, value):
                 raise DeviceError(ILLEGAL_VALUE, f"holding register {reg} = {value}")
@@ -341,6 +326,12 @@ class ModbusRegisters:
                 self._restart = False
             elif reg == HR_ASCII_CHECKSUM:
                 self._ascii_checksum = bool(value)
+
+
+def _check_holding_span(address: int, count: int) -> None:
+    """A read or write of ``count`` holding registers from ``address`` stays in 0..4 (02)."""
+    if not (0 <= address and address + count <= HR_COUNT):
+        raise DeviceError(ILLEGAL_ADDRESS, f"holding registers {address}..{address + count - 1}")
 
 
 def _holding_value_ok(reg: int, value: int) -> bool:
