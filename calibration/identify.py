@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import implicit
+from .damping import Damping
 from .errors import ConvergenceError, InputError
 from .observability import (
     CONDITION_OK,
@@ -533,8 +534,7 @@ def _levenberg_marquardt(V, ref, model, p_start, x0, p0, max_iter, xtol, ftol, m
     x = model.free_values(p)
     cost = float(f @ f)
     history.append(cost)
-    lam = 1e-3
-    nu = 2.0
+    damping = Damping()
     prev_step = 0.0
     converged = False
     message = "maximum iterations reached"
@@ -547,8 +547,8 @@ def _levenberg_marquardt(V, ref, model, p_start, x0, p0, max_iter, xtol, ftol, m
         grad = G.T @ f
         diag = np.diag(np.diag(GtG))
         step_taken = False
-        while lam < 1e12:
-            ds = np.linalg.solve(GtG + lam * diag, -grad)
+        while not damping.exhausted:
+            ds = np.linalg.solve(GtG + damping.lam * diag, -grad)
             x_new = x + h * ds
             f_new = None
             if np.all(np.abs(x_new - x0) <= max_change):
@@ -557,15 +557,13 @@ def _levenberg_marquardt(V, ref, model, p_start, x0, p0, max_iter, xtol, ftol, m
             if f_new is not None and np.isfinite(f_new).all():
                 new_cost = float(f_new @ f_new)
                 # gain ratio: actual over predicted reduction of f^T f (Nielsen's damping)
-                predicted = float(ds @ (lam * diag @ ds - grad))
+                predicted = float(ds @ (damping.lam * diag @ ds - grad))
                 rho = (cost - new_cost) / predicted if predicted > 0 else -1.0
                 if rho > 0:
-                    lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                    nu = 2.0
+                    damping.accept(rho)
                     step_taken = True
                     break
-            lam *= nu
-            nu *= 2.0
+            damping.refuse()
         if not step_taken:
             # no step lowers f^T f: a minimum to rounding if the gradient vanishes there
             if np.linalg.norm(grad) <= GTOL * np.linalg.norm(G) * np.sqrt(cost):
@@ -580,11 +578,10 @@ def _levenberg_marquardt(V, ref, model, p_start, x0, p0, max_iter, xtol, ftol, m
         rate = min(step / prev_step, 0.9) if prev_step > 0 else 0.9
         small_step = step * max(rate / (1.0 - rate), 1.0) <= xtol
         prev_step = step
-        small_gain = cost - new_cost <= ftol * cost and lam <= 1.0
+        small_gain = cost - new_cost <= ftol * cost and damping.lam <= 1.0
         g_new = jacobian(r_new)
         if not np.isfinite(g_new).all():  # a pose hit a degenerate configuration
-            lam *= nu
-            nu *= 2.0
+            damping.refuse()
             continue
         x, p, cost, f, g = x_new, p_new, new_cost, f_new, g_new
         history.append(cost)

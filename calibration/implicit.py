@@ -48,6 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .damping import Damping
 from .errors import InputError
 from .kinematics import (
     LEG_POINT,
@@ -545,7 +546,7 @@ def fit_linearised(
     lin = at_start if at_start is not None else _evaluate(Rc, p, Vc, wc, pairs)
     cost = lin.cost
     history.append(cost)
-    lam, nu = 1e-3, 2.0
+    damping = Damping()
     converged, message, it = False, "maximum iterations reached", 0
     dof = max(Vc.shape[1] - n, 1)
     while it < max_iter:
@@ -555,11 +556,10 @@ def fit_linearised(
         dV = np.array(V[:3])  # (3, m) the pose blocks' diagonals
         step_taken = False
         first_predicted = None  # the decrease the least damped step of this turn predicts
-        while lam < 1e12:
-            step = _damped_step(U, gp, W, V, gk, lam)
+        while not damping.exhausted:
+            step = _damped_step(U, gp, W, V, gk, damping.lam)
             if step is None:  # a damped block not positive definite, or a singular system
-                lam *= nu
-                nu *= 2.0
+                damping.refuse()
                 continue
             dx, dw = step
             p_new = p + directions @ dx
@@ -568,6 +568,7 @@ def fit_linearised(
                 Rc_new = matmul3(rotvec_to_matrix(dw), Rc)
                 lin_new = _evaluate(Rc_new, p_new, Vc, wc, pairs)
                 new_cost = lin_new.cost
+                lam = damping.lam
                 predicted = float(dx @ (lam * dU * dx - gp) + np.sum(dw * (lam * dV * dw - gk)))
                 if first_predicted is None:
                     first_predicted = predicted
@@ -575,12 +576,10 @@ def fit_linearised(
                         break  # at the minimum to rounding: stop here, below
                 rho = (cost - new_cost) / predicted if predicted > 0 else -1.0
                 if np.isfinite(new_cost) and rho > 0:
-                    lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                    nu = 2.0
+                    damping.accept(rho)
                     step_taken = True
                     break
-            lam *= nu
-            nu *= 2.0
+            damping.refuse()
         if not step_taken:
             floor = DECREMENT_TOL * max(cost / dof, EXACT_FIT)
             if cost <= EXACT_FIT * lin.r.size:
@@ -597,7 +596,7 @@ def fit_linearised(
         history.append(cost)
         # the decrement is in whitened units; compared with the misfit per degree of
         # freedom it is independent of the noise level assumed
-        if decrement <= DECREMENT_TOL * max(cost / dof, EXACT_FIT) and lam <= 1.0:
+        if decrement <= DECREMENT_TOL * max(cost / dof, EXACT_FIT) and damping.lam <= 1.0:
             converged, message = True, "converged"
             break
     return p, _pm(Rc), it, converged, message, lin
