@@ -36,7 +36,7 @@ from __future__ import annotations
 import time
 from abc import abstractmethod
 from collections.abc import Callable
-from typing import ClassVar
+from typing import ClassVar, TypedDict
 
 from pymodbus.client.base import ModbusBaseSyncClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
@@ -155,6 +155,16 @@ def format_firmware(reg: int) -> str:
     return f"{reg >> 8}.{reg & 0xFF:02d}"
 
 
+class ModbusOptions(TypedDict, total=False):
+    """The keyword arguments every Modbus driver takes, for :class:`ModbusDAQ` (which
+    documents them and holds their defaults)."""
+
+    unit: int
+    timeout: float
+    use_fifo: bool
+    check_identity: bool
+
+
 class ModbusDAQ(DAQ):
     """LDQ-412 over Modbus (TCP or RTU): the register map, FIFO draining, flag clearing.
 
@@ -166,16 +176,19 @@ class ModbusDAQ(DAQ):
 
     Parameters
     ----------
-    url : str
-        The connection's URL, every parameter written out (for messages).
+    link : str
+        The URL up to its query: the scheme and where the module is, e.g.
+        ``"modbus-tcp://10.0.0.7:502"``.
+    link_params : dict[str, object]
+        The transport's own URL parameters, in the order the URL writes them.
     unit : int
-        Modbus device id, 0..247 (0 broadcast; the URL takes 1..247).
+        Modbus device id, 0..247 (0 broadcast; the URL takes 1..247; default 1).
     timeout : float
-        s without an answer before a call raises DAQTimeout.
+        s without an answer before a call raises DAQTimeout (default 0.1).
     use_fifo : bool
-        Drain the FIFO (True) or poll the snapshot (False).
+        Drain the FIFO (True, the default) or poll the snapshot (False).
     check_identity : bool
-        Raise DAQIdentityError unless the model code is 0x0412.
+        Raise DAQIdentityError unless the model code is 0x0412 (default True).
 
     Attributes
     ----------
@@ -221,11 +234,20 @@ class ModbusDAQ(DAQ):
         }
 
     def __init__(
-        self, *, url: str, unit: int, timeout: float, use_fifo: bool, check_identity: bool
+        self,
+        link: str,
+        link_params: dict[str, object],
+        *,
+        unit: int = ldq412.MODBUS_UNIT,
+        timeout: float = ldq412.HOST_TIMEOUT_S,
+        use_fifo: bool = True,
+        check_identity: bool = True,
     ) -> None:
         if not 0 <= unit <= 247:
             raise ValueError(f"Modbus unit {unit} outside 0..247")
-        self.url = url
+        params = {**link_params, "unit": unit, "fifo": int(use_fifo)}
+        #: the connection's URL, every parameter written out (for messages)
+        self.url = f"{link}?" + "&".join(f"{k}={v}" for k, v in params.items())
         self.unit = unit
         self.timeout = timeout
         self.use_fifo = use_fifo
@@ -338,15 +360,11 @@ class ModbusDAQ(DAQ):
         DAQTimeout, DAQDisconnected
             No answer in time, or no connection.
         """
-        rsp = self._execute(
-            f"read input registers {address}+{count}",
-            FC_READ_INPUT,
-            lambda: self._client.read_input_registers(address, count=count, device_id=self.unit),
-        )
-        return self._checked_registers(rsp, count, f"input registers {address}+{count}", step)
+        return self._read_registers("input", address, count, step)
 
     def read_holding_registers(self, address: int, count: int) -> list[int]:
-        """Read holding registers (function 03).
+        """Read holding registers (function 03), as :meth:`read_input_registers` reads
+        input registers: the same answer checked the same way, the same errors.
 
         Parameters
         ----------
@@ -359,21 +377,27 @@ class ModbusDAQ(DAQ):
         Returns
         -------
         list of int
-            The registers, 16-bit each.
-
-        Raises
-        ------
-        DAQProtocolError
-            If the answer has the wrong length, or is malformed.
-        DAQModbusException, DAQTimeout, DAQDisconnected
-            As :meth:`read_input_registers`.
+            The registers.
         """
+        return self._read_registers("holding", address, count)
+
+    def _read_registers(self, kind: str, address: int, count: int, step: int = 0) -> list[int]:
+        """``count`` registers of ``kind`` ("input": function 04, "holding": 03) from
+        ``address``, the answer's length checked (``step``: :meth:`read_input_registers`)."""
+        fc, read = {
+            "input": (FC_READ_INPUT, self._client.read_input_registers),
+            "holding": (FC_READ_HOLDING, self._client.read_holding_registers),
+        }[kind]
+        what = f"{kind} registers {address}+{count}"
         rsp = self._execute(
-            f"read holding registers {address}+{count}",
-            FC_READ_HOLDING,
-            lambda: self._client.read_holding_registers(address, count=count, device_id=self.unit),
+            f"read {what}", fc, lambda: read(address, count=count, device_id=self.unit)
         )
-        return self._checked_registers(rsp, count, f"holding registers {address}+{count}")
+        regs = list(rsp.registers)
+        short_ok = step and len(regs) < count and len(regs) % step == 0
+        if len(regs) != count and not short_ok:
+            self._drop()
+            raise DAQProtocolError(f"{self.url}: {what}: {len(regs)} registers answered")
+        return regs
 
     def write_register(self, address: int, value: int) -> None:
         """Write one holding register (function 06).
@@ -400,16 +424,6 @@ class ModbusDAQ(DAQ):
         if getattr(rsp, "address", None) != address or list(rsp.registers) != [value]:
             self._drop()
             raise DAQProtocolError(f"{self.url}: write {address}={value}: wrong echo {rsp}")
-
-    def _checked_registers(
-        self, rsp: ModbusPDU, count: int, what: str, step: int = 0
-    ) -> list[int]:
-        regs = list(rsp.registers)
-        short_ok = step and len(regs) < count and len(regs) % step == 0
-        if len(regs) != count and not short_ok:
-            self._drop()
-            raise DAQProtocolError(f"{self.url}: {what}: {len(regs)} registers answered")
-        return regs
 
     # -- device functions ----------------------------------------------------------------
 

@@ -8,14 +8,14 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import ClassVar
+from typing import ClassVar, Unpack
 
 from pymodbus.client import ModbusSerialClient
 from pymodbus.client.base import ModbusBaseSyncClient
 from pymodbus.framer import FramerType
 
 from . import ldq412
-from .modbus import ModbusDAQ
+from .modbus import ModbusDAQ, ModbusOptions
 from .url import DaqUrl, serial_options
 
 #: silence on the line that ends a drain after an error, s (many RTU frame times)
@@ -40,22 +40,17 @@ class ModbusRtuDAQ(ModbusDAQ):
         Parity (default none).
     stopbits : {1, 2}
         Stop bits (default 1).
-    unit : int
-        Modbus device id (default 1).
-    timeout : float
-        s without an answer before a call raises DAQTimeout (default 0.1).
-    use_fifo : bool
-        Drain the FIFO (default) or poll the snapshot.
-    check_identity : bool
-        Raise DAQIdentityError unless the module is an LDQ-412.
+    **options
+        ``unit``, ``timeout``, ``use_fifo``, ``check_identity``: as
+        :class:`~loopcal.drivers.modbus.ModbusDAQ`'s.
 
     Raises
     ------
     ValueError
-        For a parity, stop bits, baud or unit out of range.
+        For a parity, stop bits or baud out of range; a unit as
+        :class:`~loopcal.drivers.modbus.ModbusDAQ`.
     DAQError
-        If the port cannot be opened, the module not read at connect, or it is not an
-        LDQ-412.
+        If the port cannot be opened, or as :class:`~loopcal.drivers.modbus.ModbusDAQ`.
     """
 
     scheme: ClassVar[str] = "modbus-rtu"
@@ -68,10 +63,7 @@ class ModbusRtuDAQ(ModbusDAQ):
         baud: int = ldq412.SERIAL_BAUD,
         parity: str = "N",
         stopbits: int = 1,
-        unit: int = ldq412.MODBUS_UNIT,
-        timeout: float = ldq412.HOST_TIMEOUT_S,
-        use_fifo: bool = True,
-        check_identity: bool = True,
+        **options: Unpack[ModbusOptions],
     ) -> None:
         if parity not in ("N", "E", "O"):
             raise ValueError(f"parity {parity!r} not N, E or O")
@@ -80,13 +72,7 @@ class ModbusRtuDAQ(ModbusDAQ):
         if baud <= 0:
             raise ValueError(f"baud {baud} must be > 0")
         self.port, self.baud, self.parity, self.stopbits = port, baud, parity, stopbits
-        super().__init__(
-            url=f"modbus-rtu://{port}?baud={baud}&unit={unit}&fifo={int(use_fifo)}",
-            unit=unit,
-            timeout=timeout,
-            use_fifo=use_fifo,
-            check_identity=check_identity,
-        )
+        super().__init__(f"modbus-rtu://{port}", {"baud": baud}, **options)
 
     @classmethod
     def url_options(cls, url: DaqUrl) -> dict[str, object]:

@@ -6,13 +6,13 @@ URL: ``modbus-tcp://host[:port]?unit=1&fifo=1`` (port 502 and unit 1 by default)
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import ClassVar
+from typing import ClassVar, Unpack
 
 from pymodbus.client import ModbusTcpClient
 from pymodbus.client.base import ModbusBaseSyncClient
 
 from . import ldq412
-from .modbus import ModbusDAQ
+from .modbus import ModbusDAQ, ModbusOptions
 from .url import DaqUrl
 
 
@@ -28,43 +28,23 @@ class ModbusTcpDAQ(ModbusDAQ):
         Host name or address.
     port : int
         TCP port (default 502).
-    unit : int
-        Modbus device id (default 1).
-    timeout : float
-        s without an answer before a call raises DAQTimeout (default 0.1).
-    use_fifo : bool
-        Drain the FIFO (default) or poll the snapshot.
-    check_identity : bool
-        Raise DAQIdentityError unless the module is an LDQ-412.
+    **options
+        ``unit``, ``timeout``, ``use_fifo``, ``check_identity``: as
+        :class:`~loopcal.drivers.modbus.ModbusDAQ`'s.
 
     Raises
     ------
-    ValueError
-        If ``unit`` is outside 0..247.
-    DAQError
-        If the module cannot be reached or read at connect, or is not an LDQ-412.
+    ValueError, DAQError
+        As :class:`~loopcal.drivers.modbus.ModbusDAQ`.
     """
 
     scheme: ClassVar[str] = "modbus-tcp"
 
     def __init__(
-        self,
-        host: str,
-        port: int = ldq412.MODBUS_TCP_PORT,
-        *,
-        unit: int = ldq412.MODBUS_UNIT,
-        timeout: float = ldq412.HOST_TIMEOUT_S,
-        use_fifo: bool = True,
-        check_identity: bool = True,
+        self, host: str, port: int = ldq412.MODBUS_TCP_PORT, **options: Unpack[ModbusOptions]
     ) -> None:
         self.host, self.port = host, port
-        super().__init__(
-            url=f"modbus-tcp://{host}:{port}?unit={unit}&fifo={int(use_fifo)}",
-            unit=unit,
-            timeout=timeout,
-            use_fifo=use_fifo,
-            check_identity=check_identity,
-        )
+        super().__init__(f"modbus-tcp://{host}:{port}", {}, **options)
 
     @classmethod
     def url_options(cls, url: DaqUrl) -> dict[str, object]:
