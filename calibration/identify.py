@@ -44,7 +44,7 @@ from .parameters import (
     ParameterModel,
     check_vector,
 )
-from .residuals import check_volts, loop_residuals, noise_sensitivity, reference_points
+from .residuals import check_volts, loop_residuals, noise_directions, reference_points
 from .simulate import NEAR_SINGULAR_MM
 
 WIDE_MARGIN_FACTOR = 8.0
@@ -390,7 +390,7 @@ def identify(
     h = column_scales(g, model.free)
     G = g * h
     s = np.linalg.svd(G, compute_uv=False)
-    u, sk = noise_sensitivity(p, V[used], ref[used])
+    u, sk, _ = noise_directions(p, V[used], ref[used])
     w = np.einsum("mi,mi->m", u, f.reshape(-1, 4)) / sk  # whitened: variance sigma_V^2 each
     mu = len(sk)
     if noise_volts is None:

@@ -266,46 +266,16 @@ def _jacobian(state: tuple, W: np.ndarray) -> np.ndarray:
     return np.transpose(J, (2, 0, 1))
 
 
-def noise_sensitivity(
-    p: np.ndarray, volts: np.ndarray, ref: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """How each pose's residuals respond to noise on its own readings.
-
-    ``D_k = df_k / dV_k`` (4 x 4, mm^2/V) is nearly rank one: the four residuals of a pose
-    measure one loop-closure error. Voltage noise e_k moves the residuals by about
-    ``u_k s_k (v_k . e_k)``.
-
-    Parameters
-    ----------
-    p : array_like, shape (20,)
-        Full parameter vector (mm, mm/V).
-    volts : array_like, shape (m, 4)
-        LVDT readings, V.
-    ref : array_like, shape (m, 2, 3)
-        Reference plate points (:func:`reference_points`), mm.
-
-    Returns
-    -------
-    u : ndarray, shape (m, 4)
-        Leading left singular vector of each ``D_k`` (sign arbitrary).
-    s : ndarray, shape (m,)
-        Its singular value, mm^2/V.
-
-    See Also
-    --------
-    noise_directions : the same with the right singular vector v.
-    """
-    u, s, _ = noise_directions(p, volts, ref)
-    return u, s
-
-
 def noise_directions(
     p: np.ndarray, volts: np.ndarray, ref: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The leading singular triple of ``D_k = df_k / dV_k`` for each pose.
+    """The leading singular triple of ``D_k = df_k / dV_k`` for each pose: how its residuals
+    respond to noise on its own readings.
 
-    A pose's whitened loop-closure error ``u_k . f_k / s_k`` has variance
-    ``sum_i v_ki^2 sigma_i^2`` for channel noises sigma_i.
+    ``D_k`` (4 x 4, mm^2/V) is nearly rank one: the four residuals of a pose measure one
+    loop-closure error. Voltage noise e_k moves the residuals by about
+    ``u_k s_k (v_k . e_k)``, and a pose's whitened loop-closure error ``u_k . f_k / s_k``
+    has variance ``sum_i v_ki^2 sigma_i^2`` for channel noises sigma_i.
 
     Parameters
     ----------

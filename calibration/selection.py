@@ -36,7 +36,7 @@ from . import implicit
 from .errors import InputError
 from .observability import CONDITION_OK, ObservabilityIndices, as_rows, column_scales
 from .parameters import ParameterModel
-from .residuals import check_volts, loop_residuals, noise_sensitivity, reference_points
+from .residuals import check_volts, loop_residuals, noise_directions, reference_points
 from .simulate import NEAR_SINGULAR_MM
 
 #: the criteria :func:`select_poses` can maximise (the indices of
@@ -258,7 +258,7 @@ class Candidates:
         Not near-singular, and consistent.
     information : ndarray, shape (N, 1, n)
         Each pose's noise-whitened information row: ``u_k^T J_k / s_k`` for the paper's
-        residuals (see :func:`loopcal.calibration.residuals.noise_sensitivity`), the pose's
+        residuals (see :func:`loopcal.calibration.residuals.noise_directions`), the pose's
         real information about the parameters per unit voltage noise.
     """
 
@@ -301,7 +301,7 @@ def candidate_jacobian(
     V = check_volts(volts)
     ref = reference_points(V, p)
     r = loop_residuals(p, V, ref, directions=model.tie_matrix)
-    u, s = noise_sensitivity(p, V, ref)
+    u, s, _ = noise_directions(p, V, ref)
     ok = r.feasible.all(axis=1) & (r.separation.min(axis=1) >= near_singular_mm)
     ok &= np.isfinite(r.jacobian).all(axis=(1, 2)) & (s > 0)
     J = np.where(ok[:, None, None], r.jacobian, 0.0)
