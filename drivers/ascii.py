@@ -141,6 +141,16 @@ def _check_not_rejected(body: bytes, addr: int) -> None:
         raise DAQProtocolError(f"malformed or foreign rejection: {body!r}")
 
 
+def _data_answer(body: bytes, addr: int, digits: int, what: str) -> bytes:
+    """The digits of a data answer, ``>`` + ``digits`` characters (not yet checked to be
+    hex), unless it is a ``?AA`` rejection (DAQInvalidCommand) or has another lead or
+    length (DAQProtocolError naming ``what`` answer was expected)."""
+    _check_not_rejected(body, addr)
+    if body[:1] != b">" or len(body) != 1 + digits:
+        raise DAQProtocolError(f"not a {what} answer ('>' + {digits} hex digits): {body!r}")
+    return body[1:]
+
+
 def parse_scan(body: bytes, addr: int) -> RawSnapshot:
     """Decode a ``#AA`` answer: the latest scan.
 
@@ -164,13 +174,11 @@ def parse_scan(body: bytes, addr: int) -> RawSnapshot:
     DAQProtocolError
         For anything else that is not such an answer.
     """
-    _check_not_rejected(body, addr)
-    if body[:1] != b">" or len(body) != SCAN_BODY_LEN:
-        raise DAQProtocolError(f"not a scan answer ('>' + 32 hex digits): {body!r}")
-    counter = _hex(body[1:9], "counter")
-    time_us = _hex(body[9:17], "time")
-    c = [_hex(body[17 + 3 * i : 20 + 3 * i], f"channel {i + 1}") for i in range(4)]
-    status = _hex(body[29:33], "status")
+    digits = _data_answer(body, addr, SCAN_BODY_LEN - 1, "scan")
+    counter = _hex(digits[0:8], "counter")
+    time_us = _hex(digits[8:16], "time")
+    c = [_hex(digits[16 + 3 * i : 19 + 3 * i], f"channel {i + 1}") for i in range(4)]
+    status = _hex(digits[28:32], "status")
     return RawSnapshot(counter, time_us, (c[0], c[1], c[2], c[3]), status)
 
 
@@ -191,15 +199,10 @@ def parse_channel(body: bytes, addr: int) -> int:
 
     Raises
     ------
-    DAQInvalidCommand
-        For ``?AA``.
-    DAQProtocolError
-        For anything else that is not such an answer.
+    DAQInvalidCommand, DAQProtocolError
+        As :func:`parse_scan`.
     """
-    _check_not_rejected(body, addr)
-    if body[:1] != b">" or len(body) != 4:
-        raise DAQProtocolError(f"not a channel answer ('>' + 3 hex digits): {body!r}")
-    return _hex(body[1:], "code")
+    return _hex(_data_answer(body, addr, 3, "channel"), "code")
 
 
 def parse_ack(body: bytes, addr: int) -> bytes:

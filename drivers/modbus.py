@@ -538,9 +538,7 @@ class ModbusDAQ(DAQ):
         scan, new = self._seq.poll(snap, host_time)
         if new:
             self._pending.append(scan)
-        if snap.status & ldq412.STATUS_RESTART:
-            self.write_register(ldq412.HR_CLEAR_RESTART, 1)
-            self._seq.restart_bit_cleared()
+        self._clear_restart_latch(snap.status)
         return scan
 
     def read_scans(self) -> list[Scan]:
