@@ -254,21 +254,15 @@ class Acquisition:
         if self.poll_pacer is not None:  # a new driver: epochs count from 0 again
             self.poll_pacer.reset()
         serial = "" if ident.serial is None else f", serial {ident.serial}"
-        self._emit(
-            "connect",
-            Level.INFO,
+        self._link_up(
+            time.monotonic(),
             f"{ident.model} firmware {ident.firmware}{serial} at {daq.url}, {rate} Hz",
-            url=daq.url,
+            daq.url,
             model=ident.model,
             firmware=ident.firmware,
             serial=ident.serial,
             scan_rate_hz=int(rate),
-            outage_s=None
-            if self._down_since is None
-            else round(time.monotonic() - self._down_since, 3),
         )
-        self._down_since = None
-        self.stats.connected = True
 
     def _failed(self, exc: DAQError, now: float) -> None:
         self.stats.read_errors += 1
@@ -296,16 +290,16 @@ class Acquisition:
 
     def _recovered(self, now: float) -> None:
         assert self._down_since is not None
-        outage = now - self._down_since
+        self._link_up(now, f"DAQ answers again after {now - self._down_since:.2f} s", self.url)
+
+    def _link_up(self, now: float, message: str, url: str, **details: object) -> None:
+        """The module answers (a new driver, or the same one after an outage): a ``connect``
+        event, its details ending with ``outage_s``, the outage this ends at ``now``
+        (monotonic s; None when the link was not down)."""
+        outage = None if self._down_since is None else round(now - self._down_since, 3)
         self._down_since = None
         self.stats.connected = True
-        self._emit(
-            "connect",
-            Level.INFO,
-            f"DAQ answers again after {outage:.2f} s",
-            url=self.url,
-            outage_s=round(outage, 3),
-        )
+        self._emit("connect", Level.INFO, message, url=url, **details, outage_s=outage)
 
     # ------------------------------------------------------------------ scans -> rows
 
