@@ -29,6 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .smallmat import cross3
+
 
 def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Dot products over the first axis, component-major.
@@ -44,12 +46,6 @@ def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         ``a[0] b[0] + a[1] b[1] + a[2] b[2]``.
     """
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.stack(
-        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-    )
 
 
 @dataclass(frozen=True)
@@ -113,7 +109,7 @@ def solve(r0, P1, r1, P2, r2, ref: np.ndarray) -> Solved:
         The solutions, with what :func:`adjoint` needs. Nothing raises: where the spheres
         miss, the point is the closest approach in the plane (``feasible`` False).
     """
-    n = _cross(P1, P2)
+    n = cross3(P1, P2)
     nn = dot3(n, n)
     g11, g12, g22 = dot3(P1, P1), dot3(P1, P2), dot3(P2, P2)
     r00 = r0 * r0
@@ -162,7 +158,7 @@ def adjoint(s: Solved, g: np.ndarray):
             np.where(s.miss, alt, row) for alt, row in zip((s.n, s.P1, s.P2), rows, strict=True)
         )
     # M^-1 by the adjugate: columns r1 x r2, r2 x r0, r0 x r1 over det(M); lam = M^-T g.
-    adj = (_cross(rows[1], rows[2]), _cross(rows[2], rows[0]), _cross(rows[0], rows[1]))
+    adj = (cross3(rows[1], rows[2]), cross3(rows[2], rows[0]), cross3(rows[0], rows[1]))
     det = dot3(rows[0], adj[0])
     with np.errstate(divide="ignore", invalid="ignore"):
         inv_det = 1.0 / np.where(det != 0, det, np.nan)
@@ -174,6 +170,6 @@ def adjoint(s: Solved, g: np.ndarray):
         a0 = np.where(w, (lam[1] + lam[2]) * s.r0, a0)
         a1 = np.where(w, -a1, a1)
         a2 = np.where(w, -a2, a2)
-        b1 = np.where(w, -lam[0] * _cross(s.P2, s.x) - b1, b1)
-        b2 = np.where(w, -lam[0] * _cross(s.x, s.P1) - b2, b2)
+        b1 = np.where(w, -lam[0] * cross3(s.P2, s.x) - b1, b1)
+        b2 = np.where(w, -lam[0] * cross3(s.x, s.P1) - b2, b2)
     return a0, a1, a2, b1, b2
