@@ -105,8 +105,6 @@ class MechanismSource(NoisySource):
         As given.
     truth : ndarray of float, shape (20,)
         A copy of the true parameters.
-    noise_volts : float
-        As given (read-only).
     drifts : list of OffsetDrift
         The drifts; more can be appended later (each acts from its own start time).
 
@@ -135,7 +133,7 @@ class MechanismSource(NoisySource):
 
     @property
     def noise_volts(self) -> float:
-        """Standard deviation of the noise per conversion, V."""
+        """Standard deviation of the noise per conversion, V, as given (read-only)."""
         return self._noise_sd
 
     def clean(self, t: np.ndarray) -> np.ndarray:

@@ -126,8 +126,6 @@ class TestSource(NoisySource):
         As given, V.
     phase_rad : ndarray of float, shape (4,)
         As given, rad.
-    noise_v : float
-        As given (read-only).
 
     Raises
     ------
@@ -158,7 +156,7 @@ class TestSource(NoisySource):
 
     @property
     def noise_v(self) -> float:
-        """Standard deviation of the noise per conversion, V."""
+        """Standard deviation of the noise per conversion, V, as given (read-only)."""
         return self._noise_sd
 
     def clean(self, t: np.ndarray) -> np.ndarray:
