@@ -20,6 +20,7 @@ seeded mechanism, exactly as ``loopcal simulate`` serves it.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import numbers
 import time
@@ -251,7 +252,7 @@ class Truth:
         return offset_shift(self.drifts, np.full(4, float(t_s)))
 
 
-class EmulatedLDQ412:
+class EmulatedLDQ412(contextlib.AbstractContextManager):
     """An emulated LDQ-412 on a real transport, started on construction; a context manager.
 
     Close it (or leave the ``with``) to stop its servers and free its port or
@@ -497,27 +498,11 @@ class EmulatedLDQ412:
     def offset_creep(
         self, sensor: int, mm_per_min: float, duration: float | None = None
     ) -> OffsetDrift:
-        """Sensor ``sensor``'s offset creeps by ``mm_per_min`` from now on.
+        """Sensor ``sensor``'s offset creeps by ``mm_per_min`` (mm per minute, either sign)
+        from now on, for ``duration`` s (then the offset is held; None: for ever).
 
-        Parameters
-        ----------
-        sensor : int
-            1..4.
-        mm_per_min : float
-            The creep rate, mm per minute, either sign.
-        duration : float or None, default None
-            How long it creeps, s (then the offset is held); None: for ever.
-
-        Returns
-        -------
-        OffsetDrift
-            The drift, also in :attr:`Truth.drifts`.
-
-        Raises
-        ------
-        ValueError
-            If ``sensor`` is not 1..4, ``mm_per_min`` not finite or ``duration`` not
-            positive.
+        The sensor, the duration, what it returns and when it raises ValueError (for
+        ``mm_per_min`` as for ``mm``): as :meth:`offset_step`.
         """
         return self._drift("creep", sensor, mm_per_min, duration)
 
@@ -533,9 +518,6 @@ class EmulatedLDQ412:
     def close(self) -> None:
         """Stop the servers and free the port or pseudo-terminal. Idempotent."""
         self.emulator.close()
-
-    def __enter__(self) -> EmulatedLDQ412:
-        return self
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
