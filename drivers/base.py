@@ -24,7 +24,7 @@ from typing import ClassVar, TypeVar
 
 from . import ldq412
 from .errors import DAQError, DAQTimeout
-from .pacing import FifoPacer, PollPacer
+from .pacing import FifoPacer, Pacer, PollPacer
 from .records import Identity, Scan
 from .sequence import Sequencer
 from .url import DaqUrl
@@ -274,7 +274,7 @@ class DAQ(ABC):
         start = time.monotonic()
         end = math.inf if duration is None else start + duration
         newest_at = start  # when the newest scan (or the stream's start) arrived
-        pacer: FifoPacer | PollPacer | None = None
+        pacer: Pacer | None = None
         at = start
         while True:
             if timeout is not None:

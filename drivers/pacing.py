@@ -1,9 +1,9 @@
 """When a reader of the module reads next: one pacer per way of reading, for the scan
 stream (:meth:`loopcal.drivers.DAQ.scans`) and the daemon's acquisition alike.
 
-Pure logic, no I/O: the reader tells a pacer when each read was sent and answered and what
-it brought, and asks when to send the next. Times are host ``time.monotonic()`` seconds;
-device times are the scans' unwrapped µs (``Scan.time64_us``).
+Pure logic, no I/O: the reader tells a pacer (:class:`Pacer`) when each read was sent and
+answered and what it brought, and asks when to send the next. Times are host
+``time.monotonic()`` seconds; device times are the scans' unwrapped µs (``Scan.time64_us``).
 
 With a FIFO (Modbus, :class:`FifoPacer`): a read every :data:`FIFO_READ_PERIOD_S` plus up
 to one scan period, spread evenly over reads (golden-ratio steps: a period that is a whole
@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import collections
 import math
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -63,7 +64,47 @@ BRACKETS_KEPT = 40
 SEARCH_AFTER_LOCK_S = (0.5, 1.0, 2.0)
 
 
-class FifoPacer:
+class Pacer(ABC):
+    """When a reader of the module reads next: told of every read (:meth:`observe`),
+    asked when to send the next (:meth:`next_read`).
+
+    Attributes
+    ----------
+    rate_hz : int
+        The module's scan rate the pacer works with, Hz.
+    """
+
+    rate_hz: int
+
+    @abstractmethod
+    def observe(self, sent: float, received: float, scans: Sequence[Scan]) -> None:
+        """Take note of one read.
+
+        Parameters
+        ----------
+        sent, received : float
+            When the read was sent and when its answer arrived, host monotonic s.
+        scans : sequence of Scan
+            What the read brought, oldest first (may be empty).
+        """
+
+    @abstractmethod
+    def next_read(self, now: float) -> float:
+        """When to send the next read.
+
+        Parameters
+        ----------
+        now : float
+            Host monotonic s.
+
+        Returns
+        -------
+        float
+            Host monotonic s, ``now`` or later.
+        """
+
+
+class FifoPacer(Pacer):
     """A read every ``period_s`` plus a dither of up to one scan period; at once after a
     read that found the FIFO half full.
 
@@ -91,15 +132,6 @@ class FifoPacer:
         self._next = -math.inf
 
     def observe(self, sent: float, received: float, scans: Sequence[Scan]) -> None:
-        """Take note of one read.
-
-        Parameters
-        ----------
-        sent, received : float
-            When the read was sent and when its answer arrived, host monotonic s.
-        scans : sequence of Scan
-            What the read brought, oldest first (may be empty).
-        """
         self.reads += 1
         behind = len(scans) >= ldq412.FIFO_DEPTH // 2
         self._next = sent if behind else sent + self.period_s + self.dither()
@@ -109,18 +141,6 @@ class FifoPacer:
         return (self.reads * READ_DITHER_STEP) % 1.0 / self.rate_hz
 
     def next_read(self, now: float) -> float:
-        """When to send the next read.
-
-        Parameters
-        ----------
-        now : float
-            Host monotonic s.
-
-        Returns
-        -------
-        float
-            Host monotonic s, ``now`` or later.
-        """
         return max(now, self._next)
 
 
@@ -164,7 +184,7 @@ class PollStats:
     late: int = 0
 
 
-class PollPacer:
+class PollPacer(Pacer):
     """One poll per scan, phase-locked to the module's clock (see the module docstring).
 
     Call :meth:`observe` after every poll with when it was sent and answered and the new
@@ -259,17 +279,9 @@ class PollPacer:
     # ------------------------------------------------------------------ polls
 
     def observe(self, sent: float, received: float, scans: Sequence[Scan]) -> None:
-        """Take note of one poll.
-
-        Parameters
-        ----------
-        sent, received : float
-            When the poll was sent and when its answer arrived, host monotonic s.
-        scans : sequence of Scan
-            The new scans the poll brought, oldest first (empty: the latest scan was
-            already known). A scan of another epoch than the last (a restart) starts
-            the search from scratch.
-        """
+        """Take note of one poll (:meth:`Pacer.observe`): ``scans`` are the new scans it
+        brought (empty: the latest scan was already known); a scan of another epoch than
+        the last (a restart) starts the search from scratch."""
         self.stats.polls += 1
         if scans and scans[-1].epoch != self._epoch:
             if self._epoch is not None:
@@ -310,18 +322,8 @@ class PollPacer:
         self._search_at = self.brackets[-1].hi + wait
 
     def next_read(self, now: float) -> float:
-        """When to send the next poll.
-
-        Parameters
-        ----------
-        now : float
-            Host monotonic s.
-
-        Returns
-        -------
-        float
-            Host monotonic s, between ``now`` and one scan period later.
-        """
+        """When to send the next poll (:meth:`Pacer.next_read`): at most one scan period
+        after ``now``."""
         nxt = None if self._last_us is None else self.edge(self._last_us + self.period_us)
         if nxt is not None and not self._searching and now >= self._search_at:
             self._searching = True
