@@ -11,12 +11,10 @@ tightened (1e-12) so that it goes as far as its finite-difference gradient lets 
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 from scipy.optimize import least_squares
 
-from bench._timing import median_time
+from bench._timing import median_time, repeats_parser
 from loopcal.calibration.identify import _levenberg_marquardt, identify
 from loopcal.calibration.parameters import NOMINAL, PAPER7
 from loopcal.calibration.residuals import loop_residuals, reference_points
@@ -108,9 +106,7 @@ def compare(label: str, noise_volts: float, repeats: int) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--repeats", type=int, default=5)
-    args = ap.parse_args()
+    args = repeats_parser(__doc__).parse_args()
     compare("40 mV noise", 0.040, args.repeats)
     compare("noise-free readings", 0.0, args.repeats)
     print("time against pose count (loopcal, 40 mV)")

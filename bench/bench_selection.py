@@ -12,11 +12,9 @@ unweighted Jacobian of the chosen set.
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 
-from bench._timing import median_time
+from bench._timing import median_time, repeats_parser
 from loopcal.calibration.observability import column_scales, observability_indices
 from loopcal.calibration.parameters import NOMINAL, PAPER7
 from loopcal.calibration.selection import candidate_jacobian, select_poses
@@ -66,9 +64,7 @@ def run(n_candidates: int, k: int, repeats: int, seed: int) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--repeats", type=int, default=5)
-    args = ap.parse_args()
+    args = repeats_parser(__doc__).parse_args()
     run(10_000, 50, args.repeats, seed=3)
     run(450, 50, args.repeats, seed=3)  # the paper's setting
 
