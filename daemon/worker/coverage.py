@@ -323,13 +323,8 @@ def coverage_advice(volts: np.ndarray, params: np.ndarray, *, still: bool = True
 
     Parameters
     ----------
-    volts : ndarray of float, shape (k, 4)
-        The poses' mean readings, V.
-    params : ndarray of float, shape (20,)
-        The parameters to turn them into poses with.
-    still : bool, default True
-        The fit uses still poses (the advice asks to hold each position); False: every
-        scan, moving or still (it asks for motion).
+    volts, params, still
+        As for :func:`coverage_move`.
 
     Returns
     -------
@@ -353,12 +348,8 @@ class LazyAdvice:
 
     Parameters
     ----------
-    volts : ndarray of float, shape (k, 4)
-        The poses' mean readings, V.
-    params : ndarray of float, shape (20,)
-        The parameters to turn them into poses with.
-    still : bool, default True
-        As for :func:`next_move`.
+    volts, params, still
+        As for :func:`coverage_move`.
 
     Attributes
     ----------
@@ -403,27 +394,6 @@ class LazyAdvice:
         return self.move().text
 
 
-def lazy_coverage_advice(
-    volts: np.ndarray, params: np.ndarray, *, still: bool = True
-) -> LazyAdvice:
-    """:func:`coverage_advice`, made on the first call and only then.
-
-    Parameters
-    ----------
-    volts : ndarray of float, shape (k, 4)
-        The poses' mean readings, V.
-    params : ndarray of float, shape (20,)
-        The parameters to turn them into poses with.
-    still : bool, default True
-        As for :func:`next_move`.
-
-    Returns
-    -------
-    LazyAdvice
-        ``advice() -> str``, computing the advice once and then returning it again: an
-        :data:`~loopcal.daemon.worker.gates.Advice` for the gates of
-        :mod:`loopcal.daemon.worker.gates.fit` (``condition_gate``,
-        ``min_singular_gate``, ``precision_gate``); ``advice.move()`` is the same decision
-        as a :class:`NextMove`.
-    """
-    return LazyAdvice(volts, params, still=still)
+#: :func:`coverage_advice`, made on the first call and only then: the gates' name for
+#: :class:`LazyAdvice` (``lazy_coverage_advice(volts, params, still=still)``)
+lazy_coverage_advice = LazyAdvice

@@ -48,7 +48,7 @@ class GateContext:
         The controller config's parameters, mm and mm/V.
     advice : Advice
         Where to move the plate, for a gate that fails for too little or badly spread
-        motion (:func:`~loopcal.daemon.worker.coverage.lazy_coverage_advice`).
+        motion (:class:`~loopcal.daemon.worker.coverage.LazyAdvice`).
     positions : bool, default True
         The ``poses`` gate applies (False: an offset refitted with everything else held
         needs no spread of positions, the daemon's upkeep).

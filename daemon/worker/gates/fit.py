@@ -75,7 +75,7 @@ def condition_gate(condition: float, advice: Advice) -> Gate:
         ``inf`` when ``s_L`` is 0.
     advice : Advice
         What to do if it fails: the text, or a function making it (called only then;
-        :func:`~loopcal.daemon.worker.coverage.lazy_coverage_advice`).
+        :class:`~loopcal.daemon.worker.coverage.LazyAdvice`).
 
     Returns
     -------

@@ -97,7 +97,7 @@ class Gate:
 
 
 #: a failing gate's reason or advice, the text or a function that makes it (called only on
-#: failure: :func:`loopcal.daemon.worker.coverage.lazy_coverage_advice`)
+#: failure: :class:`loopcal.daemon.worker.coverage.LazyAdvice`)
 Advice = str | Callable[[], str]
 
 
