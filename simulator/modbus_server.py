@@ -64,6 +64,7 @@ from .wire import Corrupter, corrupt_mbap, corrupt_rtu
 SUPPORTED_FUNCTIONS = (3, 4, 6, 16)
 
 _T = TypeVar("_T")
+_S = TypeVar("_S", ModbusTcpServer, ModbusSerialServer)
 
 
 class _CheckedReadHolding(ReadHoldingRegistersRequest):
@@ -211,6 +212,31 @@ class ModbusAdapter:
                 ],
             ),
             action=self.action,
+        )
+
+    def server(self, server_class: type[_S], **where: object) -> _S:
+        """A pymodbus server over the module: :meth:`sim_device`, this adapter's traces and
+        the module's request classes (:func:`custom_pdus`).
+
+        Parameters
+        ----------
+        server_class : type
+            :class:`pymodbus.server.ModbusTcpServer` or
+            :class:`pymodbus.server.ModbusSerialServer`.
+        **where
+            Where it serves: its own keyword arguments (an address; a port and framer).
+
+        Returns
+        -------
+        ModbusTcpServer or ModbusSerialServer
+            Not yet serving.
+        """
+        return server_class(
+            self.sim_device(),
+            trace_packet=self.trace_packet,
+            trace_pdu=self.trace_pdu,  # type: ignore[arg-type]
+            custom_pdu=custom_pdus(self),
+            **where,
         )
 
     async def _latency(self) -> None:
@@ -390,10 +416,9 @@ class ModbusTcpHost:
 
     Parameters
     ----------
-    handle : DeviceHandle
-        The device, clock and wire faults, behind their lock.
-    unit : int
-        The module's unit id.
+    handle, unit : DeviceHandle, int
+        The device behind its lock, and the module's unit id, for the :attr:`adapter`
+        (:class:`ModbusAdapter`).
     host : str, default "127.0.0.1"
         Listening address.
     port : int, default 0
@@ -430,13 +455,7 @@ class ModbusTcpHost:
             pymodbus' own error if the port cannot be bound (it says only that it could
             not start listening).
         """
-        server = ModbusTcpServer(
-            self.adapter.sim_device(),
-            address=(self.host, self.port),
-            trace_packet=self.adapter.trace_packet,
-            trace_pdu=self.adapter.trace_pdu,  # type: ignore[arg-type]
-            custom_pdu=custom_pdus(self.adapter),
-        )
+        server = self.adapter.server(ModbusTcpServer, address=(self.host, self.port))
         await server.serve_forever(background=True)
         self._servers.append(server)
         self.port = server.transport.sockets[0].getsockname()[1]  # type: ignore[attr-defined]
@@ -472,10 +491,9 @@ class ModbusRtuHost:
 
     Parameters
     ----------
-    handle : DeviceHandle
-        The device, clock and wire faults, behind their lock.
-    unit : int
-        The module's unit id.
+    handle, unit : DeviceHandle, int
+        The device behind its lock, and the module's unit id, for the :attr:`adapter`
+        (:class:`ModbusAdapter`).
     port_path : str
         The serial device the server opens (the pty link's
         :attr:`~loopcal.simulator.pty.PtyLink.device_path`).
@@ -500,14 +518,8 @@ class ModbusRtuHost:
 
     async def listen(self) -> None:
         """Open the serial device and serve RTU frames on it in the background."""
-        self._server = ModbusSerialServer(
-            self.adapter.sim_device(),
-            framer=FramerType.RTU,
-            port=self.port_path,
-            baudrate=self.baud,
-            trace_packet=self.adapter.trace_packet,
-            trace_pdu=self.adapter.trace_pdu,  # type: ignore[arg-type]
-            custom_pdu=custom_pdus(self.adapter),
+        self._server = self.adapter.server(
+            ModbusSerialServer, framer=FramerType.RTU, port=self.port_path, baudrate=self.baud
         )
         await self._server.serve_forever(background=True)
 
