@@ -43,7 +43,6 @@ import json
 import os
 import sys
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +67,7 @@ from ..recording import (
 )
 from ..recording.compact import recordings_named
 from ..recording.schemas import NS_PER_S
+from ..times import now_text
 from ..version import loopcal_version
 from .errors import CommandError
 
@@ -131,7 +131,7 @@ def _metadata(
     if recorded and recorded != loopcal["version"]:
         loopcal["recorded_version"] = recorded
     loopcal["exported_from"] = os.path.abspath(source)
-    loopcal["exported_utc"] = datetime.now(UTC).isoformat(timespec="microseconds")
+    loopcal["exported_utc"] = now_text()
     out = {"loopcal": loopcal}
     for name, record in original.items():
         if name != "loopcal":

@@ -20,12 +20,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from datetime import UTC, datetime
 from pathlib import Path
 
 from ..arguments import path_argument
 from ..config.controller import ControllerConfigError, load_controller_config
 from ..recorder.settings import DEFAULTS, load_daemon_config
+from ..times import time_text
 from ..worker.proposal import Proposal, apply_proposal, discard_proposal, read_proposal
 from .errors import CommandError
 
@@ -62,9 +62,7 @@ def _where(args: argparse.Namespace) -> tuple[Path, Path | None, float]:
 
 
 def _iso(ns: object) -> str:
-    if not isinstance(ns, int):
-        return "?"
-    return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="microseconds")[:-6] + "Z"
+    return time_text(ns) if isinstance(ns, int) else "?"
 
 
 def describe(p: Proposal, config_path: Path, recordings: Path | None) -> list[str]:

@@ -6,7 +6,7 @@ upkeep in report mode (:mod:`.proposals`): the recalibrations it would have prop
 
 from __future__ import annotations
 
-from datetime import datetime
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -18,8 +18,8 @@ from ..config.controller import load_controller_config
 from ..live.health import HealthMonitor
 from ..recording import read_recordings
 from ..scan_rows import SCAN_DTYPE
+from ..times import parse_time, time_json
 from .proposals import ReportedProposals, UpkeepSettings, pending_proposal
-from .summary import utc_iso
 
 
 class Trace:
@@ -95,20 +95,20 @@ def check(files: list[Path], config_path: Path, false_alarm: float, *,
         if kind == "offset_drift":
             if changes and changes[-1]["sensor"] == d["sensor"] and changes[-1]["end_utc"] is None:
                 changes[-1].update(shift_mm=d["shift_mm"], std_mm=d["std_mm"],
-                                   shape=d["shape"], last_report_utc=utc_iso(now))  # fmt: skip
+                                   shape=d["shape"], last_report_utc=time_json(now))  # fmt: skip
                 return
             changes.append({
-                "sensor": d["sensor"], "start_utc": utc_iso(d["since_ns"]),
+                "sensor": d["sensor"], "start_utc": time_json(d["since_ns"]),
                 "start_offset_s": round((d["since_ns"] - first_ns[0]) / 1e9, 3),
-                "detected_utc": utc_iso(now), "last_report_utc": utc_iso(now),
+                "detected_utc": time_json(now), "last_report_utc": time_json(now),
                 "shift_mm": d["shift_mm"], "std_mm": d["std_mm"], "shape": d["shape"],
                 "statistic": d["statistic"], "end_utc": None, "message": message,
             })  # fmt: skip
         elif kind == "offset_drift_cleared" and changes:
-            changes[-1]["end_utc"] = utc_iso(now)
+            changes[-1]["end_utc"] = time_json(now)
         elif kind == "loops_open":
             opened.append({
-                "since_utc": utc_iso(d["since_ns"]), "detected_utc": utc_iso(d["detected_ns"]),
+                "since_utc": time_json(d["since_ns"]), "detected_utc": time_json(d["detected_ns"]),
                 "poses": d["poses"], "statistic": d["statistic"],
                 "largest_sensor": d["largest_sensor"], "largest_shift_mm": d["largest_shift_mm"],
                 "message": message,
@@ -139,8 +139,8 @@ def check(files: list[Path], config_path: Path, false_alarm: float, *,
         "threshold": round(monitor.threshold, 3),
         "false_alarm": false_alarm,
         "config": {"path": str(config.path), "sha256": config.sha256},
-        "start_utc": utc_iso(first_ns[0] if first_ns else None),
-        "end_utc": utc_iso(last_ns),
+        "start_utc": time_json(first_ns[0] if first_ns else None),
+        "end_utc": time_json(last_ns),
         "recordings": [str(f) for f in files],
         "warnings": warnings,
         "_trace": kept,
@@ -166,7 +166,8 @@ def plot(doc: dict[str, Any], path: Path) -> None:
                 label=f"sensor {i + 1}")  # fmt: skip
     a2.axhline(doc["threshold"], color="black", ls="--", lw=1,
                label=f"alarm threshold ({doc['false_alarm']:g} per pose)")  # fmt: skip
-    starts = [datetime.fromisoformat(c["start_utc"]) for c in doc["changes"]]
+    starts = [datetime.fromtimestamp(parse_time(c["start_utc"]) / 1e9, UTC)
+              for c in doc["changes"]]  # fmt: skip
     if len(starts) <= 20:
         for t0 in starts:
             for ax in (a1, a2):

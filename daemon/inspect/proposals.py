@@ -23,8 +23,8 @@ import numpy as np
 from ..config.controller import ControllerConfig, ControllerConfigError
 from ..live.upkeep import Upkeep
 from ..recorder.settings import DEFAULTS, SETTINGS
+from ..times import time_json
 from ..worker.proposal import proposal_path, read_proposal
-from .summary import utc_iso
 
 log = logging.getLogger(__name__)
 
@@ -97,9 +97,9 @@ class ReportedProposals:
         try:
             self._upkeep.feed(rows)
         except Exception as exc:  # noqa: BLE001 - the loop-closure check goes on without it
-            log.exception("upkeep failed on the scans from %s", utc_iso(int(rows["stamp_ns"][0])))
+            log.exception("upkeep failed on the scans from %s", time_json(int(rows["stamp_ns"][0])))
             self.failed = (f"upkeep stopped on the scans from "
-                           f"{utc_iso(int(rows['stamp_ns'][0]))}: {type(exc).__name__}: {exc}; "
+                           f"{time_json(int(rows['stamp_ns'][0]))}: {type(exc).__name__}: {exc}; "
                            "proposals after that are not reported")  # fmt: skip
 
     def found(self, first_ns: int | None) -> list[dict[str, Any]]:
@@ -111,13 +111,13 @@ class ReportedProposals:
         for p in self._upkeep.state.reported:
             out.append({
                 "names": list(p["names"]),
-                "since_utc": utc_iso(p["since_ns"]),
+                "since_utc": time_json(p["since_ns"]),
                 "since_offset_s": (None if first_ns is None
                                    else round((p["since_ns"] - first_ns) / 1e9, 3)),
                 "values": dict(p["values"]), "std": dict(p["std"]),
                 "shift_mm": dict(p["shift_mm"]),
-                "window_since_utc": utc_iso(p["window_since_ns"]),
-                "window_until_utc": utc_iso(p["window_until_ns"]),
+                "window_since_utc": time_json(p["window_since_ns"]),
+                "window_until_utc": time_json(p["window_until_ns"]),
                 "scans": p["scans"], "gates": dict(p["gates"]),
             })  # fmt: skip
         return out
@@ -148,8 +148,8 @@ def pending_proposal(config: ControllerConfig) -> dict[str, Any] | None:
     change = p.upkeep.get("change_since_ns")
     return {
         "path": str(p.path),
-        "since_utc": utc_iso(since) if isinstance(since, int) else p.upkeep.get("proposed_utc"),
-        "change_since_utc": utc_iso(change) if isinstance(change, int) else None,
+        "since_utc": time_json(since) if isinstance(since, int) else p.upkeep.get("proposed_utc"),
+        "change_since_utc": time_json(change) if isinstance(change, int) else None,
         "values": dict(p.values), "std": p.std, "error": None,
     }  # fmt: skip
 

@@ -19,7 +19,6 @@ import hashlib
 import json
 from collections import Counter
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +30,7 @@ from ..recording.names import recording_paths
 from ..recording.reader import identities
 from ..recording.verify import verify_file
 from ..scan_rows import scan_rate_hz
+from ..times import time_json
 from ..worker.recorded_poses import completed_poses
 
 _TAIL = 512  # scans of a file's end compared with the next file's start
@@ -96,7 +96,7 @@ class Summary:
             "path": str(path), "bytes": size, "complete": info.complete,
             "views": info.metadata.get("loopcal", {}).get("views") != "dropped",
             "scans": len(rows),
-            "start_utc": utc_iso(info.first_stamp_ns), "end_utc": utc_iso(info.last_stamp_ns),
+            "start_utc": time_json(info.first_stamp_ns), "end_utc": time_json(info.last_stamp_ns),
             "note": info.note or None, "warning": info.warning or None,
             "records_checked": checked.records, "damaged": damaged,
             "damage": [d.text() for d in checked.damaged], "scans_lost": info.lost_scans,
@@ -158,13 +158,13 @@ class Summary:
             "files": self.files,
             "bytes": sum(f["bytes"] for f in self.files),
             "scans": self.scans,
-            "start_utc": utc_iso(self.start_ns),
-            "end_utc": utc_iso(self.end_ns),
+            "start_utc": time_json(self.start_ns),
+            "end_utc": time_json(self.end_ns),
             "duration_s": round(span, 3),
             "scan_rate_hz": None if self.scan_rate_hz is None else round(self.scan_rate_hz, 4),
             "missed": self.missed,
             "gaps": self.gaps,
-            "powered_on_utc": utc_iso(self.powered_on_ns),
+            "powered_on_utc": time_json(self.powered_on_ns),
             "restarts": self.restarts,
             "power_ons": len(self.power_ons),
             "events": dict(sorted(self.events.items())),
@@ -175,14 +175,6 @@ class Summary:
             "damaged": self.damaged,
             "scans_lost": self.scans_lost,
         }
-
-
-def utc_iso(ns: int | None) -> str | None:
-    """A stamp (ns) as ISO 8601 UTC to the millisecond, as the ``--json`` documents give
-    times (``loopcal info``, ``loopcal check``); None stays None."""
-    if ns is None:
-        return None
-    return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds")
 
 
 def _config_entry(cfg: dict[str, str]) -> dict[str, Any]:
@@ -217,11 +209,11 @@ def render(doc: dict[str, Any]) -> list[str]:
     """The summary for people."""
     hours, rem = divmod(int(doc["duration_s"]), 3600)
     on = doc["powered_on_utc"]
-    powered_on = f"{_short(on)} (the first scan)" if on else "before the first scan"
+    powered_on = f"{on} (the first scan)" if on else "before the first scan"
     since = " since" if on else ""
     lines = [
         f"files:      {len(doc['files'])} ({doc['bytes'] / 1e6:,.1f} MB)",
-        f"time span:  {_short(doc['start_utc'])} to {_short(doc['end_utc'])} "
+        f"time span:  {doc['start_utc'] or '-'} to {doc['end_utc'] or '-'} "
         f"({hours} h {rem // 60} min {rem % 60} s)",
         f"scans:      {doc['scans']:,}"
         + (f" at {doc['scan_rate_hz']:.3f} Hz" if doc["scan_rate_hz"] else ""),
@@ -243,8 +235,8 @@ def render(doc: dict[str, Any]) -> list[str]:
         state = "closed" if f["complete"] else "not closed"
         if not f.get("views", True):
             state += ", views left out (loopcal export makes them)"
-        lines.append(f"  {Path(f['path']).name}  {_short(f['start_utc'])} to "
-                     f"{_short(f['end_utc'])}  {f['scans']:,} scans  {f['bytes'] / 1e6:.1f} MB  "
+        lines.append(f"  {Path(f['path']).name}  {f['start_utc'] or '-'} to "
+                     f"{f['end_utc'] or '-'}  {f['scans']:,} scans  {f['bytes'] / 1e6:.1f} MB  "
                      f"{state}")  # fmt: skip
     return lines
 
@@ -273,7 +265,3 @@ def damage_lines(doc: dict[str, Any]) -> list[str]:
                          "every one)")  # fmt: skip
     lines += [f"  {w}" for w in doc["warnings"]]
     return lines
-
-
-def _short(iso: str | None) -> str:
-    return "-" if iso is None else iso.replace("T", " ").replace("+00:00", " UTC")

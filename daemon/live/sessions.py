@@ -39,6 +39,7 @@ from loopcal.calibration.parameters import ParameterModel
 from ..config.controller import ControllerConfig
 from ..events import Level
 from ..recorder.engine import Recorder
+from ..times import name_stamp, time_text
 from .control import (
     MAX_MESSAGE_BYTES,
     ProtocolError,
@@ -180,7 +181,7 @@ class Session:
 
     def who(self) -> str:
         a = self.asked_by
-        started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.started_ns / 1e9))
+        started = time_text(self.started_ns)
         note = f', note "{self.request.note}"' if self.request.note else ""
         return f"session {self.id} of {a.get('user', '?')} (pid {a.get('pid', '?')}), " \
             f"started {started}{note}"  # fmt: skip
@@ -469,7 +470,7 @@ class ControlServer:
             self._refuse(conn, f"start: free: {exc}")
             return
         self.sessions_started += 1
-        sid = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + f"-{self.sessions_started}"
+        sid = name_stamp() + f"-{self.sessions_started}"
         holder: dict[str, Session] = {}
 
         def update(u: GuidanceUpdate) -> None:

@@ -47,7 +47,6 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
@@ -58,7 +57,7 @@ from ..config.controller import ControllerConfig, ControllerConfigError
 from ..events import Level
 from ..recorder.engine import Recorder
 from ..recorder.settings import RecorderSettings
-from ..recording.filereader import utc_text
+from ..times import now_text, time_or
 from ..worker.offsets import OFFSETS, OffsetFit, refit_offsets
 from ..worker.proposal import (
     Proposal,
@@ -200,8 +199,8 @@ class Upkeep:
         st = self.state
         if st.pending is not None:
             names = ", ".join(st.pending.values)
-            since = utc_text(st.pending_since_ns)[11:19]
-            return f"RECALIBRATION PROPOSED ({names}) since {since} UTC: loopcal upkeep apply"
+            since = time_or(st.pending_since_ns)
+            return f"RECALIBRATION PROPOSED ({names}) since {since}: loopcal upkeep apply"
         if self.mode == "off":
             return "upkeep off"
         if st.change:
@@ -357,7 +356,7 @@ class Upkeep:
         if not test.moved:
             if ch.stood:
                 log.info("upkeep: the change since %s is gone (segment ending %s)",
-                         utc_text(ch.since_ns), utc_text(end_ns))  # fmt: skip
+                         time_or(ch.since_ns), time_or(end_ns))  # fmt: skip
             self._change = None  # a blip, or gone
             self.state.change = ""
             return
@@ -370,11 +369,11 @@ class Upkeep:
         ch.names = use.changed
         words = ", ".join(f"{n} {use.shift_mm[OFFSETS.index(n)]:+.2f} mm" for n in use.changed)
         if not ch.names:
-            self.state.change = (f"a change since {utc_text(ch.since_ns)[11:19]} UTC, which "
+            self.state.change = (f"a change since {time_or(ch.since_ns)}, which "
                                  "sensor not yet told apart")  # fmt: skip
             self._maybe_refuse(ch, end_ns, "the motion does not yet tell which sensor moved")
             return
-        self.state.change = (f"{words} since {utc_text(ch.since_ns)[11:19]} UTC: "
+        self.state.change = (f"{words} since {time_or(ch.since_ns)}: "
                              "identifying it from the robot's motion")  # fmt: skip
         self._refit(upto, end_ns)
 
@@ -384,7 +383,7 @@ class Upkeep:
         ch.refused = True
         self.state.refused += 1
         self.emit("recalibration_refused", Level.WARNING,
-                  f"upkeep: an offset changed since {utc_text(ch.since_ns)}, but the robot's "
+                  f"upkeep: an offset changed since {time_or(ch.since_ns)}, but the robot's "
                   f"motion since does not identify it: {why}; calibrate with loopcal session",
                   names=ch.names, since_ns=ch.since_ns, refusal=why)  # fmt: skip
 
@@ -414,10 +413,10 @@ class Upkeep:
         gates = {g.name: bool(g.passed) for g in fit.gates}
         return {
             "mode": self.mode,
-            "change_since_ns": int(ch.since_ns), "change_since_utc": utc_text(ch.since_ns),
+            "change_since_ns": int(ch.since_ns), "change_since_utc": time_or(ch.since_ns),
             "window_since_ns": int(since), "window_until_ns": int(until),
             "proposed_ns": time.time_ns(),
-            "proposed_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+            "proposed_utc": now_text(),
             "shift_mm": {n: round(values[n] - base[n], 5) for n in fit.changed},
             "scans": int(fit.scans),
             "target_mm": self.target_mm, "threshold_mm": self.threshold_mm,
@@ -495,7 +494,7 @@ class Upkeep:
         b = int(np.argmax(test.statistic))
         self.emit("recalibration_withdrawn", Level.WARNING,
                   f"upkeep: the proposal {old.path} is withdrawn (kept as {aside}): the scans "
-                  f"since {utc_text(start_ns)} disagree with it ({OFFSETS[b]} "
+                  f"since {time_or(start_ns)} disagree with it ({OFFSETS[b]} "
                   f"{test.shift_mm[b]:+.3f} mm from its values)", path=str(old.path),
                   aside=str(aside), names=list(old.values), since_ns=start_ns)  # fmt: skip
 

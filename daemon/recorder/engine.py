@@ -29,6 +29,7 @@ from pathlib import Path
 from ..config.controller import ControllerConfig, load_controller_config, nominal_config
 from ..events import Event, Level
 from ..recording.views import WrittenViews
+from ..times import now_text, time_text
 from ..version import loopcal_version
 from .acquisition import Acquisition, AcquisitionStats, Batch, ResumePoint
 from .compactor import Compactor
@@ -305,9 +306,9 @@ class Recorder:
             if a.restarts:
                 parts.append(f"{a.restarts} module restarts")
             if a.foreign_since_ns is not None:
-                since = time.strftime("%H:%M:%S", time.gmtime(a.foreign_since_ns / 1e9))
                 parts.append(f"ANOTHER MODBUS MASTER is taking scans off the DAQ's FIFO since "
-                             f"{since} UTC ({a.foreign_taken} taken in all)")  # fmt: skip
+                             f"{time_text(a.foreign_since_ns)} "
+                             f"({a.foreign_taken} taken in all)")  # fmt: skip
             parts.append(
                 "DAQ connected"
                 if a.connected
@@ -449,8 +450,7 @@ class Recorder:
         prov = controller.provenance or {}
         how = (f" (calibrated {prov.get('written_utc', '?')} by {prov.get('method', '?')})"
                if prov else "")  # fmt: skip
-        stamp = time.strftime("%H:%M:%S", time.gmtime())
-        self.followed = (f"controller config replaced {stamp} UTC: following sha256 "
+        self.followed = (f"controller config replaced {now_text()}: following sha256 "
                          f"{controller.sha256[:12]}{how}")  # fmt: skip
         self.emit("config_reload", Level.INFO,
                   f"the controller config {path} was replaced{how}: following it from now "

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..events import Level
-from ..recording.filereader import utc_text
+from ..times import time_or
 
 #: s of the module's scans with nothing taken that end an episode
 QUIET_S = 15.0
@@ -138,7 +138,7 @@ class ForeignReaders:
         return (
             Level.WARNING,
             f"another Modbus master is taking scans off the module's FIFO since "
-            f"{utc_text(ep.since_ns)}: {at_least}{taken} taken so far, each missing from the "
+            f"{time_or(ep.since_ns)}: {at_least}{taken} taken so far, each missing from the "
             "recording "
             "(loopcal cannot lock it out: find it and stop it)",
             {"since_ns": ep.since_ns, "taken": taken, "counter64": ep.counter64},
@@ -149,8 +149,8 @@ class ForeignReaders:
         return (
             Level.INFO,
             f"another Modbus master took no scan off the module's FIFO for {QUIET_S:g} s of "
-            f"its scans: {ep.taken} taken from {utc_text(ep.since_ns)} until "
-            f"{utc_text(ep.until_ns)}",
+            f"its scans: {ep.taken} taken from {time_or(ep.since_ns)} until "
+            f"{time_or(ep.until_ns)}",
             {"since_ns": ep.since_ns, "until_ns": ep.until_ns, "taken": ep.taken,
              "counter64": ep.last_counter64},
         )  # fmt: skip

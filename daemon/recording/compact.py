@@ -58,7 +58,6 @@ import logging
 import os
 import stat
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 
 from mcap.reader import make_reader
@@ -66,6 +65,7 @@ from mcap.writer import CompressionType, Writer
 from numpy.lib.recfunctions import repack_fields
 
 from ..config import durable
+from ..times import now_text
 from .columns import decode_columns, decode_scan_messages, encode_columns, is_columns
 from .errors import RecordingError
 from .mcap_records import MAGIC
@@ -362,7 +362,7 @@ def _rewrite(path: Path, tmp: Path, scans_if_dropping: int | None) -> tuple[int,
                 new = w.register_channel(c.topic, c.message_encoding, sid, dict(c.metadata))
                 if new != cid:  # our writer numbers channels from 1 in order: so does this one
                     raise RecordingError(f"{path}: channel ids are not consecutive")
-            stamp = datetime.now(UTC).isoformat(timespec="seconds")
+            stamp = now_text()
             span_s = str(CHUNK_SPAN_NS // NS_PER_S)
             for name, record in metadata:
                 if name == "loopcal":

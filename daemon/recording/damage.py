@@ -9,42 +9,9 @@ also names the record, the topics and the message count, and prints it
 from __future__ import annotations
 
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from typing import Any
 
-
-def span_text(start_ns: int | None, end_ns: int | None) -> str:
-    """A time span for people: ``2026-11-18 12:00:01.000–12:00:02.950 UTC`` (the date once
-    when both ends are on one day); ``""`` when unknown."""
-    if start_ns is None or end_ns is None:
-        return ""
-
-    def at(ns: int) -> datetime | None:
-        try:
-            return datetime.fromtimestamp(ns // 1_000_000_000, UTC).replace(
-                microsecond=(ns % 1_000_000_000) // 1000
-            )
-        except (OverflowError, OSError, ValueError):
-            return None
-
-    a, b = at(start_ns), at(end_ns)
-    if a is None or b is None:
-        return f"{start_ns}–{end_ns} ns"
-    left = f"{a:%Y-%m-%d %H:%M:%S}.{a.microsecond // 1000:03d}"
-    right = f"{b:%H:%M:%S}.{b.microsecond // 1000:03d}"
-    if a.date() != b.date():
-        right = f"{b:%Y-%m-%d} {right}"
-    return f"{left}–{right} UTC"
-
-
-def _iso(ns: int | None) -> str | None:
-    if ns is None:
-        return None
-    try:
-        t = datetime.fromtimestamp(ns // 1_000_000_000, UTC)
-    except (OverflowError, OSError, ValueError):
-        return None
-    return t.replace(microsecond=(ns % 1_000_000_000) // 1000).isoformat(timespec="milliseconds")
+from ..times import span_text, time_json
 
 
 @dataclass(frozen=True)
@@ -85,8 +52,8 @@ class Damage:
     messages: int | None = None
 
     def text(self) -> str:
-        """One line: ``chunk at byte 3754 (/joint/state, /plate/transform; 2026-11-18
-        12:00:01.000–12:00:01.950 UTC; 41 messages): CRC mismatch``."""
+        """One line: ``chunk at byte 3754 (/joint/state, /plate/transform;
+        2026-11-18T12:00:01.000Z to 2026-11-18T12:00:01.950Z; 41 messages): CRC mismatch``."""
         parts = [", ".join(self.topics) if self.topics else "topics unknown"]
         span = span_text(self.start_ns, self.end_ns)
         if span:
@@ -100,9 +67,9 @@ class Damage:
         return {
             "offset": self.offset, "length": self.length, "record": self.record,
             "what": self.what, "topics": list(self.topics) or None,
-            "start_utc": _iso(self.start_ns), "end_utc": _iso(self.end_ns),
+            "start_utc": time_json(self.start_ns), "end_utc": time_json(self.end_ns),
             "start_ns": self.start_ns, "end_ns": self.end_ns, "messages": self.messages,
         }  # fmt: skip
 
 
-__all__ = ["Damage", "span_text"]
+__all__ = ["Damage"]

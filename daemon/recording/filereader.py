@@ -31,6 +31,7 @@ from mcap.records import Channel, ChunkIndex, MessageIndex, Metadata, Statistics
 
 from .. import scan_rows
 from ..events import Event
+from ..times import time_or
 from .columns import decode_scan_messages
 from .damage import Damage
 from .errors import RecordingError
@@ -49,7 +50,7 @@ from .mcap_records import (
 )
 from .mcap_summary import SummarySection, read_summary
 from .names import NAME_RE
-from .recordingfile import RecordingFile, utc_text
+from .recordingfile import RecordingFile
 from .schemas import (
     BLOCK_SPAN_NS,
     COLUMNS_SPAN_NS,
@@ -501,10 +502,10 @@ class FileReader:
                 after.append(d)
         texts = []
         if before:
-            texts.append(f"an unknown number before {utc_text(first)} (damage at byte "
+            texts.append(f"an unknown number before {time_or(first)} (damage at byte "
                          f"{before[0].offset})")  # fmt: skip
         if after:
-            texts.append(f"the scans after {utc_text(last)} are lost, how many is unknown "
+            texts.append(f"the scans after {time_or(last)} are lost, how many is unknown "
                          f"(damage at byte {after[0].offset})")  # fmt: skip
         return ", ".join(texts)
 
@@ -591,5 +592,5 @@ def _unique_scans(rows: np.ndarray) -> tuple[np.ndarray, int]:
     return rows[keep], int(len(rows) - keep.sum())
 
 
-# RecordingFile and utc_text live in .recordingfile; importable from here as before
-__all__ = ["FileReader", "RecordingFile", "utc_text"]
+# RecordingFile lives in .recordingfile; importable from here as before
+__all__ = ["FileReader", "RecordingFile"]

@@ -15,12 +15,13 @@ from mcap.records import Statistics
 
 from .. import scan_rows
 from ..events import Event
+from ..times import time_or
 from .errors import RecordingError
 from .filereader import FileReader
 from .mcap_records import FOOTER_BYTES, MAGIC, RECORD_HEAD, is_ours, read_header
 from .mcap_summary import read_statistics
 from .names import recording_paths
-from .recordingfile import RecordingFile, utc_text
+from .recordingfile import RecordingFile
 from .schemas import BLOCK_SPAN_NS, NS_PER_S
 
 
@@ -251,7 +252,7 @@ def read_recordings(
             raise ValueError(f"last ({last}) is not a positive duration")
     if lo is not None and hi is not None and hi <= lo:
         raise ValueError(
-            f"empty time window: until ({utc_text(hi)}) is not after since ({utc_text(lo)})"
+            f"empty time window: until ({time_or(hi)}) is not after since ({time_or(lo)})"
         )
     files = recording_paths([paths] if isinstance(paths, (str, os.PathLike)) else paths)
     windowed = lo is not None or hi is not None or last is not None

@@ -8,12 +8,11 @@ and the one line that says so (:attr:`RecordingFile.warning`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 
+from ..times import span_text, time_or
 from .damage import Damage
 from .losses import Loss
-from .schemas import NS_PER_S
 
 
 @dataclass
@@ -131,7 +130,7 @@ class RecordingFile:
         if self.lost:
             spans = ", ".join(
                 f"counters {x.first}-{x.first + x.count - 1} of epoch {x.epoch} "
-                f"({utc_text(x.after_ns)} to {utc_text(x.before_ns)})"
+                f"({time_or(x.after_ns)} to {time_or(x.before_ns)})"
                 for x in self.lost[:3]
             )
             more = f" and {len(self.lost) - 3} more run(s)" if len(self.lost) > 3 else ""
@@ -160,33 +159,8 @@ class RecordingFile:
 
 
 def _span_text(d: Damage) -> str:
-    if d.start_ns is None or d.end_ns is None:
-        return ""
-    return f" (messages of {utc_text(d.start_ns)} to {utc_text(d.end_ns)})"
+    span = span_text(d.start_ns, d.end_ns)
+    return f" (messages of {span})" if span else ""
 
 
-def utc_text(ns: int | None) -> str:
-    """A time stamp for people: ``YYYY-mm-dd HH:MM:SS.ss UTC``.
-
-    Parameters
-    ----------
-    ns : int or None
-        ns since the Unix epoch.
-
-    Returns
-    -------
-    str
-        The UTC time to the hundredth of a second (truncated); ``"?"`` for None, and
-        ``"N ns"`` for a time a datetime cannot hold.
-    """
-    if ns is None:
-        return "?"
-    sec, rest = divmod(int(ns), NS_PER_S)
-    try:
-        t = datetime.fromtimestamp(sec, UTC)
-    except (OverflowError, OSError, ValueError):
-        return f"{ns} ns"
-    return f"{t:%Y-%m-%d %H:%M:%S}.{rest // 10_000_000:02d} UTC"
-
-
-__all__ = ["RecordingFile", "utc_text"]
+__all__ = ["RecordingFile"]

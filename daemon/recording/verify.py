@@ -57,7 +57,7 @@ from typing import Any
 from mcap.opcode import Opcode
 from mcap.records import Channel, ChunkIndex, Footer, Header, Schema, Statistics
 
-from .damage import Damage, span_text
+from .damage import Damage
 from .errors import RecordingError
 from .mcap_records import (
     DATA_END_BYTES,
@@ -540,4 +540,4 @@ def verify_file(path: str | os.PathLike) -> Verification:
             pass
 
 
-__all__ = ["Damaged", "Verification", "span_text", "verify_file"]
+__all__ = ["Damaged", "Verification", "verify_file"]

@@ -16,7 +16,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +33,7 @@ from loopcal.calibration.pipeline import (
 
 from ..config.controller import ControllerConfig
 from ..recording import RecordingFile
+from ..times import now_text, time_or
 from ..version import loopcal_version
 from .coverage import LazyAdvice, lazy_coverage_advice
 from .gates import Gate, GateContext, measure_gates
@@ -171,17 +171,12 @@ class WorkerResult:
         ident = cal.identification
         first, last = self.span_ns if self.span_ns is not None else (None, None)
 
-        def iso(ns: int | None) -> str:
-            if ns is None:
-                return ""
-            return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="seconds")
-
         return {
-            "written_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+            "written_utc": now_text(),
             "loopcal": loopcal_version(),
             "recordings": [f.path.name for f in self.files],
-            "recorded_from_utc": iso(since if since is not None else first),
-            "recorded_until_utc": iso(until if until is not None else last),
+            "recorded_from_utc": time_or(since if since is not None else first, ""),
+            "recorded_until_utc": time_or(until if until is not None else last, ""),
             "poses_found": len(self.poses),
             "poses_used": int(ident.used.sum()),
             "method": ident.method,

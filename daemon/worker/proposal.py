@@ -25,7 +25,6 @@ import hashlib
 import json
 import os
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +35,7 @@ from loopcal.calibration.parameters import INDEX
 from ..config import durable
 from ..config.controller import ControllerConfig, ControllerConfigError, load_controller_config
 from ..recording import RecordingError, read_recordings
+from ..times import name_stamp, now_text
 from .offsets import refit_offsets
 from .writeback import Written, updated_text, write_back
 
@@ -68,7 +68,7 @@ def proposal_provenance(
           "values": {n: float(v) for n, v in values.items()}}  # fmt: skip
     up["digest"] = _digest(up["values"], up)
     return {
-        "written_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "written_utc": now_text(),
         "method": "ml",
         "identified": list(values),
         "std": merged,
@@ -211,7 +211,7 @@ def apply_proposal(config: ControllerConfig, proposal: Proposal, directory: Path
         params[INDEX[n]] = v
     prov = dict(proposal.config.provenance or {})
     prov["upkeep"] = {**prov.get("upkeep", {}),
-                      "applied_utc": datetime.now(UTC).isoformat(timespec="seconds")}  # fmt: skip
+                      "applied_utc": now_text()}  # fmt: skip
     written = write_back(config, params, prov)
     discard_proposal(config, keep=False)
     return written
@@ -230,7 +230,7 @@ def discard_proposal(config: ControllerConfig, *, keep: bool = True) -> Path | N
             path.unlink(missing_ok=True)
             durable.fsync_dir(path.parent)
             return None
-        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+        stamp = name_stamp()
         aside = path.with_name(f"{path.name}.{stamp}.discarded")
         os.replace(path, aside)
         durable.fsync_dir(path.parent)

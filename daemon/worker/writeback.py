@@ -27,7 +27,6 @@ from __future__ import annotations
 import hashlib
 import os
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +37,7 @@ from loopcal.calibration.parameters import NAMES
 
 from ..config import durable
 from ..config.controller import ControllerConfig, ControllerConfigError
+from ..times import name_stamp
 
 #: the write sequence's steps, in order (the config is new from ``new-renamed`` on)
 STEPS = ("locked", "backup-written", "backup-renamed", "new-written", "new-renamed",
@@ -140,7 +140,7 @@ def write_back(
 
 def _keep_previous(target: Path, raw: bytes, mode: int) -> Path:
     """Copy the current version beside the target under a name nobody has taken."""
-    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    stamp = name_stamp()
     n = 1
     while True:
         suffix = stamp if n == 1 else f"{stamp}-{n}"

@@ -109,7 +109,7 @@ def test_a_zeroed_run_inside_a_chunk_is_reported_with_the_scans_lost(tmp_path):
     assert len(out) == 2628 - 20
     [warning] = out.warnings
     assert "20 scan(s) missing: counters 800-819 of epoch 3" in warning, warning
-    assert str(path) in warning and "UTC" in warning
+    assert str(path) in warning and "(messages of 2026-11-18T11:07:20.000Z to " in warning
     assert out.files[0].lost_scans == 20
 
 

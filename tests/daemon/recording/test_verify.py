@@ -23,7 +23,8 @@ from mcap.stream_reader import StreamReader
 
 from loopcal.daemon import recording as rec
 from loopcal.daemon.inspect.fleet import RobotDay, info_task
-from loopcal.daemon.recording.verify import span_text, verify_file
+from loopcal.daemon.recording.verify import verify_file
+from loopcal.daemon.times import span_text
 from tests.support.js import run_node
 from tests.support.mutations import chunk_spans, flip_bits, zero_run
 from tests.support.processes import loopcal
