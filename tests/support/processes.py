@@ -3,7 +3,10 @@ log lines as they come, and what they serve (metrics, the notify socket, ports).
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import logging
 import os
 import re
 import signal
@@ -203,15 +206,43 @@ def loopcal(
     )
 
 
+def loopcal_main(*args: str | Path) -> subprocess.CompletedProcess:
+    """``loopcal ARGS`` run by :func:`loopcal.daemon.cli.main` in this process, stdout and
+    stderr captured: what a subprocess would say, a second sooner.
+
+    For the checks of a command's refusals and output that start nothing (bad input: exit
+    2 before anything runs); what a process does as a process (signals, ports, the exit
+    status the shell sees, a traceback) stays with :func:`loopcal`. The root logger is
+    put back as it was: a command that configures logging must not write into the next
+    one's captured stderr.
+    """
+    from loopcal.daemon.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    argv = [str(a) for a in args]
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                status = main(argv)
+            except SystemExit as exc:  # argparse's refusals and --help
+                status = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    finally:
+        root.handlers[:] = handlers
+        root.setLevel(level)
+    return subprocess.CompletedProcess([*LOOPCAL, *argv], status, out.getvalue(), err.getvalue())
+
+
 def fresh_config(path: Path) -> Path:
     """A controller config at ``path`` as ``loopcal init-config`` writes it."""
-    proc = loopcal("init-config", path, "--force")
+    proc = loopcal_main("init-config", path, "--force")
     assert proc.returncode == 0, proc.stderr
     return path
 
 
 def calibrate_json(*args: str | Path) -> tuple[int, dict, str]:
     """``loopcal calibrate ARGS --json``: exit status, its JSON object, stderr."""
-    proc = loopcal("calibrate", *args, "--json")
+    proc = loopcal_main("calibrate", *args, "--json")
     doc = json.loads(proc.stdout) if proc.stdout.strip() else {}
     return proc.returncode, doc, proc.stderr

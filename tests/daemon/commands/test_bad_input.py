@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from loopcal.daemon import recording as rec
-from tests.support.processes import fresh_config, loopcal, taken_port
+from tests.support.processes import fresh_config, loopcal_main, taken_port
 from tests.support.recordings import write_recording
 from tests.support.rows import T0, make_rows
 
@@ -36,11 +36,11 @@ def refused(proc, *words: str) -> None:
 )
 def test_bad_driver_urls_are_refused_before_anything_starts(tmp_path, url, words):
     out = tmp_path / "rec"
-    refused(loopcal("record", "--daq", url, "--out", out, "--duration", "1"), "--daq", *words)
+    refused(loopcal_main("record", "--daq", url, "--out", out, "--duration", "1"), "--daq", *words)
     assert not out.exists() or not list(out.iterdir())
     cfg = tmp_path / "daemon.toml"
     cfg.write_text(f'[daq]\nurl = "{url}"\n[recording]\ndirectory = "{out}"\n')
-    refused(loopcal("daemon", "--config", cfg), "[daq].url", *words)
+    refused(loopcal_main("daemon", "--config", cfg), "[daq].url", *words)
 
 
 @pytest.mark.slow
@@ -48,7 +48,7 @@ def test_an_absurd_controller_config_is_refused_naming_the_key(tmp_path):
     config = fresh_config(tmp_path / "controller.toml")
     config.write_text(config.read_text().replace("A1x = 68.7", "A1x = 1e300"))
     refused(
-        loopcal(
+        loopcal_main(
             "record",
             "--daq",
             "modbus-tcp://127.0.0.1:1",
@@ -64,7 +64,7 @@ def test_an_absurd_controller_config_is_refused_naming_the_key(tmp_path):
     )
     recording = tmp_path / rec.recording_name(T0)
     write_recording(recording, make_rows(200))
-    proc = loopcal("calibrate", recording, "--controller-config", config)
+    proc = loopcal_main("calibrate", recording, "--controller-config", config)
     refused(proc, "A1x", "plausible")
     assert "Eigenvalues" not in proc.stderr
 
@@ -74,14 +74,14 @@ def test_calibrate_options(tmp_path):
     config = fresh_config(tmp_path / "controller.toml")
     recording = tmp_path / rec.recording_name(T0)
     write_recording(recording, make_rows(200))
-    refused(loopcal("calibrate", recording, "--controller-config", config, "--last",
+    refused(loopcal_main("calibrate", recording, "--controller-config", config, "--last",
                     "99999999999d"), "--last", "3650 days")  # fmt: skip
-    refused(loopcal("calibrate", recording, "--controller-config", config, "--ties",
+    refused(loopcal_main("calibrate", recording, "--controller-config", config, "--ties",
                     "A4x=-A1x"), "--ties goes with --free")  # fmt: skip
     window = ("--since", "2030-01-01T00:00:00Z", "--until", "2029-01-01T00:00:00Z")
-    proc = loopcal("calibrate", recording, "--controller-config", config, *window)
+    proc = loopcal_main("calibrate", recording, "--controller-config", config, *window)
     refused(proc, "empty time window", "2030-01-01 00:00:00 UTC")
-    proc = loopcal("calibrate", recording, "--controller-config", config,
+    proc = loopcal_main("calibrate", recording, "--controller-config", config,
                    "--since", "2031-01-01T00:00:00Z")  # fmt: skip
     refused(proc, "no scans", "from 2031-01-01 00:00:00 UTC")
     assert " ns" not in proc.stderr
@@ -95,7 +95,7 @@ def test_report_path_is_checked_before_the_config_is_written(tmp_path):
     blocker.write_text("not a directory")
     recording = tmp_path / rec.recording_name(T0)
     write_recording(recording, make_rows(200))
-    proc = loopcal("calibrate", recording, "--controller-config", config, "--write",
+    proc = loopcal_main("calibrate", recording, "--controller-config", config, "--write",
                    "--report", blocker)  # fmt: skip
     refused(proc, "--report", "not a directory")
     assert config.read_bytes() == before and not list(tmp_path.glob("*.prev"))
@@ -106,24 +106,24 @@ def test_replay_and_simulate_options(tmp_path):
     recording = tmp_path / rec.recording_name(T0)
     write_recording(recording, make_rows(100))
     for cmd in (["replay", recording], ["simulate", "--duration", "1"]):
-        refused(loopcal(*cmd, "--port", "70000"), "--port", "70000", "0..65535")
-        refused(loopcal(*cmd, "--host", "256.1.1.1"), "--host", "256.1.1.1")
+        refused(loopcal_main(*cmd, "--port", "70000"), "--port", "70000", "0..65535")
+        refused(loopcal_main(*cmd, "--host", "256.1.1.1"), "--host", "256.1.1.1")
         with taken_port() as port:
-            refused(loopcal(*cmd, "--port", port), f"127.0.0.1:{port}", "in use")
-        refused(loopcal(*cmd, "--max-read-registers", "0"), "--max-read-registers", "1..125")
-        refused(loopcal(*cmd, "--slow-answers", "0.1"), "--slow-answers needs --latency")
-    refused(loopcal("simulate", "--truth-out", "/no/dir/t.jsonl", "--duration", "1"),
+            refused(loopcal_main(*cmd, "--port", port), f"127.0.0.1:{port}", "in use")
+        refused(loopcal_main(*cmd, "--max-read-registers", "0"), "--max-read-registers", "1..125")
+        refused(loopcal_main(*cmd, "--slow-answers", "0.1"), "--slow-answers needs --latency")
+    refused(loopcal_main("simulate", "--truth-out", "/no/dir/t.jsonl", "--duration", "1"),
             "--truth-out /no/dir/t.jsonl")  # fmt: skip
     eight = tmp_path / "eight.mcap"
     eight.write_bytes(b"\x01\x02\x03\x04\x05\x06\x07\x08")
-    refused(loopcal("replay", eight), str(eight), "not an MCAP file")
+    refused(loopcal_main("replay", eight), str(eight), "not an MCAP file")
     eight.write_bytes(b"\x89MCAP0\r\n")
-    refused(loopcal("replay", eight), str(eight), "no scans")
+    refused(loopcal_main("replay", eight), str(eight), "no scans")
 
 
 @pytest.mark.slow
 def test_demo_out_must_be_a_directory(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    refused(loopcal("demo", "--out", blocker), "--out", "not a directory")
-    refused(loopcal("demo", "--out", blocker / "sub"), "--out", "Not a directory")
+    refused(loopcal_main("demo", "--out", blocker), "--out", "not a directory")
+    refused(loopcal_main("demo", "--out", blocker / "sub"), "--out", "Not a directory")

@@ -10,7 +10,7 @@ import pytest
 from loopcal.daemon.config.controller import write_initial_config
 from loopcal.simulator.drift import OffsetDrift
 from loopcal.simulator.scenarios import HandMoves
-from tests.support.processes import loopcal
+from tests.support.processes import loopcal_main
 from tests.support.rows import T0
 from tests.support.sessions import PAUSE_S, truth_for, write_session
 
@@ -44,7 +44,7 @@ def table(path) -> list[dict[str, str]]:
 
 def test_fleet_info_is_one_row_per_robot_day(fleet, tmp_path):
     out = tmp_path / "info.csv"
-    proc = loopcal("fleet", "info", fleet, "--table", out, "--workers", "2")
+    proc = loopcal_main("fleet", "info", fleet, "--table", out, "--workers", "2")
     assert proc.returncode == 0, proc.stderr
     rows = table(out)
     assert [(r["robot"], r["day"]) for r in rows] == [
@@ -55,7 +55,7 @@ def test_fleet_info_is_one_row_per_robot_day(fleet, tmp_path):
     assert all(int(r["missed"]) == 0 and int(r["poses"]) > 100 for r in rows)
     assert "6 robot-days of 3 robot(s) on a local cluster of 2 worker(s)" in proc.stderr
     assert "6/6 robot-days done" in proc.stderr
-    as_json = loopcal("fleet", "info", fleet, "--json", "--workers", "2")
+    as_json = loopcal_main("fleet", "info", fleet, "--json", "--workers", "2")
     assert as_json.returncode == 0, as_json.stderr
     doc = json.loads(as_json.stdout)
     assert doc["columns"] == list(rows[0])
@@ -64,7 +64,7 @@ def test_fleet_info_is_one_row_per_robot_day(fleet, tmp_path):
 
 def test_fleet_check_finds_the_robot_and_day_whose_sensor_moved(fleet, tmp_path):
     out = tmp_path / "check.csv"
-    proc = loopcal("fleet", "check", fleet, "--table", out, "--workers", "2")
+    proc = loopcal_main("fleet", "check", fleet, "--table", out, "--workers", "2")
     assert proc.returncode == 1, proc.stderr  # a change was found
     rows = {(r["robot"], r["day"]): r for r in table(out)}
     moved = rows["robot-c", "2026-11-19"]
@@ -81,7 +81,7 @@ def test_fleet_check_finds_the_robot_and_day_whose_sensor_moved(fleet, tmp_path)
 
 
 def test_fleet_check_json_has_the_proposals_column(fleet):
-    proc = loopcal("fleet", "check", fleet, "--json", "--workers", "2")
+    proc = loopcal_main("fleet", "check", fleet, "--json", "--workers", "2")
     assert proc.returncode == 1, proc.stderr
     doc = json.loads(proc.stdout)
     assert "proposals" in doc["columns"]
@@ -93,11 +93,11 @@ def test_fleet_check_json_has_the_proposals_column(fleet):
 def test_fleet_bad_input(tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()
-    proc = loopcal("fleet", "info", empty)
+    proc = loopcal_main("fleet", "info", empty)
     assert proc.returncode == 2 and "no robot directories with recordings" in proc.stderr
-    proc = loopcal("fleet", "info", tmp_path / "missing")
+    proc = loopcal_main("fleet", "info", tmp_path / "missing")
     assert proc.returncode == 2 and "not a directory" in proc.stderr
-    proc = loopcal("fleet", "check", empty, "--workers", "0")
+    proc = loopcal_main("fleet", "check", empty, "--workers", "0")
     assert proc.returncode == 2 and "--workers 0" in proc.stderr
-    proc = loopcal("fleet", "check", empty, "--upkeep-threshold-mm", "20")
+    proc = loopcal_main("fleet", "check", empty, "--upkeep-threshold-mm", "20")
     assert proc.returncode == 2 and "--upkeep-threshold-mm 20" in proc.stderr

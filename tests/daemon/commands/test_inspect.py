@@ -1,4 +1,4 @@
-"""``loopcal info`` and ``loopcal check`` on real recording files, as subprocesses; check's
+"""``loopcal info`` and ``loopcal check`` on real recording files, in this process (cli.main); check's
 report of what the daemon's upkeep would propose, from a robot at work (a task loop)."""
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from loopcal.simulator.scenarios import HandMoves
 from loopcal.simulator.task import TaskLoop
 from tests.support.emulator import hand_emulator
 from tests.support.mutations import tear_chunk
-from tests.support.processes import loopcal, record
+from tests.support.processes import loopcal_main, record
 from tests.support.recordings import write_directory, write_rows
 from tests.support.rows import T0, make_rows, rows_from
 from tests.support.sessions import PAUSE_S, truth_for, write_session
@@ -71,7 +71,7 @@ def test_info_counts_scans_gaps_restarts_events_and_damage(tmp_path):
     _write(fa, a, evs)
     _write(fb, b, evs)
     shutil.copy(fa, d / rec.recording_name(T0 + 10**6))  # a copy: counted once
-    proc = loopcal("info", d, "--json")
+    proc = loopcal_main("info", d, "--json")
     assert proc.returncode == 0, proc.stderr
     doc = json.loads(proc.stdout)
     assert doc["scans"] == 1600 and len(doc["files"]) == 3
@@ -86,12 +86,12 @@ def test_info_counts_scans_gaps_restarts_events_and_damage(tmp_path):
     assert cfg["calibrated_utc"].startswith("2026-11-20") and cfg["method"] == "ml"
     # damage a file: info says what was lost, by name
     tear_chunk(fb, 8, head=40)
-    proc = loopcal("info", d)
+    proc = loopcal_main("info", d)
     assert proc.returncode == 0
     assert "scan(s) missing" in proc.stdout and fb.name in proc.stdout
     assert "restarts:   1 (power-ons seen: 2)" in proc.stdout and "gap" in proc.stdout
     assert "powered on: before the first scan" in proc.stdout
-    bad = loopcal("info", tmp_path / "nothing-here")
+    bad = loopcal_main("info", tmp_path / "nothing-here")
     assert bad.returncode == 2 and "no such file" in bad.stderr
 
 
@@ -117,10 +117,10 @@ def test_info_names_the_power_on_and_counts_restarts_after_it(tmp_path, power_cy
     assert len(boots) == (2 if power_cycle else 1)
     scans = rec.read_recordings(out).scans
     assert scans["restarted"][0] and scans["counter64"][0] == 0  # recorded from power-on
-    doc = json.loads(loopcal("info", out, "--json").stdout)
+    doc = json.loads(loopcal_main("info", out, "--json").stdout)
     assert doc["restarts"] == len(boots) - 1 and doc["power_ons"] == len(boots)
     assert doc["powered_on_utc"] == doc["start_utc"] is not None
-    text = loopcal("info", out).stdout
+    text = loopcal_main("info", out).stdout
     assert f"powered on: {doc['start_utc']} " in text  # one spelling, text and JSON
     assert f"restarts:   {len(boots) - 1} since (power-ons seen: {len(boots)})" in text
 
@@ -140,7 +140,7 @@ def drifting(tmp_path_factory):
 def test_check_names_the_sensor_when_and_how_much(drifting, tmp_path):
     rec_dir, config = drifting
     png = tmp_path / "check.png"
-    proc = loopcal("check", rec_dir, "--controller-config", config, "--json", "--plot", png)
+    proc = loopcal_main("check", rec_dir, "--controller-config", config, "--json", "--plot", png)
     assert proc.returncode == 1, proc.stderr
     doc = json.loads(proc.stdout)
     assert not doc["loops_close"] and len(doc["recordings"]) == 4
@@ -152,20 +152,20 @@ def test_check_names_the_sensor_when_and_how_much(drifting, tmp_path):
     assert abs(change["start_offset_s"] - 240) < 30
     assert datetime.fromisoformat(change["detected_utc"]).timestamp() > start
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
-    human = loopcal("check", rec_dir, "--controller-config", config)
+    human = loopcal_main("check", rec_dir, "--controller-config", config)
     assert human.returncode == 1 and "sensor 3: offset moved by +0." in human.stdout
-    info = json.loads(loopcal("info", rec_dir, "--json").stdout)
+    info = json.loads(loopcal_main("info", rec_dir, "--json").stdout)
     assert info["scans"] == 480 * 20 and info["poses"] >= doc["poses"] > 100
 
 
 def test_check_is_quiet_where_the_loops_close(drifting, tmp_path):
     rec_dir, config = drifting
     first = sorted(rec_dir.glob("*.mcap"))[:2]  # the four minutes before the step
-    proc = loopcal("check", *first, "--controller-config", config, "--json")
+    proc = loopcal_main("check", *first, "--controller-config", config, "--json")
     assert proc.returncode == 0, proc.stderr
     doc = json.loads(proc.stdout)
     assert doc["loops_close"] and doc["changes"] == [] and doc["poses"] > 60
-    bad = loopcal("check", *first, "--controller-config", tmp_path / "none.toml")
+    bad = loopcal_main("check", *first, "--controller-config", tmp_path / "none.toml")
     assert bad.returncode == 2 and "no such file" in bad.stderr
 
 
@@ -176,24 +176,24 @@ def test_check_tells_loops_that_never_closed_from_a_drift(drifting, tmp_path):
     rec_dir, _ = drifting
     first = sorted(rec_dir.glob("*.mcap"))[:2]
     never = write_initial_config(tmp_path / "never.toml")  # the reference geometry
-    proc = loopcal("check", *first, "--controller-config", never, "--json")
+    proc = loopcal_main("check", *first, "--controller-config", never, "--json")
     assert proc.returncode == 1, proc.stderr
     doc = json.loads(proc.stdout)
     assert doc["changes"] == [] and not doc["loops_close"], doc["changes"]
     assert doc["loops_open"]["poses"] >= 6 and "calibrate" in doc["loops_open"]["message"]
-    info = json.loads(loopcal("info", *first, "--json").stdout)
+    info = json.loads(loopcal_main("info", *first, "--json").stdout)
     # both count as one search over the files' scans at once would (a pose across the file
     # boundary is one pose), the pose they end in included
     whole = poses_of_scans(rec.read_recordings(first).scans)
     assert doc["poses"] == info["poses"] == len(whole)
-    text = loopcal("check", *first, "--controller-config", never).stdout
+    text = loopcal_main("check", *first, "--controller-config", never).stdout
     assert "The loops do not close at this config since the recordings began" in text
     assert "offset moved" not in text
 
 
 def test_check_says_the_shape_and_whether_the_loops_closed_again(drifting):
     rec_dir, config = drifting
-    text = loopcal("check", rec_dir, "--controller-config", config).stdout
+    text = loopcal_main("check", rec_dir, "--controller-config", config).stdout
     line = next(x for x in text.splitlines() if x.startswith("sensor 3: offset moved"))
     assert ", a step)" in line or ", a creep, still moving)" in line, line
     assert "the loops have not closed again" in line or "closed again at" in line, line
@@ -219,7 +219,7 @@ def swapped(tmp_path_factory):
 
 def test_check_reports_what_upkeep_would_propose(swapped):
     truth, rows, rec_dir, config = swapped
-    proc = loopcal("check", rec_dir, "--controller-config", config, "--json")
+    proc = loopcal_main("check", rec_dir, "--controller-config", config, "--json")
     assert proc.returncode == 1, proc.stderr
     doc = json.loads(proc.stdout)
     [p] = doc["proposals"]
@@ -234,7 +234,7 @@ def test_check_reports_what_upkeep_would_propose(swapped):
                     for k in ("window_since_utc", "window_until_utc"))  # fmt: skip
     assert began - 15 <= since < until <= began + 240
     assert doc["pending_proposal"] is None
-    text = loopcal("check", rec_dir, "--controller-config", config).stdout
+    text = loopcal_main("check", rec_dir, "--controller-config", config).stdout
     line = next(x for x in text.splitlines() if x.startswith("upkeep would propose"))
     shift = f"{p['shift_mm']['d03']:+.3f}"
     assert f"d03 = {p['values']['d03']:.4f} mm ({shift} +- " in line, line
@@ -244,11 +244,11 @@ def test_check_reports_what_upkeep_would_propose(swapped):
 
 def test_check_proposes_nothing_for_a_robot_unchanged(tmp_path):
     _, _, rec_dir, config = _robot_at_work(tmp_path, 2, 300)
-    proc = loopcal("check", rec_dir, "--controller-config", config, "--json")
+    proc = loopcal_main("check", rec_dir, "--controller-config", config, "--json")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     doc = json.loads(proc.stdout)
     assert doc["proposals"] == [] and doc["loops_close"] and doc["pending_proposal"] is None
-    text = loopcal("check", rec_dir, "--controller-config", config).stdout
+    text = loopcal_main("check", rec_dir, "--controller-config", config).stdout
     assert "upkeep would propose no recalibration." in text and "pending" not in text
 
 
@@ -264,30 +264,30 @@ def test_check_names_the_proposal_pending_beside_the_config(swapped, tmp_path):
                 min_interval_s=DEFAULTS["upkeep_min_interval_s"], threaded=False)  # fmt: skip
     up.feed(rows)
     assert up.state.pending is not None
-    doc = json.loads(loopcal("check", rec_dir, "--controller-config", config, "--json").stdout)
+    doc = json.loads(loopcal_main("check", rec_dir, "--controller-config", config, "--json").stdout)
     pending = doc["pending_proposal"]
     assert pending["error"] is None and pending["path"] == str(proposal_path(config))
     assert pending["values"] == up.state.pending.values and pending["since_utc"]
     [p] = doc["proposals"]  # the reference is the config alone: the same change found
     assert p["values"]["d03"] == pytest.approx(pending["values"]["d03"], abs=1e-4)
-    text = loopcal("check", rec_dir, "--controller-config", config).stdout
+    text = loopcal_main("check", rec_dir, "--controller-config", config).stdout
     assert (f"pending proposal {pending['path']} since {pending['since_utc']}: "
             f"d03 = {pending['values']['d03']:.4f} mm") in text  # fmt: skip
     path = proposal_path(config)
     edited = f"d03 = {pending['values']['d03'] + 0.1!r}"  # [parameters] edited by hand
     path.write_text(re.sub(r"^d03 = .*$", edited, path.read_text(), count=1, flags=re.M))
-    doc = json.loads(loopcal("check", rec_dir, "--controller-config", config, "--json").stdout)
+    doc = json.loads(loopcal_main("check", rec_dir, "--controller-config", config, "--json").stdout)
     damaged = doc["pending_proposal"]
     assert "edited" in damaged["error"] and damaged["values"] is None
-    text = loopcal("check", rec_dir, "--controller-config", config).stdout
+    text = loopcal_main("check", rec_dir, "--controller-config", config).stdout
     assert "pending proposal" in text and "cannot be taken" in text and "edited" in text
 
 
 def test_check_takes_the_daemons_upkeep_settings_or_the_options(swapped):
     """A threshold above the shift: nothing proposed; out of the daemon's bounds: bad input."""
     _, _, rec_dir, config = swapped
-    proc = loopcal("check", rec_dir, "--controller-config", config, "--json",
+    proc = loopcal_main("check", rec_dir, "--controller-config", config, "--json",
                    "--upkeep-threshold-mm", "5")  # fmt: skip
     assert json.loads(proc.stdout)["proposals"] == []
-    bad = loopcal("check", rec_dir, "--controller-config", config, "--upkeep-target-mm", "0")
+    bad = loopcal_main("check", rec_dir, "--controller-config", config, "--upkeep-target-mm", "0")
     assert bad.returncode == 2 and "--upkeep-target-mm 0" in bad.stderr

@@ -16,7 +16,7 @@ from loopcal.daemon.worker.proposal import proposal_path
 from loopcal.simulator.drift import OffsetDrift
 from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.task import TaskLoop
-from tests.support.processes import loopcal
+from tests.support.processes import loopcal_main
 from tests.support.recordings import write_directory
 from tests.support.rows import rows_from
 from tests.support.sessions import truth_for
@@ -51,13 +51,13 @@ def proposed(tmp_path):
 def test_status_shows_the_proposal_and_apply_writes_it(proposed):
     truth, config, recordings, daemon = proposed
     before = config.read_bytes()
-    st = loopcal("upkeep", "status", "--config", daemon)
+    st = loopcal_main("upkeep", "status", "--config", daemon)
     assert st.returncode == 0, st.stderr
     assert "d02" in st.stdout and "loopcal calibrate" in st.stdout and "gates:" in st.stdout
-    doc = json.loads(loopcal("upkeep", "status", "--config", daemon, "--json").stdout)
+    doc = json.loads(loopcal_main("upkeep", "status", "--config", daemon, "--json").stdout)
     assert doc["pending"] and list(doc["values"]) == ["d02"]
     assert config.read_bytes() == before  # status writes nothing
-    ap = loopcal("upkeep", "apply", "--config", daemon)
+    ap = loopcal_main("upkeep", "apply", "--config", daemon)
     assert ap.returncode == 0, ap.stderr
     new = load_controller_config(config)
     assert abs(new.params[INDEX["d02"]] - (truth[INDEX["d02"]] + SWAP_MM)) <= 0.05
@@ -66,7 +66,7 @@ def test_status_shows_the_proposal_and_apply_writes_it(proposed):
     assert new.provenance["upkeep"]["applied_utc"]
     assert not os.path.lexists(proposal_path(config))
     assert list(config.parent.glob("controller.toml.*.prev"))  # the previous version kept
-    again = loopcal("upkeep", "status", "--config", daemon)
+    again = loopcal_main("upkeep", "status", "--config", daemon)
     assert again.returncode == 1 and "no recalibration proposed" in again.stdout
 
 
@@ -87,7 +87,7 @@ def test_a_damaged_or_edited_proposal_is_refused_and_nothing_written(proposed, d
     else:
         config.write_text(config.read_text() + "\n# a comment added by hand\n")
     before = config.read_bytes()
-    ap = loopcal("upkeep", "apply", "--config", daemon)
+    ap = loopcal_main("upkeep", "apply", "--config", daemon)
     assert ap.returncode == 2 and "nothing applied" in ap.stderr, ap.stderr
     assert "Traceback" not in ap.stderr
     assert config.read_bytes() == before
@@ -97,16 +97,16 @@ def test_a_damaged_or_edited_proposal_is_refused_and_nothing_written(proposed, d
 @pytest.mark.slow
 def test_discard_sets_it_aside(proposed):
     _, config, _, daemon = proposed
-    d = loopcal("upkeep", "discard", "--config", daemon, "--json")
+    d = loopcal_main("upkeep", "discard", "--config", daemon, "--json")
     assert d.returncode == 0, d.stderr
     doc = json.loads(d.stdout)
     assert doc["discarded"] and os.path.exists(doc["aside"])
     assert not os.path.lexists(proposal_path(config))
-    assert loopcal("upkeep", "status", "--config", daemon).returncode == 1
+    assert loopcal_main("upkeep", "status", "--config", daemon).returncode == 1
 
 
 @pytest.mark.slow
 def test_bad_options_are_named():
-    p = loopcal("upkeep", "status")
+    p = loopcal_main("upkeep", "status")
     assert p.returncode == 2 and "--config" in p.stderr and "Traceback" not in p.stderr
-    np.testing.assert_equal(loopcal("upkeep", "frobnicate").returncode, 2)
+    np.testing.assert_equal(loopcal_main("upkeep", "frobnicate").returncode, 2)

@@ -20,7 +20,7 @@ from loopcal.daemon.recording.compact import compact
 from tests.support.emulator import assert_matches_truth, hand_emulator
 from tests.support.js import read_ts
 from tests.support.mutations import chunk_spans, flip_bits, identities, tear_chunk
-from tests.support.processes import LOOPCAL, loopcal, record
+from tests.support.processes import LOOPCAL, loopcal, loopcal_main, record
 from tests.support.recordings import write_recording
 from tests.support.rows import T0, make_rows
 
@@ -90,7 +90,7 @@ def test_killed_while_compacting_loses_nothing(tmp_path, step):
     assert identities(out.scans) == identities(rows) and out.files[0].intact
     compacted = "compacted_utc" in out.files[0].metadata["loopcal"]
     assert compacted == (step == "compact-renamed")
-    again = loopcal("compact", tmp_path)  # cleans up what the kill left, and finishes
+    again = loopcal_main("compact", tmp_path)  # cleans up what the kill left, and finishes
     assert again.returncode == 0, again.stderr
     assert not list(tmp_path.glob(".*.tmp"))
     assert identities(rec.read_recordings(path).scans) == identities(rows)
@@ -227,7 +227,7 @@ def test_the_command_exits_1_when_a_file_fails_and_says_so_in_json(tmp_path):
     junk = tmp_path / rec.recording_name(T0 + 10**12)
     junk.write_bytes(b"\x89MCAP0\r\n" + b"not a recording at all" * 10)
     before = junk.read_bytes()
-    proc = loopcal("compact", tmp_path, "--json")
+    proc = loopcal_main("compact", tmp_path, "--json")
     assert proc.returncode == 1, proc.stderr
     doc = json.loads(proc.stdout)
     by_path = {f["path"]: f for f in doc["files"]}
@@ -235,7 +235,7 @@ def test_the_command_exits_1_when_a_file_fails_and_says_so_in_json(tmp_path):
     assert by_path[str(junk)]["failed"] and not by_path[str(junk)]["compacted"]
     assert doc["failed"] == 1 and doc["bytes_before"] == by_path[str(good)]["bytes_before"]
     assert junk.read_bytes() == before  # kept as it was
-    again = loopcal("compact", good)  # nothing failed: exit 0
+    again = loopcal_main("compact", good)  # nothing failed: exit 0
     assert again.returncode == 0 and "already compact" in again.stdout, again.stdout
 
 
@@ -254,7 +254,7 @@ def test_a_second_compaction_leaves_a_running_ones_file_alone(tmp_path):
         assert time.monotonic() < deadline and first.poll() is None
         time.sleep(0.05)
     (tmp,) = tmp_path.glob(".*.compact.tmp")
-    second = loopcal("compact", tmp_path)
+    second = loopcal_main("compact", tmp_path)
     assert second.returncode == 0, second.stderr
     assert "being compacted by another process" in second.stdout, second.stdout
     assert tmp.exists()  # the first one's work was not removed as stale
@@ -319,7 +319,7 @@ def test_damage_in_the_views_is_never_laundered(tmp_path, damage):
     assert not r.done and r.failed and r.reason.startswith("damaged"), r
     assert path.read_bytes() == data  # left exactly as it was
     assert not list(tmp_path.glob(".*.tmp"))
-    proc = loopcal("compact", path)
+    proc = loopcal_main("compact", path)
     assert proc.returncode == 1 and "damaged" in proc.stdout, proc.stdout + proc.stderr
 
 

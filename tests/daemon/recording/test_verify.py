@@ -27,7 +27,7 @@ from loopcal.daemon.recording.verify import verify_file
 from loopcal.daemon.times import span_text
 from tests.support.js import run_node
 from tests.support.mutations import chunk_spans, flip_bits, zero_run
-from tests.support.processes import loopcal
+from tests.support.processes import loopcal_main
 from tests.support.recordings import write_recording
 from tests.support.rows import T0, make_rows
 
@@ -221,13 +221,13 @@ def test_a_clean_file_checks_out_every_record(original):
     assert v.chunks == 2 * N // PER and v.records > 2 * N  # the messages inside chunks too
     assert v.messages["/joint/state"] == N and v.messages["/plate/scene"] == 1
     assert v.messages["/daq/scans"] == N // PER
-    proc = loopcal("verify", original.path)
+    proc = loopcal_main("verify", original.path)
     assert proc.returncode == 0, proc.stderr
     assert f"{original.path.name}: ok (" in proc.stdout
     assert "every record checked out" in proc.stdout
-    info = loopcal("info", original.path)
+    info = loopcal_main("info", original.path)
     assert info.returncode == 0 and "damaged:    none" in info.stdout, info.stdout
-    doc = json.loads(loopcal("info", original.path, "--json").stdout)
+    doc = json.loads(loopcal_main("info", original.path, "--json").stdout)
     assert doc["damaged"] == [] and doc["files"][0]["damaged"] == []
 
 
@@ -251,11 +251,11 @@ def test_views_only_damage_is_named_with_its_topics_and_time_span(name, original
     line = d.text()
     assert line.startswith(f"{record} at byte {d.offset} (") and ", ".join(d.topics) in line
     # loopcal info: the damaged line names it; --json lists it
-    info = loopcal("info", path, "--no-poses")
+    info = loopcal_main("info", path, "--no-poses")
     assert info.returncode == 0, info.stderr  # info reports (docs/tools.md); verify judges
     assert "damaged:    none" not in info.stdout
     assert f"  {path.name}: {line}" in info.stdout, info.stdout
-    doc = json.loads(loopcal("info", path, "--no-poses", "--json").stdout)
+    doc = json.loads(loopcal_main("info", path, "--no-poses", "--json").stdout)
     listed = [x for x in doc["damaged"] if x["offset"] == d.offset and x["record"] == record]
     assert listed and listed[0]["file"] == str(path)
     assert listed[0]["topics"] == (list(d.topics) or None)
@@ -263,9 +263,9 @@ def test_views_only_damage_is_named_with_its_topics_and_time_span(name, original
     if d.start_ns is not None:
         assert listed[0]["start_ns"] == d.start_ns and listed[0]["start_utc"].startswith("20")
     # loopcal verify: exit 1, the same line
-    proc = loopcal("verify", path)
+    proc = loopcal_main("verify", path)
     assert proc.returncode == 1 and f"  {line}" in proc.stdout, proc.stdout
-    as_json = loopcal("verify", path, "--json")
+    as_json = loopcal_main("verify", path, "--json")
     assert as_json.returncode == 1 and json.loads(as_json.stdout)["ok"] is False
 
 

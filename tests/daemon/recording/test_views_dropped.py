@@ -21,7 +21,7 @@ from loopcal.daemon.recording.compact import DROPPED_VIEWS, compact
 from tests.support.emulator import hand_emulator
 from tests.support.js import read_ts
 from tests.support.mutations import chunk_spans, flip_bits, identities, swap_chunks, zero_run
-from tests.support.processes import loopcal, record
+from tests.support.processes import loopcal_main, record
 from tests.support.recordings import in_large_chunks, write_recording
 from tests.support.rows import T0
 from tests.support.sessions import hand_rows
@@ -78,14 +78,14 @@ def test_every_scan_and_event_stays_in_a_twentieth_of_the_bytes(thinned, node_re
     assert n == sum(now.values())
     ts = read_ts(node_reader, thin)  # Foxglove's reader too
     assert ts["packedScans"] == N
-    proc = loopcal("verify", thin, "--json")
+    proc = loopcal_main("verify", thin, "--json")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     again = compact(thin, drop_views=True)
     assert not again.done and again.reason == "already compact"
-    info = json.loads(loopcal("info", thin, "--json").stdout)
+    info = json.loads(loopcal_main("info", thin, "--json").stdout)
     assert info["files"][0]["views"] is False and info["scans"] == N
-    assert "views left out (loopcal export makes them)" in loopcal("info", thin).stdout
-    assert json.loads(loopcal("info", written, "--json").stdout)["files"][0]["views"]
+    assert "views left out (loopcal export makes them)" in loopcal_main("info", thin).stdout
+    assert json.loads(loopcal_main("info", written, "--json").stdout)["files"][0]["views"]
 
 
 @pytest.mark.slow
@@ -95,7 +95,7 @@ def test_a_compact_file_with_views_is_thinned_again_and_the_command_says_so(thin
     shutil.copy(written, path)
     assert compact(path).done  # as the daemon keeps a new file: compact, with its views
     assert _counts(path)[rec.TOPIC_STATE] == N
-    proc = loopcal("compact", path, "--drop-views", "--json")
+    proc = loopcal_main("compact", path, "--drop-views", "--json")
     assert proc.returncode == 0, proc.stderr
     [doc] = json.loads(proc.stdout)["files"]
     assert doc["compacted"] and doc["bytes_after"] <= 12 * N < doc["bytes_before"]
@@ -233,7 +233,7 @@ def test_the_recorder_thins_what_it_closes_when_told_to_keep_no_views(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("value", ["-1", "nan", "soon"])
 def test_a_bad_age_is_refused_naming_the_option(tmp_path, value):
-    proc = loopcal("record", "--daq", "modbus-tcp://127.0.0.1:1", "--out", tmp_path,
+    proc = loopcal_main("record", "--daq", "modbus-tcp://127.0.0.1:1", "--out", tmp_path,
                    "--keep-views-days", value, "--duration", "1")  # fmt: skip
     assert proc.returncode == 2 and "--keep-views-days" in proc.stderr, proc.stderr
 

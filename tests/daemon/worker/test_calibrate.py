@@ -21,7 +21,7 @@ from loopcal.daemon.recording import read_recordings
 from loopcal.daemon.worker.writeback import STEPS
 from loopcal.simulator.drift import OffsetDrift
 from loopcal.simulator.scenarios import HandMoves, Static, Sweep
-from tests.support.processes import Proc, calibrate_json, fresh_config, loopcal
+from tests.support.processes import Proc, calibrate_json, fresh_config, loopcal, loopcal_main
 from tests.support.recordings import write_rows
 from tests.support.replay import finish, replay_and_record
 from tests.support.sessions import PAUSE_S, live_sessions, trim, truth_for, write_session
@@ -87,7 +87,7 @@ def test_write_keeps_comments_and_the_previous_version(offline, tmp_path):
     before = config.read_text()
     old_umask = os.umask(0o027)  # as the systemd units' UMask: must not narrow the mode
     try:
-        proc = loopcal("calibrate", rec_dir, "--controller-config", config, "--write")
+        proc = loopcal_main("calibrate", rec_dir, "--controller-config", config, "--write")
     finally:
         os.umask(old_umask)
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -152,7 +152,7 @@ def test_degenerate_recordings_are_refused(tmp_path, case, method, gate, words):
         write_session(tmp_path / "rec", Sweep(period_s=10.0), truth, 120, seed=3)
     config = fresh_config(tmp_path / "controller.toml")
     before = config.read_bytes()
-    proc = loopcal("calibrate", tmp_path / "rec", "--controller-config", config, "--write",
+    proc = loopcal_main("calibrate", tmp_path / "rec", "--controller-config", config, "--write",
                    "--method", method)  # fmt: skip
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert f"[FAIL] {gate}" in proc.stdout and words in proc.stdout
@@ -232,7 +232,7 @@ def test_window_and_free_set(offline, tmp_path):
 def test_report(offline, tmp_path):
     rec_dir, _ = offline
     config = fresh_config(tmp_path / "controller.toml")
-    proc = loopcal(
+    proc = loopcal_main(
         "calibrate", rec_dir, "--controller-config", config, "--report", tmp_path / "report"
     )
     assert proc.returncode == 0, proc.stderr
@@ -300,10 +300,10 @@ def test_bad_input_is_named(tmp_path, offline):
         (["replay", other], "not a loopcal recording"),
     ]
     for args, words in cases:
-        proc = loopcal(*args)
+        proc = loopcal_main(*args)
         assert proc.returncode == 2, (args, proc.stdout, proc.stderr)
         assert words in proc.stderr, (args, proc.stderr)
-    bad_time = loopcal("calibrate", rec_dir, "--controller-config", config, "--since", "noon")
+    bad_time = loopcal_main("calibrate", rec_dir, "--controller-config", config, "--since", "noon")
     assert bad_time.returncode == 2 and "not a time" in bad_time.stderr
 
 
@@ -411,14 +411,14 @@ def test_a_symlinked_config_stays_a_link_and_its_target_is_written(offline, tmp_
     link = etc / "controller.toml"
     link.symlink_to(target)
     before = target.read_bytes()
-    proc = loopcal("calibrate", rec_dir, "--controller-config", link, "--write")
+    proc = loopcal_main("calibrate", rec_dir, "--controller-config", link, "--write")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert link.is_symlink() and link.resolve() == target
     assert f"through the symlink {link}" in proc.stdout
     assert target.read_bytes() != before and target.stat().st_mode & 0o777 == 0o640
     [prev] = robot.glob("config.toml.*.prev")
     assert prev.read_bytes() == before and not list(etc.glob("*.prev"))
-    proc = loopcal("init-config", link, "--force")
+    proc = loopcal_main("init-config", link, "--force")
     assert proc.returncode == 0 and "through the symlink" in proc.stdout, proc.stderr
     assert link.is_symlink() and target.stat().st_mode & 0o777 == 0o640
     assert load_controller_config(link).provenance is None  # the reference config again
@@ -452,9 +452,9 @@ def test_json_warnings_name_the_damaged_file(offline, tmp_path):
     config = fresh_config(tmp_path / "controller.toml")
     rc, doc, err = calibrate_json(copy, "--controller-config", config)
     assert len(doc["warnings"]) == 1 and str(path) in doc["warnings"][0]
-    assert "scan(s) missing" in doc["warnings"][0] and "UTC" in doc["warnings"][0]
+    assert "scan(s) missing" in doc["warnings"][0] and "(messages of 2026-11-18T" in doc["warnings"][0]
     assert "warning: " + doc["warnings"][0] in err
-    proc = loopcal("calibrate", copy, "--controller-config", config)
+    proc = loopcal_main("calibrate", copy, "--controller-config", config)
     assert doc["warnings"][0] in proc.stdout
     assert rc in (0, 1)
 
