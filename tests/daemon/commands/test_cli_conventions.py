@@ -24,6 +24,7 @@ from loopcal.daemon.recorder.settings import (
     markdown_table,
 )
 from tests.support import ROOT
+from tests.support.processes import loopcal_main
 
 NAMES = [name for name, _ in COMMANDS]
 #: the commands that report something a program may want to read
@@ -82,12 +83,23 @@ def test_free_does_not_swallow_the_recordings() -> None:
     assert args.free == "d03" and args.recordings == [Path("REC.mcap")]
 
 
-def _loopcal(*argv: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "loopcal.daemon.cli", *argv],
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+_loopcal = loopcal_main  # the parser's and the commands' answers: no process needed
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("argv", [["record", "--daq", "nope://x", "--out", "/tmp/x"],
+                                  ["calibrate", "--no-such-option"]])  # fmt: skip
+def test_a_refusal_is_exit_2_and_one_line_from_a_real_process_too(argv: list[str]) -> None:
+    """What the shell sees: status 2, the one line, no traceback (the rest of this module
+    asks cli.main in this process)."""
+    proc = subprocess.run([sys.executable, "-m", "loopcal.daemon.cli", *argv],
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    assert [ln for ln in proc.stderr.splitlines() if "error:" in ln] == [
+        ln for ln in proc.stderr.splitlines() if ln.startswith(f"loopcal {argv[0]}: error: ")]
+    assert "Traceback" not in proc.stderr and proc.stdout == ""
+
+
 @pytest.mark.parametrize("name", NAMES)
 def test_a_bad_option_is_exit_2_naming_the_command(name: str) -> None:
     proc = _loopcal(name, "--no-such-option")
@@ -95,7 +107,6 @@ def test_a_bad_option_is_exit_2_naming_the_command(name: str) -> None:
     assert f"loopcal {name}: error: " in proc.stderr, proc.stderr
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("argv", [
     ["info", "/nonexistent/x.mcap"],
     ["check", "/nonexistent/x.mcap", "--controller-config", "/nonexistent/c.toml"],
@@ -149,7 +160,6 @@ def test_the_docs_example_config_holds_the_settings_defaults(tmp_path: Path) -> 
     assert len(checked) >= 8, checked
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("command", ["info", "check", "compact", "calibrate"])
 def test_what_is_not_a_regular_file_is_refused_at_once(command: str, tmp_path: Path) -> None:
     """A device never ends (/dev/zero), a FIFO blocks its reader, an empty path would be
@@ -168,7 +178,6 @@ def test_what_is_not_a_regular_file_is_refused_at_once(command: str, tmp_path: P
         assert "Traceback" not in proc.stderr
 
 
-@pytest.mark.slow
 def test_observability_json_says_what_its_text_says_and_exits_1_when_unobservable() -> None:
     import json
 
@@ -187,7 +196,6 @@ def test_observability_json_says_what_its_text_says_and_exits_1_when_unobservabl
     assert "unobservable" in doc["status"].values() and doc["suggested_free"]
 
 
-@pytest.mark.slow
 def test_observability_of_a_session_follows_how_the_technician_moves() -> None:
     """--twist-every changes the simulated session whose scans are judged: the same seed
     moved with and without twists gives different information (and both are observable)."""

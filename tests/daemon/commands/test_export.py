@@ -1,7 +1,7 @@
 """``loopcal export``: a recording whose views were dropped by compaction made again, with
 every view, from its raw scans, at the file's own controller config or at
 ``--controller-config``; never over an existing file; bad input exits 2 naming it; damage
-exits 1; ``--json`` says what became of each file. Real files, real subprocesses."""
+exits 1; ``--json`` says what became of each file. Real files; a subprocess where one is killed."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ from loopcal.daemon.recording.compact import compact
 from loopcal.daemon.version import loopcal_version
 from tests.support.js import read_ts
 from tests.support.mutations import tear_chunk
-from tests.support.processes import fresh_config, loopcal
+from tests.support.processes import fresh_config, loopcal, loopcal_main
 from tests.support.recordings import not_recordings, write_recording, write_rows
 from tests.support.rows import T0, make_rows
 from tests.support.sessions import hand_rows
@@ -91,7 +91,8 @@ def _scan_bytes(path: Path) -> bytes:
 
 
 def _export(*argv: str | Path, env: dict | None = None):
-    return loopcal("export", *argv, env=env, timeout=120)
+    # a kill point (env) needs a process of its own; anything else runs in this one
+    return loopcal("export", *argv, env=env, timeout=120) if env else loopcal_main("export", *argv)
 
 
 def _bad_input(proc, words: str) -> None:
@@ -145,7 +146,7 @@ def test_views_dropped_are_made_again_as_recorded(tmp_path, node_reader, params_
         cfg = load_controller_config(tmp_path / "controller.toml")
         assert meta["controller_config"] == cfg.as_metadata()
 
-    verify = loopcal("verify", exported)  # every record checks out
+    verify = loopcal_main("verify", exported)  # every record checks out
     assert verify.returncode == 0, verify.stdout + verify.stderr
     ts = read_ts(node_reader, exported)  # Foxglove's TypeScript reader reads it
     assert ts["indexed"] and not ts["truncated"]
@@ -296,5 +297,5 @@ def test_a_file_recorded_by_another_loopcal_is_exported_as_written_by_this_one(t
     exported = tmp_path / "out" / path.name
     record = rec.read_recordings(exported).files[0].metadata["loopcal"]
     assert record["version"] == loopcal_version() and record["recorded_version"] == "0.0.1"
-    verify = loopcal("verify", exported)  # the header's library and the record agree
+    verify = loopcal_main("verify", exported)  # the header's library and the record agree
     assert verify.returncode == 0, verify.stdout + verify.stderr

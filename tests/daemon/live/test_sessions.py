@@ -33,7 +33,14 @@ from loopcal.daemon.recorder.settings import RecorderSettings
 from loopcal.daemon.recording import read_recordings
 from tests.support.emulator import hand_emulator
 from tests.support.js import watch_live
-from tests.support.processes import Proc, free_port, fresh_config, listening_url, loopcal
+from tests.support.processes import (
+    Proc,
+    free_port,
+    fresh_config,
+    listening_url,
+    loopcal,
+    loopcal_main,
+)
 from tests.support.sessions import PAUSE_S, truth_for
 
 pytestmark = pytest.mark.timeout(180)
@@ -401,7 +408,7 @@ def test_session_refuses_bad_input_before_asking_the_daemon(tmp_path):
         (["--config", bare], "no \\[controller\\].config"),
         (["--config", tmp_path / "missing.toml"], "cannot read the config"),
     ]:
-        proc = loopcal("session", *argv)
+        proc = loopcal_main("session", *argv)
         assert proc.returncode == 2, (argv, proc.stderr)
         assert proc.stderr.startswith("loopcal session: error:") or "usage:" in proc.stderr
         assert re.search(why, proc.stderr), (argv, proc.stderr)
