@@ -1,9 +1,8 @@
-"""Technician sessions for the worker tests: recorded live through ``loopcal record``, or
-written straight from the simulator's offline scans (the same scans, much faster)."""
+"""Technician sessions for the worker tests, written straight from the simulator's offline
+scans (what an emulated module makes, without waiting for it)."""
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,7 +14,6 @@ from loopcal.daemon import recording as rec
 from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.scenarios import GuidedHand, HandMoves, Scenario
 
-from .processes import Proc, listening_url, record
 from .recordings import write_directory
 from .rows import T0, rows_from
 
@@ -34,100 +32,6 @@ def truth_for(seed: int) -> np.ndarray:
     """A shoulder joint whose LVDTs were refitted (offsets up to 3 mm off) and whose
     geometry differs from the blueprint by up to 0.5 mm."""
     return perturbed_truth(np.random.default_rng([seed, 7]), model=PAPER7)
-
-
-def live_sessions(root: Path, seeds: list[int], *, minutes: float = 2.7, speed: float = 10.0,
-                  keep: tuple[int, int] = (600, 3000), attempts: int = 3):  # fmt: skip
-    """Record technician sessions through ``loopcal record`` over Modbus TCP, all at once:
-    each emulated module is a ``loopcal simulate`` process of its own (the same scans as
-    in-process, with no Python thread of this process between the module and its reader),
-    running ``speed`` times as fast as wall time from the recorder's first request. The
-    recorders run without live health (``--no-health``): these sessions are for the worker,
-    and a recorder at ten times the scan rate should spend its CPU on reading.
-
-    Each recorder is stopped once its recording holds every scan of ``minutes`` (not after
-    a fixed sleep: on a loaded machine a recorder may lag behind its module). A session
-    whose recording misses any of the scans the tests use (counters ``keep[0]`` to
-    ``keep[1] - 1``: its FIFO overflowed while the machine was too busy to let the recorder
-    read, an ``overflow``/``gap`` in the recording, never silent) is recorded again, up to
-    ``attempts`` times in all, each at half the speed of the one before (twice the time the
-    module's FIFO covers: the same scans, as the emulator's scans depend on its clock, not on
-    the wall's); the assertion that ends the last says what each one missed.
-    """
-    wanted = int(minutes * 60 * 20)
-    assert keep[1] <= wanted, f"keep {keep} beyond the {wanted} scans recorded"
-    todo = list(seeds)
-    done: dict[int, Session] = {}
-    missed: dict[int, list[str]] = {seed: [] for seed in seeds}
-    for attempt in range(attempts):
-        pace = speed / 2**attempt
-        for s in _record_sessions(root / f"attempt-{attempt}", todo, wanted, pace):
-            scans = rec.read_recordings(s.directory).scans
-            c = scans["counter64"].astype(np.int64)
-            used = np.unique(c[(c >= keep[0]) & (c < keep[1])])
-            if len(used) == keep[1] - keep[0]:
-                done[s.seed] = s
-            else:
-                lost = np.setdiff1d(np.arange(*keep), used)
-                missed[s.seed].append(f"{len(lost)} scans from counter {lost[0]} to "
-                                      f"{lost[-1]} at --speed {pace:g}")
-        todo = [seed for seed in seeds if seed not in done]
-        if not todo:
-            break
-    assert not todo, "sessions lost scans the tests use in every attempt: " + "; ".join(
-        f"seed {seed}: " + ", ".join(missed[seed]) for seed in todo
-    )
-    return [done[seed] for seed in seeds]
-
-
-def _record_sessions(root: Path, seeds: list[int], wanted: int, speed: float) -> list[Session]:
-    from loopcal.calibration.parameters import NAMES
-
-    sessions, sims, procs = [], [], []
-    try:
-        for seed in seeds:
-            truth = truth_for(seed)
-            every = ",".join(f"{n}={float(truth[i])!r}" for i, n in enumerate(NAMES))
-            sim = Proc(
-                [
-                    "simulate",
-                    "--seed",
-                    str(seed),
-                    "--speed",
-                    f"{speed:g}",
-                    "--pause",
-                    f"{PAUSE_S[0]},{PAUSE_S[1]}",
-                    "--twist-every",
-                    "0",
-                    "--noise-mv",
-                    "40",
-                    "--truth",
-                    every,
-                    "--wait-for-client",
-                ]
-            )
-            sims.append(sim)
-            out = root / f"session-{seed}"
-            procs.append(record(listening_url(sim), out, "--read-period", "0.05", "--no-health"))
-            sessions.append(Session(out, truth, seed))
-        for p in procs:
-            p.wait_for("recording to")
-        time.sleep(wanted / 20 / speed)
-        pending = list(zip(sessions, procs, strict=True))
-        deadline = time.monotonic() + 120
-        while pending:  # each recorder stops once it has recorded the last wanted scan
-            for s, p in list(pending):
-                scans = rec.read_recordings(s.directory).scans
-                if len(scans) and scans["counter64"][-1] >= wanted:
-                    rc, _ = p.stop()
-                    assert rc == 0, p.text
-                    pending.remove((s, p))
-            assert time.monotonic() < deadline, "recorders did not catch up in 120 s"
-            time.sleep(0.5)
-    finally:
-        for p in [*procs, *sims]:
-            p.kill()
-    return sessions
 
 
 def trim(src: Path, dst: Path, first: int, stop: int) -> Path:

@@ -1,5 +1,6 @@
-"""``loopcal calibrate`` and ``loopcal replay`` end to end: technician sessions recorded
-through a real transport, degenerate recordings the gates must refuse, killing the worker
+"""``loopcal calibrate`` and ``loopcal replay`` end to end: technician sessions (the
+simulator's scans; through a real transport and recorder in the replay round trips),
+degenerate recordings the gates must refuse, killing the worker
 while it writes, replay round trips, and bad input."""
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from loopcal.simulator.scenarios import HandMoves, Static, Sweep
 from tests.support.processes import Proc, calibrate_json, fresh_config, loopcal, loopcal_main
 from tests.support.recordings import write_rows
 from tests.support.replay import finish, replay_and_record
-from tests.support.sessions import PAUSE_S, live_sessions, trim, truth_for, write_session
+from tests.support.sessions import PAUSE_S, Session, trim, truth_for, write_session
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -33,9 +34,18 @@ SEEDS = [11, 12, 13]
 
 @pytest.fixture(scope="module")
 def sessions(tmp_path_factory):
-    """Three technician sessions at the paper's noise, through loopcal record, a little
-    longer than two minutes (the tests use exactly two: the same scans every run)."""
-    return live_sessions(tmp_path_factory.mktemp("sessions"), SEEDS, minutes=2.7)
+    """Three technician sessions at the paper's noise, a little longer than two minutes
+    (the tests use exactly two: the same scans every run), written straight from the
+    simulator: the emulator's scans, as a recorder keeps them. That they come through the
+    wire and the recorder unchanged is test_replay_round_trip_is_exact_and_calibrates's to
+    show (and tests/daemon/recorder's), not these statistics'."""
+    root, out = tmp_path_factory.mktemp("sessions"), []
+    for seed in SEEDS:
+        truth, d = truth_for(seed), root / f"session-{seed}"
+        write_session(d, HandMoves(seed, params=truth, pause_s=PAUSE_S), truth, 2.7 * 60,
+                      seed=seed)  # fmt: skip
+        out.append(Session(d, truth, seed))
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -452,7 +462,8 @@ def test_json_warnings_name_the_damaged_file(offline, tmp_path):
     config = fresh_config(tmp_path / "controller.toml")
     rc, doc, err = calibrate_json(copy, "--controller-config", config)
     assert len(doc["warnings"]) == 1 and str(path) in doc["warnings"][0]
-    assert "scan(s) missing" in doc["warnings"][0] and "(messages of 2026-11-18T" in doc["warnings"][0]
+    warning = doc["warnings"][0]
+    assert "scan(s) missing" in warning and "(messages of 2026-11-18T" in warning
     assert "warning: " + doc["warnings"][0] in err
     proc = loopcal_main("calibrate", copy, "--controller-config", config)
     assert doc["warnings"][0] in proc.stdout
