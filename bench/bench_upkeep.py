@@ -59,8 +59,10 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -82,6 +84,8 @@ SETTINGS = dict(target_mm=0.05, threshold_mm=0.1, min_interval_s=600.0)
 AFTER_S = 300.0  # scans fed after a swap
 TARGET_S, TARGET_MM, TARGET_PASS = 120.0, 0.05, 38 / 40
 CREEP_MM_MIN, CREEP_AT = 0.05, 300.0
+
+R = TypeVar("R")
 
 
 class Events(list):
@@ -155,6 +159,15 @@ class Case:
         return {n: (d["values"][n] - self.truth[n], d["std"][n])
                 for n in d["values"] if n in self.truth}  # fmt: skip
 
+    def __str__(self) -> str:
+        """The case in words: its seed, the sensor(s) swapped, by how much and when."""
+        steps = ", ".join(f"{a:+.3f}" for a in self.amounts)
+        if len(self.sensors) == 1:
+            what = f"sensor {self.sensors[0]} step {steps}"
+        else:
+            what = f"sensors {self.sensors} steps {steps}"
+        return f"seed {self.seed} {what} mm at {self.at:.1f} s"
+
     def verdict(self) -> tuple[bool, str]:
         """(meets the target, what happened in words)."""
         why = []
@@ -223,15 +236,29 @@ def _case(args: tuple) -> Case:
     return run_case(k, sensors, amounts, at, mode)
 
 
-def run_cases(seeds: list[int], count: int, mode: str, jobs: int) -> tuple[list[Case], float]:
+def run_jobs(fn: Callable[[Any], R], work: list, jobs: int) -> tuple[list[R], float]:
+    """``fn`` of every item of ``work``, in order: in ``jobs`` forked processes (or here,
+    for one), and the wall time it took, s."""
     t0 = time.perf_counter()
-    work = [(k, count, mode) for k in seeds]
     if jobs > 1:
         with mp.get_context("fork").Pool(jobs) as pool:
-            cases = pool.map(_case, work, chunksize=1)
+            out = pool.map(fn, work, chunksize=1)
     else:
-        cases = [_case(w) for w in work]
-    return cases, time.perf_counter() - t0
+        out = [fn(w) for w in work]
+    return out, time.perf_counter() - t0
+
+
+def run_cases(seeds: list[int], count: int, mode: str, jobs: int) -> tuple[list[Case], float]:
+    return run_jobs(_case, [(k, count, mode) for k in seeds], jobs)
+
+
+def print_failures(cases: list[Case], wall: float) -> None:
+    """Every case that missed the target, with what happened, then the wall time taken."""
+    for c in cases:
+        ok, why = c.verdict()
+        if not ok:
+            print(f"  ! {c}: {why}")
+    print(f"({len(cases)} cases in {wall:.0f} s wall)")
 
 
 def part_swaps(n: int, mode: str, jobs: int) -> None:
@@ -272,12 +299,7 @@ def part_swaps(n: int, mode: str, jobs: int) -> None:
     need = int(np.ceil(TARGET_PASS * n))
     print(f"target: a proposal within {TARGET_S:g} s, within 3 std and {TARGET_MM} mm, in >= "
           f"{need}/{n}: {passed}/{n} ({'met' if passed >= need else 'NOT met'})")  # fmt: skip
-    for c in cases:
-        ok, why = c.verdict()
-        if not ok:
-            print(f"  ! seed {c.seed} sensor {c.sensors[0]} step {c.amounts[0]:+.3f} mm at "
-                  f"{c.at:.1f} s: {why}")  # fmt: skip
-    print(f"({n} cases in {wall:.0f} s wall)")
+    print_failures(cases, wall)
 
 
 def part_pairs(n: int, mode: str, jobs: int) -> None:
@@ -309,12 +331,7 @@ def part_pairs(n: int, mode: str, jobs: int) -> None:
           f"{sum(abs(e) <= TARGET_MM for e in errs)}/{len(errs)}")  # fmt: skip
     print(f"meeting the single swaps' target (both, {TARGET_S:g} s, 3 std and {TARGET_MM} mm "
           f"each): {sum(c.verdict()[0] for c in cases)}/{n}")  # fmt: skip
-    for c in cases:
-        ok, why = c.verdict()
-        if not ok:
-            print(f"  ! seed {c.seed} sensors {c.sensors} steps "
-                  f"{', '.join(f'{a:+.3f}' for a in c.amounts)} mm at {c.at:.1f} s: {why}")
-    print(f"({n} cases in {wall:.0f} s wall)")
+    print_failures(cases, wall)
 
 
 # ---------------------------------------------------------------------------- creep
@@ -355,14 +372,7 @@ def part_creep(n: int, hours: float, jobs: int) -> None:
     print(f"== creep: {n} robots (seed 200 + k, sensor k % 4 + 1) creeping {CREEP_MM_MIN} "
           f"mm/min from {CREEP_AT:g} s, {hours:g} h of task loop each, report mode, "
           f"min_interval {SETTINGS['min_interval_s']:g} s")  # fmt: skip
-    t0 = time.perf_counter()
-    work = [(200 + k, hours) for k in range(n)]
-    if jobs > 1:
-        with mp.get_context("fork").Pool(jobs) as pool:
-            runs = pool.map(_creep, work, chunksize=1)
-    else:
-        runs = [_creep(w) for w in work]
-    wall = time.perf_counter() - t0
+    runs, wall = run_jobs(_creep, [(200 + k, hours) for k in range(n)], jobs)
     intervals, z, lags, errs, wrong, others = [], [], [], [], 0, 0
     for r in runs:
         print(f"seed {r['seed']} sensor {r['sensor']}: {len(r['props'])} proposals; events "
@@ -492,13 +502,7 @@ def part_week(days: float, seed: int, jobs: int, chunk_s: float) -> None:
           f"upkeep (report mode)")  # fmt: skip
     work = [(seed, float(a), float(b), chunk_s) for a, b in zip(edges[:-1], edges[1:],
                                                                 strict=True)]  # fmt: skip
-    t0 = time.perf_counter()
-    if jobs > 1:
-        with mp.get_context("fork").Pool(jobs) as pool:
-            runs = pool.map(_week, work, chunksize=1)
-    else:
-        runs = [_week(w) for w in work]
-    wall = time.perf_counter() - t0
+    runs, wall = run_jobs(_week, work, jobs)
     for r in runs:
         w = r["w"]
         print(f"  days {r['days'][0]:g}..{r['days'][1]:g}: {r['scans']:,} scans, {w.segments:,} "
