@@ -26,6 +26,15 @@ NOISE_MV = 1000 * NOISE_VOLTS
 OFFSET_ERROR_MM = 3.0
 
 
+class SimulationError(ValueError):
+    """A simulation refused before it runs: an option's value, a truth file that cannot be
+    written, servers that cannot start. The message names the option or file.
+
+    ``loopcal simulate`` lets it through to the command line's one error path (``loopcal
+    simulate: error: MESSAGE``, exit status 2), which knows it as bad input.
+    """
+
+
 def pause_argument(text: str) -> tuple[float, float]:
     """An argparse type: ``MIN,MAX`` seconds, ``0 < MIN <= MAX``.
 

@@ -27,7 +27,6 @@ import json
 import re
 import signal
 import socket
-import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -46,7 +45,7 @@ from .faults import FaultInjector
 from .mechanism import MechanismSource, ReplaySource, true_parameters
 from .open_points import add_arguments as add_open_point_arguments
 from .open_points import from_arguments as open_points_from_arguments
-from .options import add_simulation_options, check_simulation_options
+from .options import SimulationError, add_simulation_options, check_simulation_options
 from .scenarios import SCENARIOS, scenario_named
 
 _FAULT = re.compile(
@@ -554,12 +553,13 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     Returns
     -------
     int
-        The exit status: 0 after serving (or ``--help-faults``), 2 for bad options, a
-        truth file that cannot be written or servers that cannot start (the error is
-        printed to stderr).
+        The exit status: 0 after serving (or ``--help-faults``).
 
     Raises
     ------
+    SimulationError
+        For bad options, a truth file that cannot be written or servers that cannot start
+        (:class:`~loopcal.simulator.options.SimulationError`; the command line prints it).
     TimeoutError
         If the servers were not up within 5 s (not turned into an exit status).
     """
@@ -596,8 +596,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         out = open(args.truth_out, "w", encoding="utf-8") if args.truth_out else None  # noqa: SIM115
     except (ValueError, OSError) as exc:
         what = f"--truth-out {args.truth_out}: " if isinstance(exc, OSError) else ""
-        print(f"loopcal simulate: error: {what}{exc}", file=sys.stderr)
-        return 2
+        raise SimulationError(f"{what}{exc}") from None
     # a held clock is released by the emulator's first request
     clock: Clock = HeldClock(args.speed) if args.wait_for_client else clock_for(args.speed)
     stop = stop or threading.Event()
@@ -622,8 +621,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         try:
             emu.start()
         except RuntimeError as exc:
-            print(f"loopcal simulate: error: {exc}", file=sys.stderr)
-            return 2
+            raise SimulationError(str(exc)) from None
         with emu:
             print(f"listening: {emu.url}", flush=True)
             if args.transport != "modbus-tcp":

@@ -45,6 +45,7 @@ BAD_INPUT: tuple[tuple[str, str], ...] = (
     ("..recording.errors", "RecordingError"),
     ("..live.control", "ControlError"),
     ("..inspect.fleet", "FleetError"),
+    ("loopcal.simulator.options", "SimulationError"),
 )
 
 
