@@ -1,5 +1,6 @@
-"""``loopcal info`` and ``loopcal check`` on real recording files, in this process (cli.main); check's
-report of what the daemon's upkeep would propose, from a robot at work (a task loop)."""
+"""``loopcal info`` and ``loopcal check`` on real recording files, run by cli.main in this
+process; check's report of what the daemon's upkeep would propose, from a robot at work (a
+task loop)."""
 
 from __future__ import annotations
 
