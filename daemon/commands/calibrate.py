@@ -14,54 +14,37 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import sys
 from dataclasses import dataclass, field
-from datetime import UTC, datetime, timedelta
+from datetime import timedelta
 from pathlib import Path
 
 from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
 from loopcal.calibration.parameters import DEFAULT_FREE, ParameterModel
 from loopcal.calibration.pipeline import DEFAULT_N_SELECT
 
-from ..arguments import path_argument
+from ..arguments import duration_argument, path_argument, time_argument
 from ..config import durable
 from ..config.controller import load_controller_config
 from ..recording import find_recordings, read_recordings
 from ..recording.names import recording_paths
+from ..times import time_or
 from ..worker.job import METHOD_NAMES, describe_files, run_worker
 from ..worker.writeback import Written, check_writable, write_back
 from .errors import CommandError
 from .model_options import add_model_options, add_select_option
 
-_DURATION = re.compile(r"^(\d+(?:\.\d+)?)\s*(s|m|min|h|d)$")
-
-
-def parse_time(text: str) -> datetime:
-    """ISO 8601 (UTC unless it says otherwise), e.g. 2026-11-22T10:15 or ...T10:15:00+01:00."""
-    try:
-        t = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not a time (ISO 8601, e.g. 2026-11-22T10:15:00Z)"
-        ) from None
-    return t if t.tzinfo else t.replace(tzinfo=UTC)
-
-
 #: the longest --last that makes sense: more than any recording kept on a controller
 MAX_DURATION = timedelta(days=3650)
 
 
-def parse_duration(text: str) -> timedelta:
-    m = _DURATION.match(text.strip())
-    if not m:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a duration (e.g. 90s, 15m, 2h, 1d)")
-    unit = {"s": 1, "m": 60, "min": 60, "h": 3600, "d": 86400}[m.group(2)]
-    seconds = float(m.group(1)) * unit
-    if not 0 < seconds <= MAX_DURATION.total_seconds():
+def last_argument(text: str) -> timedelta:
+    """--last: a duration (:func:`~loopcal.daemon.arguments.duration_argument`) of at most
+    :data:`MAX_DURATION`."""
+    seconds = duration_argument(text)
+    if seconds > MAX_DURATION.total_seconds():
         raise argparse.ArgumentTypeError(
-            f"{text!r}: a duration must be more than 0 and at most {MAX_DURATION.days} days"
-        )
+            f"{text!r}: a duration must be more than 0 and at most {MAX_DURATION.days} days")
     return timedelta(seconds=seconds)
 
 
@@ -89,13 +72,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_model_options(p, default=None,
                       default_text=f"the controller config's [calibration].free, else "
                                    f"{DEFAULT_FREE}")  # fmt: skip
-    p.add_argument("--since", type=parse_time, metavar="TIME", help="only scans from TIME on")
-    p.add_argument("--until", type=parse_time, metavar="TIME", help="only scans before TIME")
+    p.add_argument("--since", type=time_argument, metavar="TIME",
+                   help="only scans from TIME on (as loopcal prints times, "
+                        "2026-12-03T08:37:37.357Z, or any ISO 8601 time; UTC if it names no "
+                        "zone)")  # fmt: skip
+    p.add_argument("--until", type=time_argument, metavar="TIME",
+                   help="only scans before TIME (as --since)")  # fmt: skip
     p.add_argument(
         "--last",
-        type=parse_duration,
+        type=last_argument,
         metavar="DURATION",
-        help="only the last DURATION of the recordings (e.g. 15m)",
+        help="only the last DURATION of the recordings, by their stamps (90, 90s, 15m, 2h, 1d)",
     )
     add_select_option(p)
     p.add_argument(
@@ -163,11 +150,7 @@ def check_report_dir(directory: Path) -> None:
 
 
 def _window_text(since_ns: int | None, until_ns: int | None) -> str:
-    def text(ns: int) -> str:
-        return datetime.fromtimestamp(ns / 1e9, UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
-
-    lo = text(since_ns) if since_ns is not None else "the start"
-    hi = text(until_ns) if until_ns is not None else "the end"
+    lo, hi = time_or(since_ns, "the start"), time_or(until_ns, "the end")
     return f"from {lo} to {hi}"
 
 
@@ -205,8 +188,8 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--ties goes with --free (ties tie parameters of a custom free set)")
     files, controller_path = _inputs(args)
     return calibrate(Calibration(
-        files, controller_path, free=args.free, ties=args.ties, since_ns=_ns(args.since),
-        until_ns=_ns(args.until), last=args.last, select=args.select, method=args.method,
+        files, controller_path, free=args.free, ties=args.ties, since_ns=args.since,
+        until_ns=args.until, last=args.last, select=args.select, method=args.method,
         write=args.write, json=args.json, report=args.report))  # fmt: skip
 
 
@@ -280,10 +263,6 @@ def calibrate(job: Calibration) -> int:
     else:
         _print_human(result, config.path, written, job.write)
     return 0 if result.accepted else 1
-
-
-def _ns(t: datetime | None) -> int | None:
-    return None if t is None else round(t.timestamp() * 1e9)
 
 
 def _jsonable(obj):

@@ -23,7 +23,6 @@ import json
 import signal
 import sys
 import time
-from datetime import UTC, datetime
 from types import FrameType
 from typing import Any
 
@@ -34,6 +33,7 @@ from ..arguments import duration_argument, path_argument
 from ..config.controller import load_controller_config
 from ..live.control import MAX_NOTE_CHARS, MAX_TARGET_MM, ControlClient
 from ..live.guidance import TARGET_MM
+from ..times import time_text
 from ..worker.writeback import check_writable
 from .calibrate import Calibration, calibrate, check_report_dir
 from .errors import CommandError
@@ -195,7 +195,5 @@ def _window(job: Calibration, session: dict[str, Any]) -> Calibration:
     from dataclasses import replace
 
     since, until = int(session["since_ns"]), int(session["until_ns"])
-    text = "%Y-%m-%dT%H:%M:%S.%fZ"
-    session = {**session, "since": datetime.fromtimestamp(since / 1e9, UTC).strftime(text),
-               "until": datetime.fromtimestamp(until / 1e9, UTC).strftime(text)}  # fmt: skip
+    session = {**session, "since": time_text(since), "until": time_text(until)}
     return replace(job, since_ns=since, until_ns=until + 1, extra={"session": session})

@@ -30,7 +30,7 @@ from ..recording.names import recording_paths
 from ..recording.reader import identities
 from ..recording.verify import verify_file
 from ..scan_rows import scan_rate_hz
-from ..times import time_json
+from ..times import parse_time, time_json, time_text
 from ..worker.recorded_poses import completed_poses
 
 _TAIL = 512  # scans of a file's end compared with the next file's start
@@ -187,10 +187,21 @@ def _config_entry(cfg: dict[str, str]) -> dict[str, Any]:
     return {
         "path": cfg.get("path") or None,
         "sha256": cfg.get("sha256") or None,
-        "calibrated_utc": prov.get("written_utc"),
+        "calibrated_utc": _one_spelling(prov.get("written_utc")),
         "method": prov.get("method"),
         "files": 0,
     }
+
+
+def _one_spelling(text: object) -> str | None:
+    """A time a config's provenance gives (any version's spelling) in the one loopcal
+    prints; kept as it is if it is not a time (shown, not hidden)."""
+    if not isinstance(text, str):
+        return None
+    try:
+        return time_text(parse_time(text))
+    except ValueError:
+        return text
 
 
 def collect(paths: list[Path], *, poses: bool = True) -> Summary:

@@ -29,6 +29,7 @@ from prometheus_client.registry import Collector
 
 from ..config.controller import ControllerConfig
 from ..recording import find_recordings
+from ..times import parse_time
 from ..version import loopcal_version
 from .acquisition import AcquisitionStats
 from .filewriter import RecorderStatus
@@ -172,14 +173,16 @@ def _age_s(written_utc: object) -> float | None:
     None if there is none or it is not a time."""
     from datetime import datetime
 
-    if not isinstance(written_utc, str | datetime):
-        return None
     try:
-        t = written_utc if isinstance(written_utc, datetime) else datetime.fromisoformat(
-            written_utc)  # fmt: skip
-        return max(0.0, time.time() - t.timestamp())
+        if isinstance(written_utc, datetime):
+            t_s = written_utc.timestamp()
+        elif isinstance(written_utc, str):
+            t_s = parse_time(written_utc) / 1e9
+        else:
+            return None
     except (ValueError, OverflowError):
         return None
+    return max(0.0, time.time() - t_s)
 
 
 #: the listen backlog of the metrics server: connections waiting for their thread (the

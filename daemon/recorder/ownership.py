@@ -42,6 +42,8 @@ from pathlib import Path
 
 from loopcal.drivers import driver_for_url
 
+from ..times import time_text
+
 #: the environment variable that names the runtime directory (tests, unusual hosts)
 RUNTIME_ENV = "LOOPCAL_RUNTIME_DIR"
 #: the service's runtime directory (``RuntimeDirectory=loopcal`` in loopcal.service)
@@ -165,8 +167,7 @@ class Holder:
         if self.command:
             facts.append(f"`{self.command}`")
         if self.since_ns:
-            facts.append("since " + time.strftime("%Y-%m-%dT%H:%M:%SZ",
-                                                  time.gmtime(self.since_ns / 1e9)))  # fmt: skip
+            facts.append("since " + time_text(self.since_ns))
         return f"{who} ({', '.join(facts)})"
 
 

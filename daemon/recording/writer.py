@@ -9,7 +9,6 @@ import os
 import socket
 import sys
 from collections.abc import Callable, Iterable
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +19,7 @@ from loopcal.calibration.parameters import check_vector
 from ..config.durable import fsync_dir
 from ..events import Event
 from ..scan_rows import SCAN_DTYPE
+from ..times import now_text
 from ..version import loopcal_version
 from .cdr import encode_scan_block
 from .schemas import (
@@ -275,7 +275,7 @@ def metadata_records(
             "pid": str(os.getpid()),
             "python": sys.version.split()[0],
             "command": command,
-            "created_utc": datetime.now(UTC).isoformat(timespec="microseconds"),
+            "created_utc": now_text(),
             **(extra or {}),
         },
         "device": dict(device),

@@ -3,6 +3,8 @@ traceback, and nothing is started, recorded or written. Each case was a tracebac
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from loopcal.daemon import recording as rec
@@ -80,11 +82,18 @@ def test_calibrate_options(tmp_path):
                     "A4x=-A1x"), "--ties goes with --free")  # fmt: skip
     window = ("--since", "2030-01-01T00:00:00Z", "--until", "2029-01-01T00:00:00Z")
     proc = loopcal_main("calibrate", recording, "--controller-config", config, *window)
-    refused(proc, "empty time window", "2030-01-01 00:00:00 UTC")
+    refused(proc, "empty time window", "2030-01-01T00:00:00.000Z")
     proc = loopcal_main("calibrate", recording, "--controller-config", config,
                    "--since", "2031-01-01T00:00:00Z")  # fmt: skip
-    refused(proc, "no scans", "from 2031-01-01 00:00:00 UTC")
+    refused(proc, "no scans", "from 2031-01-01T00:00:00.000Z")
     assert " ns" not in proc.stderr
+    # a time as `info` prints it is a time every time option takes (one spelling)
+    info = json.loads(loopcal_main("info", recording, "--json").stdout)
+    for when in (info["start_utc"], info["start_utc"].replace("T", " ")[:-1] + " UTC"):
+        proc = loopcal_main("calibrate", recording, "--controller-config", config,
+                            "--since", when, "--until", info["end_utc"], "--json")
+        assert proc.returncode != 2 and "not a time" not in proc.stderr, proc.stderr
+        assert json.loads(proc.stdout)["poses"]["scans"] == 200 - 1  # until: not included
 
 
 @pytest.mark.slow
