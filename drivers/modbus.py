@@ -156,8 +156,20 @@ def format_firmware(reg: int) -> str:
 
 
 class ModbusOptions(TypedDict, total=False):
-    """The keyword arguments every Modbus driver takes, for :class:`ModbusDAQ` (which
-    documents them and holds their defaults)."""
+    """The keyword arguments every Modbus driver takes (:class:`ModbusDAQ` holds their
+    defaults).
+
+    Attributes
+    ----------
+    unit : int
+        The module's Modbus unit id, 1..247.
+    timeout : float
+        s to wait for an answer.
+    use_fifo : bool
+        Read the module's FIFO (True) or poll its latest scan.
+    check_identity : bool
+        Refuse a module that does not say it is an LDQ-412.
+    """
 
     unit: int
     timeout: float
