@@ -32,3 +32,17 @@ def time_argument(text: str) -> int:
         return parse_time(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def add_recordings_argument(
+    parser: argparse.ArgumentParser,
+    *,
+    optional: bool = False,
+    help: str = "recording files or directories of them",  # noqa: A002 (argparse's name)
+) -> None:
+    """The positional ``recordings`` (``REC.mcap|DIR``, paths) every command that reads
+    recordings takes: one or more, or any number with ``optional``."""
+    parser.add_argument(
+        "recordings", nargs="*" if optional else "+", type=path_argument,
+        metavar="REC.mcap|DIR", help=help,
+    )  # fmt: skip

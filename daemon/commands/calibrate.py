@@ -23,7 +23,12 @@ from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
 from loopcal.calibration.parameters import DEFAULT_FREE, ParameterModel
 from loopcal.calibration.pipeline import DEFAULT_N_SELECT
 
-from ..arguments import duration_argument, path_argument, time_argument
+from ..arguments import (
+    add_recordings_argument,
+    duration_argument,
+    path_argument,
+    time_argument,
+)
 from ..config import durable
 from ..config.controller import load_controller_config
 from ..recording import find_recordings, read_recordings
@@ -49,13 +54,10 @@ def last_argument(text: str) -> timedelta:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "recordings",
-        nargs="*",
-        type=path_argument,
-        metavar="REC.mcap",
-        help="recording files or directories (default with --config: its directory)",
-    )
+    add_recordings_argument(
+        p, optional=True, help="recording files or directories of them (default with --config: "
+        "its recordings directory)",
+    )  # fmt: skip
     p.add_argument(
         "--controller-config",
         type=path_argument,

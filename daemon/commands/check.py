@@ -29,7 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from ..arguments import path_argument
+from ..arguments import add_recordings_argument, path_argument
 from ..inspect.loops import check, plot
 from ..inspect.proposals import UpkeepSettings, proposal_words
 from ..live.health import FALSE_ALARM
@@ -39,8 +39,7 @@ from .errors import CommandError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recordings", nargs="+", type=path_argument, metavar="REC.mcap|DIR",
-                   help="recording files or directories of them")  # fmt: skip
+    add_recordings_argument(p)
     p.add_argument("--controller-config", type=path_argument, required=True, metavar="PATH",
                    help="the controller config to check the loops against")  # fmt: skip
     add_false_alarm_option(p)

@@ -29,7 +29,7 @@ import argparse
 import json
 import sys
 
-from ..arguments import path_argument
+from ..arguments import add_recordings_argument
 from ..recording.compact import (
     Compacted,
     compact,
@@ -40,8 +40,7 @@ from .errors import CommandError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recordings", nargs="+", type=path_argument, metavar="REC.mcap|DIR",
-                   help="recording files or directories of them")  # fmt: skip
+    add_recordings_argument(p)
     p.add_argument("--drop-views", action="store_true",
                    help="leave out the per-scan views (/joint/state, /plate/transform): every "
                         "raw scan and event stays; loopcal export makes them again")  # fmt: skip

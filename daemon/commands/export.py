@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 from mcap.reader import make_reader
 
-from ..arguments import path_argument
+from ..arguments import add_recordings_argument, path_argument
 from ..config.controller import (
     ControllerConfig,
     load_controller_config,
@@ -80,8 +80,7 @@ _VIEW_TOPICS = (TOPIC_STATE, TOPIC_TRANSFORM, TOPIC_SCENE)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recordings", nargs="+", type=path_argument, metavar="REC.mcap|DIR",
-                   help="recording files or directories of them")  # fmt: skip
+    add_recordings_argument(p)
     p.add_argument("--out", type=path_argument, required=True, metavar="DIR",
                    help="the directory to write the exported files to, each under its "
                         "original's name (created if missing; no file in it is "

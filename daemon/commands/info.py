@@ -19,14 +19,13 @@ from __future__ import annotations
 import argparse
 import json
 
-from ..arguments import path_argument
+from ..arguments import add_recordings_argument
 from ..inspect.summary import collect, render
 from .errors import CommandError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recordings", nargs="+", type=path_argument, metavar="REC.mcap|DIR",
-                   help="recording files or directories of them")  # fmt: skip
+    add_recordings_argument(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--no-poses", action="store_true",
                    help="do not look for still poses (faster)")  # fmt: skip

@@ -23,7 +23,7 @@ from loopcal.simulator.open_points import from_arguments as open_points_from_arg
 from loopcal.simulator.replay import Player, RecordedPowerOn
 from loopcal.simulator.run import add_transport_option, listen_host, tcp_port
 
-from ..arguments import path_argument
+from ..arguments import add_recordings_argument
 from ..recording import read_recordings
 from ..scan_rows import scan_rate_hz
 from .errors import CommandError
@@ -32,13 +32,7 @@ OFF_MIN_S = 0.1  # shortest power cycle replayed
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "recordings",
-        nargs="+",
-        type=path_argument,
-        metavar="REC.mcap",
-        help="recording files, or a directory of them",
-    )
+    add_recordings_argument(p)
     add_transport_option(p, "the wire the replayed module answers on")
     p.add_argument(
         "--speed", type=float, default=1.0, help="device seconds per real second (default 1)"

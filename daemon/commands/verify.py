@@ -17,15 +17,14 @@ import argparse
 import json
 from pathlib import Path
 
-from ..arguments import path_argument
+from ..arguments import add_recordings_argument
 from ..recording.names import recording_paths
 from ..recording.verify import verify_file
 from .errors import CommandError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recordings", nargs="+", type=path_argument, metavar="REC.mcap|DIR",
-                   help="recording files or directories of them")  # fmt: skip
+    add_recordings_argument(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
 
