@@ -578,23 +578,39 @@ class ModbusDAQ(DAQ):
         self.write_register(ldq412.HR_SCAN_RATE, hz)
         self._seq.set_rate(hz)
 
-    @property
-    def oversampling(self) -> int:
-        """Conversions averaged per reported code: 1, 2, 4, 8 or 16 (holding register 1),
-        read from the module at each access.
+    def read_oversampling(self) -> int:
+        """Conversions averaged per reported code, read from the module (holding
+        register 1; a request on the wire).
+
+        Returns
+        -------
+        int
+            1, 2, 4, 8 or 16.
 
         Raises
         ------
-        ValueError
-            When set to another number.
         DAQError
-            If the module cannot be read or written.
+            If the module cannot be read.
         """
         (n,) = self.read_holding_registers(ldq412.HR_OVERSAMPLING, 1)
         return n
 
-    @oversampling.setter
-    def oversampling(self, n: int) -> None:
+    def write_oversampling(self, n: int) -> None:
+        """Set the conversions averaged per reported code (holding register 1; a write on
+        the wire).
+
+        Parameters
+        ----------
+        n : int
+            1, 2, 4, 8 or 16.
+
+        Raises
+        ------
+        ValueError
+            When ``n`` is another number (nothing is written).
+        DAQError
+            If the module cannot be written.
+        """
         if n not in ldq412.OVERSAMPLING_CHOICES:
             raise ValueError(f"oversampling {n} not in {ldq412.OVERSAMPLING_CHOICES}")
         self.write_register(ldq412.HR_OVERSAMPLING, n)

@@ -375,9 +375,9 @@ def test_modbus_exceptions_are_typed(emu_factory, transport: str) -> None:
         daq.write_register(ldq412.HR_COUNT, 1)
     assert exc.value.code == 2
     with pytest.raises(ValueError):
-        daq.oversampling = 3
-    daq.oversampling = 4
-    assert daq.oversampling == 4
+        daq.write_oversampling(3)
+    daq.write_oversampling(4)
+    assert daq.read_oversampling() == 4
     check_against_truth(advance_and_read(daq, clock, 10), emu)
 
 
