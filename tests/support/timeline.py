@@ -15,7 +15,7 @@ from functools import partial
 import numpy as np
 
 from loopcal.drivers import Scan
-from loopcal.drivers.pacing import FIFO_READ_PERIOD_S, READ_DITHER_STEP, PollPacer
+from loopcal.drivers.pacing import FIFO_READ_PERIOD_S, FifoPacer, PollPacer
 from loopcal.simulator.open_points import Latency
 
 from .rows import T0
@@ -145,8 +145,10 @@ def run_stamps(
         k0 = module.latest(t)
         edge = module.readable_s(k0 + 1) + latency_s()
         clockmap.observe(edge, utc0_ns + round(edge * 1e9), module.time_us(k0 + 1))
-    for i in range(n_reads):
-        extra = (i * READ_DITHER_STEP) % 1.0 / module.rate_hz if dither else 0.0
+    pacer = FifoPacer(read_period_s, module.rate_hz)  # the acquisition's, for its dither
+    for _ in range(n_reads):
+        extra = pacer.dither() if dither else 0.0
+        pacer.observe(t, t, ())  # counts the read (never half full here)
         t += read_period_s + extra + rng.uniform(-jitter_s, jitter_s)
         k = module.latest(t)
         arrival = t + latency_s()
