@@ -102,8 +102,7 @@ def home_derivative(p: np.ndarray) -> np.ndarray:
     Parameters
     ----------
     p : array_like, shape (20,)
-        Full parameter vector (mm, mm/V), in the order of
-        :data:`~loopcal.calibration.parameters.NAMES`. Only k1, k2, k3 are used; not validated.
+        Full parameter vector (mm, mm/V), as in :func:`plate_home`.
 
     Returns
     -------
@@ -151,9 +150,7 @@ def volts_to_lengths(volts: np.ndarray, p: np.ndarray) -> np.ndarray:
     volts : array_like, shape (m, 4)
         LVDT readings V, V, sensors 1..4 (any shape ending in 4 broadcasts).
     p : array_like, shape (20,)
-        Full parameter vector (mm, mm/V), in the order of
-        :data:`~loopcal.calibration.parameters.NAMES`. Only the gains S and offsets d0 are
-        used; not validated.
+        Full parameter vector (mm, mm/V), as in :func:`lengths_to_volts`.
 
     Returns
     -------
@@ -296,7 +293,7 @@ def tilt_swivel(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Parameters
     ----------
     R : array_like, shape (m, 3, 3) or (3, 3)
-        Rotations.
+        Rotations, as in :func:`euler_zyz`.
 
     Returns
     -------
