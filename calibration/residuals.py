@@ -24,7 +24,8 @@ from .parameters import (
     SL_OFFSET,
     check_vector,
 )
-from .spheres import adjoint, dot3, solve
+from .smallmat import dot3
+from .spheres import adjoint, solve
 
 _E = np.eye(N_PARAMS)
 

@@ -118,6 +118,22 @@ def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dot products over the first axis.
+
+    Parameters
+    ----------
+    a, b : ndarray, shape (3, ...)
+        Vectors, as in :func:`cross3`.
+
+    Returns
+    -------
+    ndarray, shape (...)
+        ``a[0] b[0] + a[1] b[1] + a[2] b[2]``.
+    """
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
 def gram3(J: np.ndarray):
     """The six distinct entries of ``J^T J`` for matrices J with three columns.
 

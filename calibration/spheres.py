@@ -29,23 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .smallmat import cross3
-
-
-def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Dot products over the first axis, component-major.
-
-    Parameters
-    ----------
-    a, b : ndarray, shape (3, ...)
-        Vectors, broadcasting against each other after the first axis.
-
-    Returns
-    -------
-    ndarray, shape (...)
-        ``a[0] b[0] + a[1] b[1] + a[2] b[2]``.
-    """
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+from .smallmat import cross3, dot3
 
 
 @dataclass(frozen=True)
