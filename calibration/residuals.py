@@ -133,11 +133,8 @@ def reference_points(volts: np.ndarray, p: np.ndarray) -> np.ndarray:
     ------
     InputError
         If ``volts`` fails :func:`check_volts`.
-    ParameterError
-        If ``p`` fails :func:`~loopcal.calibration.parameters.check_vector`.
-    numpy.linalg.LinAlgError
-        If forward kinematics is not finite (see
-        :func:`~loopcal.calibration.kinematics.forward_kinematics`).
+    ParameterError, numpy.linalg.LinAlgError
+        As :func:`~loopcal.calibration.kinematics.forward_kinematics`.
     """
     V = check_volts(volts)
     # a few Gauss-Newton steps place the plate to well under a millimetre, far inside the
@@ -281,11 +278,11 @@ def noise_directions(
     Parameters
     ----------
     p : array_like, shape (20,)
-        Full parameter vector (mm, mm/V).
+        Full parameter vector (mm, mm/V), as in :func:`loop_residuals`.
     volts : array_like, shape (m, 4)
-        LVDT readings, V.
+        LVDT readings, V, as in :func:`loop_residuals`.
     ref : array_like, shape (m, 2, 3)
-        Reference plate points (:func:`reference_points`), mm.
+        Reference plate points, mm, as in :func:`loop_residuals`.
 
     Returns
     -------
