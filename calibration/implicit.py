@@ -277,9 +277,9 @@ def weighted_information(
     Parameters
     ----------
     R : ndarray, shape (m, 3, 3)
-        Plate rotations.
+        Plate rotations, as in :func:`model_jacobians`.
     p : ndarray, shape (20,)
-        Full parameter vector (mm, mm/V).
+        Full parameter vector (mm, mm/V), as in :func:`model_jacobians`.
     directions : array_like, shape (20, n)
         Free directions (a model's ``tie_matrix``).
     weights : array_like, shape (m, 4)
@@ -389,9 +389,10 @@ def start_rotations(
     Parameters
     ----------
     volts : array_like, shape (m, 4)
-        LVDT readings, V.
+        LVDT readings, V, as in :func:`~loopcal.calibration.kinematics.volts_to_lengths`.
     p : array_like, shape (20,)
-        Full parameter vector (mm, mm/V).
+        Full parameter vector (mm, mm/V), as in
+        :func:`~loopcal.calibration.kinematics.forward_kinematics`.
     start : array_like, shape (m, 3, 3), optional
         Rotations near the answer to start forward kinematics from (for example the fitted
         ones, when judging the poses again at the estimate); by default it starts from the
