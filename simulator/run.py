@@ -449,7 +449,9 @@ def add_transport_option(p: argparse.ArgumentParser, what: str) -> None:
                    help=f"{what}: {', '.join(TRANSPORTS)} (default modbus-tcp)")  # fmt: skip
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
+def add_arguments(
+    p: argparse.ArgumentParser, duration: Callable[[str], float] = float
+) -> None:
     """Add ``loopcal simulate``'s options to its parser.
 
     The transport and listening address, the module's identity and power-on settings, the
@@ -462,6 +464,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     ----------
     p : argparse.ArgumentParser
         The ``simulate`` command's parser.
+    duration : callable
+        The type of ``--duration``: text to s (``loopcal simulate`` passes the command
+        line's one duration syntax, ``90``, ``90s``, ``15m``).
     """
     add_transport_option(p, "the wire the emulated module answers on")
     p.add_argument(
@@ -527,9 +532,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--help-faults", action="store_true", help="explain the fault syntax")
     p.add_argument(
         "--duration",
-        type=float,
+        type=duration,
         default=None,
-        help="stop after this many seconds of device time (default: until a signal)",
+        metavar="D",
+        help="stop after this long by the module's clock (device time: at --speed X, 1/X of "
+        "it in wall time): seconds, or 90s, 15m, 2h (default: until a signal)",
     )
     p.add_argument(
         "--truth-out", type=Path, default=None, help="write the ground truth here (JSON Lines)"

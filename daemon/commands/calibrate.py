@@ -83,7 +83,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--last",
         type=last_argument,
-        metavar="DURATION",
+        metavar="D",
         help="only the last DURATION of the recordings, by their stamps (90, 90s, 15m, 2h, 1d)",
     )
     add_select_option(p)

@@ -10,8 +10,10 @@ controller config (``loopcal init-config``); and what was written is compared wi
 The emulated module runs ``--speed`` times as fast as wall time, so 75 s of session take
 about eight seconds (over ASCII, which polls, in real time: progress is shown).
 
-Each command is shown as it is run, quoted to paste into a shell. The last line is the
-verdict: written (and how close to the truth), or refused and why, nothing written.
+Each command is shown as it is run, quoted to paste into a shell. The end says where the
+files are (the recording, the controller config, the HTML report): in ``--out DIR``, or in
+a temporary directory that is removed unless ``--keep``. The last line is the verdict:
+written (and how close to the truth), or refused and why, nothing written.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import logging
 import math
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -42,17 +45,21 @@ from loopcal.simulator.options import add_simulation_options, check_simulation_o
 from loopcal.simulator.run import add_transport_option
 from loopcal.simulator.scenarios import HandMoves
 
-from ..arguments import path_argument
+from ..arguments import duration_argument, path_argument
 from ..config.controller import ControllerConfig, load_controller_config
 from .errors import CommandError
 from .model_options import add_model_options, model_from_args
 
 PROGRESS_S = 5.0  # wall seconds between progress lines while recording
+SESSION_S = 75.0  # the session, s of the emulated module's time
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_transport_option(p, "the wire between the recorder and the emulated module")
-    p.add_argument("--minutes", type=float, default=1.25, help="session length (1.25)")
+    p.add_argument("--duration", type=duration_argument, default=SESSION_S, metavar="D",
+                   help="the session's length by the emulated module's clock (at --speed X, "
+                        f"1/X of it in wall time): seconds, or 90s, 2m (default {SESSION_S:g} "
+                        "s)")  # fmt: skip
     p.add_argument(
         "--speed",
         type=float,
@@ -72,8 +79,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=path_argument,
         default=None,
         metavar="DIR",
-        help="keep the recording, config and report here (default: a temp dir)",
+        help="keep the recording, config and report here (default: a temporary directory, "
+        "removed at the end unless --keep)",
     )
+    p.add_argument("--keep", action="store_true",
+                   help="keep the temporary directory (without --out)")  # fmt: skip
     p.add_argument("--json", action="store_true",
                    help="one JSON object on stdout at the end (verdict, what was written "
                         "against the truth); the session's output goes to stderr")  # fmt: skip
@@ -91,8 +101,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
     """The demo; ``report`` gets what --json prints: verdict, written, work, parameters."""
-    if not args.minutes > 0:
-        raise CommandError("--minutes must be positive")
     try:
         check_simulation_options(args)
     except ValueError as exc:  # the option and its value, named
@@ -103,6 +111,11 @@ def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
     model = model_from_args(args)
     if args.out is None:
         work = Path(tempfile.mkdtemp(prefix="loopcal-demo-"))
+        try:
+            return _in(work, args, model, speed, report)
+        finally:
+            if not args.keep:
+                shutil.rmtree(work, ignore_errors=True)
     else:
         work = args.out
         if work.exists() and not work.is_dir():
@@ -111,7 +124,14 @@ def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
             work.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise CommandError(f"--out {work}: cannot create it: {exc.strerror or exc}") from None
-    report.update(work=str(work), written=False, parameters={})
+        return _in(work, args, model, speed, report)
+
+
+def _in(work: Path, args: argparse.Namespace, model: ParameterModel, speed: float,
+        report: dict[str, Any]) -> int:  # fmt: skip
+    """The demo working in ``work``."""
+    kept = args.out is not None or args.keep
+    report.update(work=str(work), kept=kept, written=False, parameters={})
     t_start = time.perf_counter()
     truth = perturbed_truth(
         np.random.default_rng(args.seed), offsets_mm=args.offset_error, model=model
@@ -119,7 +139,7 @@ def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
     print(
         f"A shoulder joint whose LVDTs were refitted (offsets off by up to "
         f"{args.offset_error:g} mm), {args.noise_mv:g} mV of sensor noise; a technician moves "
-        f"it by hand for {args.minutes:g} min"
+        f"it by hand for {args.duration:g} s"
         + (f", twisting it every {args.twist_every} moves" if args.twist_every else "")
         + f". Working in {work}."
     )
@@ -130,7 +150,7 @@ def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
         seed=args.seed,
     )
     recordings = work / "recordings"
-    session_s = args.minutes * 60
+    session_s = args.duration
     # The emulated module's server (pymodbus, in this process) logs an ERROR with a hex dump
     # whenever the recorder hangs up before an answer goes out, as it does at --duration.
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL + 1)
@@ -226,8 +246,8 @@ def _nothing_written(status: int, calibrate_out: str, config: Path) -> str:
             f"{config} is as loopcal init-config wrote it."
         )
         if any(name == "poses" for name, _ in failed):
-            print("In this demo a longer session (--minutes, default 1.25) passes through "
-                  "more positions.")
+            print(f"In this demo a longer session (--duration, default {SESSION_S:g} s) passes "
+                  "through more positions.")
         return f"refused ({reason}), nothing written"
     if status == 0:
         print(f"\nNothing was written: {config} already held the values calibrated.")
@@ -271,9 +291,27 @@ def _against_truth(written: ControllerConfig, truth: np.ndarray, model: Paramete
 def _end(t_start: float, status: int, verdict: str, report: dict[str, Any]) -> int:
     seconds = time.perf_counter() - t_start
     print(f"\nDone in {seconds:.1f} s.")
+    _say_files(Path(report["work"]), report["kept"])
     print(f"verdict: {verdict}", flush=True)
     report.update(verdict=verdict, seconds=round(seconds, 1))
     return status
+
+
+def _say_files(work: Path, kept: bool) -> None:
+    """Say where the demo's files are, or that they go with the temporary directory."""
+    if not kept:
+        print(f"Its files were in {work}, removed as the demo ends: --keep keeps them, "
+              "--out DIR puts them where you choose.")  # fmt: skip
+        return
+    what = {
+        "recordings": "the session's recording (loopcal info, check, export)",
+        "controller.toml": "the controller config (calibrated if the verdict says written)",
+        "report/index.html": "the calibration's HTML report",
+    }
+    print(f"Its files, in {work}:")
+    for name, words in what.items():
+        if (work / name).exists():
+            print(f"  {work / name}: {words}")
 
 
 def _command_line(argv: list[str]) -> str:

@@ -7,6 +7,8 @@ display redrawn about once a second (plain lines when stdout is not a terminal, 
 update with ``--json``), and it stops by itself once every offset's predicted standard
 deviation is at or below ``--target-mm`` and the calibration's acceptance gates would pass.
 Exit status then: 0 enough, 1 stopped before it was enough.
+
+A duration D is seconds or a number with a unit: ``90``, ``90s``, ``15m``, ``2h``.
 """
 
 from __future__ import annotations

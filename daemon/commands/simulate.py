@@ -1,7 +1,19 @@
 """``loopcal simulate``: the emulated LDQ-412 driven by a simulated shoulder joint (the
-command itself lives with the simulator, in :mod:`loopcal.simulator.run`)."""
+command itself lives with the simulator, in :mod:`loopcal.simulator.run`; its ``--duration``
+takes the command line's one duration syntax)."""
+
+from __future__ import annotations
+
+import argparse
 
 from loopcal.simulator.run import __doc__ as DESCRIPTION  # noqa: N812
-from loopcal.simulator.run import add_arguments, run
+from loopcal.simulator.run import add_arguments as simulator_arguments
+from loopcal.simulator.run import run
+
+from ..arguments import duration_argument
 
 __all__ = ["DESCRIPTION", "add_arguments", "run"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    simulator_arguments(p, duration=duration_argument)

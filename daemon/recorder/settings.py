@@ -24,7 +24,8 @@ from typing import Any
 from loopcal.drivers import driver_for_url, ldq412
 from loopcal.drivers.pacing import FIFO_READ_PERIOD_S
 
-from ..arguments import path_argument
+from ..arguments import duration_argument, path_argument
+from ..defaults import FALSE_ALARM, FALSE_ALARM_MAX, UPKEEP_TARGET_MM, UPKEEP_THRESHOLD_MM
 from .ownership import runtime_directory
 
 _SIZE_RE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(B|KiB|MiB|GiB|TiB|kB|MB|GB|TB)?\s*$")
@@ -37,7 +38,6 @@ _MAX_SIZE = float(1 << 62)
 CONTROL_SOCKET_NAME = "control.sock"
 #: the most scans the backlog may hold in memory (about 560 MB)
 MAX_BACKLOG_SCANS = 10_000_000
-FALSE_ALARM_MAX = 1e-2  #: the health monitor's false-alarm rate is below this
 
 class SettingsError(ValueError):
     """A bad setting. ``field`` is the :class:`RecorderSettings` field at fault (None when
@@ -148,12 +148,13 @@ class RecorderSettings:
              "(loopcal init-config writes one); without it, the reference geometry")  # fmt: skip
     duration_s: float | None = _setting(
         None, kind="seconds", option="--duration", shown_default="until SIGINT/SIGTERM",
-        help="stop after this many seconds")  # fmt: skip
+        help="stop after this long by the host's clock (the wall time; an emulated module "
+             "at --speed X makes X times as many scans meanwhile)")  # fmt: skip
     health: bool = _setting(
         True, kind="switch", key="[health].enabled", option="--no-health",
         help="watch loop closure and raise offset_drift events")  # fmt: skip
     health_false_alarm: float = _setting(
-        1e-8, kind="probability", key="[health].false_alarm", shown_default="1e-8",
+        FALSE_ALARM, kind="probability", key="[health].false_alarm", shown_default="1e-8",
         help="probability per still pose of an alarm when nothing moved, below 0.01")  # fmt: skip
     metrics_listen: str | None = _setting(
         None, kind="listen", key="[metrics].listen", option="--metrics",
@@ -179,10 +180,10 @@ class RecorderSettings:
              "for a person to apply: loopcal upkeep apply); write (straight into the "
              "controller config, the previous version kept); docs/calibration.md")  # fmt: skip
     upkeep_target_mm: float = _setting(
-        0.05, kind="mm", key="[upkeep].target_mm", lo=0.001, hi=1.0,
+        UPKEEP_TARGET_MM, kind="mm", key="[upkeep].target_mm", lo=0.001, hi=1.0,
         help="the standard deviation a recalibrated offset must reach, mm")  # fmt: skip
     upkeep_threshold_mm: float = _setting(
-        0.1, kind="mm", key="[upkeep].threshold_mm", lo=0.01, hi=10.0,
+        UPKEEP_THRESHOLD_MM, kind="mm", key="[upkeep].threshold_mm", lo=0.01, hi=10.0,
         help="the smallest change of an offset upkeep acts on, mm")  # fmt: skip
     upkeep_min_interval_s: float = _setting(
         600.0, kind="seconds", key="[upkeep].min_interval", lo=10.0, hi=30 * 86400.0,
@@ -403,7 +404,8 @@ def _size_option(text: str) -> int:
 
 
 _OPTION_TYPES: dict[str, Callable[[str], Any]] = {
-    "url": str, "listen": str, "path": path_argument, "seconds": float, "size": _size_option,
+    "url": str, "listen": str, "path": path_argument, "seconds": duration_argument,
+    "size": _size_option,
     "count": int, "probability": float, "days": float, "mm": float,
 }  # fmt: skip
 
@@ -429,7 +431,7 @@ def add_options(p: argparse.ArgumentParser) -> None:
 
 
 def _metavar(kind: str) -> str:
-    return {"seconds": "S", "size": "SIZE", "count": "N", "path": "PATH",
+    return {"seconds": "D", "size": "SIZE", "count": "N", "path": "PATH",
             "days": "DAYS"}.get(kind, "VALUE")  # fmt: skip
 
 

@@ -64,6 +64,22 @@ def test_out_is_a_directory(name: str) -> None:
             assert a.metavar == "DIR", f"loopcal {name} --out is {a.metavar}, not a DIR"
 
 
+@pytest.mark.parametrize("name", NAMES)
+def test_every_duration_takes_the_one_spelling(name: str) -> None:
+    """A duration (metavar D, and every --duration) is seconds or a number with a unit,
+    the same spelling in every command: 1.5m is 90 s, and 0 is refused."""
+    for a in _options(_command_parser(name)):
+        if "--duration" in a.option_strings or "--last" in a.option_strings:
+            assert a.metavar == "D", f"loopcal {name} {a.option_strings[0]} is {a.metavar}"
+        if a.metavar != "D":
+            continue
+        value = a.type("1.5m")
+        seconds = value.total_seconds() if hasattr(value, "total_seconds") else value
+        assert seconds == 90.0, (name, a.option_strings, value)
+        with pytest.raises(argparse.ArgumentTypeError, match="more than 0"):
+            a.type("0")
+
+
 @pytest.mark.parametrize("name", sorted(REPORTING))
 def test_reporting_commands_take_json(name: str) -> None:
     flags = {s for a in _options(_command_parser(name)) for s in a.option_strings}

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 import threading
@@ -18,6 +19,7 @@ import pytest
 
 from loopcal.calibration.parameters import INDEX
 from loopcal.daemon.config.controller import load_controller_config, nominal_config
+from tests.support.processes import loopcal_main
 
 ENTRY = [sys.executable, "-m", "loopcal.daemon.cli"]
 
@@ -129,7 +131,7 @@ def test_demo_writes_offsets_close_to_the_truth(tmp_path):
 def test_demo_shows_the_commands_it_really_runs(tmp_path):
     """The printed command lines paste into a shell as they are: split by shlex or by bash
     (the URL's `?`, a path with a space), they are the argv of the processes the demo ran."""
-    demo = run_demo("--out", str(tmp_path / "with space"), "--minutes", "0.2")
+    demo = run_demo("--out", str(tmp_path / "with space"), "--duration", "12")
     assert demo.returncode == 1, demo.stdout + demo.stderr  # too short: refused
     assert demo.stderr == ""  # the commands' output is all on stdout, in order
     for command in ("record", "calibrate"):
@@ -140,13 +142,13 @@ def test_demo_shows_the_commands_it_really_runs(tmp_path):
     record = demo.shown("record")
     assert record[record.index("--daq") + 1].startswith("modbus-tcp://127.0.0.1:")
     assert "?unit=1" in record[record.index("--daq") + 1]
-    assert record[record.index("--duration") + 1] == "1.2"  # 0.2 min at x10
+    assert record[record.index("--duration") + 1] == "1.2"  # 12 s at x10
     assert record[record.index("--out") + 1] == str(tmp_path / "with space" / "recordings")
 
 
 @pytest.mark.slow
 def test_demo_too_short_says_nothing_was_written(tmp_path):
-    demo = run_demo("--out", str(tmp_path), "--minutes", "0.1")
+    demo = run_demo("--out", str(tmp_path), "--duration", "6s")
     out = demo.stdout
     assert demo.returncode == 1, out + demo.stderr
     assert "against the truth" not in out and not re.search(r"\bnan\b", out) and not table(out)
@@ -173,7 +175,7 @@ def test_ascii_demo_shows_progress_while_it_records(tmp_path):
     """Over ASCII the module runs in real time: the demo says how far it has come at least
     every few seconds, in the session's own time: never more than has passed, nor beyond
     the session's end."""
-    demo = run_demo("--transport", "ascii", "--minutes", "0.3", "--out", str(tmp_path))
+    demo = run_demo("--transport", "ascii", "--duration", "0.3m", "--out", str(tmp_path))
     # 18 s of motion: written or refused (every scan counts: the precision gate may pass)
     assert demo.returncode in (0, 1), demo.stdout + demo.stderr
     assert demo.shown("record")[:3] == ["loopcal", "record", "--daq"]
@@ -197,17 +199,16 @@ def test_ascii_demo_shows_progress_while_it_records(tmp_path):
     assert all(abs(z) < 3.5 for *_, z in table(demo.stdout).values())
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize(
     ("args", "message"),
-    [(["--minutes", "0"], "--minutes must be positive"), (["--free", "Q7"], "unknown parameter"),
+    [(["--duration", "0"], "--duration: '0': a duration must be more than 0"),
+     (["--free", "Q7"], "unknown parameter"),
      (["--twist-every", "-1"], "--twist-every must be 0 or more moves, got -1")],
 )  # fmt: skip
-def test_demo_bad_options(args, message, capsys):
-    from loopcal.daemon.cli import main  # in this process: refused before anything starts
-
-    assert main(["demo", *args]) == 2
-    assert message in capsys.readouterr().err
+def test_demo_bad_options(args, message):
+    refused = loopcal_main("demo", *args)  # in this process: refused before anything starts
+    assert refused.returncode == 2
+    assert message in refused.stderr
 
 
 @pytest.mark.slow
@@ -226,3 +227,26 @@ def test_demo_json_is_one_object_that_matches_the_config_written(tmp_path):
         assert p["written"] == written.params[INDEX[name]], name
         assert p["error"] == pytest.approx(p["written"] - p["truth"], abs=1e-12)
         assert p["std"] == written.provenance["std"][name] and abs(p["error"]) < 3.5 * p["std"]
+
+
+@pytest.mark.slow
+def test_demo_says_where_its_files_are_and_removes_a_temporary_directory():
+    """Without --out the demo works in a temporary directory: it says so at the end (just
+    before the verdict), removes it, and says how to keep it; with --keep it stays, and
+    the end lists the files in it."""
+    gone = run_demo("--duration", "3")
+    assert gone.returncode == 1, gone.stdout + gone.stderr  # too short: refused
+    m = re.fullmatch(r"Its files were in (\S+), removed as the demo ends: --keep keeps them, "
+                     r"--out DIR puts them where you choose\.\n", gone.lines[-2][1])  # fmt: skip
+    assert m, gone.lines[-3:]
+    assert not Path(m.group(1)).exists()
+    kept = run_demo("--duration", "3", "--keep")
+    start = next(i for i, (_, ln) in enumerate(kept.lines) if ln.startswith("Its files, in "))
+    work = Path(kept.lines[start][1].removeprefix("Its files, in ").removesuffix(":\n"))
+    try:
+        listed = [ln.split(": ")[0].strip() for _, ln in kept.lines[start + 1 : -1]]
+        assert listed == [str(work / "recordings"), str(work / "controller.toml"),
+                          str(work / "report" / "index.html")], kept.lines[start:]  # fmt: skip
+        assert all(Path(f).exists() for f in listed)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)

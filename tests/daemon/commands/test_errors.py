@@ -37,10 +37,10 @@ def _raising(exc: BaseException):
 
 
 def test_a_refusal_is_one_line_and_exit_2(capsys) -> None:
-    assert run_command("demo", _raising(CommandError("--minutes 0: must be positive")), ARGS) == 2
+    assert run_command("demo", _raising(CommandError("--speed 0: must be positive")), ARGS) == 2
     out, err = capsys.readouterr()
     assert out == ""
-    assert err == "loopcal demo: error: --minutes 0: must be positive\n"
+    assert err == "loopcal demo: error: --speed 0: must be positive\n"
 
 
 def test_a_refusal_says_its_own_status_one_line_per_problem(capsys) -> None:
