@@ -157,9 +157,9 @@ def loop_closure(
     Parameters
     ----------
     volts : array_like, shape (m, 4)
-        Mean readings, V.
+        Mean readings, V, as in :func:`pose_models`.
     p : array_like, shape (20,)
-        Parameters in force (mm, mm/V).
+        Parameters in force (mm, mm/V), as in :func:`pose_models`.
     sigma_volts : array_like, shape (m, 4) or (4,)
         Standard deviation of each mean reading, V (one scan's noise over the square root
         of the scans averaged, with the converter's rounding:
