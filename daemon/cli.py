@@ -14,6 +14,9 @@ from .version import loopcal_version
 #: the docs the help texts name (docs/daemon.md, ...) are installed with loopcal
 DOCS_EPILOG = "docs/*.md, systemd/*: installed with loopcal; `loopcal files` says where."
 
+#: the options of ``loopcal`` itself, before the command; a command's options follow it
+_GLOBAL_OPTIONS = frozenset({"-h", "--help", "--version"})
+
 #: a reST cross-reference, :role:`target`, :role:`~a.b.target` or :role:`text <target>`
 _ROLE = re.compile(r":[a-z]+:`(~?)([^`<]*?)\s*(?:<[^>]*>)?`")
 
@@ -65,8 +68,14 @@ def main(argv: list[str] | None = None) -> int:
     # the command is the first word that is not an option (loopcal has no global option
     # that takes a value)
     names = {name for name, _ in COMMANDS}
-    command = next((a for a in argv if not a.startswith("-")), None)
-    args, extra = build_parser(command if command in names else None).parse_known_args(argv)
+    at = next((i for i, a in enumerate(argv) if not a.startswith("-")), len(argv))
+    command = argv[at] if at < len(argv) else None
+    parser = build_parser(command if command in names else None)
+    before = [a for a in argv[:at] if a not in _GLOBAL_OPTIONS]
+    if before and command in names:
+        parser.error(f"{before[0]} is not an option of loopcal itself: put it after the "
+                     f"command (loopcal {command} {' '.join(before)} ...)")  # fmt: skip
+    args, extra = parser.parse_known_args(argv)
     if extra:  # said by the command's parser: "loopcal CMD: error: ...", exit 2
         args.parser.error(f"unrecognized arguments: {' '.join(extra)}")
     return run_command(args.command, args.func, args)

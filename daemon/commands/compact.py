@@ -15,7 +15,7 @@ directory that turns out not to be a recording is reported so, and the exit stat
 
 ``--drop-views``: leave out the per-scan views (/joint/state, /plate/transform), nine tenths of
 a compacted file: what stays is every raw scan, bit for bit, the events and the metadata
-(about 6 bytes a scan against 120). ``loopcal export`` makes a file with every view again.
+(about 5 bytes a scan against 120). ``loopcal export`` makes a file with every view again.
 The daemon does this by itself to files older than ``[recording].keep_views_days``.
 
 ``--json``: one object, ``{"files": [{"path", "compacted", "failed", "not_recording", "reason",

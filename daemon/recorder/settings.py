@@ -139,7 +139,7 @@ class RecorderSettings:
         7.0, kind="days", key="[recording].keep_views_days", option="--keep-views-days",
         help="compaction leaves out the per-scan views (/joint/state, /plate/transform) of "
              "files started this many days ago or more: every raw scan and event stays, about "
-             "6 bytes a scan against 120, and loopcal export makes the views again; 0: at "
+             "5 bytes a scan against 120, and loopcal export makes the views again; 0: at "
              "once, inf: never (needs [recording].compact)")  # fmt: skip
     controller_config: Path | None = _setting(
         None, kind="path", key="[controller].config", option="--controller-config",

@@ -86,6 +86,27 @@ def test_reporting_commands_take_json(name: str) -> None:
     assert "--json" in flags, f"loopcal {name} has no --json"
 
 
+def test_the_readme_names_the_commands_without_json() -> None:
+    """The README's one sentence on --json names exactly the commands that lack it."""
+    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    m = re.search(r"every command takes `--json` .*? but these: (.*?); exit", text)
+    assert m, "the README's sentence on --json is gone"
+    named = set(re.findall(r"`([a-z-]+)`", m.group(1)))
+    flags = {n: {s for a in _options(_command_parser(n)) for s in a.option_strings} for n in NAMES}
+    without = {n for n in NAMES if "--json" not in flags[n]}
+    assert named == without
+
+
+def test_a_command_option_before_the_command_is_named_as_such() -> None:
+    refused = loopcal_main("--json", "info", "x.mcap")
+    assert refused.returncode == 2
+    assert refused.stderr.endswith(
+        "loopcal: error: --json is not an option of loopcal itself: put it after the command "
+        "(loopcal info --json ...)\n"
+    )
+    assert "loopcal info: error" not in refused.stderr
+
+
 @pytest.mark.parametrize("name", ["calibrate", "demo", "observability"])
 def test_free_takes_one_value_in_one_syntax(name: str) -> None:
     p = _command_parser(name)
