@@ -497,7 +497,8 @@ class AsciiDAQ(DAQ):
         Returns
         -------
         int
-            The code, 0..4095.
+            The channel's code in the module's latest scan, 0..4095, decoded by
+            :func:`parse_channel`.
 
         Raises
         ------
