@@ -411,6 +411,7 @@ def start_rotations(
     InputError, ParameterError, numpy.linalg.LinAlgError
         As :func:`~loopcal.calibration.kinematics.forward_kinematics`.
     """
+    p = check_vector(p)  # before its gains and offsets are used
     fk = forward_kinematics(volts_to_lengths(volts, p), p, start=start)
     ok = fk.converged & (fk.sigma_min >= MIN_POSE_SIGMA_MM) & np.isfinite(fk.rms_mm)
     return fk.rotations, ok

@@ -137,6 +137,7 @@ def reference_points(volts: np.ndarray, p: np.ndarray) -> np.ndarray:
         As :func:`~loopcal.calibration.kinematics.forward_kinematics`.
     """
     V = check_volts(volts)
+    p = check_vector(p)  # before its gains and offsets are used
     # a few Gauss-Newton steps place the plate to well under a millimetre, far inside the
     # separation of the branches the references choose between
     fk = forward_kinematics(volts_to_lengths(V, p), p, max_iter=4)

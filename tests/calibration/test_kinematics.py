@@ -141,3 +141,19 @@ def test_bad_kinematics_input_is_named():
     with pytest.raises(InputError, match="NaN"):
         loop_residuals(NOMINAL, np.full((2, 4), np.nan), np.zeros((2, 2, 3)))
     assert lengths_to_volts(np.full((1, 4), 97.4), NOMINAL) == pytest.approx(0.0)
+
+
+@pytest.mark.parametrize("name", ["reference_points", "start_rotations"])
+@pytest.mark.parametrize(
+    ("p", "why"),
+    [(NOMINAL[:19], r"shape \(20,\), got \(19,\)"),
+     (np.where(np.arange(20) == 0, np.nan, NOMINAL), "not finite")],
+)  # fmt: skip
+def test_a_bad_parameter_vector_is_a_parameter_error_before_it_is_used(name, p, why):
+    """As their docstrings say: not a ValueError of broadcasting, nor an InputError about
+    the lengths that a NaN gain or offset would make."""
+    from loopcal.calibration import implicit, residuals
+
+    f = getattr(residuals, name, None) or getattr(implicit, name)
+    with pytest.raises(ParameterError, match=why):
+        f(np.zeros((2, 4)), p)
