@@ -147,27 +147,39 @@ def test_demo_shows_the_commands_it_really_runs(tmp_path):
 
 
 @pytest.mark.slow
-def test_demo_too_short_says_nothing_was_written(tmp_path):
-    demo = run_demo("--out", str(tmp_path), "--duration", "6s")
+def test_demo_too_short_says_nothing_was_written_and_where_its_files_are():
+    """Refused, in a temporary directory kept by --keep: the end lists the files in it,
+    just before the verdict, and the config there is as init-config wrote it."""
+    demo = run_demo("--duration", "6s", "--keep")
     out = demo.stdout
     assert demo.returncode == 1, out + demo.stderr
-    assert "against the truth" not in out and not re.search(r"\bnan\b", out) and not table(out)
-    # six seconds of motion: refused, and the verdict quotes the first gate that failed
-    failed = re.findall(r"^  \[FAIL\] (\S+): .*\n\s+why: (.*)$", out, re.M)
-    assert failed, out
-    name, why = failed[0]
-    assert re.search(
-        rf"^Nothing was written: loopcal calibrate refused the session \({name}: ", out, re.M
-    )
-    assert demo.lines[-1][1].startswith(f"verdict: refused ({name}: {why}")
-    assert demo.lines[-1][1].endswith("), nothing written\n")
-    # and indeed nothing was: the config is what init-config wrote, with no previous version
-    config = load_controller_config(tmp_path / "controller.toml")
-    assert config.provenance is None
-    assert list(config.params) == list(nominal_config().params)
-    assert [p.name for p in tmp_path.iterdir() if p.name.startswith("controller.toml")] == [
-        "controller.toml"
-    ]
+    start = next(i for i, (_, ln) in enumerate(demo.lines) if ln.startswith("Its files, in "))
+    work = Path(demo.lines[start][1].removeprefix("Its files, in ").removesuffix(":\n"))
+    try:
+        listed = [ln.split(": ")[0].strip() for _, ln in demo.lines[start + 1 : -1]]
+        assert listed == [str(work / "recordings"), str(work / "controller.toml"),
+                          str(work / "report" / "index.html")], demo.lines[start:]  # fmt: skip
+        assert all(Path(f).exists() for f in listed)
+        assert "against the truth" not in out and not re.search(r"\bnan\b", out)
+        assert not table(out)
+        # six seconds of motion: refused, and the verdict quotes the first gate that failed
+        failed = re.findall(r"^  \[FAIL\] (\S+): .*\n\s+why: (.*)$", out, re.M)
+        assert failed, out
+        name, why = failed[0]
+        assert re.search(
+            rf"^Nothing was written: loopcal calibrate refused the session \({name}: ", out, re.M
+        )
+        assert demo.lines[-1][1].startswith(f"verdict: refused ({name}: {why}")
+        assert demo.lines[-1][1].endswith("), nothing written\n")
+        # and indeed nothing was: the config is what init-config wrote, no previous version
+        config = load_controller_config(work / "controller.toml")
+        assert config.provenance is None
+        assert list(config.params) == list(nominal_config().params)
+        assert [p.name for p in work.iterdir() if p.name.startswith("controller.toml")] == [
+            "controller.toml"
+        ]
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
 
 
 @pytest.mark.slow
@@ -230,23 +242,12 @@ def test_demo_json_is_one_object_that_matches_the_config_written(tmp_path):
 
 
 @pytest.mark.slow
-def test_demo_says_where_its_files_are_and_removes_a_temporary_directory():
-    """Without --out the demo works in a temporary directory: it says so at the end (just
-    before the verdict), removes it, and says how to keep it; with --keep it stays, and
-    the end lists the files in it."""
+def test_demo_removes_its_temporary_directory_and_says_how_to_keep_it():
+    """Without --out or --keep the end says where the files were, that they are removed,
+    and how to keep them; and they are gone."""
     gone = run_demo("--duration", "3")
     assert gone.returncode == 1, gone.stdout + gone.stderr  # too short: refused
     m = re.fullmatch(r"Its files were in (\S+), removed as the demo ends: --keep keeps them, "
                      r"--out DIR puts them where you choose\.\n", gone.lines[-2][1])  # fmt: skip
     assert m, gone.lines[-3:]
     assert not Path(m.group(1)).exists()
-    kept = run_demo("--duration", "3", "--keep")
-    start = next(i for i, (_, ln) in enumerate(kept.lines) if ln.startswith("Its files, in "))
-    work = Path(kept.lines[start][1].removeprefix("Its files, in ").removesuffix(":\n"))
-    try:
-        listed = [ln.split(": ")[0].strip() for _, ln in kept.lines[start + 1 : -1]]
-        assert listed == [str(work / "recordings"), str(work / "controller.toml"),
-                          str(work / "report" / "index.html")], kept.lines[start:]  # fmt: skip
-        assert all(Path(f).exists() for f in listed)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
