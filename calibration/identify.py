@@ -28,6 +28,7 @@ import numpy as np
 
 from . import implicit
 from .damping import Damping
+from .defaults import DEFAULT_METHOD, METHODS
 from .errors import ConvergenceError, InputError
 from .observability import (
     CONDITION_OK,
@@ -234,12 +235,6 @@ def check_stroke(volts: np.ndarray, stroke_volts: float = STROKE_VOLTS) -> None:
             f"actuator stroke (+-{STROKE_MM} mm; first: pose {k}, sensor {i + 1}, "
             f"{volts[k, i]:+.3f} V)"
         )
-
-
-METHODS = ("ml", "paper")
-#: the estimator used when none is named: maximum likelihood reaches the Cramér-Rao bound
-#: where the paper's method stays 1.2 to 1.5 times above it (bench/bench_ml.py)
-DEFAULT_METHOD = "ml"
 
 
 def identify(

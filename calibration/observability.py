@@ -16,14 +16,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .defaults import CONDITION_OK
 from .errors import InputError, UnobservableError
 from .parameters import ParameterModel
 
 #: relative singular value (s / s_1) at or below which a direction counts as not
 #: identifiable at all
 UNOBSERVABLE_RTOL = 1e-8
-#: the paper's acceptable condition number (docs/model.md section 11)
-CONDITION_OK = 1000.0
 
 
 def as_rows(J: np.ndarray) -> tuple[np.ndarray, int]:

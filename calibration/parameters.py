@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .defaults import DEFAULT_FREE
 from .errors import ParameterError
 
 #: the 20 parameter names, in the order of a full vector
@@ -426,6 +427,4 @@ PRESETS: dict[str, ParameterModel] = {
 }
 for _i in range(1, 5):
     PRESETS[f"d0{_i}"] = ParameterModel((f"d0{_i}",))
-#: the free set a calibration identifies unless told otherwise: the paper's seven
-DEFAULT_FREE = "paper7"
 PAPER7 = PRESETS[DEFAULT_FREE]

@@ -6,9 +6,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .defaults import CONDITION_OK, DEFAULT_METHOD, DEFAULT_N_SELECT, METHODS
 from .errors import CalibrationError, InputError
-from .identify import DEFAULT_METHOD, METHODS, Identification, identify
-from .observability import CONDITION_OK
+from .identify import Identification, identify
 from .parameters import NOMINAL, PAPER7, ParameterModel
 from .residuals import check_volts
 from .selection import Selection, candidate_jacobian, ml_candidates, select_poses
@@ -46,10 +46,6 @@ class Calibration:
         if self.selection is not None:
             return self.selection.indices
         return np.arange(len(self.identification.used))
-
-
-#: how many of the recorded poses a calibration selects unless told otherwise
-DEFAULT_N_SELECT = 50
 
 
 def calibrate(

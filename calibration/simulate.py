@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .defaults import NOISE_VOLTS
 from .errors import InputError
 from .kinematics import (
     from_euler_zyz,
@@ -35,8 +36,6 @@ from .residuals import loop_residuals
 MAX_TILT_DEG = 45.0
 #: largest swivel (alpha + gamma) sampled either way, deg
 MAX_SWIVEL_DEG = 90.0
-#: the sensors' noise, 1 sigma, V (the paper's 40 mV)
-NOISE_VOLTS = 0.040
 #: mm: poses whose mirror plate positions come closer than this, in any loop, are
 #: near-singular
 NEAR_SINGULAR_MM = 10.0

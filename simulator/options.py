@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from loopcal.calibration.simulate import NOISE_VOLTS
+from loopcal.calibration.defaults import NOISE_VOLTS
 
 #: the random seed of the motion, the noise and the true parameters
 SEED = 1
