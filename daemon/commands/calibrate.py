@@ -18,10 +18,9 @@ import sys
 from dataclasses import dataclass, field
 from datetime import timedelta
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
-from loopcal.calibration.parameters import DEFAULT_FREE, ParameterModel
-from loopcal.calibration.pipeline import DEFAULT_N_SELECT
+from loopcal.calibration.defaults import DEFAULT_FREE, DEFAULT_METHOD, DEFAULT_N_SELECT, METHODS
 
 from ..arguments import (
     add_recordings_argument,
@@ -29,15 +28,12 @@ from ..arguments import (
     path_argument,
     time_argument,
 )
-from ..config import durable
-from ..config.controller import load_controller_config
-from ..recording import find_recordings, read_recordings
-from ..recording.names import recording_paths
 from ..times import time_or
-from ..worker.job import METHOD_NAMES, describe_files, run_worker
-from ..worker.writeback import Written, check_writable, write_back
 from .errors import CommandError
 from .model_options import add_model_options, add_select_option
+
+if TYPE_CHECKING:  # the worker, the recordings and the config: imported when run
+    from ..worker.writeback import Written
 
 #: the longest --last that makes sense: more than any recording kept on a controller
 MAX_DURATION = timedelta(days=3650)
@@ -105,6 +101,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _inputs(args: argparse.Namespace) -> tuple[list[Path], Path]:
+    from ..recording import find_recordings
+    from ..recording.names import recording_paths
+
     files: list[Path] = list(args.recordings)
     controller = args.controller_config
     if args.config is not None:
@@ -200,6 +199,13 @@ def calibrate(job: Calibration) -> int:
     status (0 accepted, 1 refused), everything said on stdout and stderr. Bad input
     raises :class:`~loopcal.daemon.commands.errors.CommandError` (or a domain error that
     means it: a controller config, a recording), before anything is written."""
+    from loopcal.calibration.parameters import ParameterModel
+
+    from ..config import durable
+    from ..config.controller import load_controller_config
+    from ..recording import read_recordings
+    from ..worker.job import describe_files, run_worker
+    from ..worker.writeback import check_writable, write_back
 
     def progress(text: str) -> None:
         print(text, file=sys.stderr if job.json else sys.stdout, flush=True)
@@ -274,6 +280,8 @@ def _jsonable(obj):
 
 
 def _print_human(result, path, written: Written | None, asked_to_write: bool) -> None:
+    from ..worker.job import METHOD_NAMES
+
     cal = result.calibration
     print()
     print(f"Free parameters: {result.model.describe()}")

@@ -28,14 +28,14 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import TYPE_CHECKING
 
 from ..arguments import add_recordings_argument, path_argument
-from ..inspect.loops import check, plot
-from ..inspect.proposals import UpkeepSettings, proposal_words
-from ..live.health import FALSE_ALARM
-from ..recorder.settings import FALSE_ALARM_MAX
-from ..recording.names import recording_paths
+from ..defaults import FALSE_ALARM, FALSE_ALARM_MAX, UPKEEP_TARGET_MM, UPKEEP_THRESHOLD_MM
 from .errors import CommandError
+
+if TYPE_CHECKING:  # the health monitor and the upkeep (numpy, scipy): imported when run
+    from ..inspect.proposals import UpkeepSettings
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -67,20 +67,22 @@ def add_upkeep_options(p: argparse.ArgumentParser, *, what: str = "") -> None:
     """``--upkeep-target-mm MM`` and ``--upkeep-threshold-mm MM``, the daemon's ``[upkeep]``
     defaults (``loopcal check``, ``loopcal fleet check``, whose help says ``what`` first);
     :func:`upkeep_settings` reads and checks them."""
-    d = UpkeepSettings()
-    p.add_argument("--upkeep-target-mm", type=float, default=d.target_mm, metavar="MM",
+    p.add_argument("--upkeep-target-mm", type=float, default=UPKEEP_TARGET_MM, metavar="MM",
                    help=f"{what}the standard deviation an offset the upkeep would propose must "
-                        f"reach, mm (default {d.target_mm:g}, the daemon's "
+                        f"reach, mm (default {UPKEEP_TARGET_MM:g}, the daemon's "
                         "[upkeep].target_mm)")  # fmt: skip
-    p.add_argument("--upkeep-threshold-mm", type=float, default=d.threshold_mm, metavar="MM",
+    p.add_argument("--upkeep-threshold-mm", type=float, default=UPKEEP_THRESHOLD_MM,
+                   metavar="MM",
                    help=f"{what}the smallest change of an offset the upkeep acts on, mm "
-                        f"(default {d.threshold_mm:g}, the daemon's "
+                        f"(default {UPKEEP_THRESHOLD_MM:g}, the daemon's "
                         "[upkeep].threshold_mm)")  # fmt: skip
 
 
 def upkeep_settings(args: argparse.Namespace) -> UpkeepSettings:
     """The upkeep's settings :func:`add_upkeep_options` parsed; raises CommandError naming
     the option for a value outside the daemon's bounds."""
+    from ..inspect.proposals import UpkeepSettings
+
     try:
         return UpkeepSettings(target_mm=args.upkeep_target_mm,
                               threshold_mm=args.upkeep_threshold_mm).checked()  # fmt: skip
@@ -93,6 +95,9 @@ def run(args: argparse.Namespace) -> int:
     upkeep = upkeep_settings(args)
     if args.plot is not None and args.plot.parent.exists() is False:
         raise CommandError(f"--plot {args.plot}: directory {args.plot.parent} does not exist")
+    from ..inspect.loops import check, plot
+    from ..recording.names import recording_paths
+
     try:
         files = recording_paths(args.recordings)
         if not files:
@@ -138,6 +143,8 @@ def run(args: argparse.Namespace) -> int:
 def print_proposals(doc: dict) -> None:
     """The text of what the upkeep would propose, and of a proposal pending beside the
     config."""
+    from ..inspect.proposals import proposal_words
+
     for p in doc["proposals"]:
         into = ("" if p["since_offset_s"] is None
                 else f" ({p['since_offset_s']:,.0f} s into the recordings)")  # fmt: skip

@@ -1,12 +1,20 @@
 """The options shared by the commands that identify parameters: ``--free`` and ``--ties``
-(one syntax in calibrate, demo and observability), and ``--select``."""
+(one syntax in calibrate, demo and observability), and ``--select``.
+
+Their defaults come from :mod:`loopcal.calibration.defaults`, which imports nothing: adding
+these options does not import numpy (``--help`` prints at once); the parameter model is
+built, and imported, only by :func:`model_from_args`.
+"""
 
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from loopcal.calibration.parameters import DEFAULT_FREE, ParameterModel
-from loopcal.calibration.pipeline import DEFAULT_N_SELECT
+from loopcal.calibration.defaults import DEFAULT_FREE, DEFAULT_N_SELECT
+
+if TYPE_CHECKING:
+    from loopcal.calibration.parameters import ParameterModel
 
 FREE_HELP = ("free parameters: a preset (paper7, offsets, all, d01..d04) or names separated by "
              "commas, e.g. d03 or d01,d02,A1x")  # fmt: skip
@@ -29,4 +37,6 @@ def add_select_option(p: argparse.ArgumentParser) -> None:
 
 
 def model_from_args(args: argparse.Namespace) -> ParameterModel:
+    from loopcal.calibration.parameters import ParameterModel
+
     return ParameterModel.parse(args.free, args.ties or ())

@@ -10,16 +10,16 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from loopcal.calibration.observability import CONDITION_OK, analyse_identifiability
-from loopcal.calibration.selection import candidate_jacobian
-from loopcal.calibration.simulate import simulate_poses
+from loopcal.calibration.defaults import CONDITION_OK
 from loopcal.simulator.options import add_simulation_options, check_simulation_options
 
 from .errors import CommandError
 from .model_options import add_model_options, model_from_args
+
+if TYPE_CHECKING:
+    import numpy as np
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -51,6 +51,10 @@ def run(args: argparse.Namespace) -> int:
         check_simulation_options(args)
     except ValueError as exc:  # the option and its value, named
         raise CommandError(exc) from None
+    from loopcal.calibration.observability import analyse_identifiability
+    from loopcal.calibration.selection import candidate_jacobian
+    from loopcal.calibration.simulate import simulate_poses
+
     model = model_from_args(args)
     if args.session is not None:
         J = _session_information(args, model)
@@ -93,6 +97,8 @@ def _session_information(args: argparse.Namespace, model) -> np.ndarray:
     if not args.noise_mv > 0:
         raise CommandError(f"--session needs noise to weigh the scans: --noise-mv "
                            f"{args.noise_mv:g}")
+    import numpy as np
+
     from loopcal.calibration import implicit
     from loopcal.calibration.parameters import NOMINAL
     from loopcal.simulator.scenarios import HandMoves
