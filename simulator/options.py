@@ -63,7 +63,7 @@ def pause_argument(text: str) -> tuple[float, float]:
 
 
 def add_simulation_options(p: argparse.ArgumentParser, *, truth: bool = True,
-                           what: str = "") -> None:  # fmt: skip
+                           what: str = "", noise_what: str = "") -> None:  # fmt: skip
     """Add the simulated session's options: ``--seed``, ``--pause``, ``--twist-every``,
     ``--noise-mv`` and (``truth``) ``--offset-error``, with this module's defaults.
 
@@ -77,6 +77,8 @@ def add_simulation_options(p: argparse.ArgumentParser, *, truth: bool = True,
     what : str, default ""
         Said first in the help of the options that shape the hand's motion (``--pause``,
         ``--twist-every``), e.g. ``"with --scenario hand: "``.
+    noise_what : str, default ""
+        Said first in ``--noise-mv``'s help, e.g. ``"with --session: "``.
     """
     p.add_argument("--seed", type=int, default=SEED,
                    help="random seed of the motion"
@@ -89,7 +91,7 @@ def add_simulation_options(p: argparse.ArgumentParser, *, truth: bool = True,
                    help=f"{what}every N-th move twists the plate about its own axis, as the "
                         f"live guidance asks (default {TWIST_EVERY}; 0: never)")  # fmt: skip
     p.add_argument("--noise-mv", type=float, default=NOISE_MV, metavar="MV",
-                   help=f"sensor noise, mV rms (default {NOISE_MV:g})")  # fmt: skip
+                   help=f"{noise_what}sensor noise, mV rms (default {NOISE_MV:g})")  # fmt: skip
     if truth:
         p.add_argument("--offset-error", type=float, default=OFFSET_ERROR_MM, metavar="MM",
                        help="the true offsets differ from the blueprint by up to this, mm "

@@ -1,12 +1,15 @@
 """``loopcal calibrate``: new parameters from recordings, written only when they can be
 trusted.
 
-Reads one or several recordings (or a time window of the daemon's recording directory),
-finds the still poses, selects the best, identifies the free parameters starting from the
-controller config, and runs the acceptance gates. Without ``--write`` it changes nothing and
-shows the change it would make; with ``--write`` and every gate passed, it writes the new
-values into the controller config (keeping the previous version beside it). Exit status: 0
-accepted (and written with ``--write``), 1 a gate failed (nothing written), 2 bad input.
+Reads one or several recordings (or a time window of the daemon's recording directory)
+and identifies the free parameters, starting from the controller config: by maximum
+likelihood from every usable scan, moving or still, each with a plate orientation of its
+own (the default, ``--method ml``), or with ``--method paper`` from the still poses, of
+which it selects the best ``--select``. Then it runs the acceptance gates. Without
+``--write`` it changes nothing and shows the change it would make; with ``--write`` and
+every gate passed, it writes the new values into the controller config (keeping the
+previous version beside it). Exit status: 0 accepted (and written with ``--write``), 1 a
+gate failed (nothing written), 2 bad input.
 """
 
 from __future__ import annotations
@@ -30,7 +33,8 @@ from ..arguments import (
 )
 from ..times import time_or
 from .errors import CommandError
-from .model_options import add_model_options, add_select_option
+from .model_options import add_model_options, add_select_option, parse_model
+from .option_rules import note_given, refuse_unless
 
 if TYPE_CHECKING:  # the worker, the recordings and the config: imported when run
     from ..worker.writeback import Written
@@ -50,6 +54,7 @@ def last_argument(text: str) -> timedelta:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    note_given(p)
     add_recordings_argument(
         p, optional=True, help="recording files or directories of them (default with --config: "
         "its recordings directory)",
@@ -87,8 +92,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--method",
         choices=METHODS,
         default=DEFAULT_METHOD,
-        help="estimator: ml, maximum likelihood (default), or paper, the paper's closed-loop "
-        "residuals",
+        help="estimator: ml, maximum likelihood from every usable scan, moving or still "
+        f"(default {DEFAULT_METHOD}), or paper, the paper's closed-loop residuals of the "
+        "--select best still poses",
     )
     p.add_argument(
         "--write",
@@ -106,6 +112,10 @@ def _inputs(args: argparse.Namespace) -> tuple[list[Path], Path]:
 
     files: list[Path] = list(args.recordings)
     controller = args.controller_config
+    if args.config is not None and files and controller is not None:
+        raise CommandError("--config gives the recordings directory and the controller config; "
+                           "both are given already: drop --config, or the recordings and "
+                           "--controller-config")  # fmt: skip
     if args.config is not None:
         # the daemon's settings check driver URLs (pymodbus): loaded only for --config
         from ..recorder.settings import load_daemon_config
@@ -185,8 +195,13 @@ class Calibration:
 
 
 def run(args: argparse.Namespace) -> int:
+    refuse_unless(args, args.method == "paper", "only with --method paper",
+                  f"the default method ({DEFAULT_METHOD}) fits every usable scan and selects "
+                  "no poses", "--select")  # fmt: skip
     if args.ties is not None and not args.free:
         raise CommandError("--ties goes with --free (ties tie parameters of a custom free set)")
+    if args.free:  # a bad free set or ties is named before any file is read
+        parse_model(args.free, args.ties)
     files, controller_path = _inputs(args)
     return calibrate(Calibration(
         files, controller_path, free=args.free, ties=args.ties, since_ns=args.since,
@@ -216,9 +231,10 @@ def calibrate(job: Calibration) -> int:
     config = load_controller_config(job.controller_path)
     if job.write:
         check_writable(config)
-    free = job.free or config.free or DEFAULT_FREE
-    ties = job.ties if job.free else (",".join(config.ties) or None)
-    model = ParameterModel.parse(free, ties or ())
+    if job.free:
+        model = parse_model(job.free, job.ties)
+    else:
+        model = ParameterModel.parse(config.free or DEFAULT_FREE, config.ties)
     if job.last is not None and since is not None:
         raise CommandError("give --since or --last, not both")
     if since is not None and until is not None and until <= since:

@@ -1,7 +1,7 @@
 """``loopcal export REC|DIR ... --out DIR [--controller-config PATH] [--json]``: a recording
 for Foxglove, with every view, made again from the raw scans of each file.
 
-Compaction with ``--drop-views`` (or the daemon's ``[recording].keep_views_days``) leaves out
+``loopcal compact --drop-views`` (or the daemon's ``[recording].keep_views_days``) leaves out
 the per-scan views of old files (/joint/state, /plate/transform): every raw scan and event
 stays. This command writes each given file anew into the directory ``--out`` (created if
 missing), under the same name, as the recorder writes a file: the raw scans bit for bit, the

@@ -17,22 +17,28 @@ from loopcal.simulator.options import add_simulation_options, check_simulation_o
 
 from .errors import CommandError
 from .model_options import add_model_options, model_from_args
+from .option_rules import note_given, refuse_unless
 
 if TYPE_CHECKING:
     import numpy as np
 
+#: the simulation options that shape a --session's hand and noise: nothing without it
+SESSION_OPTIONS = ("--pause", "--twist-every", "--noise-mv")
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    note_given(p)
     add_model_options(p)
     p.add_argument("--poses", type=int, default=450, metavar="N",
-                   help="simulated poses spread over the workspace (default 450)")  # fmt: skip
+                   help="not with --session: simulated still poses spread over the workspace "
+                        "(default 450)")  # fmt: skip
     p.add_argument("--session", type=float, default=None, metavar="SECONDS",
                    help="judge every scan of a simulated hand session this long (20 Hz; "
                         "its pauses, twists and noise as --pause, --twist-every and "
                         "--noise-mv say) by its maximum-likelihood information, as the worker "
                         "fits it, instead of --poses still poses by the paper's "
                         "Jacobian")  # fmt: skip
-    add_simulation_options(p, truth=False, what="with --session: ")
+    add_simulation_options(p, truth=False, what="with --session: ", noise_what="with --session: ")
     p.add_argument("--condition-limit", type=float, default=CONDITION_OK, metavar="C",
                    help="the largest condition number a free set may have "
                         f"(default {CONDITION_OK:g})")  # fmt: skip
@@ -51,12 +57,18 @@ def run(args: argparse.Namespace) -> int:
         check_simulation_options(args)
     except ValueError as exc:  # the option and its value, named
         raise CommandError(exc) from None
+    session = args.session is not None  # a bad value is named first, then where it applies
+    refuse_unless(args, not session, "not with --session",
+                  "a session's scans are judged instead of --poses still poses", "--poses")
+    refuse_unless(args, session, "only with --session",
+                  "the still poses spread over the workspace are noise-free and placed, not "
+                  "moved by a hand", *SESSION_OPTIONS)  # fmt: skip
     from loopcal.calibration.observability import analyse_identifiability
     from loopcal.calibration.selection import candidate_jacobian
     from loopcal.calibration.simulate import simulate_poses
 
     model = model_from_args(args)
-    if args.session is not None:
+    if session:
         J = _session_information(args, model)
     else:
         ps = simulate_poses(args.poses, seed=args.seed, noise_volts=0.0, quantize=False)
