@@ -50,84 +50,32 @@ Imports: calibration/ (kinematics for the views), mcap, numpy, and the base modu
 :mod:`loopcal.daemon` (scans, events, version). Nothing else of daemon/.
 """
 
-from .cdr import (
-    FRAME_TRANSFORM_DTYPE,
-    JOINT_STATE_DTYPE,
-    cdr_dtype,
-    cdr_messages,
-    decode_scan_blocks,
-    decode_scan_blocks_checked,
-    encode_scan_block,
-)
-from .errors import RecordingError
-from .losses import Loss
-from .names import find_recordings, name_time_ns, recording_name
-from .reader import Recording, message_time_range, read_recordings
-from .recordingfile import RecordingFile
-from .schemas import (
-    BASE_FRAME,
-    BLOCK_SPAN_NS,
-    CHANNELS,
-    COMPACT_FORMAT,
-    FORMAT_VERSION,
-    FRAME_TRANSFORM_SCHEMA,
-    JOINT_STATE_SCHEMA,
-    JSON_SCHEMAS,
-    PLATE_FRAME,
-    READ_FORMATS,
-    SCAN_BLOCK_SCHEMA,
-    SCAN_COLUMNS_SCHEMA,
-    TOPIC_EVENTS,
-    TOPIC_LOG,
-    TOPIC_SCANS,
-    TOPIC_SCENE,
-    TOPIC_STATE,
-    TOPIC_TRANSFORM,
-    scan_block_msgdef,
-)
-from .views import JointStates, joint_states, state_messages, transform_messages
-from .writer import RecordingWriter, metadata_records
+import lazy_loader as lazy
 
-__all__ = [
-    "BASE_FRAME",
-    "BLOCK_SPAN_NS",
-    "CHANNELS",
-    "COMPACT_FORMAT",
-    "FORMAT_VERSION",
-    "READ_FORMATS",
-    "FRAME_TRANSFORM_DTYPE",
-    "FRAME_TRANSFORM_SCHEMA",
-    "JOINT_STATE_DTYPE",
-    "JOINT_STATE_SCHEMA",
-    "JSON_SCHEMAS",
-    "JointStates",
-    "Loss",
-    "PLATE_FRAME",
-    "Recording",
-    "RecordingError",
-    "RecordingFile",
-    "RecordingWriter",
-    "SCAN_BLOCK_SCHEMA",
-    "SCAN_COLUMNS_SCHEMA",
-    "TOPIC_EVENTS",
-    "TOPIC_LOG",
-    "TOPIC_SCANS",
-    "TOPIC_SCENE",
-    "TOPIC_STATE",
-    "TOPIC_TRANSFORM",
-    "cdr_dtype",
-    "cdr_messages",
-    "decode_scan_blocks",
-    "decode_scan_blocks_checked",
-    "encode_scan_block",
-    "find_recordings",
-    "joint_states",
-    "message_time_range",
-    "metadata_records",
-    "name_time_ns",
-    "read_recordings",
-    "recording_name",
-    "scan_block_msgdef",
-    "state_messages",
-    "transform_messages",
-]
+# Loaded on first use (PEP 562, by lazy_loader), as calibration/ and drivers/ are: a module
+# that needs only the file names (``loopcal.daemon.recording.names``) or the schemas' topics,
+# and a command's ``--help``, do not pay for numpy and mcap.
+_SUBMODULES = ("cdr", "errors", "losses", "names", "reader", "recordingfile", "schemas", "views",
+               "writer")  # fmt: skip
+__getattr__, __dir__, _names = lazy.attach(
+    __name__,
+    submodules=_SUBMODULES,
+    submod_attrs={
+        "cdr": ["FRAME_TRANSFORM_DTYPE", "JOINT_STATE_DTYPE", "cdr_dtype", "cdr_messages",
+                "decode_scan_blocks", "decode_scan_blocks_checked", "encode_scan_block"],
+        "errors": ["RecordingError"],
+        "losses": ["Loss"],
+        "names": ["find_recordings", "name_time_ns", "recording_name"],
+        "reader": ["Recording", "message_time_range", "read_recordings"],
+        "recordingfile": ["RecordingFile"],
+        "schemas": ["BASE_FRAME", "BLOCK_SPAN_NS", "CHANNELS", "COMPACT_FORMAT",
+                    "FORMAT_VERSION", "FRAME_TRANSFORM_SCHEMA", "JOINT_STATE_SCHEMA",
+                    "JSON_SCHEMAS", "PLATE_FRAME", "READ_FORMATS", "SCAN_BLOCK_SCHEMA",
+                    "SCAN_COLUMNS_SCHEMA", "TOPIC_EVENTS", "TOPIC_LOG", "TOPIC_SCANS",
+                    "TOPIC_SCENE", "TOPIC_STATE", "TOPIC_TRANSFORM", "scan_block_msgdef"],
+        "views": ["JointStates", "joint_states", "state_messages", "transform_messages"],
+        "writer": ["RecordingWriter", "metadata_records"],
+    },
+)  # fmt: skip
+#: the names above (``from loopcal.daemon.recording import *``), without the submodules
+__all__ = [name for name in _names if name not in _SUBMODULES]
