@@ -6,7 +6,10 @@ it to talk to the module; the simulator uses it to imitate the module. It does n
 
 from __future__ import annotations
 
-import numpy as np
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # numpy is imported by the conversions that use it: the constants are
+    import numpy as np  # read by every command's --help, which must not wait for numpy
 
 MODEL_CODE = 0x0412
 MODEL_NAME = "LDQ412"
@@ -80,6 +83,8 @@ def volts_to_code(volts: np.ndarray | float) -> np.ndarray:
     numpy.ndarray
         int64 codes 0..4095, the same shape.
     """
+    import numpy as np
+
     v = np.asarray(volts, dtype=float)
     code = np.floor((v - V_MIN) * (CODE_MAX + 1) / V_SPAN)
     return np.clip(code, 0, CODE_MAX).astype(np.int64)
@@ -98,6 +103,8 @@ def code_to_volts(code: np.ndarray | int) -> np.ndarray:
     numpy.ndarray
         Voltages, V, float64, the same shape.
     """
+    import numpy as np
+
     c = np.asarray(code, dtype=float)
     return (c + 0.5) * V_SPAN / (CODE_MAX + 1) + V_MIN
 
@@ -115,6 +122,8 @@ def at_rail(code: np.ndarray | int) -> np.ndarray:
     numpy.ndarray
         bool, the same shape.
     """
+    import numpy as np
+
     c = np.asarray(code)
     return (c == 0) | (c == CODE_MAX)
 

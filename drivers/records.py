@@ -9,11 +9,12 @@ import cycle; ``loopcal.drivers`` and ``loopcal.drivers.base`` export them as be
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
-
-import numpy as np
+from typing import TYPE_CHECKING, Literal
 
 from . import ldq412
+
+if TYPE_CHECKING:  # imported by Scan.volts: the records' module is loaded by a --help
+    import numpy as np
 
 ScanSource = Literal["fifo", "snapshot"]
 
@@ -170,6 +171,8 @@ class Scan:
     @property
     def volts(self) -> np.ndarray:
         """Channel 1..4 voltages by mid-code reconstruction, V, shape (4,), float64."""
+        import numpy as np
+
         return ldq412.code_to_volts(np.asarray(self.codes))
 
     @property
