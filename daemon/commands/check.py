@@ -10,8 +10,9 @@ and when the loops closed again, if they did. Loops that do not close from the f
 on are not a change: the config does not describe the robot (a sensor replaced before the
 recordings, a config never calibrated), and that is said instead, once ("loops_open" in
 ``--json``). Still poses are counted as ``loopcal info`` counts them, the one the
-recordings end in included. ``--plot`` draws each sensor's estimated
-offset shift over time and the test statistic against the alarm threshold.
+recordings end in included. ``--plot FILE`` draws each sensor's estimated offset shift over
+time and the test statistic against the alarm threshold, into FILE as its name says (.png,
+.svg or .pdf), titled by the verdict the text ends with.
 
 The same scans go to the daemon's upkeep in report mode (:mod:`loopcal.daemon.inspect.proposals`,
 ``--upkeep-target-mm`` and ``--upkeep-threshold-mm``, the daemon's defaults): for each
@@ -28,6 +29,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..arguments import add_recordings_argument, path_argument
@@ -37,6 +40,32 @@ from .errors import CommandError
 if TYPE_CHECKING:  # the health monitor and the upkeep (numpy, scipy): imported when run
     from ..inspect.proposals import UpkeepSettings
 
+#: the image formats --plot writes, by the file name's suffix
+PLOT_FORMATS = (".png", ".svg", ".pdf")
+
+
+def plot_argument(text: str) -> Path:
+    """--plot: a file name ending in one of :data:`PLOT_FORMATS` (the format it is written
+    in: a name without one is refused, not given one)."""
+    path = path_argument(text)
+    if path.suffix.lower() not in PLOT_FORMATS:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: name the image file with its format, one of "
+            f"{', '.join(PLOT_FORMATS)} (e.g. check.png)")  # fmt: skip
+    return path
+
+
+def check_plot_file(path: Path) -> None:
+    """The plot's directory must exist and take files, before anything is computed."""
+    directory = path.parent
+    if not directory.is_dir():
+        raise CommandError(f"--plot {path}: directory {directory} does not exist")
+    if path.is_dir():
+        raise CommandError(f"--plot {path}: is a directory")
+    if not os.access(directory, os.W_OK | os.X_OK) or (path.exists()
+                                                        and not os.access(path, os.W_OK)):
+        raise CommandError(f"--plot {path}: cannot write there (permission denied)")
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_recordings_argument(p)
@@ -45,8 +74,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_false_alarm_option(p)
     add_upkeep_options(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.add_argument("--plot", type=path_argument, metavar="FILE.png",
-                   help="draw each sensor's estimated shift and statistic over time")  # fmt: skip
+    p.add_argument("--plot", type=plot_argument, metavar="FILE.png",
+                   help="draw each sensor's estimated shift and statistic over time into this "
+                        f"file ({', '.join(PLOT_FORMATS)})")  # fmt: skip
 
 
 def add_false_alarm_option(p: argparse.ArgumentParser, *, what: str = "") -> None:
@@ -93,9 +123,9 @@ def upkeep_settings(args: argparse.Namespace) -> UpkeepSettings:
 def run(args: argparse.Namespace) -> int:
     check_false_alarm(args.false_alarm)
     upkeep = upkeep_settings(args)
-    if args.plot is not None and args.plot.parent.exists() is False:
-        raise CommandError(f"--plot {args.plot}: directory {args.plot.parent} does not exist")
-    from ..inspect.loops import check, plot
+    if args.plot is not None:
+        check_plot_file(args.plot)
+    from ..inspect.loops import check, plot, verdict
     from ..recording.names import recording_paths
 
     try:
@@ -108,8 +138,13 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:  # a file named or found that cannot be read
         raise CommandError(exc) from None
     if args.plot is not None:
-        plot(doc, args.plot)
+        try:
+            plot(doc, args.plot)
+        except OSError as exc:
+            raise CommandError(f"--plot {args.plot}: cannot write it: "
+                               f"{exc.strerror or exc}") from None  # fmt: skip
     doc.pop("_trace")
+    found = verdict(doc)
     if args.json:
         print(json.dumps(doc, indent=1))
     else:
@@ -135,9 +170,10 @@ def run(args: argparse.Namespace) -> int:
                   f"({c['start_offset_s']:,.0f} s into the recordings), detected "
                   f"{c['detected_utc']}{end}")  # fmt: skip
         print_proposals(doc)
+        print(f"Verdict: {found.text}.")
         if args.plot is not None:
             print(f"plot: {args.plot}")
-    return 0 if doc["loops_close"] and not doc["proposals"] else 1
+    return found.status
 
 
 def print_proposals(doc: dict) -> None:

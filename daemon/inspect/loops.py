@@ -6,9 +6,10 @@ upkeep in report mode (:mod:`.proposals`): the recalibrations it would have prop
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -20,6 +21,9 @@ from ..recording import read_recordings
 from ..scan_rows import SCAN_DTYPE
 from ..times import parse_time, time_json
 from .proposals import ReportedProposals, UpkeepSettings, pending_proposal
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 class Trace:
@@ -147,13 +151,54 @@ def check(files: list[Path], config_path: Path, false_alarm: float, *,
     }
 
 
-def plot(doc: dict[str, Any], path: Path) -> None:
-    """Each sensor's estimated offset shift (with one standard deviation) and statistic
-    over time, the alarm threshold, and the changes found."""
-    import matplotlib.dates as mdates
-    import matplotlib.pyplot as plt
+@dataclass(frozen=True)
+class Verdict:
+    """What a check found, in one place: the exit status and the words the text output ends
+    with and the plot is titled by.
 
+    status: 0 the loops close and the upkeep would propose nothing, 1 otherwise. text: why,
+    e.g. "the loops do not close at this config since the recordings began: calibrate".
+    """
+
+    status: int
+    text: str
+
+
+def verdict(doc: dict[str, Any]) -> Verdict:
+    """The :class:`Verdict` of a :func:`check` document."""
+    found = []
+    if doc["loops_open"] is not None:
+        found.append("the loops do not close at this config since the recordings began: "
+                     "calibrate")  # fmt: skip
+    if changes := doc["changes"]:
+        sensors = ", ".join(dict.fromkeys(str(c["sensor"]) for c in changes))
+        found.append(f"{len(changes)} change{'s' if len(changes) > 1 else ''} found (sensor"
+                     f"{'s' if ',' in sensors else ''} {sensors})")  # fmt: skip
+    if proposals := doc["proposals"]:
+        found.append(f"upkeep would propose {len(proposals)} recalibration"
+                     + ("s" if len(proposals) > 1 else ""))  # fmt: skip
+    if not found:
+        return Verdict(0, "the loops close: no sensor's offset moved, nothing to propose")
+    return Verdict(1, "; ".join(found))
+
+
+def plot(doc: dict[str, Any], path: Path) -> None:
+    """Write :func:`figure` of a check to ``path``, in the format its suffix names (``.png``,
+    ``.svg``, ``.pdf``: ``loopcal check --plot`` takes no other); OSError if it cannot be
+    written."""
     from ..worker.report import save_figure  # sets matplotlib's Agg backend: files only
+
+    save_figure(figure(doc), path)
+
+
+def figure(doc: dict[str, Any]) -> Figure:
+    """Each sensor's estimated offset shift (with one standard deviation) and statistic
+    over time, the alarm threshold, and the changes found; titled by the check's
+    :func:`verdict`. The time axis is UTC, its ticks and labels chosen for the span (seconds
+    to months: matplotlib's AutoDateLocator and ConciseDateFormatter)."""
+    import matplotlib.dates as mdates
+
+    from ..worker.report import plt  # matplotlib with the Agg backend: files only
 
     stamps, shift, std, stat = doc["_trace"].arrays()
     t = stamps.astype("datetime64[ns]")  # matplotlib plots these as UTC times
@@ -176,18 +221,19 @@ def plot(doc: dict[str, Any], path: Path) -> None:
         a2.plot(starts, np.full(len(starts), doc["threshold"]), "v", color="tab:red", ms=3,
                 label="a change began")  # fmt: skip
     a1.set_ylabel("estimated offset shift, mm")
-    a1.set_title(f"Loop closure at {Path(doc['config']['path']).name}: "
-                 + ("the loops close" if doc["loops_close"] else
-                    f"{len(doc['changes'])} change(s) found (red: where they began)"),
-                 fontsize=10)  # fmt: skip
+    title = f"Loop closure at {Path(doc['config']['path']).name}: {verdict(doc).text}"
+    if starts:
+        title += " (red: where the changes began)"
+    a1.set_title(title, fontsize=10, wrap=True)
     a2.set_ylabel("statistic (chi-square, 1 dof)")
     a2.set_yscale("log")
     a2.set_ylim(bottom=0.1)
-    a2.set_xlabel("UTC")
-    a2.xaxis.set_major_formatter(mdates.DateFormatter("%m-%d %H:%M"))
+    a2.set_xlabel("UTC" if doc["start_utc"] is None else
+                  f"UTC, from {doc['start_utc']} to {doc['end_utc']}")  # fmt: skip
+    locator = mdates.AutoDateLocator(tz=UTC)
+    a2.xaxis.set_major_locator(locator)
+    a2.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator, tz=UTC))
     for ax in (a1, a2):
         ax.legend(fontsize=8, loc="upper left")
         ax.grid(alpha=0.3)
-    save_figure(fig, path)
-
-
+    return fig
