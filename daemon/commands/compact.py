@@ -30,12 +30,6 @@ import json
 import sys
 
 from ..arguments import add_recordings_argument
-from ..recording.compact import (
-    Compacted,
-    compact,
-    recordings_named,
-    remove_stale_temporaries,
-)
 from .errors import CommandError
 
 
@@ -49,6 +43,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..recording.compact import (
+        Compacted,
+        compact,
+        recordings_named,
+        remove_stale_temporaries,
+    )
+
     try:
         files = recordings_named(args.recordings)
         for p in args.recordings:

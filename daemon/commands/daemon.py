@@ -13,13 +13,6 @@ from __future__ import annotations
 import argparse
 
 from ..arguments import path_argument
-from ..live.health import watch_health
-from ..live.sessions import ControlServer
-from ..live.upkeep import watch_upkeep
-from ..live.view import watch_live
-from ..recorder.engine import Recorder
-from ..recorder.process import run_recorder, setup_logging
-from ..recorder.settings import load_daemon_config
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -34,6 +27,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..live.health import watch_health
+    from ..live.sessions import ControlServer
+    from ..live.upkeep import watch_upkeep
+    from ..live.view import watch_live
+    from ..recorder.engine import Recorder
+    from ..recorder.process import run_recorder, setup_logging
+    from ..recorder.settings import load_daemon_config
+
     setup_logging(args.verbose)
     live = control = upkeep = None
     try:

@@ -23,17 +23,7 @@ import sys
 from pathlib import Path
 
 from ..arguments import path_argument
-from ..inspect.fleet import (
-    CHECK_COLUMNS,
-    CONFIG_NAME,
-    INFO_COLUMNS,
-    check_task,
-    info_task,
-    robot_days,
-    run_on_dask,
-    table_columns,
-    write_table,
-)
+from ..inspect.fleet import CONFIG_NAME
 from .check import add_false_alarm_option, add_upkeep_options, check_false_alarm, upkeep_settings
 from .errors import CommandError
 
@@ -65,6 +55,17 @@ def run(args: argparse.Namespace) -> int:
         import dask.distributed  # noqa: F401 - the optional extra
     except ImportError:
         raise CommandError("Dask is not installed: pip install 'loopcal[fleet]'") from None
+    from ..inspect.fleet import (
+        CHECK_COLUMNS,
+        INFO_COLUMNS,
+        check_task,
+        info_task,
+        robot_days,
+        run_on_dask,
+        table_columns,
+        write_table,
+    )
+
     if args.workers < 1:
         raise CommandError(f"--workers {args.workers}: at least 1")
     check_false_alarm(args.false_alarm)

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import json
 import sys
+from typing import TYPE_CHECKING
 
-from ..live.guidance import GuidanceUpdate
+if TYPE_CHECKING:  # the guidance (numpy, the worker) is loaded by the command that runs it
+    from ..live.guidance import GuidanceUpdate
 
 
 class Display:

@@ -20,7 +20,6 @@ import argparse
 import json
 
 from ..arguments import add_recordings_argument
-from ..inspect.summary import collect, render
 from .errors import CommandError
 
 
@@ -32,6 +31,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..inspect.summary import collect, render
+
     try:
         s = collect(args.recordings, poses=not args.no_poses)
     except OSError as exc:

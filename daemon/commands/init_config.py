@@ -10,7 +10,6 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..config.controller import write_initial_config
 from .errors import run_command
 
 
@@ -20,6 +19,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..config.controller import write_initial_config
+
     path = write_initial_config(args.path, force=args.force)
     where = str(path)
     if path != Path(args.path):

@@ -18,17 +18,16 @@ import json
 import logging
 import math
 import sys
+from typing import TYPE_CHECKING
 
 from ..events import Level
-from ..live.guidance import OFFSETS, TARGET_MM, Guidance, GuidanceUpdate
-from ..live.health import watch_health
-from ..live.upkeep import watch_upkeep
-from ..live.view import watch_live
-from ..recorder.engine import Recorder
-from ..recorder.process import run_recorder, setup_logging
+from ..live.guidance_defaults import TARGET_MM
 from ..recorder.settings import SettingsError, add_options, option_name, settings_from_args
 from .errors import CommandError
-from .guidance_display import Display
+
+if TYPE_CHECKING:  # the recorder and live analysis (numpy, mcap, ...): imported by run
+    from ..live.guidance import Guidance, GuidanceUpdate
+    from ..recorder.engine import Recorder
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -56,6 +55,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..live.guidance import Guidance
+    from ..live.health import watch_health
+    from ..live.upkeep import watch_upkeep
+    from ..live.view import watch_live
+    from ..recorder.engine import Recorder
+    from ..recorder.process import run_recorder, setup_logging
+    from .guidance_display import Display
+
     setup_logging(args.verbose)
     guide: Guidance | None = None
     if args.target_mm is not None:
@@ -126,6 +133,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _enough(recorder: Recorder, u: GuidanceUpdate) -> None:
+    from ..live.guidance import OFFSETS
+
     worst = max(u.std.get(n, 0.0) for n in OFFSETS)
     recorder.emit(
         "guidance", Level.INFO,

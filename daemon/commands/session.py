@@ -27,14 +27,11 @@ from types import FrameType
 from typing import Any
 
 from loopcal.calibration.errors import ParameterError
-from loopcal.calibration.parameters import ParameterModel
 
 from ..arguments import duration_argument, path_argument
-from ..config.controller import load_controller_config
 from ..live.control import MAX_NOTE_CHARS, MAX_TARGET_MM, ControlClient
-from ..live.guidance import TARGET_MM
+from ..live.guidance_defaults import TARGET_MM
 from ..times import time_text
-from ..worker.writeback import check_writable
 from .calibrate import Calibration, calibrate, check_report_dir
 from .errors import CommandError
 from .guidance_display import Display
@@ -83,7 +80,11 @@ def run(args: argparse.Namespace) -> int:
 def _prepare(args: argparse.Namespace) -> tuple[Calibration, ControlClient]:
     """Everything checked before the daemon is asked: the daemon's config, the controller
     config (writable, with --write), the report's directory, the options."""
-    from ..recorder.settings import load_daemon_config  # brings the drivers
+    from loopcal.calibration.parameters import ParameterModel
+
+    from ..config.controller import load_controller_config
+    from ..recorder.settings import load_daemon_config
+    from ..worker.writeback import check_writable
 
     if not 0 < args.target_mm <= MAX_TARGET_MM:
         raise CommandError(f"--target-mm {args.target_mm:g}: must be > 0 and "

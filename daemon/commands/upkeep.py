@@ -21,13 +21,14 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..arguments import path_argument
-from ..config.controller import ControllerConfigError, load_controller_config
-from ..recorder.settings import DEFAULTS, load_daemon_config
 from ..times import time_text
-from ..worker.proposal import Proposal, apply_proposal, discard_proposal, read_proposal
 from .errors import CommandError
+
+if TYPE_CHECKING:  # the worker's proposals (numpy, tomlkit): imported by run
+    from ..worker.proposal import Proposal
 
 ACTIONS = ("status", "apply", "discard")
 
@@ -48,6 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _where(args: argparse.Namespace) -> tuple[Path, Path | None, float]:
     """(controller config, recordings directory, target_mm) from the options."""
+    from ..recorder.settings import DEFAULTS, load_daemon_config
+
     if args.config is not None:
         if args.controller_config is not None or args.recordings is not None:
             raise CommandError("give --config, or --controller-config and --recordings, not both")
@@ -87,6 +90,9 @@ def describe(p: Proposal, config_path: Path, recordings: Path | None) -> list[st
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..config.controller import ControllerConfigError, load_controller_config
+    from ..worker.proposal import apply_proposal, discard_proposal, read_proposal
+
     config_path, recordings, target_mm = _where(args)
     config = load_controller_config(config_path)
     try:

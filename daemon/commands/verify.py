@@ -18,8 +18,6 @@ import json
 from pathlib import Path
 
 from ..arguments import add_recordings_argument
-from ..recording.names import recording_paths
-from ..recording.verify import verify_file
 from .errors import CommandError
 
 
@@ -29,6 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..recording.names import recording_paths
+    from ..recording.verify import verify_file
+
     try:
         files = recording_paths(args.recordings)
         if not files:

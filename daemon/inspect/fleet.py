@@ -29,8 +29,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..recording import find_recordings, name_time_ns
-
 if TYPE_CHECKING:
     from .proposals import UpkeepSettings
 
@@ -64,6 +62,8 @@ class RobotDay:
 
 def robots(root: Path, config_name: str = CONFIG_NAME) -> dict[str, tuple[list[Path], Path | None]]:
     """robot name -> (its recordings, oldest first; its controller config or None)."""
+    from ..recording.names import find_recordings  # numpy: not for ``loopcal fleet --help``
+
     if not root.is_dir():
         raise FleetError(f"{root}: not a directory")
     out = {}
@@ -82,6 +82,8 @@ def robots(root: Path, config_name: str = CONFIG_NAME) -> dict[str, tuple[list[P
 
 def robot_days(root: Path, config_name: str = CONFIG_NAME) -> list[RobotDay]:
     """The fleet's tasks: every (robot, UTC day) with recordings, by robot then day."""
+    from ..recording.names import name_time_ns
+
     tasks = []
     for robot, (files, config) in robots(root, config_name).items():
         days: dict[str, list[Path]] = {}

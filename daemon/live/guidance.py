@@ -34,10 +34,9 @@ from ..worker import coverage as C
 from ..worker.gates.samples import MIN_POSES
 from ..worker.job import run_worker
 from ..worker.scan_poses import RecordedScans, scans_for_fit
+from .guidance_defaults import TARGET_MM
 
 PERIOD_S = 1.0
-#: the default target: every offset's predicted standard deviation, mm
-TARGET_MM = 0.1
 OFFSETS = tuple(n for n in INDEX if SL_OFFSET.start <= INDEX[n] < SL_OFFSET.stop)
 #: the plate has not moved for RESTING_S seconds when every channel stayed within
 #: RESTING_BAND_V over them: the technician is asked to move on
