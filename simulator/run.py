@@ -1,23 +1,7 @@
-"""``loopcal simulate``: serve an emulated LDQ-412 driven by a simulated shoulder joint.
-
-Prints where it listens (the driver URL; for serial transports the pseudo-terminal path a
-driver opens like /dev/ttyUSB0), applies scheduled faults, and can stream its ground truth
-(the true parameters, then every scan it produced with the plate's true orientation) to a
-JSON Lines file.
-
-Fault schedule, times in seconds of device time since start (repeatable ``--fault``)::
-
-    restart@30            power cycle at 30 s (2 s off)
-    stall@12+2            no answers from 12 s for 2 s
-    disconnect@20+3       link down from 20 s for 3 s
-    garbage@8:16          16 junk bytes before the next answer at 8 s
-    corrupt@10:3          the next 3 answers with a broken CRC/checksum/MBAP
-    stuck@15+5:2=1000     channel 2 stuck at code 1000 from 15 s for 5 s
-    sensor@15+5:3         sensor fault on channel 3 from 15 s for 5 s
-    saturate@15+5:1=high  channel 1 at the high rail from 15 s for 5 s
-    offset@30:3=+0.5      sensor 3's offset steps by +0.5 mm at 30 s (held; +DUR: for DUR s)
-    creep@30:2=1.0        sensor 2's offset creeps by 1.0 mm per minute from 30 s
-                          (for ever; +DUR: for DUR s, then held)
+"""The serving of ``loopcal simulate``: an emulated LDQ-412 driven by a simulated shoulder
+joint (:func:`run`), its scheduled faults (:class:`FaultEvent`) and its ground truth streamed
+to a JSON Lines file (:class:`TruthWriter`). The command's options and its description are
+:mod:`loopcal.simulator.arguments`' (which a ``--help`` reads without numpy).
 """
 
 from __future__ import annotations
@@ -26,11 +10,8 @@ import argparse
 import json
 import re
 import signal
-import socket
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TextIO
 
 import numpy as np
@@ -38,15 +19,15 @@ import numpy as np
 from loopcal.calibration.kinematics import euler_zyz
 from loopcal.calibration.parameters import NAMES, to_dict
 
+from .arguments import DESCRIPTION
 from .clock import Clock, HeldClock, clock_for
 from .drift import OffsetDrift
-from .emulator import TRANSPORTS, Emulator
+from .emulator import Emulator
 from .faults import FaultInjector
 from .mechanism import MechanismSource, ReplaySource, true_parameters
-from .open_points import add_arguments as add_open_point_arguments
 from .open_points import from_arguments as open_points_from_arguments
-from .options import SimulationError, add_simulation_options, check_simulation_options
-from .scenarios import SCENARIOS, scenario_named
+from .options import SimulationError, check_simulation_options
+from .scenarios import scenario_named
 
 _FAULT = re.compile(
     r"^(?P<kind>[a-z]+)@(?P<at>\d+(?:\.\d*)?)(?:\+(?P<dur>\d+(?:\.\d*)?))?(?::(?P<arg>.+))?$"
@@ -62,8 +43,8 @@ DRIFT_KINDS = {"offset": "step", "creep": "creep"}
 class FaultEvent:
     """A scheduled fault of ``loopcal simulate --fault``: on at ``at``, off at ``at + duration``.
 
-    The syntax is ``KIND@SECONDS[+DURATION][:ARG]`` (module docstring, or ``loopcal
-    simulate --help-faults``).
+    The syntax is ``KIND@SECONDS[+DURATION][:ARG]`` (``loopcal simulate --help-faults``:
+    :data:`~loopcal.simulator.arguments.DESCRIPTION`).
 
     Attributes
     ----------
@@ -374,176 +355,6 @@ def task_settings(args: argparse.Namespace) -> dict[str, float]:
     return {key: given[opt] for opt, _, key in TASK_OPTIONS if opt in given}
 
 
-def int_in(lo: int, hi: int, *, base: int = 10) -> Callable[[str], int]:
-    """An argparse type: an integer in lo..hi (hexadecimal digits with base 16).
-
-    Parameters
-    ----------
-    lo, hi : int
-        The range, both included.
-    base : int, default 10
-        10 (decimal, a leading ``-`` allowed) or 16 (hexadecimal digits, no sign, no
-        ``0x``).
-
-    Returns
-    -------
-    callable
-        ``parse(text) -> int``, raising :class:`argparse.ArgumentTypeError` for text
-        that is not such an integer or is outside lo..hi.
-    """
-
-    def parse(text: str) -> int:
-        digits = "0123456789abcdefABCDEF"[: 10 if base == 10 else 22]
-        if not text or not all(c in digits for c in text.lstrip("-" if base == 10 else "")):
-            kind = "hexadecimal digits" if base == 16 else "an integer"
-            raise argparse.ArgumentTypeError(f"{text!r} is not {kind}")
-        value = int(text, base)
-        if not lo <= value <= hi:
-            raise argparse.ArgumentTypeError(f"{text} is outside {lo}..{hi}")
-        return value
-
-    return parse
-
-
-#: a TCP port to listen on, 0 for a free one
-tcp_port = int_in(0, 65535)
-
-
-def listen_host(text: str) -> str:
-    """An argparse type: an address (or name) this machine can listen on.
-
-    Parameters
-    ----------
-    text : str
-        An address or host name.
-
-    Returns
-    -------
-    str
-        ``text``, if :func:`socket.getaddrinfo` resolves it.
-
-    Raises
-    ------
-    argparse.ArgumentTypeError
-        If it does not resolve.
-    """
-    try:
-        socket.getaddrinfo(text, None, type=socket.SOCK_STREAM)
-    except (socket.gaierror, UnicodeError) as exc:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an address: {exc}") from None
-    return text
-
-
-def add_transport_option(p: argparse.ArgumentParser, what: str) -> None:
-    """Add ``--transport`` to a command that serves an emulated module (simulate, replay, demo).
-
-    Parameters
-    ----------
-    p : argparse.ArgumentParser
-        The command's parser.
-    what : str
-        What goes over the wire, for the option's help (the choices and the default,
-        modbus-tcp, follow it).
-    """
-    p.add_argument("--transport", choices=TRANSPORTS, default="modbus-tcp",
-                   help=f"{what}: {', '.join(TRANSPORTS)} (default modbus-tcp)")  # fmt: skip
-
-
-def add_arguments(
-    p: argparse.ArgumentParser, duration: Callable[[str], float] = float
-) -> None:
-    """Add ``loopcal simulate``'s options to its parser.
-
-    The transport and listening address, the module's identity and power-on settings, the
-    speed, the simulated mechanism (scenario, the task loop, true parameters; the seed,
-    noise, pauses, twists and offset error of :mod:`loopcal.simulator.options`), the fault
-    schedule, the duration, the truth file, and the open points
-    (:func:`~loopcal.simulator.open_points.add_arguments`).
-
-    Parameters
-    ----------
-    p : argparse.ArgumentParser
-        The ``simulate`` command's parser.
-    duration : callable
-        The type of ``--duration``: text to s (``loopcal simulate`` passes the command
-        line's one duration syntax, ``90``, ``90s``, ``15m``).
-    """
-    add_transport_option(p, "the wire the emulated module answers on")
-    p.add_argument(
-        "--host", type=listen_host, default="127.0.0.1", help="TCP address (default 127.0.0.1)"
-    )
-    p.add_argument("--port", type=tcp_port, default=0, help="TCP port (default: a free one)")
-    p.add_argument("--unit", type=int_in(1, 247), default=1, help="Modbus unit id (default 1)")
-    p.add_argument(
-        "--addr", type=int_in(0, 0xFF, base=16), default=1, help="ASCII address, hex (01)"
-    )
-    p.add_argument("--checksum", action="store_true", help="ASCII checksum mode on at power-on")
-    p.add_argument(
-        "--scan-rate", type=int_in(1, 200), default=20, help="scan rate at power-on, Hz (20)"
-    )
-    p.add_argument("--speed", type=float, default=1.0, help="device time per real second (1)")
-    p.add_argument(
-        "--wait-for-client",
-        action="store_true",
-        help="switch the module on at a client's first request (default: at once)",
-    )
-    p.add_argument("--scenario", choices=(*SCENARIOS, "replay"), default="hand",
-                   help="how the plate moves: hand (a technician, pausing), static, sweep, "
-                        "task (the controller's task loop, for ever), or replay (a "
-                        "--truth-out file; default hand)")  # fmt: skip
-    p.add_argument(
-        "--replay",
-        type=Path,
-        default=None,
-        help="with --scenario replay: a --truth-out file to play back (loops)",
-    )
-    add_simulation_options(p, what="with --scenario hand: ")
-    p.add_argument(
-        "--task-waypoints",
-        type=int,
-        default=None,
-        metavar="N",
-        help="with --scenario task: the loop's waypoints, fixed orientations drawn from the "
-        "seed, 2 or more (default 5)",
-    )
-    p.add_argument(
-        "--task-move",
-        type=float,
-        default=None,
-        metavar="S",
-        help="with --scenario task: seconds of each move between two waypoints (default 2)",
-    )
-    p.add_argument(
-        "--task-dwell",
-        type=float,
-        default=None,
-        metavar="S",
-        help="with --scenario task: seconds the plate stays at each waypoint, 0 for none "
-        "(default 0.5)",
-    )
-    p.add_argument("--truth", default=None, help="true parameters, e.g. 'd01=99.1,A1x=68.9'")
-    p.add_argument(
-        "--fault",
-        action="append",
-        default=[],
-        metavar="SPEC",
-        help="schedule a fault (see loopcal simulate --help-faults)",
-    )
-    p.add_argument("--help-faults", action="store_true", help="explain the fault syntax")
-    p.add_argument(
-        "--duration",
-        type=duration,
-        default=None,
-        metavar="D",
-        help="stop after this long by the module's clock (device time: at --speed X, 1/X of "
-        "it in wall time): seconds, or 90s, 15m, 2h (default: until a signal)",
-    )
-    p.add_argument(
-        "--truth-out", type=Path, default=None, help="write the ground truth here (JSON Lines)"
-    )
-    add_open_point_arguments(p)
-
-
 def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     """Serve until ``--duration`` of device time has passed or SIGINT/SIGTERM.
 
@@ -571,7 +382,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         If the servers were not up within 5 s (not turned into an exit status).
     """
     if args.help_faults:
-        print(__doc__)
+        print(DESCRIPTION)
         return 0
     try:
         faults = sorted((FaultEvent.parse(s) for s in args.fault), key=lambda e: e.at)

@@ -30,6 +30,7 @@ from loopcal.calibration.kinematics import base_points, from_euler_zyz, tilt_swi
 from loopcal.calibration.parameters import NOMINAL
 from loopcal.calibration.simulate import NEAR_SINGULAR_MM, reachable, sample_workspace
 
+from .choices import SCENARIO_NAMES
 from .motion import Scenario, min_jerk
 from .task import TaskLoop
 
@@ -614,8 +615,9 @@ class GuidedHand(HandMoves):
                 "late": self.late, "wrong": self.wrong}  # fmt: skip
 
 
-#: the scenarios by name, as ``loopcal simulate --scenario NAME`` offers them
-SCENARIOS = {"hand": HandMoves, "static": Static, "sweep": Sweep, "task": TaskLoop}
+#: the scenarios by name, as ``loopcal simulate --scenario NAME`` offers them (the names:
+#: :data:`~loopcal.simulator.choices.SCENARIO_NAMES`, which its ``--help`` reads)
+SCENARIOS = dict(zip(SCENARIO_NAMES, (HandMoves, Static, Sweep, TaskLoop), strict=True))
 
 
 def scenario_named(

@@ -39,10 +39,10 @@ from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
 from loopcal.calibration.parameters import INDEX, UNITS, ParameterModel
 from loopcal.calibration.simulate import perturbed_truth
 from loopcal.simulator import Emulator
+from loopcal.simulator.arguments import add_transport_option
 from loopcal.simulator.clock import HeldClock
 from loopcal.simulator.mechanism import MechanismSource
 from loopcal.simulator.options import add_simulation_options, check_simulation_options
-from loopcal.simulator.run import add_transport_option
 from loopcal.simulator.scenarios import HandMoves
 
 from ..arguments import duration_argument, path_argument

@@ -18,10 +18,10 @@ import threading
 import numpy as np
 
 from loopcal.drivers.ldq412 import POWER_CYCLE_S
+from loopcal.simulator.arguments import add_transport_option, listen_host, tcp_port
 from loopcal.simulator.open_points import add_arguments as add_open_point_arguments
 from loopcal.simulator.open_points import from_arguments as open_points_from_arguments
 from loopcal.simulator.replay import Player, RecordedPowerOn
-from loopcal.simulator.run import add_transport_option, listen_host, tcp_port
 
 from ..arguments import add_recordings_argument
 from ..recording import read_recordings

@@ -1,13 +1,14 @@
 """``loopcal simulate``: the emulated LDQ-412 driven by a simulated shoulder joint (the
-command itself lives with the simulator, in :mod:`loopcal.simulator.run`; its ``--duration``
-takes the command line's one duration syntax)."""
+command itself lives with the simulator: its options in :mod:`loopcal.simulator.arguments`,
+its serving in :mod:`loopcal.simulator.run`; its ``--duration`` takes the command line's one
+duration syntax)."""
 
 from __future__ import annotations
 
 import argparse
 
-from loopcal.simulator.run import __doc__ as DESCRIPTION  # noqa: N812
-from loopcal.simulator.run import add_arguments as simulator_arguments
+from loopcal.simulator.arguments import DESCRIPTION
+from loopcal.simulator.arguments import add_arguments as simulator_arguments
 from loopcal.simulator.run import run
 
 from ..arguments import duration_argument
