@@ -245,12 +245,29 @@ class Sequencer:
         bit = bool(snap.status & ldq412.STATUS_RESTART)
         edge = bit and not self._restart_bit_prev
         self._restart_bit_prev = bit
-        ref = self._ref_counter()
-        if ref is None:
+        if self._ref_counter() is None:
             self._first_restart = self._first_restart or edge
             return False
-        regression = (snap.counter - ref) % U32 >= HALF
-        return edge or regression
+        return edge or self.goes_back(snap.counter)
+
+    def goes_back(self, counter: int) -> bool:
+        """Whether a raw counter is behind the newest scan known of the current power-on:
+        a restart (module docstring), or, over a link whose answers name no request, an
+        earlier request's late answer.
+
+        Parameters
+        ----------
+        counter : int
+            Scan counter, 0..2**32-1.
+
+        Returns
+        -------
+        bool
+            True for a step back of less than 2**31 (a larger one is a 32-bit wrap);
+            False before any scan is known.
+        """
+        ref = self._ref_counter()
+        return ref is not None and (counter - ref) % U32 >= HALF
 
     def _ref_counter(self) -> int | None:
         """Raw counter of the newest scan known in the current epoch."""
