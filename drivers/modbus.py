@@ -14,8 +14,11 @@ FIFO's depth in time): a module or network slower than the datasheet's 100 ms, n
 then, costs no scan (counted in :attr:`ModbusDAQ.late_fifo_answers`).
 
 After a timeout or a protocol error the connection is dropped and reopened on the next
-call (TCP: a fresh socket, so a late answer can never be taken for the next one; RTU: the
-port is reopened and the line is drained until quiet).
+call (TCP: a fresh socket, so a late answer can never be taken for the next one; RTU, which
+has no transaction id: the port is reopened, and no request goes out while the answer to
+one given up on may still come, :class:`~loopcal.drivers.modbus_rtu.ModbusRtuDAQ`). A
+request is given up on *unanswered* when nothing came, or an answer that cannot be its
+own (another function, length or echo, a snapshot out of range): its own may still come.
 
 FIFO overflow: the driver never writes holding register 2, since by the datasheet that
 clears the FIFO along with the overflow flag, and would throw away the scans that arrived
@@ -266,6 +269,11 @@ class ModbusDAQ(DAQ):
         self._rx_bytes = 0
         self._closed = False
         self._resync_needed = False
+        #: monotonic time the latest request went out, s
+        self._sent_at = 0.0
+        #: when the latest request given up on unanswered went out (its answer may still
+        #: come; the RTU line is kept for it), or None
+        self._unanswered_at: float | None = None
         self._pending: list[Scan] = []
         # scans per FIFO read: the datasheet's 20, fewer for a module that refuses that
         self.fifo_chunk = ldq412.FIFO_MAX_SCANS_PER_READ
@@ -280,10 +288,13 @@ class ModbusDAQ(DAQ):
         """A pymodbus sync client with retries=0, timeout=self.timeout, trace_packet=trace."""
 
     def _resync(self) -> None:
-        """Bring the link back to a known state after an error (transport specific)."""
+        """Bring the link back to a known state after an error (transport specific), or
+        raise a DAQError if no request may go out yet."""
 
     def _trace_packet(self, sending: bool, data: bytes) -> bytes:
-        if not sending:
+        if sending:
+            self._sent_at = time.monotonic()
+        else:
             self._rx_bytes += len(data)
         return data
 
@@ -295,8 +306,12 @@ class ModbusDAQ(DAQ):
         if not ok:
             raise DAQDisconnected(f"{self.url}: cannot connect")
 
-    def _drop(self) -> None:
+    def _drop(self, *, unanswered: bool = False) -> None:
+        """Close the link after an error; the next call reopens it (:meth:`_resync`).
+        ``unanswered``: the request's own answer may still come (module docstring)."""
         self._resync_needed = True
+        if unanswered:
+            self._unanswered_at = self._sent_at
         try:
             self._client.close()
         except Exception:  # noqa: BLE001 - closing a broken transport must not raise
@@ -316,7 +331,7 @@ class ModbusDAQ(DAQ):
             self._drop()
             raise DAQDisconnected(f"{self.url}: {what}: {exc}") from exc
         except ModbusIOException as exc:
-            self._drop()
+            self._drop(unanswered=not self._rx_bytes)
             if self._rx_bytes:
                 raise DAQProtocolError(
                     f"{self.url}: {what}: {self._rx_bytes} bytes received but no valid "
@@ -337,7 +352,7 @@ class ModbusDAQ(DAQ):
                 f"{self.url}: {what}: Modbus exception {rsp.exception_code:#04x}",
             )
         if rsp.function_code != fc:
-            self._drop()
+            self._drop(unanswered=True)
             raise DAQProtocolError(
                 f"{self.url}: {what}: answer has function {rsp.function_code}, expected {fc}"
             )
@@ -407,7 +422,7 @@ class ModbusDAQ(DAQ):
         regs = list(rsp.registers)
         short_ok = step and len(regs) < count and len(regs) % step == 0
         if len(regs) != count and not short_ok:
-            self._drop()
+            self._drop(unanswered=True)
             raise DAQProtocolError(f"{self.url}: {what}: {len(regs)} registers answered")
         return regs
 
@@ -434,7 +449,7 @@ class ModbusDAQ(DAQ):
             lambda: self._client.write_register(address, value, device_id=self.unit),
         )
         if getattr(rsp, "address", None) != address or list(rsp.registers) != [value]:
-            self._drop()
+            self._drop(unanswered=True)
             raise DAQProtocolError(f"{self.url}: write {address}={value}: wrong echo {rsp}")
 
     # -- device functions ----------------------------------------------------------------
@@ -468,7 +483,7 @@ class ModbusDAQ(DAQ):
         try:
             return parse_snapshot(regs), host_time
         except DAQProtocolError as exc:
-            self._drop()
+            self._drop(unanswered=True)
             raise DAQProtocolError(f"{self.url}: {exc}") from None
 
     def _read_fifo(self, n: int) -> tuple[list[tuple[int, tuple[int, int, int, int]]], int, int]:
@@ -503,7 +518,7 @@ class ModbusDAQ(DAQ):
             scans, filler = parse_fifo(regs)
         except DAQProtocolError as exc:
             self._seq.fifo_read_lost()
-            self._drop()
+            self._drop(unanswered=True)
             raise DAQProtocolError(f"{self.url}: {exc}") from None
         return scans, filler, n - len(scans) - filler
 
@@ -580,7 +595,9 @@ class ModbusDAQ(DAQ):
 
     def read_oversampling(self) -> int:
         """Conversions averaged per reported code, read from the module (holding
-        register 1; a request on the wire).
+        register 1; a request on the wire). Read with register 0, the scan rate: a
+        two-register answer, never taken for a :meth:`read_scan_rate`'s over RTU, whose
+        answers carry no request id.
 
         Returns
         -------
@@ -592,8 +609,8 @@ class ModbusDAQ(DAQ):
         DAQError
             If the module cannot be read.
         """
-        (n,) = self.read_holding_registers(ldq412.HR_OVERSAMPLING, 1)
-        return n
+        regs = self.read_holding_registers(ldq412.HR_SCAN_RATE, ldq412.HR_OVERSAMPLING + 1)
+        return regs[ldq412.HR_OVERSAMPLING]
 
     def write_oversampling(self, n: int) -> None:
         """Set the conversions averaged per reported code (holding register 1; a write on

@@ -2,6 +2,16 @@
 
 URL: ``modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1&parity=N&stopbits=1&fifo=1``
 (datasheet defaults: 115200 baud, 8N1, unit 1).
+
+An RTU answer carries no transaction id: nothing in it says which request it answers.
+The driver therefore has one request on the line at a time, and a request given up on
+unanswered (:mod:`loopcal.drivers.modbus`) keeps the line until its answer came (drained
+and discarded) or can no longer come: :data:`LATE_ANSWER_S` after it went out (or the
+timeout, if longer; a FIFO read waits longer still for its own answer). A module that
+answers each request at most once, within that time, never has an answer taken for
+another request's. Beyond it, an answer of another shape (function, length, echo) is
+refused, and so is a snapshot whose counter is behind the newest scan known without the
+restart flag, which a power-on sets.
 """
 
 from __future__ import annotations
@@ -12,14 +22,56 @@ from typing import ClassVar, Unpack
 
 from pymodbus.client import ModbusSerialClient
 from pymodbus.client.base import ModbusBaseSyncClient
-from pymodbus.framer import FramerType
+from pymodbus.framer import FramerRTU, FramerType
 
 from . import ldq412
-from .modbus import ModbusDAQ, ModbusOptions
+from .errors import DAQProtocolError, DAQTimeout
+from .modbus import FC_WRITE_SINGLE, ModbusDAQ, ModbusOptions
+from .sequence import RawSnapshot, signed_delta
 from .url import DaqUrl, serial_options
 
 #: silence on the line that ends a drain after an error, s (many RTU frame times)
 QUIET_S = 0.005
+#: the latest an answer may come and still be waited out, s after its request: the line
+#: is kept that long for a request given up on (the datasheet: answers within 5 ms, a
+#: host's timeout 100 ms; modules and USB adapters were measured up to 400 ms late)
+LATE_ANSWER_S = 0.5
+#: bytes of an RTU answer besides its data: unit, function, byte count, CRC (2)
+_RTU_OVERHEAD = 5
+
+
+def holds_answer(data: bytes, unit: int) -> bool:
+    """Whether bytes heard on the line hold a whole Modbus RTU answer from ``unit``.
+
+    Parameters
+    ----------
+    data : bytes
+        What was read, in order (noise and parts of frames around it allowed).
+    unit : int
+        The module's unit id.
+
+    Returns
+    -------
+    bool
+        True if some run of the bytes is an exception answer, a read answer (function 03
+        or 04, its byte count's worth of data) or a write echo (06), its CRC right.
+    """
+    for i in range(len(data) - 1):
+        if data[i] != unit:
+            continue
+        fc = data[i + 1]
+        if fc & 0x80:
+            size = _RTU_OVERHEAD
+        elif fc == FC_WRITE_SINGLE:
+            size = 8
+        elif i + 2 < len(data):
+            size = _RTU_OVERHEAD + data[i + 2]
+        else:
+            continue
+        frame = data[i : i + size]
+        if len(frame) == size and FramerRTU.check_CRC(frame[:-2], frame[-2] << 8 | frame[-1]):
+            return True
+    return False
 
 
 class ModbusRtuDAQ(ModbusDAQ):
@@ -27,8 +79,14 @@ class ModbusRtuDAQ(ModbusDAQ):
     ``modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1&parity=N&stopbits=1&fifo=1``.
 
     RTU has no transaction id, so after an error the port is reopened and the line
-    drained until ``QUIET_S`` of silence (bounded by the timeout) before the next
-    request; answers are checked for function code and length.
+    drained until ``QUIET_S`` of silence before the next request, and after a request
+    given up on unanswered no request goes out until its late answer came or can no
+    longer come (module docstring): a call meanwhile drains the line for at most the
+    timeout and raises DAQTimeout. So a call spends at most the timeout on the line and
+    the timeout on its answer (plus the transfer; a FIFO read longer, as
+    :class:`~loopcal.drivers.modbus.ModbusDAQ`'s). A late answer costs the requests that
+    could not go out meanwhile (the FIFO keeps the scans); a module that does not answer
+    at all is asked again only once that time has passed.
 
     Parameters
     ----------
@@ -51,6 +109,11 @@ class ModbusRtuDAQ(ModbusDAQ):
         :class:`~loopcal.drivers.modbus.ModbusDAQ`.
     DAQError
         If the port cannot be opened, or as :class:`~loopcal.drivers.modbus.ModbusDAQ`.
+
+    Attributes
+    ----------
+    late_answers_discarded : int
+        Answers that came after their request was given up on, drained and discarded.
     """
 
     scheme: ClassVar[str] = "modbus-rtu"
@@ -72,6 +135,9 @@ class ModbusRtuDAQ(ModbusDAQ):
         if baud <= 0:
             raise ValueError(f"baud {baud} must be > 0")
         self.port, self.baud, self.parity, self.stopbits = port, baud, parity, stopbits
+        self.late_answers_discarded = 0
+        self._suspect: RawSnapshot | None = None  # the last snapshot refused as stale
+        self._heard = bytearray()  # drained while the line is kept for a late answer
         super().__init__(f"modbus-rtu://{port}", {"baud": baud}, **options)
 
     @classmethod
@@ -95,19 +161,64 @@ class ModbusRtuDAQ(ModbusDAQ):
         )
 
     def _resync(self) -> None:
+        """Reopen the port; drain the line until it is quiet and no answer to a request
+        given up on can still come (class docstring), for at most the timeout.
+
+        Raises
+        ------
+        DAQTimeout
+            If a late answer may still come when the timeout is up (the next call goes on
+            waiting for it).
+        """
         client = self._client
         if not client.connect() or client.socket is None:
             return  # the next request reports DAQDisconnected
         ser = client.socket
-        deadline = time.monotonic() + self.timeout
+        awaited = self._unanswered_at
+        kept_until = 0.0 if awaited is None else awaited + max(LATE_ANSWER_S, self.timeout)
+        heard = self._heard  # since the request given up on: its answer may span two calls
+        now = last_rx = time.monotonic()
+        deadline = now + self.timeout
         try:
-            last_rx = time.monotonic()
-            while time.monotonic() < deadline:
+            while now < deadline:
                 if ser.in_waiting:
-                    ser.read(ser.in_waiting)
-                    last_rx = time.monotonic()
-                elif time.monotonic() - last_rx >= QUIET_S:
+                    heard += ser.read(ser.in_waiting)
+                    last_rx = now
+                elif now - last_rx >= QUIET_S and (
+                    now >= kept_until or holds_answer(bytes(heard), self.unit)
+                ):
                     break
                 time.sleep(0.001)
+                now = time.monotonic()
         except OSError:
             self._drop()
+            return
+        answered = awaited is not None and holds_answer(bytes(heard), self.unit)
+        if not answered and now < kept_until:
+            self._resync_needed = True
+            raise DAQTimeout(
+                f"{self.url}: the line is kept {kept_until - now:.2f} s more for the late "
+                f"answer to a request given up on (an RTU answer names no request)"
+            )
+        self.late_answers_discarded += answered
+        self._unanswered_at = None
+        heard.clear()
+
+    def _read_snapshot(self) -> tuple[RawSnapshot, float]:
+        """The snapshot, refused (DAQProtocolError) when its counter is behind the newest
+        scan known without the restart flag: a power-on sets the flag, so it is an earlier
+        request's late answer. A second such snapshot in a row, the module moved on from
+        the first, is taken for what it is: a restart whose flag another master cleared."""
+        snap, host_time = super()._read_snapshot()
+        suspect, self._suspect = self._suspect, None
+        restarted = snap.status & ldq412.STATUS_RESTART
+        if restarted or not self._seq.goes_back(snap.counter):
+            return snap, host_time
+        if suspect is not None and signed_delta(snap.counter, suspect.counter) >= 0:
+            return snap, host_time
+        self._suspect = snap
+        self._drop(unanswered=True)
+        raise DAQProtocolError(
+            f"{self.url}: snapshot of scan {snap.counter}, behind the newest known, without "
+            f"the restart flag: an earlier request's late answer, discarded"
+        )

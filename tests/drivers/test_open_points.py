@@ -109,13 +109,13 @@ def test_overflow_recovery_keeps_what_arrived_while_reading(transport: str) -> N
     assert sum(s.overflow for s in got) == 1
 
 
-def test_a_fifo_answer_later_than_the_timeout_still_delivers_its_scans() -> None:
+@pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu"])
+def test_a_fifo_answer_later_than_the_timeout_still_delivers_its_scans(transport: str) -> None:
     """A FIFO read takes its scans off the module when the request arrives: an answer given
     up on at the datasheet's 100 ms loses them (on a loaded CI machine the emulator was
     late and 20 scans went missing). The driver waits longer for that answer alone; a late
-    snapshot costs only a retry on a fresh socket. (Not RTU: with no transaction id, an
-    answer later than the timeout and the drain after it is taken for the next one's.)"""
-    transport = "modbus-tcp"
+    snapshot costs only a retry, on a fresh socket (TCP) or once its answer came and was
+    thrown away (RTU, whose answers name no request: tests/drivers/test_rtu_late.py)."""
     clock = ManualClock()
     with Emulator(transport, clock=clock, scan_rate_hz=RATE) as emu:
         daq = open_daq(emu.url)  # the datasheet's 100 ms
