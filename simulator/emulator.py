@@ -99,6 +99,9 @@ class Emulator:
         ASCII module address, 0..255.
     ascii_checksum : bool, default False
         Power-on value of holding register 4, the ASCII checksum mode.
+    baud : int, default 115200
+        The serial transports' line rate, baud: a driver that opens the pseudo-terminal at
+        another rate reads garbage and is not understood (:mod:`loopcal.simulator.pty`).
     initial_uptime_s : float, default 0.0
         The module was powered on this long ago, s (for 32-bit wraps); only the last 256
         scans of that time exist (in the FIFO, overflow latched if more).
@@ -146,6 +149,8 @@ class Emulator:
         As given.
     ascii_addr : int
         As given.
+    baud : int
+        As given.
     open_points : OpenPoints
         As given (None: ``OpenPoints()``); the wire takes its latency from it.
     wire : WireFaults
@@ -180,6 +185,7 @@ class Emulator:
         unit: int = MODBUS_UNIT,
         ascii_addr: int = ASCII_DEFAULT_ADDR,
         ascii_checksum: bool = False,
+        baud: int = SERIAL_BAUD,
         initial_uptime_s: float = 0.0,
         host: str = "127.0.0.1",
         port: int = 0,
@@ -198,6 +204,7 @@ class Emulator:
         self.source: SignalSource = source if source is not None else TestSource(seed)
         self.unit = unit
         self.ascii_addr = ascii_addr
+        self.baud = baud
         self.host = host
         self.port = port
         self.open_points = open_points if open_points is not None else OpenPoints()
@@ -396,17 +403,17 @@ class Emulator:
             self.port = self._tcp.port
             self.url = f"modbus-tcp://{self.host}:{self.port}?unit={self.unit}"
             return
-        self._link = PtyLink()
+        self._link = PtyLink(self.baud)
         self._link.start(loop, connected=lambda: not self.wire.disconnected)
         if self.transport == "modbus-rtu":
-            self._rtu = ModbusRtuHost(self.handle, self.unit, self._link.device_path)
+            self._rtu = ModbusRtuHost(self.handle, self.unit, self._link.device_path, self.baud)
             await self._rtu.listen()
-            self.url = f"modbus-rtu://{self._link.host_path}?baud={SERIAL_BAUD}&unit={self.unit}"
+            self.url = f"modbus-rtu://{self._link.host_path}?baud={self.baud}&unit={self.unit}"
         else:
             self._ascii = AsciiServer(self.handle, self._link.device_fd, self.ascii_addr)
             self._ascii.start(loop)
             self.url = (
-                f"ascii://{self._link.host_path}?baud={SERIAL_BAUD}"
+                f"ascii://{self._link.host_path}?baud={self.baud}"
                 f"&addr={self.ascii_addr:02X}&checksum={int(self.device.power_on_ascii_checksum)}"
             )
 

@@ -4,6 +4,10 @@ The servers consult :class:`WireFaults` (under the emulator's lock) before they 
 ``disconnected`` (the link carries nothing), a stall (the module ignores requests until a
 device-clock deadline), pending garbage (junk bytes sent just before the next answer) and
 pending corruption (the next n answers break their CRC, checksum or MBAP header).
+
+A serial line set to two different rates corrupts every byte: :func:`uart_receive` is what
+a UART at one rate makes of bytes sent at another (the pty link applies it,
+:mod:`loopcal.simulator.pty`).
 """
 
 from __future__ import annotations
@@ -213,3 +217,68 @@ def corrupt_ascii(checksum: bool) -> Corrupter:
         return frame
 
     return corrupter
+
+
+#: data bits of a character on the module's serial lines (8N1: one start bit, 8 data bits
+#: least significant first, no parity, one stop bit)
+DATA_BITS = 8
+#: the line's levels of one 8N1 character: start (0), data, stop (1)
+_FRAME_BITS = 1 + DATA_BITS + 1
+
+
+def uart_receive(data: bytes, sent_baud: int, heard_baud: int) -> bytes:
+    """What a UART listening at ``heard_baud`` receives when ``data`` is sent back to back at
+    ``sent_baud``, both 8N1: the bytes a host or a module at the wrong rate reads.
+
+    The receiver waits for a falling edge (a start bit), samples the line in the middle of
+    each of its own bit times (start, 8 data bits, stop), and looks for the next falling
+    edge after the stop bit's sample. A character whose start bit is high again at its
+    middle is a glitch and gives nothing; one whose stop bit is low is a framing error and
+    reads as a NUL byte, as Linux delivers it to a raw port (no ``IGNPAR``, no
+    ``PARMRK``). At equal rates the bytes come through unchanged.
+
+    Parameters
+    ----------
+    data : bytes
+        What the sender wrote, as one burst (the line idle, high, before and after).
+    sent_baud, heard_baud : int
+        The two ends' line rates, baud (> 0).
+
+    Returns
+    -------
+    bytes
+        What the receiver reads: at another rate, garbage (often NUL bytes, more or fewer
+        of them than were sent), never a valid frame but by chance.
+
+    Raises
+    ------
+    ValueError
+        If a rate is not > 0.
+    """
+    if sent_baud <= 0 or heard_baud <= 0:
+        raise ValueError(f"baud rates must be > 0, got {sent_baud} and {heard_baud}")
+    if sent_baud == heard_baud or not data:
+        return data
+    line = []  # the line's level in each of the sender's bit times
+    for byte in data:
+        line += [0, *((byte >> i) & 1 for i in range(DATA_BITS)), 1]
+    n = len(line)
+    r = sent_baud / heard_baud  # one of the receiver's bit times, in the sender's
+
+    def level(t: float) -> int:
+        i = int(t)
+        return line[i] if i < n else 1
+
+    out = bytearray()
+    i = 0  # where the search for a falling edge starts, in sender bit times
+    while True:
+        start = next((k for k in range(i, n) if line[k] == 0 and (k == 0 or line[k - 1])), None)
+        if start is None:
+            return bytes(out)
+        if level(start + 0.5 * r):  # high again mid start bit: a glitch, not a character
+            i = max(start + 1, int(start + 0.5 * r) + 1)
+            continue
+        value = sum(level(start + (1.5 + b) * r) << b for b in range(DATA_BITS))
+        stop_at = start + (_FRAME_BITS - 0.5) * r
+        out.append(value if level(stop_at) else 0)
+        i = max(start + 1, int(stop_at) + 1)
