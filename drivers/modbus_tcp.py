@@ -5,6 +5,7 @@ URL: ``modbus-tcp://host[:port]?unit=1&fifo=1`` (port 502 and unit 1 by default)
 
 from __future__ import annotations
 
+import socket
 from collections.abc import Callable
 from typing import ClassVar, Unpack
 
@@ -14,6 +15,23 @@ from pymodbus.client.base import ModbusBaseSyncClient
 from . import ldq412
 from .modbus import ModbusDAQ, ModbusOptions
 from .url import DaqUrl
+
+
+class _TcpClient(ModbusTcpClient):
+    """pymodbus' TCP client whose ``connect`` raises the socket's OSError (refused, timed
+    out, no route, unknown host) where pymodbus' logs it and returns False: the driver's
+    DAQDisconnected then carries it as its ``__cause__``, which tells a closed port from a
+    host that does not answer (:mod:`loopcal.drivers.diagnosis`)."""
+
+    def connect(self) -> bool:
+        if self.socket:
+            return True
+        params = self.comm_params
+        self.socket = socket.create_connection(
+            (params.host, params.port), timeout=params.timeout_connect,
+            source_address=params.source_address,
+        )  # fmt: skip
+        return True
 
 
 class ModbusTcpDAQ(ModbusDAQ):
@@ -59,7 +77,7 @@ class ModbusTcpDAQ(ModbusDAQ):
         }
 
     def _make_client(self, trace: Callable[[bool, bytes], bytes]) -> ModbusBaseSyncClient:
-        return ModbusTcpClient(
+        return _TcpClient(
             self.host,
             port=self.port,
             timeout=self.timeout,
