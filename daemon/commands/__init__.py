@@ -21,6 +21,7 @@ COMMANDS: tuple[tuple[str, str], ...] = (
     ("demo",
      "the field job on an emulated DAQ: record a session, calibrate, write, check the truth"),
     ("record", "record the DAQ to MCAP files in the foreground"),
+    ("probe", "is the DAQ there, and what is it; if not, why not (within 5 s)"),
     ("daemon", "the acquisition daemon (systemd's entry point): record the DAQ for months"),
     ("session",
      "calibrate through the running daemon: live guidance, then the session's scans calibrated"),
