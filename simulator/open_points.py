@@ -35,9 +35,10 @@ from __future__ import annotations
 import argparse
 import re
 from dataclasses import dataclass, fields
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
-import numpy as np
+if TYPE_CHECKING:  # for a type only: the options are added by a --help, without numpy
+    import numpy as np
 
 #: The datasheet's answer-time bound per transport, ms ("Timing").
 DATASHEET_LATENCY_MS = {"modbus-tcp": 10.0, "modbus-rtu": 5.0, "ascii": 10.0}

@@ -31,24 +31,24 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from loopcal.calibration.identify import DEFAULT_METHOD, METHODS
-from loopcal.calibration.parameters import INDEX, UNITS, ParameterModel
-from loopcal.calibration.simulate import perturbed_truth
-from loopcal.simulator import Emulator
+from loopcal.calibration.defaults import DEFAULT_METHOD, METHODS
 from loopcal.simulator.arguments import add_transport_option
-from loopcal.simulator.clock import HeldClock
-from loopcal.simulator.mechanism import MechanismSource
 from loopcal.simulator.options import add_simulation_options, check_simulation_options
-from loopcal.simulator.scenarios import HandMoves
 
 from ..arguments import duration_argument, path_argument
-from ..config.controller import ControllerConfig, load_controller_config
 from .errors import CommandError
 from .model_options import add_model_options, model_from_args
+
+if TYPE_CHECKING:  # the simulation, the emulator and the config (numpy, pymodbus): imported
+    import numpy as np  # by the demo when it runs
+
+    from loopcal.calibration.parameters import ParameterModel
+    from loopcal.simulator import Emulator
+    from loopcal.simulator.clock import HeldClock
+
+    from ..config.controller import ControllerConfig
 
 PROGRESS_S = 5.0  # wall seconds between progress lines while recording
 SESSION_S = 75.0  # the session, s of the emulated module's time
@@ -130,6 +130,16 @@ def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
 def _in(work: Path, args: argparse.Namespace, model: ParameterModel, speed: float,
         report: dict[str, Any]) -> int:  # fmt: skip
     """The demo working in ``work``."""
+    import numpy as np
+
+    from loopcal.calibration.simulate import perturbed_truth
+    from loopcal.simulator import Emulator
+    from loopcal.simulator.clock import HeldClock
+    from loopcal.simulator.mechanism import MechanismSource
+    from loopcal.simulator.scenarios import HandMoves
+
+    from ..config.controller import load_controller_config
+
     kept = args.out is not None or args.keep
     report.update(work=str(work), kept=kept, written=False, parameters={})
     t_start = time.perf_counter()
@@ -260,6 +270,8 @@ def _against_truth(written: ControllerConfig, truth: np.ndarray, model: Paramete
                    table: dict[str, dict[str, float | None]]) -> str:  # fmt: skip
     """Print what was written next to the truth (and put it in ``table``: name -> written,
     truth, error, std); return the verdict."""
+    from loopcal.calibration.parameters import INDEX, UNITS
+
     print("\nWhat was written, against the truth the simulation knows:")
     print(
         f"{'param':>6} {'unit':>5} {'written':>10} {'truth':>10} {'error':>8} {'std':>7} "

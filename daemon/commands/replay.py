@@ -14,19 +14,19 @@ import argparse
 import signal
 import sys
 import threading
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from loopcal.drivers.ldq412 import POWER_CYCLE_S
 from loopcal.simulator.arguments import add_transport_option, listen_host, tcp_port
 from loopcal.simulator.open_points import add_arguments as add_open_point_arguments
-from loopcal.simulator.open_points import from_arguments as open_points_from_arguments
-from loopcal.simulator.replay import Player, RecordedPowerOn
 
 from ..arguments import add_recordings_argument
-from ..recording import read_recordings
-from ..scan_rows import scan_rate_hz
 from .errors import CommandError
+
+if TYPE_CHECKING:  # the player and the recordings (numpy, pymodbus): imported to run
+    import numpy as np
+
+    from loopcal.simulator.replay import RecordedPowerOn
 
 OFF_MIN_S = 0.1  # shortest power cycle replayed
 
@@ -54,6 +54,10 @@ def power_ons(scans: np.ndarray) -> list[RecordedPowerOn]:
     recorded counters, device times, codes and status themselves (the restart flag at the
     first scan as the recording saw it; the time off before each restart from the stamps,
     within the datasheet's 2 s)."""
+    import numpy as np
+
+    from loopcal.simulator.replay import RecordedPowerOn
+
     out: list[RecordedPowerOn] = []
     epochs = scans["epoch"]
     cuts = np.flatnonzero(np.diff(epochs)) + 1
@@ -76,6 +80,12 @@ def power_ons(scans: np.ndarray) -> list[RecordedPowerOn]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from loopcal.simulator.open_points import from_arguments as open_points_from_arguments
+    from loopcal.simulator.replay import Player
+
+    from ..recording import read_recordings
+    from ..scan_rows import scan_rate_hz
+
     if not args.speed > 0:
         raise CommandError("--speed must be positive")
     try:

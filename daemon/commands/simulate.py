@@ -9,7 +9,6 @@ import argparse
 
 from loopcal.simulator.arguments import DESCRIPTION
 from loopcal.simulator.arguments import add_arguments as simulator_arguments
-from loopcal.simulator.run import run
 
 from ..arguments import duration_argument
 
@@ -18,3 +17,9 @@ __all__ = ["DESCRIPTION", "add_arguments", "run"]
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     simulator_arguments(p, duration=duration_argument)
+
+
+def run(args: argparse.Namespace) -> int:
+    from loopcal.simulator.run import run as serve
+
+    return serve(args)
