@@ -23,10 +23,15 @@ What it adds to the driver's scans:
   FIFO (one ``foreign_reader`` warning when it starts, one event when it stops:
   :mod:`loopcal.daemon.recorder.foreign`; its gaps are info, each scan still missed).
 
-When the module stops answering, the loop retries every 0.05 s through the datasheet's
-restart window (a power-cycled module answers again within 2 s), then with exponential
-backoff (0.1 s doubling to 2 s, or to a quarter of what the FIFO holds: far inside it), so
-a short outage loses nothing over Modbus and little over ASCII. The FIFO is read every
+When the module stops answering, the loop says why
+(:func:`loopcal.drivers.diagnosis.diagnose` on the driver's error, as ``loopcal probe``
+would say it, without a byte more on the wire): in the ``disconnect`` event, then in one
+WARNING line every ``report_every`` s (30 by default) while it lasts, and in
+:attr:`Acquisition.diagnosis` for the status line. It retries every 0.05 s through the
+datasheet's restart window (a power-cycled module answers again within 2 s), then with
+exponential backoff (0.1 s doubling to 2 s, or to a quarter of what the FIFO holds: far
+inside it), so a short outage loses nothing over Modbus and little over ASCII. The FIFO is
+read every
 ``read_period`` plus a dither (and again at once if it was more than half full); without a
 FIFO (ASCII, or Modbus with ``fifo=0``) the loop polls once per scan, phase-locked to the
 module's own clock: the pacers of the driver's own scan stream
@@ -47,6 +52,7 @@ from collections.abc import Callable
 import numpy as np
 
 from loopcal.drivers import DAQ, DAQError, Scan, ldq412, open_daq
+from loopcal.drivers.diagnosis import Diagnosis, diagnose
 from loopcal.drivers.pacing import FIFO_READ_PERIOD_S, FifoPacer, PollPacer
 
 from ..events import Event, Level
@@ -54,6 +60,7 @@ from ..scan_rows import SCAN_DTYPE
 from .batches import AcquisitionStats, Batch, DeviceInfo, ResumePoint
 from .clockmap import ClockMap, StampFloor
 from .foreign import ForeignReaders
+from .settings import UNREACHABLE_REPORT_S
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +69,6 @@ RESTART_WINDOW_S = ldq412.POWER_CYCLE_S + 0.5  # the datasheet's 2 s, and some
 BACKOFF_MIN_S = 0.1
 BACKOFF_MAX_S = 2.0
 FAULT_CLEAR_S = 1.0  # a rail or fault condition ends after this long of clear scans
-STILL_DOWN_LOG_S = 60.0
 #: the reason of a gap another Modbus master took (Scan.taken)
 TAKEN_REASON = "taken by another reader of the module's FIFO"
 
@@ -83,6 +89,8 @@ class Acquisition:
     url: driver URL (see :func:`loopcal.drivers.open_daq`). timeout: s without an answer before a
     call fails. read_period: s between FIFO reads. resume: the last scan already recorded.
     sink: called from the acquisition thread with each :class:`Batch`; must not block.
+    report_every: s between two WARNING lines saying why the module cannot be reached,
+    while it cannot (:attr:`report_every`, which a reload may change).
     """
 
     def __init__(
@@ -93,6 +101,7 @@ class Acquisition:
         timeout: float = ldq412.HOST_TIMEOUT_S,
         read_period: float = FIFO_READ_PERIOD_S,
         resume: ResumePoint | None = None,
+        report_every: float = UNREACHABLE_REPORT_S,
     ) -> None:
         if not timeout > 0:
             raise ValueError(f"timeout must be > 0 s, got {timeout}")
@@ -101,6 +110,9 @@ class Acquisition:
         self.url = url
         self.sink = sink
         self.timeout = timeout
+        self.report_every = report_every
+        #: why the module cannot be reached, while it cannot (None while it answers)
+        self.diagnosis: Diagnosis | None = None
         self.stats = AcquisitionStats()
         self.device: DeviceInfo | None = None
         #: monotonic time of the loop's last turn (a watchdog reads it)
@@ -264,6 +276,15 @@ class Acquisition:
             scan_rate_hz=int(rate),
         )
 
+    def _diagnose(self, exc: DAQError) -> Diagnosis:
+        """Why the module is not reached, from the driver's error (no request is made)."""
+        try:
+            self.diagnosis = diagnose(exc, self.url, timeout=self.timeout)
+        except Exception as err:  # noqa: BLE001 - a diagnosis never stops the acquisition
+            log.debug("no diagnosis of %r: %r", exc, err)
+            self.diagnosis = Diagnosis("error", f"{type(exc).__name__}: {exc}", "see the log")
+        return self.diagnosis
+
     def _failed(self, exc: DAQError, now: float) -> None:
         self.stats.read_errors += 1
         self.stats.last_error = str(exc)
@@ -271,22 +292,20 @@ class Acquisition:
             self._down_since = now
             self._down_logged = now
             self.stats.connected = False
+            why = self._diagnose(exc)
             self._emit(
                 "disconnect",
                 Level.WARNING,
-                f"{type(exc).__name__}: {exc}",
+                f"{type(exc).__name__}: {exc}; why: {why.line()}",
                 url=self.url,
                 error=type(exc).__name__,
+                cause=why.cause,
             )
             self._flush_events()
-        elif now - self._down_logged >= STILL_DOWN_LOG_S:
+        elif now - self._down_logged >= self.report_every:
             self._down_logged = now
-            log.warning(
-                "DAQ still unreachable after %.0f s (%s: %s)",
-                now - self._down_since,
-                type(exc).__name__,
-                exc,
-            )
+            log.warning("DAQ still unreachable after %.0f s: %s", now - self._down_since,
+                        self._diagnose(exc).line())  # fmt: skip
 
     def _recovered(self, now: float) -> None:
         assert self._down_since is not None
@@ -298,6 +317,7 @@ class Acquisition:
         (monotonic s; None when the link was not down)."""
         outage = None if self._down_since is None else round(now - self._down_since, 3)
         self._down_since = None
+        self.diagnosis = None
         self.stats.connected = True
         self._emit("connect", Level.INFO, message, url=url, **details, outage_s=outage)
 

@@ -309,9 +309,12 @@ class Recorder:
                 parts.append(f"ANOTHER MODBUS MASTER is taking scans off the DAQ's FIFO since "
                              f"{time_text(a.foreign_since_ns)} "
                              f"({a.foreign_taken} taken in all)")  # fmt: skip
+            why = acq.diagnosis
             parts.append(
                 "DAQ connected"
                 if a.connected
+                else f"DAQ unreachable [{why.cause}]: {why.message}"
+                if why is not None
                 else f"DAQ unreachable: {a.last_error or 'connecting'}"
             )
         parts += self.analysis.status()
@@ -353,6 +356,7 @@ class Recorder:
             timeout=s.timeout_s,
             read_period=s.read_period_s,
             resume=resume,
+            report_every=s.unreachable_report_s,
         )
         self._acq_thread = threading.Thread(
             target=self._acq_main, args=(self._acq, self._acq_stop), name="loopcal-acq",
@@ -403,6 +407,8 @@ class Recorder:
             return
         self._put_in_force(controller, new)
         self._watch = ConfigWatch(new.controller_config)
+        if self._acq is not None:
+            self._acq.report_every = new.unreachable_report_s
         restart_daq = (new.daq_url, new.timeout_s, new.read_period_s) != (
             old.daq_url, old.timeout_s, old.read_period_s)  # fmt: skip
         if restart_daq:

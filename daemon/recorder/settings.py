@@ -38,6 +38,9 @@ _MAX_SIZE = float(1 << 62)
 CONTROL_SOCKET_NAME = "control.sock"
 #: the most scans the backlog may hold in memory (about 560 MB)
 MAX_BACKLOG_SCANS = 10_000_000
+#: s between two lines saying why the module cannot be reached, while it cannot (the
+#: acquisition's default too)
+UNREACHABLE_REPORT_S = 30.0
 
 class SettingsError(ValueError):
     """A bad setting. ``field`` is the :class:`RecorderSettings` field at fault (None when
@@ -107,6 +110,12 @@ class RecorderSettings:
         FIFO_READ_PERIOD_S, kind="seconds", key="[daq].read_period", option="--read-period",
         hi=5.0, help="seconds between FIFO reads; at most 5 (the FIFO holds 12.8 s at 20 Hz); "
              "without a FIFO the module is polled once a scan")  # fmt: skip
+    unreachable_report_s: float = _setting(
+        UNREACHABLE_REPORT_S, kind="seconds", key="[daq].unreachable_report",
+        option="--unreachable-report", lo=1.0, hi=3600.0,
+        help="while the module cannot be reached, say why every this many seconds: one "
+             "WARNING line with the cause and what to do, as loopcal probe says it; 1 to "
+             "3600")  # fmt: skip
     flush_period_s: float = _setting(
         1.0, kind="seconds", key="[recording].flush_period", option="--flush-period",
         lo=0.05, hi=1.0,

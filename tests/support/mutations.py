@@ -32,6 +32,7 @@ DAEMON_TOML = """[daq]
 url = "modbus-tcp://192.168.1.50:502?unit=1"
 timeout = 0.1
 read_period = 0.5
+unreachable_report = 30
 
 [recording]
 directory = "/var/lib/loopcal/recordings"
