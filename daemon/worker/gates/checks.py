@@ -11,7 +11,7 @@ and one row in docs/calibration.md's table of gates, which a test holds to
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import ClassVar
 
@@ -23,7 +23,7 @@ from loopcal.calibration.observability import CONDITION_OK
 from loopcal.calibration.parameters import GROUPS, INDEX, NAMES, ParameterModel
 from loopcal.calibration.scans import averaging_ratio, closure_misfit
 
-from ..coverage import POSITION_CELL_V
+from ..coverage import POSITION_CELL_V, distinct_positions
 from ..recorded_poses import RecordedPoses
 from . import fit as parameters
 from . import residual as closure
@@ -104,6 +104,29 @@ class GateContext:
             covariance=self.checked.covariance,
         )  # fmt: skip
 
+    def too_little_motion(self, why: str) -> str:
+        """The advice of a gate whose failure follows from too little motion
+        (:func:`~loopcal.daemon.worker.gates.samples.too_little_motion` of these samples).
+
+        Parameters
+        ----------
+        why : str
+            What shows it, e.g. ``"condition, min_singular failed"``.
+
+        Returns
+        -------
+        str
+            The cause, with the distinct positions (or still poses) and the seconds they
+            span, then where to move the plate.
+        """
+        s = self.samples
+        if self.per_scan:
+            n, seconds = distinct_positions(s.volts), s.seconds
+        else:
+            n = len(s)
+            seconds = (int(s.stamp_ns[-1]) - int(s.stamp_ns[0])) / 1e9 if n > 1 else 0.0
+        return motion.too_little_motion(n, seconds, why, self.advice, still=not self.per_scan)
+
 
 #: the chi-square bounds' level as the docs write it ("99.9 %")
 _BOUND = f"{100 * (1 - closure.CHI2_TAIL):g} %"
@@ -121,6 +144,9 @@ class Check:
     name: ClassVar[str]
     #: judged on the samples before any fit (a failure stops the worker there)
     before_fit: ClassVar[bool] = False
+    #: judges whether the motion told the free parameters apart: when it fails, the other
+    #: failed gates of its stage follow from it, and advise more motion (:func:`measure_gates`)
+    judges_motion: ClassVar[bool] = False
 
     def documented(self) -> tuple[str, ...]:
         """The gate's limits as docs/calibration.md's table of gates writes them.
@@ -165,7 +191,7 @@ class Poses(Check):
     """``poses``: enough motion, every channel moving (still poses, or distinct positions of
     every scan)."""
 
-    name, before_fit = "poses", True
+    name, before_fit, judges_motion = "poses", True, True
 
     def documented(self) -> tuple[str, ...]:
         n = motion.MIN_POSES
@@ -203,7 +229,7 @@ class Converged(Check):
 class Condition(Check):
     """``condition``: the scaled Jacobian's condition number."""
 
-    name = "condition"
+    name, judges_motion = "condition", True
 
     def documented(self) -> tuple[str, ...]:
         return (f"condition number ≤ {CONDITION_OK:g}",)
@@ -215,7 +241,7 @@ class Condition(Check):
 class MinSingular(Check):
     """``min_singular``: the scaled Jacobian's smallest singular value."""
 
-    name = "min_singular"
+    name, judges_motion = "min_singular", True
 
     def documented(self) -> tuple[str, ...]:
         return (f"minimum singular value ≥ {parameters.MIN_SINGULAR:g}",)
@@ -309,10 +335,12 @@ class Plausible(Check):
         lim = parameters.CHANGE_LIMITS
         return (f"no offset moves more than {lim['offset']:g} mm",
                 f"no geometry more than {lim['geometry']:g} mm",
-                f"no gain more than {100 * lim['gain']:g} %")  # fmt: skip
+                f"no gain more than {100 * lim['gain']:g} %",
+                f"within {parameters.PLAUSIBLE_SIGMA:g} standard deviations")  # fmt: skip
 
     def measure(self, ctx: GateContext) -> Gate:
-        return parameters.plausible_gate(list(ctx.model.free), ctx.start, ctx.fit.params)
+        return parameters.plausible_gate(list(ctx.model.free), ctx.start, ctx.fit.params,
+                                         std=ctx.fit.std, imprecise=ctx.too_little_motion)
 
 
 class Precision(Check):
@@ -349,6 +377,19 @@ def measure_gates(ctx: GateContext, *, before_fit: bool) -> list[Gate]:
     Returns
     -------
     list of Gate
-        One per gate of :data:`GATES` of that stage that :meth:`Check.applies`.
+        One per gate of :data:`GATES` of that stage that :meth:`Check.applies`. When a
+        gate that judges the motion (:attr:`Check.judges_motion`) failed, every other
+        failed gate's advice is :meth:`GateContext.too_little_motion` instead of its own:
+        its figure follows from that, not from the mechanism.
     """
-    return [c.measure(ctx) for c in GATES if c.before_fit == before_fit and c.applies(ctx)]
+    checks = [c for c in GATES if c.before_fit == before_fit and c.applies(ctx)]
+    gates = [c.measure(ctx) for c in checks]
+    weak = [g.name for c, g in zip(checks, gates, strict=True) if c.judges_motion and not g.passed]
+    if not weak:
+        return gates
+    advice = None  # made once, if another gate failed
+    for k, (c, g) in enumerate(zip(checks, gates, strict=True)):
+        if not g.passed and not c.judges_motion:
+            advice = advice or ctx.too_little_motion(f"{', '.join(weak)} failed")
+            gates[k] = replace(g, advice=advice)
+    return gates

@@ -8,6 +8,7 @@ docs/calibration.md gives the limits.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -21,6 +22,9 @@ MIN_SINGULAR = 0.05  #: smallest minimum singular value of the scaled Jacobian
 CHANGE_LIMITS = {"offset": 15.0, "geometry": 3.0, "gain": 0.05}
 #: largest standard deviation of an identified parameter, by unit
 PRECISION = {"mm": 0.25, "mm/V": 0.01}
+#: a change within this many of its standard deviations of none is not told apart from none:
+#: the ``plausible`` gate puts it down to too little motion, not to the mechanism
+PLAUSIBLE_SIGMA = 3.0
 
 
 def _group(name: str) -> str:
@@ -122,7 +126,10 @@ def min_singular_gate(s_min: float, advice: Advice) -> Gate:
                        "the poses hardly tell some parameters apart", advice)  # fmt: skip
 
 
-def plausible_gate(free: list[str], previous: np.ndarray, new: np.ndarray) -> Gate:
+def plausible_gate(
+    free: list[str], previous: np.ndarray, new: np.ndarray, *, std: np.ndarray | None = None,
+    imprecise: Callable[[str], str] | None = None,
+) -> Gate:  # fmt: skip
     """No parameter moved further than a refit, or a blueprint tolerance, can explain.
 
     Parameters
@@ -133,13 +140,21 @@ def plausible_gate(free: list[str], previous: np.ndarray, new: np.ndarray) -> Ga
         The parameters before (the controller config's), mm and mm/V.
     new : ndarray of float, shape (20,)
         The identified parameters, likewise.
+    std : ndarray of float, shape (len(free),), optional
+        The identified parameters' standard deviations, in the order of ``free``.
+    imprecise : callable, optional
+        The advice when the change at fault is within :data:`PLAUSIBLE_SIGMA` of its
+        ``std`` of none, called with why (e.g. ``"A1x is known only to +-21.546 mm"``):
+        the motion did not pin that parameter down
+        (:func:`~loopcal.daemon.worker.gates.samples.too_little_motion`).
 
     Returns
     -------
     Gate
         ``"plausible"``, its value the change of the parameter closest to its limit
         (name, change and unit; ``"no change"`` when none changed), passed when every
-        change is within its limit.
+        change is within its limit. A failure names the sensor or the geometry, unless
+        the change is within its own uncertainty and ``imprecise`` says what to do.
 
     Notes
     -----
@@ -166,13 +181,21 @@ def plausible_gate(free: list[str], previous: np.ndarray, new: np.ndarray) -> Ga
     i = INDEX[worst]
     change = new[i] - previous[i]
     sensor = worst[-1] if worst.startswith(("d0", "S")) else None
+    value, limit = f"{worst} {change:+.3f} {UNITS[worst]}", "changes within " + _limits_text()
+    reason = (f"{worst} would change by {change:+.3f} {UNITS[worst]}, more than a "
+              f"{'refitted LVDT' if sensor else 'blueprint tolerance'} explains")  # fmt: skip
+    s = None if std is None else float(std[free.index(worst)])
+    if imprecise is not None and s is not None and not abs(change) > PLAUSIBLE_SIGMA * s:
+        known = f"{worst} is known only to +-{s:.3f} {UNITS[worst]}"
+        return Gate("plausible", False, value, limit,
+                    f"{reason}; but {known} (1 sigma): the change is not told apart from none",
+                    imprecise(known))  # fmt: skip
     return Gate(
         "plausible",
         False,
-        f"{worst} {change:+.3f} {UNITS[worst]}",
-        "changes within " + _limits_text(),
-        f"{worst} would change by {change:+.3f} {UNITS[worst]}, more than a "
-        f"{'refitted LVDT' if sensor else 'blueprint tolerance'} explains",
+        value,
+        limit,
+        reason,
         (
             f"check that sensor {sensor} is the one replaced, its gain S{sensor} and its wiring"
             if sensor

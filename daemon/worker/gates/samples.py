@@ -1,9 +1,13 @@
-"""The motion gate: did the plate move enough, and every channel with it, for a fit.
+"""The motion gate: did the plate move enough, and every channel with it, for a fit; and
+what the gates that follow from too little motion advise.
 
 The ``poses`` gate, judged before any fit: for still poses (:func:`poses_gate`) and for a
 fit on every scan (:func:`scans_gate`, in distinct positions:
 :func:`~loopcal.daemon.worker.coverage.distinct_positions`). docs/calibration.md gives the
-limits.
+limits. When the motion passed it but did not tell the parameters apart (the ``condition``
+or ``min_singular`` gate failed, or a change is within its own uncertainty), the other gates'
+failures follow from that and advise what :func:`too_little_motion` says instead of their
+own causes (a geometry, a gain).
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ import numpy as np
 from loopcal.calibration.parameters import GAIN_NOMINAL
 
 from ..coverage import POSITION_CELL_V, distinct_positions
-from .gate import Gate
+from .gate import Advice, Gate, advice_text
 
 MIN_POSES = 30  #: still poses the ``poses`` gate needs at least
 MIN_CHANNEL_RANGE_V = 0.5  #: V; a channel that moves less than this over all poses is stuck
@@ -25,7 +29,11 @@ def _motion_failure(
 ) -> Gate | None:
     """The ``poses`` gate's failure when the plate barely moved or a channel never did
     (span: (4,) each channel's range, V; n: the gate's value; over: what the ranges are
-    over, as text; move: the advice to move; unit: what the gate counts), else None."""
+    over, as text; move: the advice to move; unit: what the gate counts), else None.
+
+    A channel that hardly moved while the others did is named stuck only if the plate
+    went through :data:`MIN_POSES` positions: with fewer, too little motion is the first
+    cause, and the advice moves the plate before it checks the sensor."""
     if span.max() < BARELY_MOVED_V:
         return Gate(
             "poses",
@@ -39,13 +47,25 @@ def _motion_failure(
     stuck = [i + 1 for i in range(4) if span[i] < MIN_CHANNEL_RANGE_V]
     if stuck and len(stuck) < 4:
         names = ", ".join(f"sensor {i}" for i in stuck)
+        ranges = ", ".join(f"{span[i - 1]:.3f} V" for i in stuck)
+        if n < MIN_POSES:
+            return Gate(
+                "poses",
+                False,
+                n,
+                f">= {MIN_POSES} {unit}, every channel moving",
+                f"too little motion: only {n} {unit} over {over}, and {names} hardly moved "
+                f"({ranges} range), which so little motion does not tell from a stuck sensor",
+                f"{move}; if {names} still reads the same while the plate moves, check its "
+                "LVDT core, cable and conditioner",
+            )
         return Gate(
             "poses",
             False,
             n,
             f">= {MIN_POSES} {unit}, every channel moving",
-            f"{names} read the same ({', '.join(f'{span[i - 1]:.3f} V' for i in stuck)} "
-            f"range) over {over} while the others moved: stuck or disconnected",
+            f"{names} read the same ({ranges} range) over {over} while the others moved: stuck "
+            "or disconnected",
             f"check {names}: its LVDT core, cable and conditioner; then record again",
         )
     return None
@@ -87,7 +107,7 @@ def poses_gate(volts: np.ndarray) -> Gate:
             False,
             n,
             f">= {MIN_POSES}",
-            f"only {n} still poses found in the recording",
+            f"too little motion: only {n} still poses found in the recording",
             "move the plate to at least 40 positions, holding each still for about a second",
         )
     return Gate("poses", True, n, f">= {MIN_POSES}")
@@ -134,8 +154,42 @@ def scans_gate(volts: np.ndarray, seconds: float) -> Gate:
             False,
             k,
             f">= {MIN_POSES} positions",
-            f"the plate passed through only {k} distinct positions ({POSITION_CELL_V:g} V "
-            f"apart) in {seconds:.0f} s of usable scans",
+            f"too little motion: the plate passed through only {k} distinct positions "
+            f"({POSITION_CELL_V:g} V apart) in {seconds:.0f} s of usable scans",
             move,
         )
     return Gate("poses", True, k, f">= {MIN_POSES} positions")
+
+
+def too_little_motion(positions: int, seconds: float, why: str, advice: Advice, *,
+                      still: bool = False) -> str:  # fmt: skip
+    """The advice of a gate whose failure follows from motion that did not tell the
+    parameters apart: that cause first, and where to move the plate.
+
+    Parameters
+    ----------
+    positions : int
+        What the fit had: distinct positions of the usable scans
+        (:func:`~loopcal.daemon.worker.coverage.distinct_positions`), or still poses.
+    seconds : float
+        The time they span, s.
+    why : str
+        What shows that the motion was too little, e.g. ``"condition, min_singular
+        failed"`` or ``"A1x is known only to +-21.546 mm"``.
+    advice : Advice
+        Where to move the plate (:class:`~loopcal.daemon.worker.coverage.LazyAdvice`),
+        made now.
+    still : bool, default False
+        The fit is on still poses (else on every scan).
+
+    Returns
+    -------
+    str
+        ``too little motion: 32 distinct positions over 5 s, the workspace is not covered
+        (condition, min_singular failed): tilt the plate further toward sensor 2 (...), and
+        record longer (about two minutes), then calibrate again``.
+    """
+    what = "still poses" if still else "distinct positions"
+    return (f"too little motion: {positions} {what} over {seconds:.0f} s, the workspace is not "
+            f"covered ({why}): {advice_text(advice)}, and record longer (about two minutes), "
+            "then calibrate again")  # fmt: skip
