@@ -66,6 +66,25 @@ MARGIN_S = 0.25
 PEEK_BYTES = 120
 
 
+def with_params(url: DaqUrl, changes: dict[str, str]) -> str:
+    """A URL with some query parameters set (the others kept, in their order).
+
+    Parameters
+    ----------
+    url : DaqUrl
+        The parsed URL.
+    changes : dict of str to str
+        Parameters to set (added at the end if the URL has none of that name).
+
+    Returns
+    -------
+    str
+        The URL as text.
+    """
+    params = {**url.params, **changes}
+    return url.raw.split("?", 1)[0] + "?" + urlencode(params, safe="/")
+
+
 @dataclass(frozen=True)
 class Attempt:
     """One try of a probe: a URL opened, and what came of it.
@@ -187,25 +206,6 @@ class ProbeReport:
             details=diagnosis.details,
             **kw,
         )  # type: ignore[arg-type]
-
-
-def with_params(url: DaqUrl, changes: dict[str, str]) -> str:
-    """A URL with some query parameters set (the others kept, in their order).
-
-    Parameters
-    ----------
-    url : DaqUrl
-        The parsed URL.
-    changes : dict of str to str
-        Parameters to set (added at the end if the URL has none of that name).
-
-    Returns
-    -------
-    str
-        The URL as text.
-    """
-    params = {**url.params, **changes}
-    return url.raw.split("?", 1)[0] + "?" + urlencode(params, safe="/")
 
 
 _OUTCOMES = (
