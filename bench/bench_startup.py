@@ -15,27 +15,16 @@ runs of all commands interleaved so that a busy machine slows them alike; median
 from __future__ import annotations
 
 import argparse
-import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
+from bench._timing import interleaved_medians
 from loopcal.daemon.config.controller import write_initial_config
 from loopcal.simulator.scenarios import HandMoves
 from tests.support.sessions import PAUSE_S, truth_for, write_session
 
 PY = sys.executable
-
-
-def wall(cmd: list[str]) -> float:
-    t = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    took = time.perf_counter() - t
-    if proc.returncode not in (0, 1):
-        raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stderr}")
-    return took
 
 
 def main() -> int:
@@ -57,19 +46,13 @@ def main() -> int:
             "loopcal calibrate --help": [*cli, "calibrate", "--help"],
             "loopcal record --help": [*cli, "record", "--help"],
         }  # fmt: skip
-        times: dict[str, list[float]] = {k: [] for k in cases}
-        for cmd in cases.values():  # warm the page cache
-            wall(cmd)
-        for _ in range(args.repeats):
-            for name, cmd in cases.items():
-                times[name].append(wall(cmd))
-    base = statistics.median(times["baseline: import numpy, scipy.linalg"])
+        medians = interleaved_medians(cases, args.repeats, ok=(0, 1))  # 1: a gate refused
+    base = medians["baseline: import numpy, scipy.linalg"]
     print(f"medians of {args.repeats} fresh processes each, interleaved:")
-    for name, ts in times.items():
-        med = statistics.median(ts)
+    for name, med in medians.items():
         print(f"  {name:<40} {med:6.3f} s  {med / base:5.2f}x the baseline")
-    help_ratio = statistics.median(times["loopcal --help"]) / base
-    cal_ratio = statistics.median(times["loopcal calibrate (2-minute recording)"]) / base
+    help_ratio = medians["loopcal --help"] / base
+    cal_ratio = medians["loopcal calibrate (2-minute recording)"] / base
     print(f"loopcal --help: {help_ratio:.2f}x the baseline (target <= 1.3x: "
           f"{'met' if help_ratio <= 1.3 else 'NOT met'})")  # fmt: skip
     print(f"loopcal calibrate of a two-minute recording: {cal_ratio:.2f}x the baseline (target "
