@@ -79,17 +79,44 @@ def test_the_documented_rules_are_valid_and_each_alert_is_tested(tmp_path):
     assert run.returncode == 0 and "SUCCESS" in run.stdout, run.stdout + run.stderr
 
 
-def test_the_unit_tests_fail_for_the_old_never_calibrated_rule(tmp_path):
-    """The old rule (an age that is NaN when never calibrated) never fired: the unit tests
-    say so, so they can tell a rule that works from one that does not."""
-    old = "loopcal_controller_config_calibration_age_seconds > 365 * 86400"
-    text = documented_rules()
-    fixed = "expr: loopcal_controller_config_calibrated == 0"
-    assert fixed in text
-    (tmp_path / RULES_NAME).write_text(text.replace(fixed, f"expr: {old}"), encoding="utf-8")
+#: alert -> (its expression in docs/daemon.md, an old one that did not fire when it should)
+FIXED_RULES = {
+    # the age is NaN (now absent) when never calibrated
+    "LoopcalNeverCalibrated": (
+        "loopcal_controller_config_calibrated == 0",
+        "loopcal_controller_config_calibration_age_seconds > 365 * 86400",
+    ),
+}
+
+
+def with_expr(rules: str, alert: str, expr: str | None = None) -> tuple[str, str]:
+    """The rule file with ``alert``'s expression replaced by ``expr`` (None: kept), and the
+    expression it had (a folded block's lines joined by spaces)."""
+    lines = rules.splitlines()
+    i = lines.index(next(line for line in lines if line.strip() == f"- alert: {alert}"))
+    i += next(k for k, line in enumerate(lines[i:]) if line.strip().startswith("expr:"))
+    indent = len(lines[i]) - len(lines[i].lstrip())
+    j = i + 1
+    while len(lines[j]) - len(lines[j].lstrip()) > indent:
+        j += 1
+    had = " ".join(line.strip() for line in lines[i:j]).removeprefix("expr:").strip()
+    had = had.removeprefix(">-").strip()
+    if expr is not None:
+        lines[i:j] = [" " * indent + f"expr: {expr}"]
+    return "\n".join(lines) + "\n", had
+
+
+@pytest.mark.parametrize("alert", FIXED_RULES)
+def test_the_unit_tests_fail_for_the_old_rule(tmp_path, alert):
+    """An old rule that never fired where it should: the unit tests say so, so they can
+    tell a rule that works from one that does not."""
+    fixed, old = FIXED_RULES[alert]
+    text, had = with_expr(documented_rules(), alert, old)
+    assert had == fixed
+    (tmp_path / RULES_NAME).write_text(text, encoding="utf-8")
     shutil.copy(UNIT_TESTS, tmp_path)
     run = promtool("test", "rules", UNIT_TESTS.name, cwd=tmp_path)
-    assert run.returncode != 0 and "LoopcalNeverCalibrated" in run.stdout + run.stderr
+    assert run.returncode != 0 and alert in run.stdout + run.stderr
 
 
 def scrape_text(port: int) -> str:
@@ -116,16 +143,25 @@ def samples(text: str, name: str) -> list[float]:
     return [float(v) for v in re.findall(rf"^{name} (\S+)$", text, re.M)]
 
 
-def alerts_on(text: str, tmp: Path, expected: dict[str, list[dict]]) -> subprocess.CompletedProcess:
-    """`promtool test rules` with the scraped calibration metrics as input series (held for
-    10 min, the age growing with time) and the alerts expected after 5 min."""
-    series = []
-    for name in ("loopcal_controller_config_calibrated",
-                 "loopcal_controller_config_calibration_age_seconds"):  # fmt: skip
-        for v in samples(text, name):
-            step = 60 if name.endswith("age_seconds") else 0
-            series.append({"series": f'{name}{{instance="live", job="loopcal"}}',
-                           "values": f"{v!r}+{step}x10"})  # fmt: skip
+#: the calibration metrics of a scrape, as the calibration alerts read them
+CALIBRATION = ("loopcal_controller_config_calibrated",
+               "loopcal_controller_config_calibration_age_seconds")  # fmt: skip
+
+
+def held(text: str, *names: str) -> dict[str, str]:
+    """The scraped samples of ``names`` as promtool input series held for 10 min (an age
+    growing with time)."""
+    return {name: f"{v!r}+{60 if name.endswith('age_seconds') else 0}x10"
+            for name in names for v in samples(text, name)}  # fmt: skip
+
+
+def alerts_on(
+    values: dict[str, str], tmp: Path, expected: dict[str, list[dict]]
+) -> subprocess.CompletedProcess:
+    """`promtool test rules` with input series of one recorder, ``{name: values}`` a minute
+    apart, and the alerts expected after 5 min."""
+    series = [{"series": f'{name}{{instance="live", job="loopcal"}}', "values": v}
+              for name, v in values.items()]  # fmt: skip
     test = {
         "rule_files": [RULES_NAME],
         "evaluation_interval": "1m",
@@ -149,7 +185,7 @@ def test_a_recorder_never_calibrated_fires_the_alert(tmp_path):
     lint = subprocess.run(["promtool", "check", "metrics"], input=text, capture_output=True,
                           text=True, timeout=60)  # fmt: skip
     assert lint.returncode == 0, lint.stdout + lint.stderr
-    run = alerts_on(text, tmp_path, {
+    run = alerts_on(held(text, *CALIBRATION), tmp_path, {
         "LoopcalNeverCalibrated": [{
             "exp_labels": {"severity": "info", "instance": "live", "job": "loopcal"},
             "exp_annotations": {"summary": "live: loopcal never calibrated the controller config"},
@@ -173,6 +209,8 @@ def test_a_recorder_calibrated_a_moment_ago_fires_nothing_about_it(tmp_path):
     since = datetime.fromisoformat(written_utc).timestamp()
     assert t0 - since - 1 <= age <= time.time() - since + 1
     run = alerts_on(
-        text, tmp_path, {"LoopcalNeverCalibrated": [], "LoopcalCalibrationOverAYearOld": []}
+        held(text, *CALIBRATION),
+        tmp_path,
+        {"LoopcalNeverCalibrated": [], "LoopcalCalibrationOverAYearOld": []},
     )
     assert run.returncode == 0, run.stdout + run.stderr
