@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import ipaddress
 import logging
-import math
 import socket
 import threading
 import time
@@ -66,12 +65,17 @@ class RecorderCollector(Collector):
     def __init__(self, recorder: MetricsSource) -> None:
         self.rec = recorder
         self._dir_bytes = (0.0, 0)  # (monotonic time measured, bytes)
+        #: when the recorder started (its metrics with it), s since the Unix epoch
+        self.started_s = time.time()
 
     def collect(self) -> Iterator[Metric]:
         rec = self.rec
         st = rec.status
         s = rec.settings
         yield _gauge("loopcal_build_info", "loopcal's version", 1, version=loopcal_version())
+        yield _gauge("loopcal_recorder_start_time_seconds",
+                     "when the recorder started, s since the Unix epoch",
+                     self.started_s)  # fmt: skip
         yield _counter("loopcal_scans_recorded", "scans written to the recordings",
                        st.scans_written)  # fmt: skip
         yield _counter("loopcal_bytes_written", "bytes written to recording files",
@@ -107,10 +111,12 @@ class RecorderCollector(Collector):
         yield fam
         yield _gauge("loopcal_daq_connected", "1 while the DAQ answers",
                      1 if acq is not None and acq.connected else 0)  # fmt: skip
+        # Before the first scan the age is absent, not NaN (which no alert rule's comparison
+        # is ever true of): a rule tells "no scan yet" by the start time (docs/daemon.md).
         last = rec.last_scan_ns
-        yield _gauge("loopcal_last_scan_age_seconds",
-                     "seconds since the newest scan arrived (NaN before the first)",
-                     (time.time_ns() - last) / 1e9 if last else math.nan)  # fmt: skip
+        if last is not None:
+            yield _gauge("loopcal_last_scan_age_seconds", "seconds since the newest scan arrived "
+                         "(absent before the first)", (time.time_ns() - last) / 1e9)  # fmt: skip
         yield _gauge("loopcal_disk_error", "1 while the disk refuses writes",
                      1 if st.disk_error else 0)  # fmt: skip
         yield _gauge("loopcal_backlog_scans", "scans waiting in memory for the disk", st.backlog)

@@ -2,7 +2,8 @@
 rules` and `promtool test rules` (tests/project/prometheus/loopcal-alerts.test.yml: for every alert,
 a case that fires and one that does not), and against real scrapes of `loopcal record
 --metrics`: a recorder at the reference geometry fires LoopcalNeverCalibrated, one at a
-config loopcal calibrated a moment ago fires nothing about calibration."""
+config loopcal calibrated a moment ago fires nothing about calibration, one whose module
+never answers fires LoopcalNoScans."""
 
 from __future__ import annotations
 
@@ -85,6 +86,12 @@ FIXED_RULES = {
     "LoopcalNeverCalibrated": (
         "loopcal_controller_config_calibrated == 0",
         "loopcal_controller_config_calibration_age_seconds > 365 * 86400",
+    ),
+    # no scan age before the first scan: a module that answers but never scans went unseen
+    "LoopcalNoScans": (
+        "loopcal_last_scan_age_seconds > 10 or loopcal_daq_connected == 0 or "
+        "(time() - loopcal_recorder_start_time_seconds > 10 unless loopcal_last_scan_age_seconds)",
+        "loopcal_last_scan_age_seconds > 10 or loopcal_daq_connected == 0",
     ),
 }
 
@@ -213,4 +220,39 @@ def test_a_recorder_calibrated_a_moment_ago_fires_nothing_about_it(tmp_path):
         tmp_path,
         {"LoopcalNeverCalibrated": [], "LoopcalCalibrationOverAYearOld": []},
     )
+    assert run.returncode == 0, run.stdout + run.stderr
+
+
+@pytest.mark.slow
+def test_a_recorder_whose_module_never_answers_fires_no_scans(tmp_path):
+    """A module unplugged at boot (nothing listens at its port): the recorder's metrics say
+    it is not connected, when the recorder started, and no scan age (no scan ever came);
+    promtool, fed those, fires LoopcalNoScans for it."""
+    port = free_port()
+    t0 = time.time()
+    rec = record(f"modbus-tcp://127.0.0.1:{free_port()}?unit=1", tmp_path / "rec",
+                 "--metrics", f"127.0.0.1:{port}")  # fmt: skip
+    try:
+        rec.wait_for("disconnect: DAQDisconnected", timeout=30)
+        text = scrape_text(port)
+        scraped = time.time()
+        rec.stop()  # "nothing was recorded": its exit status says so
+    finally:
+        rec.kill()
+    assert samples(text, "loopcal_daq_connected") == [0.0]
+    [started] = samples(text, "loopcal_recorder_start_time_seconds")
+    assert t0 <= started <= scraped
+    assert samples(text, "loopcal_last_scan_age_seconds") == []  # absent, not NaN
+    lint = subprocess.run(["promtool", "check", "metrics"], input=text, capture_output=True,
+                          text=True, timeout=60)  # fmt: skip
+    assert lint.returncode == 0, lint.stdout + lint.stderr
+    values = held(text, "loopcal_daq_connected")
+    # promtool's clock starts at 0 when the scrape was taken: the recorder started before
+    values["loopcal_recorder_start_time_seconds"] = f"{started - scraped!r}x10"
+    run = alerts_on(values, tmp_path, {
+        "LoopcalNoScans": [{
+            "exp_labels": {"severity": "critical", "instance": "live", "job": "loopcal"},
+            "exp_annotations": {"summary": "live: no scan for 10 s"},
+        }],
+    })  # fmt: skip
     assert run.returncode == 0, run.stdout + run.stderr

@@ -20,11 +20,13 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
 def test_record_serves_prometheus_metrics(tmp_path):
     port = free_port()
+    t0 = time.time()
     with hand_emulator(speed=4.0) as emu:
         rec = record(emu.url, tmp_path / "rec", "--metrics", f"127.0.0.1:{port}")
         rec.wait_for("recording to", timeout=20)
         time.sleep(1.5)
         first = scrape(port)
+        t_first = time.time()
         time.sleep(1.5)
         m = scrape(port)
         rc, _ = rec.stop()
@@ -35,6 +37,8 @@ def test_record_serves_prometheus_metrics(tmp_path):
     assert value(m, "loopcal_bytes_written_total") > 1000
     assert value(m, "loopcal_daq_connected") == 1.0
     assert value(m, "loopcal_last_scan_age_seconds") < 2.0
+    started = value(first, "loopcal_recorder_start_time_seconds")
+    assert t0 <= started <= t_first and value(m, "loopcal_recorder_start_time_seconds") == started
     assert value(m, "loopcal_events_total", kind="connect", level="info") >= 1
     assert value(m, "loopcal_scans_missed_total") == 0 and value(m, "loopcal_disk_error") == 0
     assert value(m, "loopcal_recording_directory_bytes") > 0
