@@ -439,10 +439,19 @@ class Acquisition:
                            f"{missed} scan(s) missed before counter {c64}: {why}",
                            missed=missed, counter64=c64, epoch=int(r["epoch"]),
                            reason=why)  # fmt: skip
-            if r["overflow"]:
+            if r["overflow"] and first_ever:
+                # a module nobody read fills its FIFO: what it dropped was never this
+                # recorder's to lose, and the scans it kept open the recording
+                self._emit("overflow", Level.INFO,
+                           f"the module's FIFO was full when this recorder first read it "
+                           f"(nobody had read it for {ldq412.FIFO_DEPTH / self._rate_hz:g} s "
+                           f"or more): the recording begins with the {ldq412.FIFO_DEPTH} "
+                           "scans it held; the older ones were dropped before the recorder "
+                           "started", counter64=c64, at_connect=True)  # fmt: skip
+            elif r["overflow"]:
                 self._emit("overflow", Level.WARNING,
                            "the module's FIFO overflowed: its oldest scans were lost",
-                           counter64=c64)  # fmt: skip
+                           counter64=c64, at_connect=False)  # fmt: skip
             st.missed += missed
         status = rows["status"].astype(np.int64)
         rate = self._rate_hz

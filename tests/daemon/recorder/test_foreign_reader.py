@@ -184,6 +184,13 @@ def test_overflows_and_outages_are_not_another_master():
     assert gap.level == Level.WARNING and gap.details["missed"] == 280 - 256
     assert gap.details["reason"] != TAKEN_REASON
     assert len(rec.events("overflow")) == 2 and int(rows["overflow"].sum()) == 2
+    # at connect the module had sat unread: not the recording's loss, said once as what it is
+    at_connect, later = rec.events("overflow")
+    assert at_connect.level == Level.INFO and at_connect.details["at_connect"]
+    assert "full when this recorder first read it" in at_connect.message
+    assert "begins with the 256 scans it held" in at_connect.message
+    assert later.level == Level.WARNING and not later.details["at_connect"]
+    assert "its oldest scans were lost" in later.message
     assert rec.events("disconnect") and len(missing(rows)) == 280 - 256
 
 
