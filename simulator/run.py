@@ -393,6 +393,9 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         task = task_settings(args)
         drifts = tuple(d for d in (e.drift() for e in faults) if d is not None)
         open_points = open_points_from_arguments(args)
+        if args.replay is not None and args.scenario != "replay":
+            raise ValueError(f"--replay only with --scenario replay, not --scenario "
+                             f"{args.scenario}")  # fmt: skip
         if args.scenario == "replay":
             if args.replay is None:
                 raise ValueError("--scenario replay needs --replay FILE")

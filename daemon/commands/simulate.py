@@ -11,15 +11,21 @@ from loopcal.simulator.arguments import DESCRIPTION
 from loopcal.simulator.arguments import add_arguments as simulator_arguments
 
 from ..arguments import duration_argument
+from .option_rules import note_given, refuse_unless
 
 __all__ = ["DESCRIPTION", "add_arguments", "run"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    note_given(p)
     simulator_arguments(p, duration=duration_argument)
 
 
 def run(args: argparse.Namespace) -> int:
     from loopcal.simulator.run import run as serve
+
+    refuse_unless(args, args.scenario == "hand", "only with --scenario hand",
+                  f"--scenario {args.scenario} moves the plate its own way",
+                  "--pause", "--twist-every")  # fmt: skip
 
     return serve(args)

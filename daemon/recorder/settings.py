@@ -158,7 +158,7 @@ class RecorderSettings:
     duration_s: float | None = _setting(
         None, kind="seconds", option="--duration", shown_default="until SIGINT/SIGTERM",
         help="stop after this long by the host's clock (the wall time; an emulated module "
-             "at --speed X makes X times as many scans meanwhile)")  # fmt: skip
+             "running X times as fast makes X times as many scans meanwhile)")  # fmt: skip
     health: bool = _setting(
         True, kind="switch", key="[health].enabled", option="--no-health",
         help="watch loop closure and raise offset_drift events")  # fmt: skip

@@ -43,15 +43,6 @@ def _required(name: str, tmp: Path) -> list[str]:
     if name == "simulate":
         return ["--duration", "0.5"]
     return []
-#: cases other engineers' commands fail today (issue 32): the test says so until they pass
-KNOWN = {
-    ("mention", "record", "--speed"): "--duration's help names an emulated module's --speed "
-                                      "(daemon/recorder/settings.py)",
-    ("rule", "simulate", "--replay"): "simulate serves --scenario hand, ignoring --replay",
-    ("rule", "simulate", "--pause"): "simulate serves another scenario, ignoring --pause",
-    ("rule", "simulate", "--twist-every"): "simulate serves another scenario, ignoring "
-                                           "--twist-every",
-}
 
 
 def _parser(name: str) -> argparse.ArgumentParser:
@@ -64,18 +55,12 @@ def _options(name: str) -> dict[str, argparse.Action]:
     return dict(_parser(name)._option_string_actions)
 
 
-def _known(kind: str, name: str, option: str) -> list:
-    reason = KNOWN.get((kind, name, option))
-    return [pytest.mark.xfail(strict=True, reason=reason)] if reason else []
-
-
 def _mentions() -> Iterator:
     for name in NAMES:
         text = _parser(name).format_help()
         for m in OPTION.finditer(text):
             yield pytest.param(name, m.group(0), text[max(0, m.start() - 60):m.start()],
-                               id=f"{name} {m.group(0)}",
-                               marks=_known("mention", name, m.group(0)))  # fmt: skip
+                               id=f"{name} {m.group(0)}")  # fmt: skip
 
 
 def _unique(params: Iterator) -> list:
@@ -125,7 +110,7 @@ def _rules() -> Iterator:
             if m and option == max(action.option_strings, key=len):
                 slow = [pytest.mark.slow] if name in SERVES else []
                 yield pytest.param(name, option, bool(m[1]), m[2], m[3], id=f"{name} {option}",
-                                   marks=_known("rule", name, option) + slow)  # fmt: skip
+                                   marks=slow)  # fmt: skip
 
 
 @pytest.mark.parametrize(("name", "option", "negated", "needs", "value"), list(_rules()))
