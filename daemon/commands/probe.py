@@ -1,4 +1,4 @@
-"""``loopcal probe URL [--json] [--timeout S]``: is the LDQ-412 there, and what is it.
+"""``loopcal probe URL [--json] [--timeout D]``: is the LDQ-412 there, and what is it.
 
 Within 5 s whatever is wrong, it says either what answers at the URL (model, firmware,
 serial number, scan rate, FIFO level and overflow flag, restart flag, the latest scan's
@@ -44,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "modbus-tcp://192.168.1.50:502?unit=1 or "
                         "modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1")  # fmt: skip
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.add_argument("--timeout", type=duration_argument, metavar="S",
+    p.add_argument("--timeout", type=duration_argument, metavar="D",
                    help="how long to wait for each answer (default: the datasheet's 0.1 s; "
                         f"at most {MAX_TIMEOUT_S:g}): more for a slow network, each other "
                         "setting tried then costs as much")  # fmt: skip

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from loopcal.daemon.arguments import duration_argument
 from loopcal.daemon.cli import build_parser
 from loopcal.daemon.commands import COMMANDS
 from loopcal.daemon.recorder.settings import (
@@ -69,7 +70,8 @@ def test_every_duration_takes_the_one_spelling(name: str) -> None:
     """A duration (metavar D, and every --duration) is seconds or a number with a unit,
     the same spelling in every command: 1.5m is 90 s, and 0 is refused."""
     for a in _options(_command_parser(name)):
-        if "--duration" in a.option_strings or "--last" in a.option_strings:
+        if ("--duration" in a.option_strings or "--last" in a.option_strings
+                or a.type is duration_argument):  # fmt: skip
             assert a.metavar == "D", f"loopcal {name} {a.option_strings[0]} is {a.metavar}"
         if a.metavar != "D":
             continue
