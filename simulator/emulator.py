@@ -40,6 +40,7 @@ from loopcal.drivers.ldq412 import (
 )
 
 from .ascii_server import AsciiServer
+from .choices import TRANSPORTS
 from .clock import Clock, RealClock
 from .device import LDQ412, TruthScan
 from .faults import FaultInjector
@@ -52,7 +53,6 @@ from .wire import WireFaults
 
 _log = logging.getLogger(__name__)
 
-TRANSPORTS = ("modbus-tcp", "modbus-rtu", "ascii")
 TICK_S = 0.01
 _START_TIMEOUT_S = 5.0
 _STOP_TIMEOUT_S = 15.0

@@ -41,10 +41,11 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
+from .choices import TRANSPORTS
+
 if TYPE_CHECKING:
     from .testing import EmulatedLDQ412
 
-_TRANSPORTS = ("modbus-tcp", "modbus-rtu", "ascii")
 _MARKER = (
     "ldq412(**options): options of the emulated LDQ-412 the ldq412 fixtures serve "
     "(transport, scan_rate_hz, speed, clock, seed, scenario, pause_s, task_waypoints, "
@@ -64,7 +65,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     group = parser.getgroup("ldq412", "emulated LDQ-412 DAQ module (loopcal)")
     group.addoption(
         "--ldq412-transport",
-        choices=_TRANSPORTS,
+        choices=TRANSPORTS,
         default=None,
         help="transport of the ldq412 fixture where a test does not choose one "
         "(default modbus-tcp)",
