@@ -20,7 +20,7 @@ from __future__ import annotations
 import bisect
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypedDict, Unpack
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
@@ -178,6 +178,25 @@ TWIST_CANDIDATES = 8
 HISTORY_S = 600.0
 #: segments forgotten at a time (beyond :data:`HISTORY_S`)
 FORGET_BATCH = 512
+
+
+class HandStyle(TypedDict, total=False):
+    """How a hand moves the plate, and in which mechanism: :class:`HandMoves`' keywords that
+    :class:`GuidedHand` passes on (their defaults are :class:`HandMoves`').
+
+    Attributes
+    ----------
+    pause_s : tuple of 2 float
+        (min, max) of each pause's duration, s.
+    speed_deg_s : tuple of 2 float
+        (min, max) of each move's average angular speed, degrees per second.
+    params : ndarray of float, shape (20,)
+        The mechanism whose workspace the moves stay in (mm, mm/V).
+    """
+
+    pause_s: tuple[float, float]
+    speed_deg_s: tuple[float, float]
+    params: np.ndarray
 
 
 class HandMoves(Scenario):
@@ -429,12 +448,6 @@ class GuidedHand(HandMoves):
     ----------
     seed : int, default 0
         Seed of the pauses, speeds, targets and imprecision.
-    pause_s : tuple of 2 float, default (1.0, 3.0)
-        (min, max) of each pause, s.
-    speed_deg_s : tuple of 2 float, default (15.0, 40.0)
-        (min, max) of each move's average angular speed, degrees per second.
-    params : ndarray of float, shape (20,), default NOMINAL
-        The mechanism whose workspace the moves stay in (mm, mm/V).
     twist_every : int, default 2
         For ``"anywhere"`` moves: every so many moves the most twisted of eight (0: never).
     aim_sd_deg : float, default 5.0
@@ -450,6 +463,10 @@ class GuidedHand(HandMoves):
         Chance, per move, of still following the advice before it changed, 0..1.
     wrong : float, default 0.15
         Chance, per tilt or twist, of going the wrong way, 0..1.
+    **hand
+        ``pause_s`` (s), ``speed_deg_s`` (degrees per second) and ``params`` (shape (20,),
+        mm and mm/V): the hand's and the mechanism's, as :class:`HandMoves` takes them
+        (:class:`HandStyle`), with its defaults.
 
     Attributes
     ----------
@@ -475,9 +492,6 @@ class GuidedHand(HandMoves):
         self,
         seed: int = 0,
         *,
-        pause_s: tuple[float, float] = (1.0, 3.0),
-        speed_deg_s: tuple[float, float] = (15.0, 40.0),
-        params: np.ndarray = NOMINAL,
         twist_every: int = 2,
         aim_sd_deg: float = 5.0,
         azimuth_sd_deg: float = 10.0,
@@ -485,6 +499,7 @@ class GuidedHand(HandMoves):
         side_deg: float = 10.0,
         late: float = 0.25,
         wrong: float = 0.15,
+        **hand: Unpack[HandStyle],
     ) -> None:
         for name, chance in (("late", late), ("wrong", wrong)):
             if not 0.0 <= chance <= 1.0:
@@ -498,8 +513,7 @@ class GuidedHand(HandMoves):
         self.beyond_deg, self.side_deg = float(beyond_deg), float(side_deg)
         self.late, self.wrong = float(late), float(wrong)
         self._steers: list[tuple[float, dict[str, Any] | None]] = []
-        super().__init__(seed, pause_s=pause_s, speed_deg_s=speed_deg_s, params=params,
-                         twist_every=twist_every)  # fmt: skip
+        super().__init__(seed, twist_every=twist_every, **hand)
 
     def _restart(self) -> None:
         super()._restart()
