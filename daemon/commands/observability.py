@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 from loopcal.calibration.defaults import CONDITION_OK
 from loopcal.simulator.options import add_simulation_options, check_simulation_options
 
+from ..arguments import duration_argument
 from .errors import CommandError
 from .model_options import add_model_options, model_from_args
 from .option_rules import note_given, refuse_unless
@@ -32,8 +33,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--poses", type=int, default=450, metavar="N",
                    help="not with --session: simulated still poses spread over the workspace "
                         "(default 450)")  # fmt: skip
-    p.add_argument("--session", type=float, default=None, metavar="SECONDS",
-                   help="judge every scan of a simulated hand session this long (20 Hz; "
+    p.add_argument("--session", type=duration_argument, default=None, metavar="D",
+                   help="judge every scan of a simulated hand session this long (seconds, or "
+                        "90s, 2m; 20 Hz; "
                         "its pauses, twists and noise as --pause, --twist-every and "
                         "--noise-mv say) by its maximum-likelihood information, as the worker "
                         "fits it, instead of --poses still poses by the paper's "
@@ -104,8 +106,8 @@ def _session_information(args: argparse.Namespace, model) -> np.ndarray:
     :class:`loopcal.simulator.scenarios.HandMoves` does with the options' seed, pauses and
     twists, 20 Hz, its true rotations at each scan's instant, weighed by ``--noise-mv``)."""
     seconds = args.session
-    if not (math.isfinite(seconds) and 1 <= seconds <= 86400):
-        raise CommandError(f"--session {seconds!r}: between 1 and 86400 seconds")
+    if not 1 <= seconds <= 86400:
+        raise CommandError(f"--session {seconds:g} s: between 1 s and a day")
     if not args.noise_mv > 0:
         raise CommandError(f"--session needs noise to weigh the scans: --noise-mv "
                            f"{args.noise_mv:g}")
