@@ -259,8 +259,9 @@ def test_the_readme_example_streams_scans(ldq412) -> None:
     urls = re.findall(r'open_daq\("([^"]+)"\)', code)
     assert urls == ["modbus-tcp://127.0.0.1:5020?unit=1"] and "daq.scans(" in code
     code = code.replace(urls[0], ldq412.url)
+    # -X faulthandler: a process that does not end at Ctrl-C is made to say where it is
     proc = subprocess.Popen(
-        [sys.executable, "-u", "-c", code],
+        [sys.executable, "-u", "-X", "faulthandler", "-c", code],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -273,7 +274,12 @@ def test_the_readme_example_streams_scans(ldq412) -> None:
         made_at_connect = len(ldq412.scans)  # the first read brings at most these (and 1)
         time.sleep(2.0)
         proc.send_signal(signal.SIGINT)  # the example's Ctrl-C
-        out, err = proc.communicate(timeout=10.0)
+        try:
+            out, err = proc.communicate(timeout=10.0)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGABRT)  # faulthandler prints every thread's stack
+            out, err = proc.communicate(timeout=10.0)
+            pytest.fail(f"the example did not end within 10 s of its Ctrl-C:\n{err}")
     finally:
         if proc.poll() is None:
             proc.kill()
