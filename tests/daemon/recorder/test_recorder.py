@@ -222,7 +222,11 @@ def test_channel_faults_are_events_and_views_mark_them(tmp_path):
     assert faults == [(3, True), (3, False)]
     assert (1, True) in rails and (1, False) in rails and rails.count((3, True)) == 1
     bad = out.scans["codes"][:, 2] == 4095
-    assert bad.sum() >= 15 and np.all(out.scans["status"][bad] & (1 << 6))
+    status, measured = out.scans["status"], out.scans["status_measured"]
+    assert bad.sum() >= 15 and np.all(status[bad] & (1 << 2))  # at the rail, from the codes
+    # the fault bit is the module's: a FIFO scan holds none, and takes it from the snapshots
+    # around its read, so the first scans of a fault may come before one that shows it
+    assert (bad & measured).any() and np.all(status[bad & measured] & (1 << 6))
 
 
 @pytest.mark.slow
