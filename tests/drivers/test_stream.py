@@ -277,9 +277,14 @@ def test_the_readme_example_streams_scans(ldq412) -> None:
         try:
             out, err = proc.communicate(timeout=10.0)
         except subprocess.TimeoutExpired:
-            proc.send_signal(signal.SIGABRT)  # faulthandler prints every thread's stack
+            # how it held SIGINT (ignored, blocked, caught: bit 1 of each mask) and where
+            # it was (faulthandler prints every thread's stack at SIGABRT)
+            with open(f"/proc/{proc.pid}/status", encoding="ascii") as f:
+                masks = [ln.strip() for ln in f if ln.startswith(("SigBlk", "SigIgn", "SigCgt"))]
+            proc.send_signal(signal.SIGABRT)
             out, err = proc.communicate(timeout=10.0)
-            pytest.fail(f"the example did not end within 10 s of its Ctrl-C:\n{err}")
+            pytest.fail(f"the example did not end within 10 s of its Ctrl-C ({masks}; the "
+                        f"test's own SIGINT handler {signal.getsignal(signal.SIGINT)!r}):\n{err}")
     finally:
         if proc.poll() is None:
             proc.kill()
