@@ -11,6 +11,7 @@ only to run.
 from __future__ import annotations
 
 import argparse
+import math
 import socket
 from collections.abc import Callable
 from pathlib import Path
@@ -42,6 +43,53 @@ Fault schedule, times in seconds of device time since start (repeatable ``--faul
     creep@30:2=1.0        sensor 2's offset creeps by 1.0 mm per minute from 30 s
                           (for ever; +DUR: for DUR s, then held)
 """
+
+
+def speed_argument(text: str) -> float:
+    """An argparse type: an emulated module's speed.
+
+    Parameters
+    ----------
+    text : str
+        The option's value as typed.
+
+    Returns
+    -------
+    float
+        A finite number above 0: the module's clock runs that many times as fast as the
+        wall clock.
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        For text that is not such a number.
+    """
+    try:
+        speed = float(text)
+    except ValueError:
+        speed = math.nan
+    if not (math.isfinite(speed) and speed > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: a speed must be a number above 0")
+    return speed
+
+
+def add_speed_option(p: argparse.ArgumentParser, default: float | None = 1.0,
+                     shown: str = "1") -> None:  # fmt: skip
+    """Add ``--speed X``: how many times as fast as the wall clock the emulated module's
+    clock runs (``loopcal simulate``, ``replay`` and ``demo``).
+
+    Parameters
+    ----------
+    p : argparse.ArgumentParser
+        The command's parser.
+    default : float or None, default 1.0
+        The value without the option (None: the command decides, by other options).
+    shown : str, default "1"
+        The default as its help says it.
+    """
+    p.add_argument("--speed", type=speed_argument, default=default, metavar="X",
+                   help="the emulated module's seconds per wall-clock second "
+                        f"(default {shown})")  # fmt: skip
 
 
 def int_in(lo: int, hi: int, *, base: int = 10) -> Callable[[str], int]:
@@ -149,7 +197,7 @@ def add_arguments(p: argparse.ArgumentParser, duration: Callable[[str], float] =
     p.add_argument(
         "--scan-rate", type=int_in(1, 200), default=20, help="scan rate at power-on, Hz (20)"
     )
-    p.add_argument("--speed", type=float, default=1.0, help="device time per real second (1)")
+    add_speed_option(p)
     p.add_argument(
         "--wait-for-client",
         action="store_true",

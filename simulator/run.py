@@ -387,8 +387,6 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     try:
         faults = sorted((FaultEvent.parse(s) for s in args.fault), key=lambda e: e.at)
         truth = truth_parameters(args)
-        if args.speed <= 0:
-            raise ValueError("--speed must be positive")
         check_simulation_options(args)
         task = task_settings(args)
         drifts = tuple(d for d in (e.drift() for e in faults) if d is not None)

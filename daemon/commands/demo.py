@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from loopcal.calibration.defaults import DEFAULT_METHOD, METHODS
-from loopcal.simulator.arguments import add_transport_option
+from loopcal.simulator.arguments import add_speed_option, add_transport_option
 from loopcal.simulator.options import add_simulation_options, check_simulation_options
 
 from ..arguments import duration_argument, path_argument
@@ -60,12 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the session's length by the emulated module's clock (at --speed X, "
                         f"1/X of it in wall time): seconds, or 90s, 2m (default {SESSION_S:g} "
                         "s)")  # fmt: skip
-    p.add_argument(
-        "--speed",
-        type=float,
-        default=None,
-        help="device time per real second (default 10; 1 over ASCII, which polls)",
-    )
+    add_speed_option(p, default=None, shown="10; 1 over ASCII, which polls")
     add_simulation_options(p)
     add_model_options(p)
     p.add_argument(
@@ -106,8 +101,6 @@ def _run(args: argparse.Namespace, report: dict[str, Any]) -> int:
     except ValueError as exc:  # the option and its value, named
         raise CommandError(exc) from None
     speed = args.speed if args.speed is not None else (1.0 if args.transport == "ascii" else 10.0)
-    if not speed > 0:
-        raise CommandError("--speed must be positive")
     model = model_from_args(args)
     if args.out is None:
         work = Path(tempfile.mkdtemp(prefix="loopcal-demo-"))

@@ -17,7 +17,12 @@ import threading
 from typing import TYPE_CHECKING
 
 from loopcal.drivers.ldq412 import POWER_CYCLE_S
-from loopcal.simulator.arguments import add_transport_option, listen_host, tcp_port
+from loopcal.simulator.arguments import (
+    add_speed_option,
+    add_transport_option,
+    listen_host,
+    tcp_port,
+)
 from loopcal.simulator.open_points import add_arguments as add_open_point_arguments
 
 from ..arguments import add_recordings_argument
@@ -34,9 +39,7 @@ OFF_MIN_S = 0.1  # shortest power cycle replayed
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_recordings_argument(p)
     add_transport_option(p, "the wire the replayed module answers on")
-    p.add_argument(
-        "--speed", type=float, default=1.0, help="device seconds per real second (default 1)"
-    )
+    add_speed_option(p)
     p.add_argument(
         "--start-now",
         action="store_true",
@@ -86,8 +89,6 @@ def run(args: argparse.Namespace) -> int:
     from ..recording import read_recordings
     from ..scan_rows import scan_rate_hz
 
-    if not args.speed > 0:
-        raise CommandError("--speed must be positive")
     try:
         open_points = open_points_from_arguments(args)
     except ValueError as exc:  # the open points' options, named

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from loopcal.drivers import DAQTimeout, open_daq
+from tests.support.processes import loopcal_main
 
 CMD = [sys.executable, "-m", "loopcal.daemon.cli", "simulate"]
 
@@ -98,7 +99,6 @@ def test_scheduled_stall_and_restart_reach_the_driver(tmp_path):
     )
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -106,15 +106,14 @@ def test_scheduled_stall_and_restart_reach_the_driver(tmp_path):
         (["--fault", "stall@3"], "needs a duration"),
         (["--fault", "stuck@1+1:9=5"], "channel 1..4"),
         (["--truth", "d09=1"], "bad --truth entry 'd09=1'"),
-        (["--speed", "0"], "--speed must be positive"),
+        (["--speed", "0"], "argument --speed: '0': a speed must be a number above 0"),
         (["--twist-every", "-3"], "--twist-every must be 0 or more moves, got -3"),
     ],
 )
-def test_bad_options_are_named(args, message, capsys):
-    from loopcal.daemon.cli import main  # in this process: refused before anything starts
-
-    assert main(["simulate", *args]) == 2
-    assert message in capsys.readouterr().err
+def test_bad_options_are_named(args, message):
+    refused = loopcal_main("simulate", *args)  # in this process: refused before anything starts
+    assert refused.returncode == 2
+    assert message in refused.stderr
 
 
 @pytest.mark.slow
