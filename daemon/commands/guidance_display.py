@@ -3,13 +3,41 @@ record --until-enough`` (its own guidance) and ``loopcal session`` (the daemon's
 
 from __future__ import annotations
 
+import argparse
 import json
+import math
 import sys
 from typing import TYPE_CHECKING
+
+from ..live.guidance_defaults import MAX_TARGET_MM, TARGET_MM
 
 if TYPE_CHECKING:  # the guidance (numpy, the worker) is loaded by the command that runs it
     from ..live.guidance import GuidanceUpdate
 
+
+
+def target_mm_argument(text: str) -> float:
+    """The type of ``--target-mm``: mm, above 0 and at most :data:`MAX_TARGET_MM`."""
+    try:
+        mm = float(text)
+    except ValueError:
+        mm = math.nan
+    if not (math.isfinite(mm) and 0 < mm <= MAX_TARGET_MM):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: a target must be more than 0 and at most {MAX_TARGET_MM:g} mm"
+        )
+    return mm
+
+
+def add_guidance_options(p: argparse.ArgumentParser, *, until_enough: str,
+                         target_with: str = "") -> None:  # fmt: skip
+    """``--until-enough`` (its help ``until_enough``) and ``--target-mm`` (default None:
+    :data:`TARGET_MM`; its help begins with ``target_with``), as ``loopcal record`` and
+    ``loopcal session`` take them."""
+    p.add_argument("--until-enough", action="store_true", help=until_enough)
+    p.add_argument("--target-mm", type=target_mm_argument, default=None, metavar="MM",
+                   help=f"{target_with}every offset's standard deviation the guidance aims "
+                        f"for (default {TARGET_MM:g}, at most {MAX_TARGET_MM:g})")  # fmt: skip
 
 class Display:
     """The live guidance on stdout: redrawn in place on a terminal (plain ANSI, fine over

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import sys
 from typing import TYPE_CHECKING
 
@@ -24,6 +23,7 @@ from ..events import Level
 from ..live.guidance_defaults import TARGET_MM
 from ..recorder.settings import SettingsError, add_options, option_name, settings_from_args
 from .errors import CommandError
+from .guidance_display import add_guidance_options
 
 if TYPE_CHECKING:  # the recorder and live analysis (numpy, mcap, ...): imported by run
     from ..live.guidance import Guidance, GuidanceUpdate
@@ -32,19 +32,10 @@ if TYPE_CHECKING:  # the recorder and live analysis (numpy, mcap, ...): imported
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_options(p)  # every recorder setting that has an option (docs/daemon.md's table)
-    p.add_argument(
-        "--until-enough",
-        action="store_true",
-        help="guide the technician live and stop once the recording calibrates well enough",
-    )
-    p.add_argument(
-        "--target-mm",
-        type=float,
-        default=None,
-        metavar="MM",
-        help="with --until-enough: every offset's standard deviation to reach "
-        f"(default {TARGET_MM:g})",
-    )
+    add_guidance_options(
+        p, until_enough="guide the technician live and stop once the recording calibrates "
+        "well enough", target_with="with --until-enough: ",
+    )  # fmt: skip
     p.add_argument(
         "--json",
         action="store_true",
@@ -65,12 +56,8 @@ def run(args: argparse.Namespace) -> int:
 
     setup_logging(args.verbose)
     guide: Guidance | None = None
-    if args.target_mm is not None:
-        if not args.until_enough:
-            raise CommandError("--target-mm goes with --until-enough")
-        if not (math.isfinite(args.target_mm) and args.target_mm > 0):
-            raise CommandError(f"--target-mm {args.target_mm:g}: the target must be a positive "
-                               "number of mm")
+    if args.target_mm is not None and not args.until_enough:
+        raise CommandError("--target-mm goes with --until-enough")
     try:
         settings = settings_from_args(args)
         recorder = Recorder(settings, command="loopcal record " + " ".join(sys.argv[2:]))

@@ -29,12 +29,12 @@ from typing import Any
 from loopcal.calibration.errors import ParameterError
 
 from ..arguments import duration_argument, path_argument
-from ..live.control import MAX_NOTE_CHARS, MAX_TARGET_MM, ControlClient
+from ..live.control import MAX_NOTE_CHARS, ControlClient
 from ..live.guidance_defaults import TARGET_MM
 from ..times import time_text
 from .calibrate import Calibration, calibrate, check_report_dir
 from .errors import CommandError
-from .guidance_display import Display
+from .guidance_display import Display, add_guidance_options
 
 #: s between two messages to the daemon: it abandons a session whose client is silent for
 #: ``[control].client_timeout`` (30 s by default)
@@ -46,11 +46,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the running daemon's config (its control socket, recording "
                         "directory and controller config), e.g. "
                         "/etc/loopcal/daemon.toml")  # fmt: skip
-    p.add_argument("--until-enough", action="store_true",
-                   help="stop by itself once the recording calibrates well enough")  # fmt: skip
-    p.add_argument("--target-mm", type=float, default=TARGET_MM, metavar="MM",
-                   help="every offset's standard deviation the guidance aims for "
-                        f"(default {TARGET_MM:g})")  # fmt: skip
+    add_guidance_options(p, until_enough="stop by itself once the recording calibrates well "
+                                         "enough")  # fmt: skip
     p.add_argument("--duration", type=duration_argument, metavar="D",
                    help="stop after this much of the module's scans: seconds, or 90s, 5m "
                         "(the module's clock: a real module's is the wall clock)")  # fmt: skip
@@ -86,9 +83,6 @@ def _prepare(args: argparse.Namespace) -> tuple[Calibration, ControlClient]:
     from ..recorder.settings import load_daemon_config
     from ..worker.writeback import check_writable
 
-    if not 0 < args.target_mm <= MAX_TARGET_MM:
-        raise CommandError(f"--target-mm {args.target_mm:g}: must be > 0 and "
-                           f"<= {MAX_TARGET_MM:g} mm")  # fmt: skip
     if len(args.note) > MAX_NOTE_CHARS:
         raise CommandError(f"--note: at most {MAX_NOTE_CHARS} characters")
     if any(ord(c) < 0x20 or ord(c) == 0x7F for c in args.note):
@@ -117,7 +111,8 @@ def _prepare(args: argparse.Namespace) -> tuple[Calibration, ControlClient]:
 
 def _follow(client: ControlClient, args: argparse.Namespace) -> dict[str, Any]:
     """Start the session, show its guidance until it ends, and return its end."""
-    client.send("start", note=args.note, target_mm=args.target_mm,
+    client.send("start", note=args.note,
+                target_mm=TARGET_MM if args.target_mm is None else args.target_mm,
                 until_enough=args.until_enough, duration_s=args.duration,
                 free=args.free)  # fmt: skip
     reply = client.receive(timeout=10.0)

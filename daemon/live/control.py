@@ -50,14 +50,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .guidance_defaults import MAX_TARGET_MM
+
 #: the longest message either side may send, bytes (a guidance update is about 1.5 KB)
 MAX_MESSAGE_BYTES = 16384
 #: the longest note a session may carry, characters
 MAX_NOTE_CHARS = 500
 #: the longest session a client may ask for, s
 MAX_DURATION_S = 4 * 3600.0
-#: the largest target a client may ask for, mm
-MAX_TARGET_MM = 10.0
 #: the requests the daemon takes, and the fields each may carry
 REQUESTS: dict[str, frozenset[str]] = {
     "start": frozenset({"note", "target_mm", "until_enough", "duration_s", "free"}),

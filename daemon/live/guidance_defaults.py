@@ -8,3 +8,6 @@ from __future__ import annotations
 
 #: the default target: every offset's predicted standard deviation, mm
 TARGET_MM = 0.1
+#: the largest target a session or a recording may ask for, mm: beyond it the guidance
+#: would call any motion enough
+MAX_TARGET_MM = 10.0

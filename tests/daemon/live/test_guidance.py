@@ -135,7 +135,7 @@ def test_until_enough_stops_by_itself_and_calibrate_agrees(tmp_path):
     ("args", "message"),
     [
         (["--target-mm", "0.2"], "--target-mm goes with --until-enough"),
-        (["--until-enough", "--target-mm", "0"], "the target must be a positive number"),
+        (["--until-enough", "--target-mm", "0"], "a target must be more than 0 and at most 10 mm"),
         (["--until-enough", "--controller-config", "/nonexistent.toml"], "nonexistent.toml"),
     ],
 )

@@ -401,7 +401,7 @@ def test_session_refuses_bad_input_before_asking_the_daemon(tmp_path):
     bare.write_text(f'[daq]\nurl = "modbus-tcp://127.0.0.1:1"\n[recording]\ndirectory = '
                     f'"{tmp_path / "rec"}"\n')  # fmt: skip
     for argv, why in [
-        (["--config", cfg, "--target-mm", "0"], "--target-mm 0: must be > 0"),
+        (["--config", cfg, "--target-mm", "0"], "--target-mm: '0': a target must be more than 0"),
         (["--config", cfg, "--note", "a\nb"], "--note: control characters"),
         (["--config", cfg, "--free", "d09"], "--free:"),
         (["--config", cfg, "--duration", "soon"], "'soon' is not a duration"),
