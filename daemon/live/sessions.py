@@ -494,6 +494,9 @@ class ControlServer:
         session = Session(sid, req, conn.peer, SessionObserver(guidance, req.duration_s), conn)
         holder["s"] = session
         self.session = session
+        # the reply first: once the analysis has the observer, its thread may send the
+        # client a guidance update, which must not reach it before it knows it started
+        self._reply(conn, {"type": "started", "session": session.describe()})
         self.recorder.analysis.add(session.observer)
         note = f': "{req.note}"' if req.note else ""
         self.recorder.emit(
@@ -503,7 +506,6 @@ class ControlServer:
             session=sid, note=req.note, asked_by=conn.peer, target_mm=req.target_mm,
             until_enough=req.until_enough, duration_s=req.duration_s, free=req.free,
         )  # fmt: skip
-        self._reply(conn, {"type": "started", "session": session.describe()})
 
     # ------------------------------------------------------------------ the session's end
 
