@@ -96,8 +96,11 @@ def test_stalled_and_many_viewers_cost_the_recording_no_scan(tmp_path):
     while metrics == port:
         metrics = free_port()
     with hand_emulator(speed=SPEED) as emu:
-        rec = record(emu.url, tmp_path / "rec", "--read-period", "0.05", "--live",
-                     f"127.0.0.1:{port}", "--metrics", f"127.0.0.1:{metrics}",
+        # --timeout 1: what is measured is the view's cost; the emulated module answers
+        # from this test's process, which a loaded machine may hold past the datasheet's
+        # 0.1 s (a CI run lost the scans of a FIFO read that timed out so)
+        rec = record(emu.url, tmp_path / "rec", "--read-period", "0.05", "--timeout", "1",
+                     "--live", f"127.0.0.1:{port}", "--metrics", f"127.0.0.1:{metrics}",
                      "--duration", "12")  # fmt: skip
         try:
             rec.wait_for("recording to", timeout=20)
