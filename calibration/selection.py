@@ -326,12 +326,9 @@ def ml_candidates(
 
     Parameters
     ----------
-    volts : array_like, shape (N, 4)
-        LVDT readings of the candidate poses, V.
-    model : ParameterModel
-        The free set.
-    p : array_like, shape (20,)
-        Parameter estimate (mm, mm/V).
+    volts, model, p
+        As for :func:`candidate_jacobian`: the readings (N, 4), V; the free set; the
+        estimate (20,), mm and mm/V.
     scans_per_pose : array_like, shape (N,), optional
         Scans averaged into each pose; default one each.
 

@@ -138,10 +138,8 @@ def sample_workspace(
 
     Parameters
     ----------
-    n : int
-        Number of rotations.
-    rng : numpy.random.Generator
-        Source of randomness.
+    n, rng
+        As for :func:`sample_rotations`: how many, and the random generator.
     p : array_like, shape (20,), default NOMINAL
         The mechanism's parameters (mm, mm/V).
     **limits : float

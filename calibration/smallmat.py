@@ -217,7 +217,7 @@ def eigmin_sym3(a00, a11, a22, a01, a02, a12) -> np.ndarray:
     Parameters
     ----------
     a00, a11, a22, a01, a02, a12 : ndarray, shape (m,)
-        The six distinct entries of A.
+        As for :func:`cholesky3`.
 
     Returns
     -------
