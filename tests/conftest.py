@@ -11,6 +11,16 @@ from pathlib import Path
 import pytest
 
 from tests.support.js import mcap_reader
+from tests.support.workers import SharedFixtureScheduling
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """``-n N`` (xdist's ``--dist load``): each test to whichever worker is free, but a
+    file that makes a fixture once goes to one worker (tests/support/workers.py). Another
+    ``--dist`` given is xdist's own."""
+    if config.getvalue("dist") == "load":
+        return SharedFixtureScheduling(config, log)
+    return None
 
 
 @pytest.fixture(scope="session")
