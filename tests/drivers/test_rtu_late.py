@@ -101,7 +101,7 @@ def open_late(
 @pytest.mark.slow
 @pytest.mark.parametrize("fifo", [True, False], ids=["fifo", "poll"])
 def test_late_answers_are_never_taken_for_another_requests(fifo: bool) -> None:
-    """A few hundred requests, one in five answered 150-400 ms late, at the datasheet's
+    """Two hundred requests, one in five answered 150-400 ms late, at the datasheet's
     100 ms timeout. (Before the driver kept the line for a late answer, 300 requests at
     three in ten late gave 7 to 11 false restarts and scans put in the wrong power-on.)"""
     clock = ManualClock()
@@ -111,7 +111,7 @@ def test_late_answers_are_never_taken_for_another_requests(fifo: bool) -> None:
         try:
             for _ in range(200):
                 got += read_through(daq, clock, STEPS)
-                if len(latency.drawn) >= 300:
+                if len(latency.drawn) >= 200:
                     break
             emu.faults.latency(None)
             got += read_ok(daq, tries=SETTLE_TRIES)
@@ -119,7 +119,7 @@ def test_late_answers_are_never_taken_for_another_requests(fifo: bool) -> None:
             daq.close()
         check_no_answer_taken_for_another(got, emu, daq)
     late = sum(d > daq.timeout for d in latency.drawn)
-    assert len(latency.drawn) >= 300 and late >= 30, (len(latency.drawn), late)
+    assert len(latency.drawn) >= 200 and late >= 20, (len(latency.drawn), late)
     assert daq.late_answers_discarded > 0
     if fifo:  # a late FIFO answer is waited for: it carries scans off the module
         assert daq.late_fifo_answers > 0

@@ -105,7 +105,7 @@ def table(out: str) -> dict[str, tuple[float, ...]]:
 
 @pytest.mark.slow
 def test_demo_writes_offsets_close_to_the_truth(tmp_path):
-    demo = run_demo("--out", str(tmp_path / "a dir"), "--seed", "2")
+    demo = run_demo("--out", str(tmp_path / "a dir"), "--seed", "2", "--speed", "20")
     out = demo.stdout
     assert demo.returncode == 0, out + demo.stderr
     assert "Wrote 10 value(s)" in out
@@ -187,24 +187,24 @@ def test_ascii_demo_shows_progress_while_it_records(tmp_path):
     """Over ASCII the module runs in real time: the demo says how far it has come at least
     every few seconds, in the session's own time: never more than has passed, nor beyond
     the session's end."""
-    demo = run_demo("--transport", "ascii", "--duration", "0.3m", "--out", str(tmp_path))
-    # 18 s of motion: written or refused (every scan counts: the precision gate may pass)
+    demo = run_demo("--transport", "ascii", "--duration", "0.2m", "--out", str(tmp_path))
+    # 12 s of motion: written or refused (every scan counts: the precision gate may pass)
     assert demo.returncode in (0, 1), demo.stdout + demo.stderr
     assert demo.shown("record")[:3] == ["loopcal", "record", "--daq"]
     start = next(i for i, (_, ln) in enumerate(demo.lines) if ln.startswith("$ loopcal record"))
     stop = next(i for i, (_, ln) in enumerate(demo.lines) if "stopped (--duration" in ln)
     during = demo.lines[start : stop + 1]
     t_start = during[0][0]
-    assert during[-1][0] - t_start >= 18
+    assert during[-1][0] - t_start >= 12
     assert max(b[0] - a[0] for a, b in zip(during, during[1:], strict=False)) < 8, during
     waiting = "  recording: waiting for loopcal record to talk to the module\n"
     seconds = []
     for t, line in during[1:-1]:
-        m = re.fullmatch(r"  recording: (\d+):(\d\d) of 0:18\n", line)
+        m = re.fullmatch(r"  recording: (\d+):(\d\d) of 0:12\n", line)
         assert m or line == waiting, line
         if m:
             seconds.append(60 * int(m.group(1)) + int(m.group(2)))
-            assert seconds[-1] <= min(18, t - t_start + 1), (t - t_start, line)
+            assert seconds[-1] <= min(12, t - t_start + 1), (t - t_start, line)
     assert len(seconds) >= 2 and seconds == sorted(seconds) and seconds[-1] >= 5, during
     assert re.match(r"verdict: (written|refused)\b", demo.lines[-1][1]), demo.lines[-1]
     # what it wrote over ASCII is within its bounds
@@ -227,7 +227,7 @@ def test_demo_bad_options(args, message):
 def test_demo_json_is_one_object_that_matches_the_config_written(tmp_path):
     import json
 
-    demo = run_demo("--out", str(tmp_path), "--seed", "3", "--json")
+    demo = run_demo("--out", str(tmp_path), "--seed", "3", "--json", "--speed", "20")
     assert demo.returncode == 0, demo.stdout + demo.stderr
     doc = json.loads(demo.stdout)  # stdout holds the object alone; the session went to stderr
     assert "$ loopcal record " in demo.stderr and "verdict: " in demo.stderr

@@ -267,20 +267,20 @@ def test_without_a_controller_config_health_watches_nothing_and_says_why():
 
 def _robot_not_at_the_reference(tmp_path, *record_args: str) -> tuple[Proc, list]:
     """``loopcal record`` of an emulated robot whose geometry and offsets are not the
-    reference's (as no real robot's are), nothing moving, for 120 s of device time at ten
+    reference's (as no real robot's are), nothing moving, for 120 s of device time at twenty
     times wall time; returns the recorder (stopped) and the recording's events."""
     from loopcal.calibration.parameters import NAMES
 
     truth = truth_for(11)
     every = ",".join(f"{n}={float(truth[i])!r}" for i, n in enumerate(NAMES))
-    sim = Proc(["simulate", "--seed", "11", "--speed", "10", "--pause", "0.8,1.5",
+    sim = Proc(["simulate", "--seed", "11", "--speed", "20", "--pause", "0.8,1.5",
                 "--twist-every", "0", "--noise-mv", "40", "--truth", every,
                 "--wait-for-client"])  # fmt: skip
     from tests.support.processes import listening_url
 
     try:
         proc = record(listening_url(sim), tmp_path / "rec", "--read-period", "0.05",
-                      "--duration", "12", *record_args)  # fmt: skip
+                      "--duration", "6", *record_args)  # fmt: skip
         assert proc.wait(90) == 0, proc.text
     finally:
         sim.kill()

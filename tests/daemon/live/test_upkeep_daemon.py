@@ -1,7 +1,9 @@
 """The daemon's upkeep end to end: ``loopcal daemon`` reading an emulated module on a robot
-at work (a task loop, the emulator's clock ten or twenty times wall time), a sensor swapped
-or not: it proposes once, writes once in write mode and then watches the new values, and
-writes nothing for a robot that did not change."""
+at work (a task loop, the emulator's clock ten times wall time), a sensor swapped or not:
+it proposes once, writes once in write mode and then watches the new values, and writes
+nothing for a robot that did not change. The upkeep's 15-s segments are of the scans'
+stamps, which are the host's time: a faster emulated clock puts more scans in each, and
+does not make them come sooner."""
 
 from __future__ import annotations
 
@@ -100,11 +102,11 @@ def test_write_mode_rewrites_the_config_once_and_the_daemon_follows_it(tmp_path)
 def test_an_unchanged_robot_gets_nothing_written(tmp_path):
     config = write_initial_config(tmp_path / "controller.toml")
     before = config.read_bytes()
-    with hand_emulator(speed=20.0, seed=5, motion=TaskLoop(5)) as emu:
+    with hand_emulator(speed=10.0, seed=5, motion=TaskLoop(5)) as emu:
         daemon, _ = start(tmp_path, emu, "write")
         try:
             daemon.wait_for("recording to", timeout=30)
-            time.sleep(25)  # about 8 minutes of operation
+            time.sleep(25)  # 4 minutes of the robot's motion, 1.7 of upkeep's segments
             rc, _ = daemon.stop(30)
         finally:
             daemon.kill()
