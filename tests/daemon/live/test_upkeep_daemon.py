@@ -1,9 +1,9 @@
 """The daemon's upkeep end to end: ``loopcal daemon`` reading an emulated module on a robot
-at work (a task loop, the emulator's clock ten times wall time), a sensor swapped or not:
+at work (a task loop, the emulator's clock five times wall time), a sensor swapped or not:
 it proposes once, writes once in write mode and then watches the new values, and writes
 nothing for a robot that did not change. The upkeep's 15-s segments are of the scans'
-stamps, which are the host's time: a faster emulated clock puts more scans in each, and
-does not make them come sooner."""
+stamps, which are the host's time: a faster emulated clock would put more scans in each
+(and cost more CPU), not make them come sooner."""
 
 from __future__ import annotations
 
@@ -39,7 +39,7 @@ def test_the_daemon_proposes_a_swapped_sensor_once(tmp_path):
     before = config.read_bytes()
     swap = (OffsetDrift("step", 3, 45.0, 0.8),)
     port = free_port()
-    with hand_emulator(speed=10.0, seed=3, drifts=swap, motion=TaskLoop(3)) as emu:
+    with hand_emulator(speed=5.0, seed=3, drifts=swap, motion=TaskLoop(3)) as emu:
         daemon, notify = start(tmp_path, emu, extra=f'\n[metrics]\nlisten = "127.0.0.1:{port}"\n')
         try:
             line = daemon.lines[daemon.wait_for("recalibration_proposed", timeout=120)]
@@ -54,7 +54,7 @@ def test_the_daemon_proposes_a_swapped_sensor_once(tmp_path):
             assert m["loopcal_upkeep_proposal_age_seconds"][0][1] >= 0
             assert m["loopcal_upkeep_fits_total"][0][1] >= 3
             assert m["loopcal_upkeep_fit_cpu_seconds_total"][0][1] > 0
-            time.sleep(6)  # a minute more of the robot's motion: nothing new
+            time.sleep(6)  # half a minute more of the robot's motion: nothing new
             last = scrape(port)
             rc, _ = daemon.stop(30)
         finally:
@@ -81,12 +81,12 @@ def test_the_daemon_proposes_a_swapped_sensor_once(tmp_path):
 def test_write_mode_rewrites_the_config_once_and_the_daemon_follows_it(tmp_path):
     config = write_initial_config(tmp_path / "controller.toml")
     swap = (OffsetDrift("step", 1, 45.0, -0.6),)
-    with hand_emulator(speed=10.0, seed=4, drifts=swap, motion=TaskLoop(4)) as emu:
+    with hand_emulator(speed=5.0, seed=4, drifts=swap, motion=TaskLoop(4)) as emu:
         daemon, _ = start(tmp_path, emu, "write")
         try:
             daemon.wait_for(r"recalibrated: upkeep: wrote d01", timeout=120)
             daemon.wait_for(r"config_reload: .*was replaced", timeout=30)
-            time.sleep(9)  # 90 s more of the robot's motion, watched at the new values
+            time.sleep(9)  # 45 s more of the robot's motion, watched at the new values
             rc, _ = daemon.stop(30)
         finally:
             daemon.kill()
@@ -102,11 +102,11 @@ def test_write_mode_rewrites_the_config_once_and_the_daemon_follows_it(tmp_path)
 def test_an_unchanged_robot_gets_nothing_written(tmp_path):
     config = write_initial_config(tmp_path / "controller.toml")
     before = config.read_bytes()
-    with hand_emulator(speed=10.0, seed=5, motion=TaskLoop(5)) as emu:
+    with hand_emulator(speed=5.0, seed=5, motion=TaskLoop(5)) as emu:
         daemon, _ = start(tmp_path, emu, "write")
         try:
             daemon.wait_for("recording to", timeout=30)
-            time.sleep(25)  # 4 minutes of the robot's motion, 1.7 of upkeep's segments
+            time.sleep(25)  # 2 minutes of the robot's motion, 1.7 of upkeep's segments
             rc, _ = daemon.stop(30)
         finally:
             daemon.kill()
