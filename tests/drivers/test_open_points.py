@@ -19,7 +19,15 @@ from loopcal.drivers.modbus import ModbusDAQ
 from loopcal.simulator.clock import ManualClock, RealClock
 from loopcal.simulator.emulator import Emulator
 from loopcal.simulator.open_points import Latency, OpenPoints
-from tests.support.drivers import OK_TIMEOUT, PERIOD, RATE, TRANSPORTS, check_against_truth, read_ok
+from tests.support.drivers import (
+    OK_TIMEOUT,
+    PERIOD,
+    RATE,
+    TRANSPORTS,
+    check_against_truth,
+    open_ok,
+    read_ok,
+)
 
 pytestmark = pytest.mark.slow  # docs/architecture.md, "The fast loop"
 
@@ -118,7 +126,7 @@ def test_a_fifo_answer_later_than_the_timeout_still_delivers_its_scans(transport
     thrown away (RTU, whose answers name no request: tests/drivers/test_rtu_late.py)."""
     clock = ManualClock()
     with Emulator(transport, clock=clock, scan_rate_hz=RATE) as emu:
-        daq = open_daq(emu.url)  # the datasheet's 100 ms
+        daq = open_ok(emu.url)  # the datasheet's 100 ms (its connect retried)
         assert isinstance(daq, ModbusDAQ) and daq.timeout == ldq412.HOST_TIMEOUT_S
         emu.faults.latency(Latency(slow_fraction=0.3, slow_ms=(150.0, 400.0)))
         try:

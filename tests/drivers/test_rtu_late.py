@@ -26,12 +26,12 @@ from pymodbus.pdu.register_message import (
     WriteSingleRegisterResponse,
 )
 
-from loopcal.drivers import DAQ, Scan, ldq412, modbus_rtu, open_daq
+from loopcal.drivers import DAQ, Scan, ldq412, modbus_rtu
 from loopcal.drivers.errors import DAQError, DAQProtocolError
 from loopcal.simulator.clock import ManualClock
 from loopcal.simulator.emulator import Emulator
 from loopcal.simulator.open_points import Latency
-from tests.support.drivers import PERIOD, RATE, check_against_truth, read_ok
+from tests.support.drivers import PERIOD, RATE, check_against_truth, open_ok, read_ok
 
 #: scans the module makes between two reads (0: a read with nothing new)
 STEPS = [1, 7, 20, 45, 3, 60, 2, 0, 13]
@@ -87,7 +87,7 @@ def open_late(
     module's power-on read and cleared), then the module's answers delayed by ``latency``.
     (A late answer carrying the power-on's restart flag, beyond the driver's window, is
     the one it cannot tell from a second restart: docs/daq.md.)"""
-    daq = open_daq(emu.url + ("" if fifo else "&fifo=0"))
+    daq = open_ok(emu.url + ("" if fifo else "&fifo=0"))
     assert isinstance(daq, modbus_rtu.ModbusRtuDAQ)
     assert daq.timeout == ldq412.HOST_TIMEOUT_S
     clock.advance(10 * PERIOD)
@@ -174,7 +174,7 @@ def read_past_a_refused_snapshot(
     snapshot as a late answer, and read on: every scan read, the emulator, the driver."""
     clock = ManualClock()
     with Emulator("modbus-rtu", clock=clock, scan_rate_hz=RATE) as emu:
-        daq = open_daq(emu.url)
+        daq = open_ok(emu.url)
         try:
             clock.advance(50 * PERIOD)
             got = daq.read_scans()

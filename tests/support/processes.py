@@ -22,7 +22,8 @@ from pathlib import Path
 
 from prometheus_client.parser import text_string_to_metric_families
 
-LOOPCAL = [sys.executable, "-m", "loopcal.daemon.cli"]
+#: -X faulthandler: a subprocess that does not stop when told is made to say where it is
+LOOPCAL = [sys.executable, "-X", "faulthandler", "-m", "loopcal.daemon.cli"]
 
 
 class Proc:
@@ -92,9 +93,14 @@ class Proc:
         try:
             rc = self.proc.wait(timeout)
         except subprocess.TimeoutExpired:
+            self.proc.send_signal(signal.SIGABRT)  # faulthandler prints every thread's stack
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                pass
             self.kill()
-            raise AssertionError(f"still running {timeout:g} s after SIGTERM:\n{self.text}") \
-                from None  # fmt: skip
+            raise AssertionError(f"still running {timeout:g} s after SIGTERM (its threads' "
+                                 f"stacks at SIGABRT last):\n{self.text}") from None
         took = time.monotonic() - t0
         self._reader.join(5)
         return rc, took
