@@ -124,7 +124,14 @@ def test_the_wheel_installs_beside_python_daemon(built: tuple[Path, Path],
     venv.EnvBuilder(with_pip=True).create(env_dir)
     py, loopcal = env_dir / "bin" / "python", env_dir / "bin" / "loopcal"
     env = {k: v for k, v in os.environ.items() if k not in {"PYTHONPATH", "VIRTUAL_ENV"}}
-    # --no-compile: the test imports a few of the modules installed, not all of scipy's
+    # loopcal's dependencies from the test environment's site-packages, put on the fresh
+    # venv's path (a .pth line runs no .pth of that folder: the checkout's editable loopcal
+    # stays out): unpacking scipy and numpy again was most of this test's CPU, and the
+    # wheel's own files are what it is about. The wheel's requirements still have to be
+    # met there, or pip refuses it.
+    (site,) = (env_dir / "lib").glob("python3*/site-packages")
+    deps = [p for p in sys.path if p.endswith("site-packages") and "fresh" not in p]
+    (site / "test-environment.pth").write_text("\n".join(deps) + "\n", encoding="utf-8")
     pip = _run([str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check",
                 "--no-compile", str(wheel), "python-daemon"], env=env, cwd=tmp_path)  # fmt: skip
     assert pip.returncode == 0, pip.stderr[-3000:]

@@ -64,17 +64,18 @@ def test_scans_read_match_the_ground_truth_file(tmp_path, transport):
 @pytest.mark.slow
 def test_scheduled_stall_and_restart_reach_the_driver(tmp_path):
     out = tmp_path / "truth.jsonl"
-    # the module's clock starts at the driver's first request, and the stall (1 s of wall
-    # time at x4) outlasts the driver's timeout: a read in it times out, however late a
-    # busy machine starts this test's reading (it began at once, and a stall of 0.25 s
-    # wall could be over before the first read)
-    proc, url = start("--speed", "4", "--wait-for-client", "--fault", "stall@1+4",
-                      "--fault", "restart@6", "--duration", "11",
+    # the module's clock starts at the driver's first request, and the stall (2.5 s of
+    # wall time at x4) outlasts the driver's timeout five times: a read in it times out,
+    # however late a busy machine starts this test's reading (a stall of 0.25 s wall could
+    # be over before the first read, and one of 1 s was, once, in a whole run on four
+    # workers)
+    proc, url = start("--speed", "4", "--wait-for-client", "--fault", "stall@1+10",
+                      "--fault", "restart@12", "--duration", "17",
                       "--truth-out", str(out))  # fmt: skip
     daq = open_daq(url, timeout=0.5)
     timeouts = 0
     restarted = []
-    deadline = time.monotonic() + 6
+    deadline = time.monotonic() + 8
     while proc.poll() is None and time.monotonic() < deadline:
         try:
             restarted += [s for s in daq.read_scans() if s.restarted]
