@@ -37,15 +37,15 @@ def test_a_hand_streaming_for_hours_keeps_a_bounded_history_and_can_go_back():
     early = np.linspace(0.0, 30.0, 61)
     first = fresh.rotation(early)
     kept = []
-    for t0 in np.arange(0.0, 7200.0, 60.0):  # two hours, in reads of a minute
+    for t0 in np.arange(0.0, 3600.0, 60.0):  # an hour (six times the history), a minute a read
         h.rotation(t0 + np.arange(1200) / 20.0)
         kept.append(len(h._segments))
     horizon = (scenarios.HISTORY_S + 60.0) / 0.5 + scenarios.FORGET_BATCH  # moves >= 0.5 s
     assert max(kept) <= horizon and kept[-1] < kept[len(kept) // 2] + scenarios.FORGET_BATCH
-    assert max(kept) < 7200.0 / 3.0  # far fewer than the moves and pauses of two hours
-    late = h.rotation(np.array([7195.0]))
+    assert max(kept) < 3600.0 / 3.0  # far fewer than the moves and pauses of an hour
+    late = h.rotation(np.array([3595.0]))
     assert np.array_equal(h.rotation(early), first)  # forgotten, drawn again: the same
-    assert np.array_equal(h.rotation(np.array([7195.0])), late)
+    assert np.array_equal(h.rotation(np.array([3595.0])), late)
 
 
 def _swivel_deg(R: np.ndarray) -> np.ndarray:
