@@ -15,7 +15,6 @@ if TYPE_CHECKING:  # the guidance (numpy, the worker) is loaded by the command t
     from ..live.guidance import GuidanceUpdate
 
 
-
 def target_mm_argument(text: str) -> float:
     """The type of ``--target-mm``: mm, above 0 and at most :data:`MAX_TARGET_MM`."""
     try:
@@ -38,6 +37,13 @@ def add_guidance_options(p: argparse.ArgumentParser, *, until_enough: str,
     p.add_argument("--target-mm", type=target_mm_argument, default=None, metavar="MM",
                    help=f"{target_with}every offset's standard deviation the guidance aims "
                         f"for (default {TARGET_MM:g}, at most {MAX_TARGET_MM:g})")  # fmt: skip
+
+
+def target_mm(args: argparse.Namespace) -> float:
+    """The target ``--target-mm`` chose: its value, or :data:`TARGET_MM` when it was not
+    given (its default None tells the two apart)."""
+    return TARGET_MM if args.target_mm is None else args.target_mm
+
 
 class Display:
     """The live guidance on stdout: redrawn in place on a terminal (plain ANSI, fine over

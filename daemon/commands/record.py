@@ -20,10 +20,9 @@ import sys
 from typing import TYPE_CHECKING
 
 from ..events import Level
-from ..live.guidance_defaults import TARGET_MM
 from ..recorder.settings import SettingsError, add_options, option_name, settings_from_args
 from .errors import CommandError
-from .guidance_display import add_guidance_options
+from .guidance_display import add_guidance_options, target_mm
 
 if TYPE_CHECKING:  # the recorder and live analysis (numpy, mcap, ...): imported by run
     from ..live.guidance import Guidance, GuidanceUpdate
@@ -75,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
 
             guide = Guidance(
                 controller, controller.model(),
-                target_mm=TARGET_MM if args.target_mm is None else args.target_mm,
+                target_mm=target_mm(args),
                 on_update=update, on_enough=lambda u: _enough(recorder, u),
             )  # fmt: skip
             recorder.add_observer(guide)

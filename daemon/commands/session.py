@@ -30,11 +30,10 @@ from loopcal.calibration.errors import ParameterError
 
 from ..arguments import duration_argument, path_argument
 from ..live.control import MAX_NOTE_CHARS, ControlClient
-from ..live.guidance_defaults import TARGET_MM
 from ..times import time_text
 from .calibrate import Calibration, calibrate, check_report_dir
 from .errors import CommandError
-from .guidance_display import Display, add_guidance_options
+from .guidance_display import Display, add_guidance_options, target_mm
 
 #: s between two messages to the daemon: it abandons a session whose client is silent for
 #: ``[control].client_timeout`` (30 s by default)
@@ -112,7 +111,7 @@ def _prepare(args: argparse.Namespace) -> tuple[Calibration, ControlClient]:
 def _follow(client: ControlClient, args: argparse.Namespace) -> dict[str, Any]:
     """Start the session, show its guidance until it ends, and return its end."""
     client.send("start", note=args.note,
-                target_mm=TARGET_MM if args.target_mm is None else args.target_mm,
+                target_mm=target_mm(args),
                 until_enough=args.until_enough, duration_s=args.duration,
                 free=args.free)  # fmt: skip
     reply = client.receive(timeout=10.0)

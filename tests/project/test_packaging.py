@@ -10,6 +10,7 @@ wheel and sdist, install the wheel into a fresh virtual environment beside pytho
 from __future__ import annotations
 
 import os
+import site
 import subprocess
 import sys
 import tarfile
@@ -129,9 +130,10 @@ def test_the_wheel_installs_beside_python_daemon(built: tuple[Path, Path],
     # stays out): unpacking scipy and numpy again was most of this test's CPU, and the
     # wheel's own files are what it is about. The wheel's requirements still have to be
     # met there, or pip refuses it.
-    (site,) = (env_dir / "lib").glob("python3*/site-packages")
-    deps = [p for p in sys.path if p.endswith("site-packages") and "fresh" not in p]
-    (site / "test-environment.pth").write_text("\n".join(deps) + "\n", encoding="utf-8")
+    (fresh_site,) = (env_dir / "lib").glob("python3*/site-packages")
+    (fresh_site / "test-environment.pth").write_text(
+        "\n".join(site.getsitepackages()) + "\n", encoding="utf-8"
+    )
     pip = _run([str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check",
                 "--no-compile", str(wheel), "python-daemon"], env=env, cwd=tmp_path)  # fmt: skip
     assert pip.returncode == 0, pip.stderr[-3000:]

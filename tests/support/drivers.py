@@ -26,8 +26,15 @@ LOW_BITS = 0xFF  # rail + fault bits (latched bits depend on when the status was
 # (tests/drivers/test_ascii_pty.py).
 OK_TIMEOUT = 1.0
 TIMEOUT = 0.25
-# One call's worst case: the timeout, plus an RTU drain or a TCP reconnect, plus slack.
-BOUND_S = 2 * TIMEOUT + 0.1
+
+
+def worst_call_s(timeout: float) -> float:
+    """One call's worst case, s, at a driver ``timeout``: the timeout, plus an RTU drain or
+    a TCP reconnect, plus slack."""
+    return 2 * timeout + 0.1
+
+
+BOUND_S = worst_call_s(TIMEOUT)
 
 
 def truth_map(emu: Emulator) -> dict[tuple[int, int], TruthScan]:
