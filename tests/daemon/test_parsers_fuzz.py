@@ -6,27 +6,35 @@ or raises its own documented error, never anything else.
 - the driver URL parser (a string from a config or the command line): ValueError;
 - the daemon's TOML config and the controller config (files people edit): SettingsError
   and ControllerConfigError, each naming the file.
+- the command line's numbers (``--speed``, ``--target-mm``): the number typed, in its
+  range, or argparse's ArgumentTypeError naming what was typed.
 
 (The recording reader has its own fuzz in tests/daemon/recording/test_damage.py;
-bench/fuzz_parsers.py runs all of them for longer and prints counts per outcome.)
+bench/fuzz_parsers.py runs those of files and the wire for longer and prints counts per
+outcome.)
 """
 
 from __future__ import annotations
 
+import argparse
+import math
 import string
 
 import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
+from loopcal.daemon.commands.guidance_display import target_mm_argument
 from loopcal.daemon.config.controller import (
     ControllerConfigError,
     load_controller_config,
     render_initial_config,
 )
+from loopcal.daemon.live.guidance_defaults import MAX_TARGET_MM
 from loopcal.daemon.recorder.settings import SettingsError, load_daemon_config
 from loopcal.drivers import DAQInvalidCommand, DAQProtocolError, driver_for_url
 from loopcal.drivers import ascii as ascii_proto
+from loopcal.simulator.arguments import speed_argument
 from tests.support.mutations import ASCII_ANSWERS, DAEMON_TOML
 
 _FIXTURE = [HealthCheck.function_scoped_fixture]
@@ -152,3 +160,28 @@ def test_the_fuzzed_daemon_config_sets_every_key():
     doc = tomllib.loads(DAEMON_TOML)
     written = {f"[{table}].{key}" for table, keys in doc.items() for key in keys}
     assert {s.key for s in SETTINGS.values() if s.key} == written
+
+
+def _number_texts():
+    numbers = st.floats(allow_nan=True, allow_infinity=True).map(repr)
+    return st.one_of(numbers, st.sampled_from(["0", "-0", "1e309", "nan", "inf", "10", "10.0001",
+                                               " 2 ", "0x10", "1_0", ""]), st.text(max_size=12))
+
+
+@settings(max_examples=300, deadline=None)
+@given(text=_number_texts())
+@example(text="10")
+@example(text="1e-300")
+@example(text="-1")
+def test_command_line_numbers_parse_or_raise_argparse_errors(text):
+    for parse, hi in ((speed_argument, math.inf), (target_mm_argument, MAX_TARGET_MM)):
+        try:
+            value = parse(text)
+        except argparse.ArgumentTypeError as exc:
+            assert repr(text) in str(exc)  # names what was typed
+            try:  # refused: not a number of its range, by Python's own float()
+                assert not (0 < float(text) <= hi and math.isfinite(float(text)))
+            except ValueError:
+                pass
+        else:
+            assert value == float(text) and 0 < value <= hi and math.isfinite(value)
