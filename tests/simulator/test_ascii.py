@@ -12,7 +12,7 @@ from loopcal.simulator.ascii_protocol import handle_frame
 from loopcal.simulator.clock import ManualClock
 from loopcal.simulator.device import LDQ412
 from loopcal.simulator.emulator import Emulator
-from tests.support.emulator import SILENCE_S, golden_source
+from tests.support.emulator import ANSWER_S, SILENCE_S, ascii_ask, golden_source
 
 GOLDEN_BODY = b">0000123400ABCDEF800001FFFBB80004"
 
@@ -22,14 +22,7 @@ def port_of(url: str) -> str:
 
 
 def open_port(url: str) -> serial.Serial:
-    return serial.Serial(port_of(url), 115200, timeout=SILENCE_S)
-
-
-def ask(port: serial.Serial, frame: bytes) -> bytes:
-    """Send one frame, return the answer up to and including CR (b"" on silence)."""
-    port.reset_input_buffer()
-    port.write(frame)
-    return port.read_until(b"\r")
+    return serial.Serial(port_of(url), 115200, timeout=ANSWER_S)
 
 
 # ---------------------------------------------------------------- pure frame handling
@@ -115,7 +108,7 @@ def drive_to_golden_state(emu: Emulator, clock: ManualClock, port: serial.Serial
     708 + 3952 = 4660 = 0x1234 at 4306.226671 s = 2**32 us + 0xABCDEF us.
     """
     clock.advance(354.226671)
-    assert ask(port, b"%01R0001\r") == b"!01\r"
+    assert ascii_ask(port, b"%01R0001\r") == b"!01\r"
     clock.advance(3951.5)  # scan 4659 at 4305.226671 s
     with emu.handle.synced() as device:
         device.write_registers(2, [1, 1])  # clear FIFO + overflow, clear restart
@@ -127,7 +120,7 @@ def test_golden_latest_scan_with_and_without_checksum():
     with Emulator("ascii", golden_source(), scan_rate_hz=2, clock=clock) as emu:
         with open_port(emu.url) as port:
             drive_to_golden_state(emu, clock, port)
-            assert ask(port, b"#01\r") == b">0000123400ABCDEF800001FFFBB80004\r"
+            assert ascii_ask(port, b"#01\r") == b">0000123400ABCDEF800001FFFBB80004\r"
             truth = emu.truth[-1]
             assert (truth.counter, truth.time_us, truth.codes) == (
                 0x1234,
@@ -136,8 +129,8 @@ def test_golden_latest_scan_with_and_without_checksum():
             )
             with emu.handle.synced() as device:
                 device.write_registers(4, [1])  # checksum mode is shared with Modbus
-            assert ask(port, b"#0184\r") == GOLDEN_BODY + b"38\r"
-            assert ask(port, b"#01\r") == b""  # no checksum: wrong checksum, no answer
+            assert ascii_ask(port, b"#0184\r") == GOLDEN_BODY + b"38\r"
+            assert ascii_ask(port, b"#01\r", SILENCE_S) == b""  # no checksum: no answer
 
 
 def test_all_commands_over_the_wire_and_silence():
@@ -148,17 +141,17 @@ def test_all_commands_over_the_wire_and_silence():
         assert port_of(emu.url).startswith("/dev/pts/")
         with open_port(emu.url) as port:
             clock.advance(0.5)
-            answer = ask(port, b"#01\r")
+            answer = ascii_ask(port, b"#01\r")
             assert answer == b">0000000A0007A120800001FFFBB80204\r"  # restart bit set
-            assert ask(port, b"#011\r") == b">800\r"
-            assert ask(port, b"$01M\r") == b"!01LDQ412\r"
-            assert ask(port, b"$01F\r") == b"!013.07\r"
-            assert ask(port, b"$01R\r") == b"!010014\r"
-            assert ask(port, b"%01R00C8\r") == b"!01\r"
-            assert ask(port, b"$01R\r") == b"!0100C8\r"
-            assert ask(port, b"$01Q\r") == b"?01\r"
+            assert ascii_ask(port, b"#011\r") == b">800\r"
+            assert ascii_ask(port, b"$01M\r") == b"!01LDQ412\r"
+            assert ascii_ask(port, b"$01F\r") == b"!013.07\r"
+            assert ascii_ask(port, b"$01R\r") == b"!010014\r"
+            assert ascii_ask(port, b"%01R00C8\r") == b"!01\r"
+            assert ascii_ask(port, b"$01R\r") == b"!0100C8\r"
+            assert ascii_ask(port, b"$01Q\r") == b"?01\r"
             started = time.monotonic()
-            assert ask(port, b"#02\r") == b""
+            assert ascii_ask(port, b"#02\r", SILENCE_S) == b""
             assert time.monotonic() - started >= SILENCE_S * 0.9
             # two frames in one write are both answered, in order
             port.write(b"$01R\r#014\r")
@@ -172,7 +165,7 @@ def test_checksum_from_power_on_and_custom_address():
     ) as emu:
         assert "addr=2A" in emu.url and "checksum=1" in emu.url
         with open_port(emu.url) as port:
-            assert ask(port, b"$2AM" + b"%02X" % (sum(b"$2AM") & 0xFF) + b"\r") == (
+            assert ascii_ask(port, b"$2AM" + b"%02X" % (sum(b"$2AM") & 0xFF) + b"\r") == (
                 b"!2ALDQ412" + b"%02X" % (sum(b"!2ALDQ412") & 0xFF) + b"\r"
             )
-            assert ask(port, b"$2AM\r") == b""
+            assert ascii_ask(port, b"$2AM\r", SILENCE_S) == b""

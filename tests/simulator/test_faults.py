@@ -12,7 +12,7 @@ from pymodbus.framer.rtu import FramerRTU
 
 from loopcal.simulator.clock import ManualClock, SimClock
 from loopcal.simulator.emulator import Emulator
-from tests.support.emulator import SILENCE_S, golden_source, recv_exact
+from tests.support.emulator import ANSWER_S, SILENCE_S, ascii_ask, golden_source, recv_exact
 
 
 def tcp_ask(sock: socket.socket, pdu_hex: str, tid: int = 0x0101) -> bytes:
@@ -57,12 +57,6 @@ def serial_port(emu: Emulator, timeout: float = SILENCE_S) -> serial.Serial:
     return serial.Serial(urlsplit(emu.url).path, 115200, timeout=timeout)
 
 
-def ascii_ask(port: serial.Serial, frame: bytes) -> bytes:
-    port.reset_input_buffer()
-    port.write(frame)
-    return port.read_until(b"\r")
-
-
 # ---------------------------------------------------------------- link
 
 
@@ -89,6 +83,7 @@ def test_serial_disconnect_loses_requests_both_ways():
             port.write(bytes.fromhex("01 04 0100 0006 71F4"))  # would pop a scan
             assert port.read(64) == b""
             emu.faults.reconnect()
+            port.timeout = ANSWER_S  # an answer now: read as soon as its 7 bytes came
             port.write(bytes.fromhex("01 04 0009 0001 E1C8"))
             assert port.read(7) == bytes.fromhex("01 04 02 0001 78F0")  # nothing was popped
 
@@ -146,7 +141,7 @@ def test_restart_ascii_is_silent_about_two_device_seconds():
         assert ascii_ask(port, b"#011\r") == b">800\r"
         emu.faults.restart()
         off_at = clock.now()
-        while (answer := ascii_ask(port, b"#01\r")) == b"":
+        while (answer := ascii_ask(port, b"#01\r", 0.05)) == b"":
             assert clock.now() - off_at < 6.0
         silent_for = clock.now() - off_at
         assert 2.0 <= silent_for < 4.0
@@ -180,6 +175,7 @@ def test_corrupt_next_breaks_rtu_crc_n_times():
         with serial_port(emu) as port:
             emu.faults.corrupt_next(2)
             frames = []
+            port.timeout = ANSWER_S  # three answers: each read as soon as its 7 bytes came
             for _ in range(3):
                 port.write(bytes.fromhex("01 04 0009 0001 E1C8"))
                 frames.append(port.read(7))

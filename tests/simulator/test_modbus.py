@@ -17,7 +17,7 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from loopcal.drivers.ldq412 import FIFO_FILLER, join_u32
 from loopcal.simulator.clock import ManualClock
 from loopcal.simulator.emulator import Emulator
-from tests.support.emulator import SILENCE_S, golden_source, recv_exact
+from tests.support.emulator import ANSWER_S, SILENCE_S, golden_source, recv_exact
 
 
 def tcp_ask(sock: socket.socket, pdu_hex: str, unit: int = 1, tid: int = 0x0101) -> bytes:
@@ -202,6 +202,7 @@ def test_rtu_ignores_other_units_and_bad_crc():
             assert port.read(64) == b""
             port.write(bytes.fromhex("07 04 0009 0001 00") + b"\x00")  # bad CRC
             assert port.read(64) == b""
+            port.timeout = ANSWER_S  # an answer now: read as soon as its 7 bytes came
             port.write(bytes.fromhex("07 04 0009 0001 E1AE"))
             assert port.read(7) == bytes.fromhex("07 04 02 0001 F0F0")
 

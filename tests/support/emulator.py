@@ -7,6 +7,7 @@ from __future__ import annotations
 import socket
 
 import numpy as np
+import serial
 
 from loopcal.calibration.parameters import NOMINAL
 from loopcal.simulator import Emulator
@@ -19,6 +20,26 @@ from loopcal.simulator.scenarios import HandMoves
 from loopcal.simulator.source import ConstantSource
 
 SILENCE_S = 0.15  # well above the datasheet's 10 ms answer time
+#: s, the longest an answer is waited for: the module answers from the test's process,
+#: which a loaded machine held past SILENCE_S once (an answer cut after its first byte)
+ANSWER_S = 2.0
+
+
+def ascii_ask(port: serial.Serial, frame: bytes, wait: float = ANSWER_S) -> bytes:
+    """Send one ASCII frame to an emulated module; its answer up to and including the CR,
+    or b"" when no byte comes within ``wait`` s (SILENCE_S where a test expects none). An
+    answer begun is read to its CR, for up to :data:`ANSWER_S`."""
+    port.reset_input_buffer()
+    port.timeout = wait
+    try:
+        port.write(frame)
+        first = port.read(1)
+        if first in (b"", b"\r"):
+            return first
+        port.timeout = ANSWER_S
+        return first + port.read_until(b"\r")
+    finally:
+        port.timeout = wait
 GOLDEN_CODES = (2048, 1, 4095, 3000)  # the datasheet's ASCII example
 
 
