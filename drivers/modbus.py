@@ -208,8 +208,8 @@ class ModbusDAQ(DAQ):
     Attributes
     ----------
     fifo_chunk : int
-        Scans per FIFO read: the datasheet's 20, fewer once a module refused or
-        truncated a read of that many.
+        Scans per FIFO read: the datasheet's 20, fewer once a module refused a read
+        of that many or truncated two reads in a row to the same fewer.
     late_fifo_answers : int
         FIFO reads answered after ``timeout`` but within :data:`FIFO_ANSWER_WAIT_S`
         (their scans kept).
@@ -532,6 +532,8 @@ class ModbusDAQ(DAQ):
 
         Reads the scans the snapshot's level says wait, in chunks, the last asking for
         one scan more (one that arrived meanwhile, else a filler scan or a short answer).
+        Two reads in a row answered with the same fewer scans than asked, while more
+        wait, make that number :attr:`fifo_chunk` (a module that truncates long reads).
         """
         snap, snap_time = self._read_snapshot()
         self._seq.begin_batch(snap, snap_time)
@@ -541,6 +543,7 @@ class ModbusDAQ(DAQ):
         raw: list[tuple[int, tuple[int, int, int, int]]] = []
         out: list[Scan] = []
         remaining = snap.fifo_level or 0
+        short = 0  # scans in the previous read if it answered fewer than asked, more waiting
         try:
             while remaining > 0:
                 n = min(self.fifo_chunk, remaining + 1)
@@ -550,8 +553,14 @@ class ModbusDAQ(DAQ):
                     break  # the FIFO is empty
                 remaining -= len(chunk)
                 if unanswered and remaining > 0:
-                    # fewer answered than asked although more wait: this module's limit
-                    self.fifo_chunk = len(chunk)
+                    # Fewer answered than asked although the snapshot said more wait: a
+                    # module's limit if the next read of more answers as many again; once
+                    # may be a FIFO emptied since the snapshot (power cycle, other master).
+                    if short == len(chunk):
+                        self.fifo_chunk = short
+                    short = len(chunk)
+                else:
+                    short = 0
         finally:
             # Scans taken off the device are never dropped, even if a later chunk failed.
             if raw:

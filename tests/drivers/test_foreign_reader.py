@@ -9,6 +9,7 @@ plain pymodbus client takes scans off its FIFO window.
 
 from __future__ import annotations
 
+import threading
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -16,10 +17,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from loopcal.drivers import Scan, ldq412
+from loopcal.drivers import Scan, ldq412, open_daq
 from loopcal.drivers.sequence import RawSnapshot, Sequencer
-from tests.support.drivers import check_against_truth, read_ok
-from tests.support.foreign import ForeignReader
+from loopcal.simulator.clock import ManualClock
+from loopcal.simulator.emulator import Emulator
+from loopcal.simulator.open_points import OpenPoints
+from tests.support.drivers import OK_TIMEOUT, PERIOD, RATE, check_against_truth, read_ok
+from tests.support.foreign import FIFO_WINDOW, SCAN_REGS, ForeignReader
+from tests.support.servers import modbus_tcp_relay
 
 DEPTH = ldq412.FIFO_DEPTH
 CHUNK = ldq412.FIFO_MAX_SCANS_PER_READ
@@ -280,3 +285,50 @@ def test_the_level_tolerates_one_scan_not_yet_in_the_fifo(lagging):
         assert seq.taken_unreported == 0
         out = seq.fifo_scans(module.pop(8, "ours"), 0.0)
         assert len(out) == 7 and not any(s.missed or s.taken for s in out)
+
+
+def test_a_read_another_master_shortened_once_is_no_limit_of_the_module():
+    """Another master takes 19 of 25 waiting scans between loopcal's snapshot and its FIFO
+    read, on a module that answers an underrun short: the read gets 6 of the 20 asked
+    while the snapshot said more wait. That is no read limit: the driver still reads 20
+    scans a request (the finding: a power cycle between the two, under load, left it
+    reading 6 at a time for good)."""
+    clock = ManualClock()
+    fifo_reads: list[int] = []  # scans each of loopcal's FIFO requests asked for
+    other_takes = threading.Event()
+    with (
+        Emulator(
+            "modbus-tcp",
+            clock=clock,
+            scan_rate_hz=RATE,
+            open_points=OpenPoints(fifo_underrun="short"),
+        ) as emu,  # fmt: skip
+        ForeignReader(emu.host, emu.port) as other,
+    ):
+
+        def before(pdu: bytes) -> None:
+            if pdu[0] == 4 and int.from_bytes(pdu[1:3], "big") == FIFO_WINDOW:
+                fifo_reads.append(int.from_bytes(pdu[3:5], "big") // SCAN_REGS)
+                if other_takes.is_set():
+                    other_takes.clear()
+                    assert len(other.take(19)) == 19
+
+        with modbus_tcp_relay(emu.host, emu.port, before) as port:
+            daq = open_daq(f"modbus-tcp://127.0.0.1:{port}", timeout=OK_TIMEOUT)
+            try:
+                got = read_ok(daq)
+                clock.advance(25 * PERIOD)
+                other_takes.set()
+                fifo_reads.clear()
+                got += read_ok(daq)
+                assert fifo_reads == [20, 20]  # 6 answered, then none: the FIFO is empty
+                clock.advance(45 * PERIOD)
+                fifo_reads.clear()
+                got += read_ok(daq)
+                assert fifo_reads == [20, 20, 6] and daq.fifo_chunk == CHUNK
+            finally:
+                daq.close()
+        check_against_truth(got, emu)
+        taken = set(other.counters)
+    assert len(taken) == 19 and taken.isdisjoint(s.counter64 for s in got)
+    assert sum(s.missed for s in got if s.taken) == 19

@@ -1,7 +1,8 @@
 """Real things at an address that are not the module: TCP servers of other protocols (an
 echo, an HTTP server, one that closes at once, one that never answers), a listener whose
-queue is full (a host that does not answer), a Modbus device of another model, a serial
-line where another device talks, and a process that holds a serial port."""
+queue is full (a host that does not answer), a Modbus device of another model, a relay
+that lets a test act between a host's requests, a serial line where another device talks,
+and a process that holds a serial port."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from loopcal.simulator.pty import PtyLink
@@ -60,9 +61,9 @@ def tcp_server(kind: str) -> Iterator[int]:
             conn.close()
 
 
-def _recv(conn: socket.socket) -> bytes:
+def _recv(conn: socket.socket, n: int = 4096) -> bytes:
     try:
-        return conn.recv(4096)
+        return conn.recv(n)
     except OSError:
         return b""
 
@@ -130,6 +131,46 @@ def other_modbus_device(model_code: int | None) -> Iterator[int]:
     finally:
         loop.call_soon_threadsafe(box["stop"].set)
         thread.join(10)
+
+
+@contextmanager
+def modbus_tcp_relay(host: str, port: int, before: Callable[[bytes], None]) -> Iterator[int]:
+    """A Modbus TCP relay on 127.0.0.1 to ``host:port`` for one host connection; yields
+    its port. ``before(pdu)`` runs before each request is passed on, so a test can act at
+    an exact point between a host's requests (another master reading, say)."""
+    listener = socket.create_server(("127.0.0.1", 0))
+    upstream = socket.create_connection((host, port), timeout=10)
+
+    def frame(conn: socket.socket) -> bytes:
+        head = _recv_exactly(conn, 7)  # MBAP: id, protocol, length, unit
+        return head + _recv_exactly(conn, int.from_bytes(head[4:6], "big") - 1) if head else b""
+
+    def relay() -> None:
+        try:
+            conn, _ = listener.accept()
+        except OSError:
+            return
+        with conn:
+            while request := frame(conn):
+                before(request[7:])
+                upstream.sendall(request)
+                conn.sendall(frame(upstream))
+
+    thread = threading.Thread(target=relay, daemon=True)
+    thread.start()
+    try:
+        yield listener.getsockname()[1]
+    finally:
+        listener.close()
+        upstream.close()
+        thread.join(10)
+
+
+def _recv_exactly(conn: socket.socket, n: int) -> bytes:
+    data = b""
+    while len(data) < n and (part := _recv(conn, n - len(data))):
+        data += part
+    return data if len(data) == n else b""
 
 
 @contextmanager
