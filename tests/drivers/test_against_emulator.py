@@ -70,19 +70,31 @@ def test_2000_consecutive_scans_equal_truth(emu_factory, transport: str) -> None
 @pytest.mark.slow
 @pytest.mark.parametrize("transport", TRANSPORTS)
 def test_real_time_sim_clock(emu_factory, transport: str) -> None:
-    """Free-running clock (5x real time, 1000 device scans/s): the FIFO drivers deliver
-    every scan; ASCII polling misses some and accounts for each one."""
-    emu, daq, _ = emu_factory(transport, clock=SimClock(5.0))
+    """Free-running clock (5x real time, 1000 device scans/s), scans arriving while the
+    driver reads: every scan delivered is the module's, every gap is counted. The FIFO
+    drivers miss a scan only in an overflow, and only after the host left the FIFO unread
+    longer than it holds (256 ms here: a busy machine may); ASCII polling misses some.
+    How many scans a second each driver sustains is bench/bench_drivers.py's figure."""
+    speed = 5.0
+    emu, daq, _ = emu_factory(transport, clock=SimClock(speed))
     got: list[Scan] = []
+    calls: list[tuple[float, float, list[Scan]]] = []  # wall time before, after, scans
     t_end = time.monotonic() + 2.0
-    while time.monotonic() < t_end:
-        got += daq.read_scans()
+    while time.monotonic() < t_end or len(calls) < 50:
+        t0 = time.monotonic()
+        batch = daq.read_scans()
+        calls.append((t0, time.monotonic(), batch))
+        got += batch
         time.sleep(0.001 if transport == "ascii" else 0.01)
     check_against_truth(got, emu)
     span = got[-1].counter64 - got[0].counter64 + 1
     assert len(got) + sum(s.missed for s in got[1:]) == span
     if transport != "ascii":
-        assert len(got) >= 1500 and all(s.missed == 0 for s in got)
+        fifo_s = ldq412.FIFO_DEPTH / (RATE * speed)
+        assert all(s.overflow for s in got[1:] if s.missed)
+        for (before, _, _), (_, after, batch) in zip(calls, calls[1:], strict=False):
+            if any(s.missed for s in batch):
+                assert after - before > fifo_s, "scans missed though the FIFO was read in time"
 
 
 # --------------------------------------------------------------------------- identity
