@@ -66,8 +66,9 @@ def check_against_truth(scans: list[Scan], emu: Emulator, *, status: bool = True
 
 def open_ok(url: str, tries: int = 20, **options) -> DAQ:
     """open_daq, retried through a connect that timed out (what the daemon does at start):
-    for a test at the datasheet's 0.1 s timeout whose subject comes after the connect, with
-    the emulator in this process, which a loaded machine can hold past 0.1 s."""
+    for a test at a short timeout (the datasheet's 0.1 s, the fault tests' 0.25 s) whose
+    subject comes after the connect, with the emulator in this process, which a loaded
+    machine can hold past it."""
     for _ in range(tries - 1):
         try:
             return open_daq(url, **options)
@@ -88,7 +89,8 @@ def read_ok(daq: DAQ, tries: int = 20) -> list[Scan]:
 
 def emulator_factory() -> Iterator:
     """Yields ``make(transport, timeout=OK_TIMEOUT, **emulator_options) -> (emulator, daq,
-    clock)`` (a ManualClock and RATE unless told otherwise); closes what it made after."""
+    clock)`` (a ManualClock and RATE unless told otherwise; the connect retried through a
+    timeout, :func:`open_ok`); closes what it made after."""
     made: list[tuple[Emulator, list[DAQ]]] = []
 
     def make(
@@ -97,7 +99,7 @@ def emulator_factory() -> Iterator:
         kw.setdefault("clock", ManualClock())
         kw.setdefault("scan_rate_hz", RATE)
         emu = Emulator(transport, **kw).start()
-        daq = open_daq(emu.url, timeout=timeout)
+        daq = open_ok(emu.url, timeout=timeout)
         made.append((emu, [daq]))
         return emu, daq, kw["clock"]
 
