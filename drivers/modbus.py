@@ -534,6 +534,9 @@ class ModbusDAQ(DAQ):
         one scan more (one that arrived meanwhile, else a filler scan or a short answer).
         Two reads in a row answered with the same fewer scans than asked, while more
         wait, make that number :attr:`fifo_chunk` (a module that truncates long reads).
+        Scans that skip a counter are followed by another snapshot, whose counter tells
+        an overflow while the FIFO was read from another master's reads
+        (:meth:`Sequencer.gap_in <loopcal.drivers.sequence.Sequencer.gap_in>`).
         """
         snap, snap_time = self._read_snapshot()
         self._seq.begin_batch(snap, snap_time)
@@ -542,6 +545,8 @@ class ModbusDAQ(DAQ):
             self._seq.set_rate(self.read_scan_rate())
         raw: list[tuple[int, tuple[int, int, int, int]]] = []
         out: list[Scan] = []
+        later: RawSnapshot | None = None
+        arrived: float | None = None
         remaining = snap.fifo_level or 0
         short = 0  # scans in the previous read if it answered fewer than asked, more waiting
         try:
@@ -561,10 +566,15 @@ class ModbusDAQ(DAQ):
                     short = len(chunk)
                 else:
                     short = 0
+            arrived = time.monotonic()
+            if self._seq.gap_in(raw):
+                # The module's counter now tells whether the FIFO overflowed while it was
+                # read (its answers slow): the batch's own counters may not show it.
+                later = self._read_snapshot()[0]
         finally:
-            # Scans taken off the device are never dropped, even if a later chunk failed.
+            # Scans taken off the device are never dropped, even if a later read failed.
             if raw:
-                out = self._seq.fifo_scans(raw, time.monotonic())
+                out = self._seq.fifo_scans(raw, arrived or time.monotonic(), later)
                 self._pending.extend(out)
         self._clear_restart_latch(snap.status)
         return out

@@ -24,7 +24,11 @@ put down to one cause, the first of these that can explain it:
 
 1. an overflow (``Scan.overflow``): the overflow bit rose since the last scan delivered,
    or the module made at least FIFO_DEPTH scans after that one (the newest counter known:
-   the anchor's, or the batch's newest FIFO scan's). An overflow needs one scan more; the
+   the anchor's, the batch's newest FIFO scan's, or that of a snapshot read after the
+   batch's FIFO reads, which the drivers read when the batch shows a gap
+   (:meth:`Sequencer.gap_in`): a FIFO that overflows while it is read, its answers slow,
+   drops scans that the batch's own counters cannot show to be that far behind). An
+   overflow needs one scan more; the
    margin keeps a module that updates its registers a moment apart from being taken for
    another reader. The drivers never clear the overflow bit (clearing it also empties the
    FIFO, losing what arrived since the last read), so after the first overflow of a
@@ -453,8 +457,34 @@ class Sequencer:
         gone = made - level
         return gone - LEVEL_TOLERANCE if made < ldq412.FIFO_DEPTH and gone > LEVEL_TOLERANCE else 0
 
+    def gap_in(self, raw: Sequence[tuple[int, tuple[int, int, int, int]]]) -> bool:
+        """Whether FIFO scans read in this batch skip a counter, after the last scan
+        delivered or between each other (a restart's step back is no gap).
+
+        Parameters
+        ----------
+        raw : sequence of (int, tuple of 4 int)
+            Raw counters and channel 1..4 codes, oldest first.
+
+        Returns
+        -------
+        bool
+            True if :meth:`fifo_scans` would report scans missed there; the driver then
+            reads a snapshot for its ``later`` (module docstring, rule 1).
+        """
+        last = self._last
+        prev = None if last is None or self._boundary_pending else last.counter
+        for c, _ in raw:
+            if prev is not None and 1 < (c - prev) % U32 < HALF:
+                return True
+            prev = c
+        return False
+
     def fifo_scans(
-        self, raw: Sequence[tuple[int, tuple[int, int, int, int]]], host_time: float
+        self,
+        raw: Sequence[tuple[int, tuple[int, int, int, int]]],
+        host_time: float,
+        later: RawSnapshot | None = None,
     ) -> list[Scan]:
         """Turn the ``(counter, codes)`` pairs read from the FIFO into Scans.
 
@@ -468,6 +498,10 @@ class Sequencer:
             Raw counters and channel 1..4 codes, oldest first.
         host_time : float
             ``time.monotonic()`` when the last FIFO answer arrived, s.
+        later : RawSnapshot or None
+            A snapshot read after the FIFO reads (when :meth:`gap_in`): its counter is the
+            newest known for telling an overflow (ignored if it shows a restart the anchor
+            did not). It anchors nothing.
 
         Returns
         -------
@@ -502,6 +536,11 @@ class Sequencer:
             c64 = a.counter64 + signed_delta(c, a.counter)
             resolved.append((a, c64, c, codes))
             newest[a.epoch] = max(newest.get(a.epoch, a.counter64), c64)
+        restart = ldq412.STATUS_RESTART
+        if later is not None and (anchor.status & restart or not later.status & restart):
+            ahead = signed_delta(later.counter, anchor.counter)
+            newest[anchor.epoch] = max(newest.get(anchor.epoch, anchor.counter64),
+                                       anchor.counter64 + ahead)  # fmt: skip
         rate = self.scan_rate_hz
         bracket = self._batch_prev_anchor
         other_fault = bracket.status if bracket is not None else 0
