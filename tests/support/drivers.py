@@ -30,8 +30,10 @@ TIMEOUT = 0.25
 
 def worst_call_s(timeout: float) -> float:
     """One call's worst case, s, at a driver ``timeout``: the timeout, plus an RTU drain or
-    a TCP reconnect, plus slack."""
-    return 2 * timeout + 0.1
+    a TCP reconnect, plus 0.3 s for a loaded machine (an RTU call after a timeout measured
+    0.50 s at 0.25, whose bound had been 0.6). A driver that waits the tests' OK_TIMEOUT
+    (1 s) where it was given 0.25 s still exceeds it."""
+    return 2 * timeout + 0.3
 
 
 BOUND_S = worst_call_s(TIMEOUT)
