@@ -63,6 +63,8 @@ class WireFaults:
         How many of the next answers to break.
     answers_sent : int, default 0
         Answers that went out (diagnostics).
+    bytes_sent : int, default 0
+        Their bytes, garbage included (diagnostics: a test reads until it has them all).
     """
 
     rng: np.random.Generator
@@ -73,6 +75,7 @@ class WireFaults:
     garbage: bytes = b""
     corrupt: int = 0
     answers_sent: int = 0  # answers that went out (diagnostics)
+    bytes_sent: int = 0
 
     def stalled(self, now_ns: int) -> bool:
         """Whether a stall lasts at ``now_ns``; an expired stall is forgotten.
@@ -148,6 +151,7 @@ class WireFaults:
             answer = corrupter(answer)
         out, self.garbage = self.garbage + answer, b""
         self.answers_sent += 1
+        self.bytes_sent += len(out)
         return out
 
     def clear(self) -> None:

@@ -7,14 +7,16 @@ import os
 import socket
 import threading
 import time
+from collections.abc import Callable
 from urllib.parse import urlsplit
 
 import pytest
 import serial
 
 from loopcal.simulator.clock import ManualClock
-from loopcal.simulator.emulator import TICK_S, Emulator
+from loopcal.simulator.emulator import Emulator
 from loopcal.simulator.source import ConstantSource
+from tests.support.emulator import ANSWER_S, SILENCE_S
 
 TRANSPORTS = ("modbus-tcp", "modbus-rtu", "ascii")
 
@@ -36,27 +38,36 @@ def wait_answers(emu: Emulator, n: int) -> None:
 
 def exchange(emu: Emulator, requests: list[bytes]) -> bytes:
     """Send raw requests one at a time, each answered before the clock moves on;
-    return every byte that came back."""
+    return every byte that came back (all the emulator sent, then SILENCE_S of nothing)."""
     got = b""
     clock = emu.clock
     assert isinstance(clock, ManualClock)
+
+    def read_all(read: Callable[[], bytes]) -> None:
+        nonlocal got
+        deadline = time.monotonic() + ANSWER_S
+        while len(got) < emu.wire.bytes_sent:
+            assert time.monotonic() < deadline, (len(got), emu.wire.bytes_sent)
+            with contextlib.suppress(TimeoutError):
+                got += read()
+
     if emu.transport == "modbus-tcp":
-        with socket.create_connection((emu.host, emu.port), timeout=0.02) as sock:
+        with socket.create_connection((emu.host, emu.port), timeout=SILENCE_S) as sock:
             for k, req in enumerate(requests, start=1):
                 sock.sendall(req)
                 wait_answers(emu, k)
-                with contextlib.suppress(TimeoutError):
-                    while chunk := sock.recv(4096):
-                        got += chunk
+                read_all(lambda: sock.recv(4096))
                 clock.advance(0.37)
+            with pytest.raises(TimeoutError):
+                got += sock.recv(4096)
         return got
-    with serial.Serial(urlsplit(emu.url).path, 115200, timeout=0.02) as port:
+    with serial.Serial(urlsplit(emu.url).path, 115200, timeout=SILENCE_S) as port:
         for k, req in enumerate(requests, start=1):
             port.write(req)
             wait_answers(emu, k)
-            while chunk := port.read(4096):
-                got += chunk
+            read_all(lambda: port.read(4096))
             clock.advance(0.37)
+        assert port.read(4096) == b""
     return got
 
 
@@ -105,14 +116,14 @@ def test_start_failure_raises_and_leaks_nothing():
 def test_scans_run_on_their_own_with_the_real_clock():
     with Emulator("modbus-tcp", scan_rate_hz=200) as emu:
         time.sleep(0.3)
-        with emu.lock:  # one look: each read of emu.truth syncs the module to the clock
-            truth, now = emu.truth, emu.clock.now()
+        # a read of emu.truth syncs the module to its clock: one scan per 5 ms from t = 0
+        # up to an instant between these two clock reads, whatever the load
+        before = emu.clock.now()
+        truth = emu.truth
+        after = emu.clock.now()
         n, counters = len(truth), [s.counter for s in truth]
     assert n >= 50  # nobody read: the module scanned on its own
-    # one scan per 5 ms of clock time from t = 0, as of the last housekeeping tick (every
-    # TICK_S, later on a loaded machine): never ahead of the clock, at most a few ticks behind
-    made = int(now * 200) + 1
-    assert made - 4 * TICK_S * 200 <= n <= made
+    assert int(before * 200) + 1 <= n <= int(after * 200) + 1
     assert counters == list(range(n))
 
 
