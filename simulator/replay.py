@@ -329,9 +329,10 @@ class Player:
         Blocks. Between power-ons the module is switched off half a period after the last
         scan, for the next power-on's ``off_s``. The clock is held at each later
         power-on's first scan until a client has read the latest scan, and at the last
-        scan of each power-on but the last until it has (and emptied the FIFO, if it read
-        the FIFO meanwhile), at most 30 s of wall time each; after the last scan of all it
-        plays 1 s more.
+        scan of each power-on until it has (and emptied the FIFO, if it read the FIFO
+        meanwhile), at most 30 s of wall time each (the last of all only if a client has
+        read the module: a replay nobody reads ends on time); then it plays 1 s more. A
+        reader that keeps up gets every scan before the module goes away.
 
         Parameters
         ----------
@@ -367,9 +368,16 @@ class Player:
             assert last is not None
             if not self._play_until(last, stop):
                 return False
-            if k + 1 < len(self.power_ons) and not self._hold(stop, fifo_reads):
+            if (k + 1 < len(self.power_ons) or self._has_client()) and not self._hold(
+                stop, fifo_reads
+            ):
                 return False
         return self._play_until(self.clock.now_ns() + round(TAIL_S * 1e9), stop)
+
+    def _has_client(self) -> bool:
+        """Whether a client has read the module at all (the last scan is held for one)."""
+        with self.emulator.lock:
+            return self.module.latest_reads > 0 or self.module.fifo_reads > 0
 
     def _play_until(self, target_ns: int, stop: threading.Event) -> bool:
         """Let the clock run to ``target_ns`` at ``speed`` times wall time, and wait until it

@@ -13,8 +13,14 @@ from loopcal.daemon.commands.replay import power_ons
 from loopcal.drivers.ldq412 import FIFO_DEPTH
 from loopcal.simulator.open_points import Latency, OpenPoints
 from loopcal.simulator.replay import FIRST_SCAN_LEAD_NS, RecordedModule, RecordedPowerOn
+from tests.support.processes import Proc, listening_url, record
 from tests.support.recordings import read_scans, write_directory
-from tests.support.replay import assert_same_scans, finish, replay_and_record, replay_in_process
+from tests.support.replay import (
+    assert_same_scans,
+    finish,
+    replay_and_record,
+    replay_in_process,
+)
 from tests.support.rows import U32, synthetic_rows
 
 RATE = 50
@@ -114,3 +120,17 @@ def test_a_polled_recording_may_miss_a_scan_only_if_it_says_so():
     changed["codes"][20, 0] ^= 1
     with pytest.raises(AssertionError):
         assert_same_scans(rows, changed, polled=True)
+
+
+@pytest.mark.slow
+def test_a_reader_slower_than_the_tail_still_gets_the_last_scans(tmp_path):
+    """The replay ends 1 device second after the last scan (0.1 s of wall time at x10), and
+    its module goes away with it: a recorder reading every 0.5 s lost what it had not read
+    yet (once seen in a whole run on a loaded machine). The last scan is held, as each
+    power-on's is, until the reader has taken it."""
+    src = write_directory(tmp_path / "src", synthetic_rows(RATE), rate=RATE, per=25)
+    player = Proc(["replay", str(src), "--transport", "modbus-tcp", "--speed", "10"])
+    recorder = record(listening_url(player, timeout=30), tmp_path / "again",
+                      "--read-period", "0.5")  # fmt: skip
+    finish(player, recorder)
+    assert_same_scans(read_scans(src), read_scans(tmp_path / "again"))
