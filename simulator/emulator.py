@@ -246,6 +246,12 @@ class Emulator:
         return self.handle.requested
 
     @property
+    def link(self) -> PtyLink | None:
+        """The null-modem link of a serial module (its byte counts), None over TCP or
+        before :meth:`start`."""
+        return self._link
+
+    @property
     def lock(self) -> threading.RLock:
         """The lock to hold to read :attr:`device` consistently while the servers run.
 

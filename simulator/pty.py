@@ -156,6 +156,8 @@ class PtyLink:
         Bytes relayed from the driver's side to the module's (diagnostics), as sent.
     bytes_to_host : int
         Bytes relayed from the module's side to the driver's, as sent.
+    bytes_lost : int
+        Bytes read from either side while the cable was cut (diagnostics).
 
     Raises
     ------
@@ -177,6 +179,7 @@ class PtyLink:
         self._connected: Callable[[], bool] = lambda: True
         self.bytes_to_device = 0
         self.bytes_to_host = 0
+        self.bytes_lost = 0
 
     @property
     def device_path(self) -> str:
@@ -216,7 +219,10 @@ class PtyLink:
             return
         except OSError:
             return
-        if not data or not self._connected():
+        if not data:
+            return
+        if not self._connected():
+            self.bytes_lost += len(data)
             return
         if dst == self._device.master:
             self.bytes_to_device += len(data)

@@ -82,6 +82,12 @@ def test_serial_disconnect_loses_requests_both_ways():
             emu.faults.disconnect()
             port.write(bytes.fromhex("01 04 0100 0006 71F4"))  # would pop a scan
             assert port.read(64) == b""
+            link = emu.link
+            assert link is not None
+            deadline = time.monotonic() + ANSWER_S
+            while link.bytes_lost < 8:  # the cut cable took it (not merely late)
+                assert time.monotonic() < deadline, link.bytes_lost
+                time.sleep(0.01)
             emu.faults.reconnect()
             port.timeout = ANSWER_S  # an answer now: read as soon as its 7 bytes came
             port.write(bytes.fromhex("01 04 0009 0001 E1C8"))
