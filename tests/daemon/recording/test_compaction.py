@@ -212,10 +212,13 @@ def test_a_compaction_replaces_its_file_only_while_the_directory_is_not_locked(t
     with directory_lock(tmp_path):
         proc = subprocess.Popen([*LOOPCAL, "compact", str(path)], stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True)  # fmt: skip
-        time.sleep(4.0)  # a 3,000-scan file is written and verified in well under that
+        deadline = time.monotonic() + 60
+        while not list(tmp_path.glob(".*.compact.tmp")):  # written, then it waits to replace
+            assert time.monotonic() < deadline and proc.poll() is None, proc.poll()
+            time.sleep(0.05)
+        time.sleep(1.0)  # and it keeps waiting while the lock is held
         assert proc.poll() is None and "compacted_utc" not in (
             rec.read_recordings(path).files[0].metadata["loopcal"])  # fmt: skip
-        assert list(tmp_path.glob(".*.compact.tmp"))  # written, waiting to replace
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0 and "chunks ->" in out, out + err
     assert "compacted_utc" in rec.read_recordings(path).files[0].metadata["loopcal"]
