@@ -22,7 +22,12 @@ def test_record_serves_prometheus_metrics(tmp_path):
     port = free_port()
     t0 = time.time()
     with hand_emulator(speed=4.0) as emu:
-        rec = record(emu.url, tmp_path / "rec", "--metrics", f"127.0.0.1:{port}")
+        # --timeout 1: the emulated module answers from this busy process, where one answer
+        # later than the default 0.1 s was a read error, a disconnect (connected 0) or a
+        # late FIFO answer; at ten times that, the zero counts below are the driver's own
+        # errors on a healthy module
+        rec = record(emu.url, tmp_path / "rec", "--metrics", f"127.0.0.1:{port}",
+                     "--timeout", "1")  # fmt: skip
         rec.wait_for("recording to", timeout=20)
         time.sleep(1.5)
         first = scrape(port)
