@@ -25,7 +25,10 @@ def test_a_power_cycled_module_is_read_again_as_soon_as_it_answers(tmp_path):
     """The module answers again 1.75 s after it went dark (the datasheet: within 2 s); the
     recorder retries every 0.05 s through that window. Over ASCII every scan the module
     makes before the first poll is lost: at 20 Hz, 0.05 s of retry period plus a 0.1 s
-    timeout is 3 scans; the old backoff (retries at +1.53 s, then +3.13 s) lost 27."""
+    timeout is 3 scans; the old backoff (retries at +1.53 s, then +3.13 s) lost 27 or more,
+    with an outage of 3.13 s. The bounds give a busy machine (2 cores, four workers) a
+    second (20 scans) over the 1.75 s instead of 0.4 s, and still fail the old backoff:
+    27 scans against fewer than 20, 3.13 s against less than 2.75 s."""
     with Emulator("ascii", TestSource(1), clock=RealClock()) as emu:
         rec = record(emu.url, tmp_path / "rec")
         rec.wait_for("recording to", timeout=30)
@@ -39,9 +42,9 @@ def test_a_power_cycled_module_is_read_again_as_soon_as_it_answers(tmp_path):
     rows = out.scans
     restart = np.flatnonzero(rows["restarted"])[-1]
     lost = int(rows["missed"][restart])  # scans of the new power-on before the first read
-    assert lost <= 8, (lost, rec.text)  # 0.4 s: a loaded machine's margin over 3
+    assert lost < 20, (lost, rec.text)  # back within 1 s of the module: the old lost >= 27
     back = [e for e in out.events_of("connect") if e.details.get("outage_s")]
-    assert back and back[-1].details["outage_s"] < 1.75 + 0.4 + 0.1, rec.text
+    assert back and back[-1].details["outage_s"] < 1.75 + 1.0, rec.text  # the old: 3.13
     assert rows["missed"][restart + 1 :].sum() == 0  # and none after it
 
 
