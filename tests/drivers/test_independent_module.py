@@ -10,14 +10,24 @@ import time
 
 import pytest
 
-from loopcal.drivers import open_daq
+from loopcal.drivers import ldq412
 from loopcal.drivers.errors import DAQError
+from tests.support.drivers import open_ok
 from tests.support.independent_module import IndependentModule
 from tests.support.processes import record
 from tests.support.recordings import read_scans
 from tests.support.replay import assert_same_scans, finish, replay_and_record
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
+
+
+def _wait_made(mod: IndependentModule, n: int = 1, timeout: float = 5.0) -> None:
+    """Until the module's scan thread made ``n`` scans; it answers nothing before scan 0
+    (a sleep of its 1.8 ms phase assumed the thread ran in time, which load delays)."""
+    deadline = time.monotonic() + timeout
+    while len(mod.made) < n:
+        assert time.monotonic() < deadline, f"{len(mod.made)} of {n} scans in {timeout} s"
+        time.sleep(0.001)
 
 
 def _read_for(daq, seconds: float, out: list) -> None:
@@ -33,8 +43,12 @@ def _read_for(daq, seconds: float, out: list) -> None:
 @pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu", "ascii"])
 def test_the_drivers_read_it_exactly(transport):
     with IndependentModule(transport, rate_hz=50) as mod:
-        time.sleep(0.01)
-        daq = open_daq(mod.url, timeout=0.1)
+        # The first FIFO read finds 20 or more waiting, asks for the datasheet's 20 (120
+        # registers), is refused and halves to 10. Read every 10 ms from the start, the
+        # first read refused was the first to find 10 or more waiting, at a time a loaded
+        # machine decides, and halved whatever it asked (seen: fifo_chunk 8).
+        _wait_made(mod, ldq412.FIFO_MAX_SCANS_PER_READ)
+        daq = open_ok(mod.url, timeout=0.1)  # the connect is not the subject: retried
         got: list = []
         try:
             _read_for(daq, 0.5, got)
@@ -57,7 +71,7 @@ def test_the_drivers_read_it_exactly(transport):
 
 def test_its_recording_replays_exactly_on_every_transport(tmp_path):
     with IndependentModule("modbus-tcp", rate_hz=20) as mod:
-        time.sleep(0.01)
+        _wait_made(mod)
         rec = record(mod.url, tmp_path / "src", "--read-period", "0.1")
         rec.wait_for("recording to", timeout=30)
         time.sleep(1.2)
