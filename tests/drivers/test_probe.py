@@ -185,7 +185,10 @@ def test_a_line_where_another_device_talks_is_garbled_at_every_rate(scheme: str)
     assert report.message.startswith(f"bytes arrive on {path}, but no valid frame at any ")
     rates = {_option(a.url, "baud") for a in report.tried}
     assert {115200, 9600} <= rates  # at the talker's own rate too: not our protocol
-    assert {a.outcome for a in report.tried} == {"garbled"}
+    # garbled wherever the talker's bytes came; a talker (a thread of this process) that a
+    # loaded machine held through one rate's window leaves it silent, never answering
+    outcomes = {a.outcome for a in report.tried}
+    assert "garbled" in outcomes and outcomes <= {"garbled", "no answer"}, outcomes
 
 
 def test_a_missing_device_lists_the_ports_there_are() -> None:

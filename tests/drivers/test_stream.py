@@ -74,10 +74,12 @@ def span(scans: list[Scan]) -> int:
 )
 def test_stream_yields_every_scan_once_until_duration(ldq412, polled: bool) -> None:
     duration = 3.0
-    with open_daq(url_of(ldq412, polled), timeout=OK_TIMEOUT) as daq:
+    with open_ok(url_of(ldq412, polled), timeout=OK_TIMEOUT) as daq:
         assert daq.has_fifo is not (polled or ldq412.transport == "ascii")
         t0 = time.monotonic()
-        scans = list(daq.scans(timeout=1.0, duration=duration))
+        # the stream's timeout is not the subject: a read held past the driver's 1 s on a
+        # loaded machine (two CPU hogs beside the suite) is retried, as the daemon does
+        scans = list(daq.scans(timeout=5.0, duration=duration))
         elapsed = time.monotonic() - t0
     # The duration ended it: not before (the stream starts after t0), and within a read in
     # flight at the end and the last read, each at most one call (RTU answers of 150-270 ms
@@ -219,10 +221,16 @@ def test_a_module_that_answers_but_makes_no_scans_raises_daqtimeout(ldq412) -> N
 def test_a_power_cycle_in_the_stream(ldq412) -> None:
     with open_ok(ldq412.url, timeout=STALL_TIMEOUT) as daq:
         scans: list[Scan] = []
-        for scan in daq.scans(timeout=2.0, duration=2.0):
+        # until 10 scans of the new power-on (a loaded machine took more than the 2 s of
+        # wall time this once had to reach scan 20 and see the module back)
+        deadline = time.monotonic() + 60
+        for scan in daq.scans(timeout=2.0):
             scans.append(scan)
             if len(scans) == 20:
                 ldq412.power_cycle()
+            if scan.epoch == 1 and scan.counter64 >= 10:
+                break
+            assert time.monotonic() < deadline, scans[-1]
     # (over ASCII the first scan may carry the power-on restart flag the module had at connect)
     restarted = [s for s in scans[1:] if s.restarted]
     assert len(restarted) == 1 and restarted[0].epoch == 1
