@@ -125,14 +125,18 @@ def test_a_fifo_answer_later_than_the_timeout_still_delivers_its_scans(transport
     snapshot costs only a retry, on a fresh socket (TCP) or once its answer came and was
     thrown away (RTU, whose answers name no request: tests/drivers/test_rtu_late.py)."""
     clock = ManualClock()
-    with Emulator(transport, clock=clock, scan_rate_hz=RATE) as emu:
+    # 50 Hz: a FIFO answer is waited for FIFO_ANSWER_WAIT_S (2.5 s); at 200 Hz the wait is
+    # half the FIFO (0.64 s), and two CPU hogs beside the suite held a 400 ms answer past it
+    # (its 20 scans lost, and declared)
+    rate = 50
+    with Emulator(transport, clock=clock, scan_rate_hz=rate) as emu:
         daq = open_ok(emu.url)  # the datasheet's 100 ms (its connect retried)
         assert isinstance(daq, ModbusDAQ) and daq.timeout == ldq412.HOST_TIMEOUT_S
         emu.faults.latency(Latency(slow_fraction=0.3, slow_ms=(150.0, 400.0)))
         try:
             got = []
             for step in [1, 7, 20, 45, 3, 60, 2] * 4:
-                clock.advance(step * PERIOD)
+                clock.advance(step / rate)
                 got += read_ok(daq, tries=100)
         finally:
             daq.close()
