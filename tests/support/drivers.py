@@ -8,7 +8,7 @@ import time
 from collections.abc import Iterator
 
 from loopcal.drivers import DAQ, Scan, ldq412, open_daq
-from loopcal.drivers.errors import DAQDisconnected, DAQError, DAQTimeout
+from loopcal.drivers.errors import DAQDisconnected, DAQError, DAQProtocolError, DAQTimeout
 from loopcal.simulator.clock import ManualClock
 from loopcal.simulator.device import TruthScan
 from loopcal.simulator.emulator import Emulator
@@ -74,7 +74,9 @@ def open_ok(url: str, tries: int = 20, **options) -> DAQ:
     for _ in range(tries - 1):
         try:
             return open_daq(url, **options)
-        except (DAQTimeout, DAQDisconnected):  # a port a loaded machine did not open in time
+        except (DAQTimeout, DAQDisconnected, DAQProtocolError):
+            # a port a loaded machine did not open in time, or (RTU) the late answer to the
+            # attempt before, which a fresh driver cannot tell from its own
             time.sleep(0.02)
     return open_daq(url, **options)
 
