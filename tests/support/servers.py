@@ -7,6 +7,7 @@ and a process that holds a serial port."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import socket
 import subprocess
@@ -17,6 +18,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from loopcal.simulator.pty import PtyLink
+
+from .emulator import recv_exact
 
 #: what the HTTP server answers to anything
 HTTP_ANSWER = b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
@@ -61,9 +64,9 @@ def tcp_server(kind: str) -> Iterator[int]:
             conn.close()
 
 
-def _recv(conn: socket.socket, n: int = 4096) -> bytes:
+def _recv(conn: socket.socket) -> bytes:
     try:
-        return conn.recv(n)
+        return conn.recv(4096)
     except OSError:
         return b""
 
@@ -142,15 +145,15 @@ def modbus_tcp_relay(host: str, port: int, before: Callable[[bytes], None]) -> I
     upstream = socket.create_connection((host, port), timeout=10)
 
     def frame(conn: socket.socket) -> bytes:
-        head = _recv_exactly(conn, 7)  # MBAP: id, protocol, length, unit
-        return head + _recv_exactly(conn, int.from_bytes(head[4:6], "big") - 1) if head else b""
+        head = recv_exact(conn, 7)  # MBAP: id, protocol, length, unit
+        return head + recv_exact(conn, int.from_bytes(head[4:6], "big") - 1)
 
     def relay() -> None:
         try:
             conn, _ = listener.accept()
         except OSError:
             return
-        with conn:
+        with conn, contextlib.suppress(OSError):  # either side closed: the relay ends
             while request := frame(conn):
                 before(request[7:])
                 upstream.sendall(request)
@@ -164,13 +167,6 @@ def modbus_tcp_relay(host: str, port: int, before: Callable[[bytes], None]) -> I
         listener.close()
         upstream.close()
         thread.join(10)
-
-
-def _recv_exactly(conn: socket.socket, n: int) -> bytes:
-    data = b""
-    while len(data) < n and (part := _recv(conn, n - len(data))):
-        data += part
-    return data if len(data) == n else b""
 
 
 @contextmanager
