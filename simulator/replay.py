@@ -16,12 +16,13 @@ the recording back):
   most the datasheet's 2 s); a power-on whose first recorded scan came long after it (the
   recorder missed its beginning) starts that long ago, so nobody waits for it.
 
-:class:`Player` drives the module's clock (a :class:`~loopcal.simulator.clock.PlayClock`),
-``speed`` times as fast as wall time, and holds it still at the first and the last scan
-of each power-on until a client has read them (the latest scan, and the FIFO empty if the
-client reads it): a client that polls (ASCII) gets every power-on's first scan however
-long it takes to reconnect, a power cycle never takes unread scans with it, and a client
-that starts slowly misses nothing.
+:class:`Player` drives the module's clock (a
+:class:`~loopcal.simulator.clock.PlayClock`), ``speed`` times as fast as wall time, and
+holds it still at the first and the last scan of each power-on until a client has read
+them (the latest scan; and a client that reads the FIFO has emptied it and asked again,
+so its answer reached it): a client that polls (ASCII) gets every power-on's first scan
+however long it takes to reconnect, a power cycle never takes unread scans with it, and
+a client that starts slowly misses nothing.
 
 Not replayed: the overflow flag and the restart flag after it was cleared (they depend on
 when a client read and cleared them, not on the scans), and FIFO scans' rail and fault bits
@@ -326,13 +327,14 @@ class Player:
     def run(self, stop: threading.Event | None = None, *, wait_for_client: bool = False) -> bool:
         """Play every power-on to its end, or until ``stop``.
 
-        Blocks. Between power-ons the module is switched off half a period after the last
-        scan, for the next power-on's ``off_s``. The clock is held at each later
+        Blocks. Between power-ons the module is switched off half a period after the
+        last scan, for the next power-on's ``off_s``. The clock is held at each later
         power-on's first scan until a client has read the latest scan, and at the last
-        scan of each power-on until it has (and emptied the FIFO, if it read the FIFO
-        meanwhile), at most 30 s of wall time each (the last of all only if a client has
-        read the module: a replay nobody reads ends on time); then it plays 1 s more. A
-        reader that keeps up gets every scan before the module goes away.
+        scan of each power-on until it has (and, a client that reads the FIFO, emptied
+        it and asked again: :meth:`_hold`), at most 30 s of wall time each (the last of
+        all only if a client has read the module: a replay nobody reads ends on time);
+        then it plays 1 s more. A reader that keeps up gets every scan before the module
+        goes away.
 
         Parameters
         ----------
@@ -364,12 +366,11 @@ class Player:
                 return False
             with self.emulator.lock:
                 last = self.module.host_ns(k, int(po.time_us[-1]))
-                fifo_reads = self.module.fifo_reads
             assert last is not None
             if not self._play_until(last, stop):
                 return False
             if (k + 1 < len(self.power_ons) or self._has_client()) and not self._hold(
-                stop, fifo_reads
+                stop, drained=True
             ):
                 return False
         return self._play_until(self.clock.now_ns() + round(TAIL_S * 1e9), stop)
@@ -389,19 +390,31 @@ class Player:
             stop.wait(STEP_S)
         return False
 
-    def _hold(self, stop: threading.Event, fifo_reads: int | None = None) -> bool:
-        """Keep the clock still until a client reads the latest scan, and with
-        ``fifo_reads`` (the module's FIFO reads before) until it emptied the FIFO if it read
-        it since (at most :data:`HOLD_MAX_S`); False if stopped."""
+    def _hold(self, stop: threading.Event, *, drained: bool = False) -> bool:
+        """Keep the clock still until a client reads the latest scan (at most
+        :data:`HOLD_MAX_S`); False if stopped.
+
+        ``drained``: a client that reads the FIFO must also have emptied it, and read the
+        module again after that. A FIFO read pops its scans before its answer leaves (and
+        a Modbus answer can be held back by the module's latency): only the client's next
+        request shows that the answer reached it, so that a power cycle closing the
+        connection now takes no answer with it.
+        """
         with self.emulator.lock:
             self.module.sync(self.clock.now_ns())
             reads = self.module.latest_reads
+        emptied_at: int | None = None  # latest reads when the FIFO was seen empty
         deadline = time.monotonic() + HOLD_MAX_S
         while not stop.is_set():
             with self.emulator.lock:
                 m = self.module
-                drained = fifo_reads is None or m.fifo_reads == fifo_reads or not m.fifo_level
-                if m.latest_reads > reads and drained:
+                if not drained or not m.fifo_reads:
+                    done = m.latest_reads > reads
+                else:
+                    if emptied_at is None and not m.fifo_level:
+                        emptied_at = m.latest_reads
+                    done = emptied_at is not None and m.latest_reads > emptied_at
+                if done:
                     return True
             if time.monotonic() > deadline:
                 return True

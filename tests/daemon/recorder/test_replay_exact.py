@@ -134,3 +134,19 @@ def test_a_reader_slower_than_the_tail_still_gets_the_last_scans(tmp_path):
                       "--read-period", "0.5")  # fmt: skip
     finish(player, recorder)
     assert_same_scans(read_scans(src), read_scans(tmp_path / "again"))
+
+
+@pytest.mark.slow
+def test_a_fifo_answer_held_back_is_not_cut_off_by_the_power_cycle(tmp_path):
+    """Every answer 80 ms late (a module's latency, on purpose): the FIFO read that takes a
+    power-on's last scans empties the FIFO when it arrives, and its answer leaves 80 ms
+    later. The replay used to take the empty FIFO for the client's, power-cycle the module
+    at once and close the connection with the answer in it (2 scans lost in a whole run on
+    a loaded machine). It now waits for the client's next request."""
+    rows = synthetic_rows(RATE)
+    late = OpenPoints(latency=Latency(min_ms=80.0, max_ms=80.0))
+    player, recorder = replay_in_process(
+        rows, tmp_path / "again", "modbus-tcp", RATE, 2.0, open_points=late
+    )
+    finish(player, recorder)
+    assert_same_scans(rows, read_scans(tmp_path / "again"))
