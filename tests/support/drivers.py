@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 
 from loopcal.drivers import DAQ, Scan, ldq412, open_daq
 from loopcal.drivers.errors import DAQDisconnected, DAQError, DAQProtocolError, DAQTimeout
@@ -89,6 +90,62 @@ def read_ok(daq: DAQ, tries: int = 20) -> list[Scan]:
         except DAQError:
             time.sleep(0.02)  # e.g. the TCP endpoint re-listens on the emulator's 10 ms tick
     raise AssertionError("driver did not recover")
+
+
+@dataclass
+class TimedRead:
+    """One ``read_scans`` call as a test saw it: wall times (``time.monotonic``, s) before
+    and after, the scans it delivered, and the error it raised instead (None: none)."""
+
+    before: float
+    after: float
+    scans: list[Scan]
+    error: DAQError | None = None
+
+
+def timed_reads(
+    daq: DAQ, until: float, min_calls: int = 1, pause_s: float = 0.0
+) -> list[TimedRead]:
+    """``daq.read_scans()`` until the wall time ``until`` and ``min_calls`` calls, each timed,
+    ``pause_s`` apart. An error is kept, not raised, and reading goes on (as a daemon's
+    loop does): on a loaded machine the emulator in this process can answer after the
+    timeout, and what the driver then reports is what :func:`assert_gaps_explained`
+    checks."""
+    calls: list[TimedRead] = []
+    while time.monotonic() < until or len(calls) < min_calls:
+        call = TimedRead(time.monotonic(), 0.0, [])
+        try:
+            call.scans = daq.read_scans()
+        except DAQError as exc:
+            call.error = exc
+        call.after = time.monotonic()
+        calls.append(call)
+        time.sleep(pause_s)
+    return calls
+
+
+def assert_gaps_explained(calls: list[TimedRead], fifo_s: float) -> None:
+    """Every scan a FIFO driver missed is explained by what the test saw, never put down to
+    another reader: an overflow only after the FIFO was left unread longer than it holds
+    (``fifo_s``, s: from the start of the last call before that did not fail to the end
+    of the call that delivered the gap), any other gap only after a call that failed
+    (its answer lost, the driver says so by not calling it an overflow). A restart's
+    count (the scans of its power-on before the first delivered) is not a gap."""
+    last_ok = -1
+    for k, call in enumerate(calls):
+        if call.error is not None:
+            continue
+        failed = any(c.error is not None for c in calls[last_ok + 1 : k])
+        start = calls[last_ok].before if last_ok >= 0 else call.before
+        for s in call.scans:
+            assert not s.taken, (k, s)
+            if not s.missed or s.restarted:  # a restart's count is its power-on's
+                continue
+            if s.overflow:
+                assert call.after - start > fifo_s, (k, s, "overflow though read in time")
+            else:
+                assert failed, (k, s, "scans missed with no read failed")
+        last_ok = k
 
 
 def emulator_factory() -> Iterator:
