@@ -79,12 +79,14 @@ def assert_same_scans(original: np.ndarray, again: np.ndarray, *, polled: bool =
     the measured status's rail and fault bits.
 
     ``polled``: recorded by polling (ASCII), where a poll the host's scheduler delays past
-    the next scan misses one. How many depends on the machine's load, not on loopcal: a
-    quarter of the scans may be missing (a quiet machine misses none or one; a 2-core CI
-    runner shared by two test workers, each with an emulator and a recorder, 4 to 14 of
-    220), but each must be declared: the next scan recorded counts it in its ``missed``;
-    and every scan recorded is still the original's, bit for bit. The polls' own quality is
-    measured where the load is not the machine's: ``python -m bench.bench_stamps``."""
+    the next scan misses one. How many depends on the machine's load, not on loopcal (a
+    quiet machine misses none or one of 220; a 2-core CI runner shared by four test
+    workers and two CPU hogs 41 of 91), so no count is bounded here: each must be
+    declared (the next scan recorded counts it in its ``missed``), every scan recorded is
+    still the original's, bit for bit, and every power-on is in the recording (the
+    replay holds each power-on's first and last scan until a client read it). The polls'
+    own quality is measured where the load is not the machine's:
+    ``python -m bench.bench_stamps``."""
     if polled:
         e0, e1 = int(original["epoch"][0]), int(again["epoch"][0]) if len(again) else 0
         have = set(zip((again["epoch"].astype(np.int64) - e1).tolist(),
@@ -92,8 +94,10 @@ def assert_same_scans(original: np.ndarray, again: np.ndarray, *, polled: bool =
         keys = zip((original["epoch"].astype(np.int64) - e0).tolist(),
                    original["counter64"].tolist(), strict=True)  # fmt: skip
         present = np.array([k in have for k in keys], dtype=bool)
-        absent = int((~present).sum())
-        assert absent <= len(original) // 4, f"{absent} of {len(original)} scans missed"
+        epochs = original["epoch"]
+        assert set(epochs[present].tolist()) == set(epochs.tolist()), (
+            f"a power-on is missing: {int((~present).sum())} of {len(original)} scans missed"
+        )
         idx = np.flatnonzero(present)
         # a scan recorded counts the original scans absent just before it, and what each
         # of those counted itself (a gap the original had there)

@@ -120,6 +120,9 @@ def test_a_polled_recording_may_miss_a_scan_only_if_it_says_so():
     changed["codes"][20, 0] ^= 1
     with pytest.raises(AssertionError):
         assert_same_scans(rows, changed, polled=True)
+    second = rows["epoch"] == rows["epoch"][80]  # the second power-on, missing
+    with pytest.raises(AssertionError, match="a power-on is missing"):
+        assert_same_scans(rows, rows[~second], polled=True)
 
 
 @pytest.mark.slow
