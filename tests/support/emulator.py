@@ -40,6 +40,8 @@ def ascii_ask(port: serial.Serial, frame: bytes, wait: float = ANSWER_S) -> byte
         return first + port.read_until(b"\r")
     finally:
         port.timeout = wait
+
+
 GOLDEN_CODES = (2048, 1, 4095, 3000)  # the datasheet's ASCII example
 
 
