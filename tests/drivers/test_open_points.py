@@ -10,6 +10,7 @@ while the driver was reading (it cleared the FIFO with the flag).
 
 from __future__ import annotations
 
+import math
 import time
 
 import pytest
@@ -24,6 +25,7 @@ from tests.support.drivers import (
     PERIOD,
     RATE,
     TRANSPORTS,
+    TimedRead,
     assert_gaps_explained,
     check_against_truth,
     open_ok,
@@ -57,31 +59,39 @@ def _settle(clock: ManualClock, op: OpenPoints) -> None:
 @pytest.mark.parametrize("name", OPEN_POINTS)
 @pytest.mark.parametrize("transport", TRANSPORTS)
 def test_every_scan_exactly_once_whatever_the_module_chose(transport: str, name: str) -> None:
+    """Every scan the module made is delivered once, or counted where it is missing: over
+    the FIFO only after a read the driver gave up on (a loaded machine once held an RTU
+    answer past the 1 s timeout, and its scans went with it), never in an overflow (device
+    time is the test's own); polling counts what it missed."""
     op = OPEN_POINTS[name]
     clock = ManualClock()
     with Emulator(transport, clock=clock, scan_rate_hz=RATE, open_points=op) as emu:
         _settle(clock, op)
         daq = open_ok(emu.url, timeout=OK_TIMEOUT)
         try:
-            got = []
+            calls: list[TimedRead] = []
             # ASCII polls: one scan per read, or gaps the missed counts must explain
             steps = [1] * 40 + [3] if transport == "ascii" else [1, 7, 20, 45, 3, 130, 2]
             for step in steps * 3:
                 clock.advance(step * PERIOD)
-                got += read_ok(daq)
+                calls += timed_reads(daq, until=0.0)
             emu.faults.restart(0.5)
             clock.advance(0.5)
             _settle(clock, op)
             for step in steps:
                 clock.advance(step * PERIOD)
-                got += read_ok(daq)
+                calls += timed_reads(daq, until=0.0)
+            while calls[-1].error is not None and len(calls) < 200:  # what the last left
+                calls += timed_reads(daq, until=0.0)
         finally:
             daq.close()
+        got = [s for c in calls for s in c.scans]
         check_against_truth(got, emu)
         assert [s.restarted for s in got].count(True) == 2  # at connect and the power cycle
         truth = emu.truth
     if transport != "ascii":  # the FIFO delivers every scan the module made
-        assert len(got) == len(truth) and sum(s.missed for s in got) == 0
+        assert len(got) + sum(s.missed for s in got) == len(truth)
+        assert_gaps_explained(calls, fifo_s=math.inf)
         assert not any(s.overflow for s in got)
         if name.endswith("long-reads"):
             assert isinstance(daq, ModbusDAQ) and daq.fifo_chunk == 10  # 60 of 64 registers
