@@ -59,6 +59,8 @@ def tcp_server(kind: str) -> Iterator[int]:
     try:
         yield listener.getsockname()[1]
     finally:
+        with contextlib.suppress(OSError):
+            listener.shutdown(socket.SHUT_RDWR)  # wakes accept(): close() alone does not
         listener.close()
         for conn in conns:
             conn.close()
