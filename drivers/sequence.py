@@ -196,6 +196,10 @@ class Sequencer:
     taken_total : int
         Of those, the scans another reader took off the FIFO (the sum of Scan.missed over
         the scans marked ``taken``).
+    fifo_reads_lost : int
+        FIFO reads given up on after they were sent, and FIFOs the driver emptied
+        (:meth:`fifo_read_lost`): the scans each took are missing, counted in the
+        ``missed`` of the next scan delivered.
     taken_unreported : int
         At least this many scans were taken by another reader, by the latest anchor's FIFO
         level, that no scan delivered has reported yet (0 when none; module docstring).
@@ -210,6 +214,7 @@ class Sequencer:
         self.restarts_detected = 0
         self.missed_total = 0
         self.taken_total = 0
+        self.fifo_reads_lost = 0
         self.taken_unreported = 0
         self._anchor: _Anchor | None = None
         self._prev_anchor: _Anchor | None = None  # newest anchor of the previous epoch
@@ -233,6 +238,7 @@ class Sequencer:
         """A FIFO read failed after it was sent (or the driver emptied the FIFO itself):
         the scans it took are lost, and the gap they leave after the scans this batch
         delivers is neither an overflow nor another reader's."""
+        self.fifo_reads_lost += 1
         self._lost_in_batch = True
 
     def restart_bit_cleared(self) -> None:

@@ -165,6 +165,7 @@ def test_taken_only_for_gaps_another_master_made_and_always_for_them(first, ops,
             assert module.fate[s.counter64] == "ours"
             last, bit_at_last = s.counter64, bits[-1]
         assert seq.taken_total == taken_missed
+        assert seq.fifo_reads_lost == module.lost_reads
 
 
 @settings(max_examples=200, deadline=None)
