@@ -30,6 +30,7 @@ from tests.support.drivers import (
     RATE,
     TIMEOUT,
     TRANSPORTS,
+    assert_fifo_delivered,
     assert_gaps_explained,
     check_against_truth,
     read_ok,
@@ -63,10 +64,13 @@ def test_2000_consecutive_scans_equal_truth(emu_factory, transport: str) -> None
         n = 1 if transport == "ascii" else int(rng.integers(0, 61))
         got += advance_and_read(daq, clock, n)
     check_against_truth(got, emu)
-    truth = emu.truth
-    first = got[0].counter
-    assert [s.counter for s in got] == [t.counter for t in truth[first : first + len(got)]]
-    assert all(s.missed == 0 for s in got)
+    if transport == "ascii":  # one poll a scan: a poll retried still finds its scan
+        truth = emu.truth
+        first = got[0].counter
+        assert [s.counter for s in got] == [t.counter for t in truth[first : first + len(got)]]
+        assert all(s.missed == 0 for s in got)
+    else:
+        assert_fifo_delivered(got, emu, daq)
     assert all(s.time64_us == s.counter64 * 1_000_000 // RATE for s in got)
     # FIFO scans carry derived time; the one equal to the snapshot's is measured
     if transport != "ascii":
@@ -148,7 +152,7 @@ def test_stall_times_out_within_bound_then_recovers(emu_factory, transport: str)
     got += advance_and_read(daq, clock, 5)
     check_against_truth(got, emu)
     if transport != "ascii":  # the FIFO kept every scan through the stall
-        assert [s.counter for s in got] == [t.counter for t in emu.truth]
+        assert_fifo_delivered(got, emu, daq)
 
 
 @pytest.mark.slow
@@ -169,7 +173,7 @@ def test_disconnect_then_reconnect(emu_factory, transport: str) -> None:
     got += advance_and_read(daq, clock, 5)
     check_against_truth(got, emu)
     if transport != "ascii":
-        assert [s.counter for s in got] == [t.counter for t in emu.truth]
+        assert_fifo_delivered(got, emu, daq)
     else:
         assert got[-2].missed == 19  # 20 scans passed between the two polls
 
@@ -191,7 +195,7 @@ def test_corrupt_answer_is_a_protocol_error_then_recovers(emu_factory, transport
         got += daq.read_scans()
     check_against_truth(got, emu)
     if transport != "ascii":  # the corrupted answer was the snapshot: no scan lost
-        assert [s.counter for s in got] == [t.counter for t in emu.truth]
+        assert_fifo_delivered(got, emu, daq)
 
 
 @pytest.mark.parametrize("transport", MODBUS)
@@ -230,7 +234,7 @@ def test_garbage_before_an_answer(emu_factory, transport: str) -> None:
     check_against_truth(got, emu)
     assert "protocol error" in outcomes
     if transport != "ascii":
-        assert [s.counter for s in got] == [t.counter for t in emu.truth]
+        assert_fifo_delivered(got, emu, daq)
 
 
 @pytest.mark.slow
@@ -261,9 +265,7 @@ def test_restart_is_reported_and_cleared(emu_factory, transport: str) -> None:
         assert first.missed == first.counter64 > 0
     else:
         assert not latched  # the driver cleared it after reporting it
-        assert [s.counter for s in got if s.epoch == 1] == [
-            t.counter for t in emu.truth if t.boot == 1
-        ]
+        assert_fifo_delivered(got, emu, daq, boot=1)  # boot 0's last went with the power
 
 
 @pytest.mark.parametrize("transport", TRANSPORTS)
@@ -414,7 +416,7 @@ def test_snapshot_polling_mode_and_snapshot(emu_factory) -> None:
         assert all(s.missed == 2 for s in got[1:])
         # the FIFO reader was not disturbed by the snapshot and the poller
         fifo = daq.read_scans()
-        assert [s.counter for s in fifo] == [t.counter for t in emu.truth]
+        assert_fifo_delivered(fifo, emu, daq)
     finally:
         poll.close()
 

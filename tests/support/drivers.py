@@ -67,6 +67,25 @@ def check_against_truth(scans: list[Scan], emu: Emulator, *, status: bool = True
         prev = s
 
 
+def assert_fifo_delivered(
+    got: list[Scan], emu: Emulator, daq: DAQ, boot: int | None = None
+) -> None:
+    """Over the FIFO, every scan the module made (of power-on ``boot``, the driver's epoch,
+    if given) is delivered, once, in order; unless the driver gave up on a FIFO read (an
+    answer a loaded machine held past the driver's wait: its sequencer counts them,
+    ``fifo_reads_lost``), whose scans went with it: then every scan up to the last
+    delivered is delivered or counted in the ``missed`` of the next one (check
+    :func:`check_against_truth` too)."""
+    truth = [(t.boot, t.counter) for t in emu.truth if boot in (None, t.boot)]
+    keys = [(s.epoch, s.counter) for s in got if boot in (None, s.epoch)]
+    got = [s for s in got if boot in (None, s.epoch)]
+    if not daq.sequencer.fifo_reads_lost:
+        assert keys == truth, "scans missing though no FIFO read was lost"
+    else:
+        last = truth.index(keys[-1])
+        assert len(got) + sum(s.missed for s in got) == last + 1
+
+
 def open_ok(url: str, tries: int = 20, **options) -> DAQ:
     """open_daq, retried through a connect that timed out (what the daemon does at start):
     for a test at a short timeout (the datasheet's 0.1 s, the fault tests' 0.25 s) whose
