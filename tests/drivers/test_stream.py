@@ -293,6 +293,10 @@ def test_the_readme_example_streams_scans(ldq412) -> None:
     urls = re.findall(r'open_daq\("([^"]+)"\)', code)
     assert urls == ["modbus-tcp://127.0.0.1:5020?unit=1"] and "daq.scans(" in code
     code = code.replace(urls[0], ldq412.url)
+    # Ctrl-C as in a terminal: a runner started as a background job of a shell without job
+    # control ignores SIGINT, its children inherit that, and Python then leaves it ignored
+    # (seen: a whole run started so failed here, SigIgn 0x1001006)
+    code = "import signal; signal.signal(signal.SIGINT, signal.default_int_handler)\n" + code
     # -X faulthandler: a process that does not end at Ctrl-C is made to say where it is
     proc = subprocess.Popen(
         [sys.executable, "-u", "-X", "faulthandler", "-c", code],
