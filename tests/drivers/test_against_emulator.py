@@ -217,7 +217,9 @@ def test_corrupt_fifo_answer_reports_the_lost_scans(emu_factory, transport: str)
 @pytest.mark.slow
 @pytest.mark.parametrize("transport", TRANSPORTS)
 def test_garbage_before_an_answer(emu_factory, transport: str) -> None:
-    emu, daq, clock = emu_factory(transport, TIMEOUT)
+    # the module answers (after junk): no timeout is its subject, and under two CPU hogs an
+    # ASCII answer came after the fault tests' 0.25 s (a timeout, neither outcome)
+    emu, daq, clock = emu_factory(transport, OK_TIMEOUT)
     got = advance_and_read(daq, clock, 10)
     outcomes = []
     for n in (1, 5, 17, 64):
@@ -229,7 +231,7 @@ def test_garbage_before_an_answer(emu_factory, transport: str) -> None:
             outcomes.append("ok")
         except DAQProtocolError:
             outcomes.append("protocol error")
-        assert time.monotonic() - t0 < BOUND_S
+        assert time.monotonic() - t0 < worst_call_s(daq.timeout)
         got += advance_and_read(daq, clock, 1)
     check_against_truth(got, emu)
     assert "protocol error" in outcomes
