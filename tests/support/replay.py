@@ -17,10 +17,16 @@ from .processes import Proc, listening_url, record
 def replay_and_record(
     src: Path, out: Path, transport: str, speed: float, *options: str
 ) -> tuple[Proc, Proc]:
-    """``loopcal replay SRC [options]`` and ``loopcal record`` reading it (both running)."""
+    """``loopcal replay SRC [options]`` and ``loopcal record`` reading it (both running).
+
+    The recorder waits 3 s for an answer (the datasheet's 0.1 s, and 2.5 s for a FIFO
+    read, by default): a loaded machine has held a pseudo-terminal's bytes back for 2.7 s
+    (tests/support/drivers.py), and a FIFO answer given up on takes its scans with it."""
     player = Proc(["replay", str(src), "--transport", transport, "--speed", f"{speed:g}",
                    *options])  # fmt: skip
-    return player, record(listening_url(player, timeout=30), out, "--read-period", "0.05")
+    return player, record(
+        listening_url(player, timeout=30), out, "--read-period", "0.05", "--timeout", "3"
+    )
 
 
 class PlayerThread:
