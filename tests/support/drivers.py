@@ -76,17 +76,17 @@ def assert_fifo_delivered(
     """Over the FIFO, every scan the module made (of power-on ``boot``, the driver's epoch,
     if given) is delivered, once, in order; unless the driver gave up on a FIFO read (an
     answer a loaded machine held past the driver's wait: its sequencer counts them,
-    ``fifo_reads_lost``), whose scans went with it: then every scan up to the last
-    delivered is delivered or counted in the ``missed`` of the next one (check
-    :func:`check_against_truth` too)."""
+    ``fifo_reads_lost``), whose scans went with it: then every scan from the first
+    delivered to the last is delivered or counted in the ``missed`` of the next one
+    (check :func:`check_against_truth` too)."""
     truth = [(t.boot, t.counter) for t in emu.truth if boot in (None, t.boot)]
     keys = [(s.epoch, s.counter) for s in got if boot in (None, s.epoch)]
     got = [s for s in got if boot in (None, s.epoch)]
     if not daq.sequencer.fifo_reads_lost:
         assert keys == truth, "scans missing though no FIFO read was lost"
-    else:
-        last = truth.index(keys[-1])
-        assert len(got) + sum(s.missed for s in got) == last + 1
+    else:  # from the first delivered: a read lost before it left nothing to count in
+        first, last = truth.index(keys[0]), truth.index(keys[-1])
+        assert len(got) + sum(s.missed for s in got[1:]) == last - first + 1
 
 
 #: retries of open_ok and read_ok go on at least this long, s: longer than the longest a
