@@ -80,8 +80,8 @@ def assert_fifo_delivered(
     delivered to the last is delivered or counted in the ``missed`` of the next one
     (check :func:`check_against_truth` too)."""
     truth = [(t.boot, t.counter) for t in emu.truth if boot in (None, t.boot)]
-    keys = [(s.epoch, s.counter) for s in got if boot in (None, s.epoch)]
     got = [s for s in got if boot in (None, s.epoch)]
+    keys = [(s.epoch, s.counter) for s in got]
     if not daq.sequencer.fifo_reads_lost:
         assert keys == truth, "scans missing though no FIFO read was lost"
     else:  # from the first delivered: a read lost before it left nothing to count in
@@ -94,36 +94,38 @@ def assert_fifo_delivered(
 RETRY_S = 10.0
 
 
+def _retried(call, errors: tuple[type[DAQError], ...], tries: int):
+    """``call()``, retried through ``errors`` ``tries`` times and at least :data:`RETRY_S`;
+    the last error raised."""
+    deadline = time.monotonic() + RETRY_S
+    for k in itertools.count(1):
+        try:
+            return call()
+        except errors:
+            if k >= tries and time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)  # e.g. the TCP endpoint re-listens on the emulator's 10 ms tick
+    raise AssertionError("unreachable")
+
+
 def open_ok(url: str, tries: int = 20, **options) -> DAQ:
     """open_daq, retried through a connect that timed out (what the daemon does at start):
     for a test at a short timeout (the datasheet's 0.1 s, the fault tests' 0.25 s) whose
     subject comes after the connect, with the emulator in this process, which a loaded
-    machine can hold past it. ``tries`` times and at least :data:`RETRY_S`."""
-    deadline = time.monotonic() + RETRY_S
-    for k in itertools.count(1):
-        try:
-            return open_daq(url, **options)
-        except (DAQTimeout, DAQDisconnected, DAQProtocolError):
-            # a port a loaded machine did not open in time, or (RTU) the late answer to the
-            # attempt before, which a fresh driver cannot tell from its own
-            if k >= tries and time.monotonic() > deadline:
-                raise
-            time.sleep(0.02)
-    raise AssertionError("unreachable")
+    machine can hold past it. ``tries`` times and at least :data:`RETRY_S`. Retried: a
+    port a loaded machine did not open in time, or (RTU) the late answer to the attempt
+    before, which a fresh driver cannot tell from its own."""
+    errors = (DAQTimeout, DAQDisconnected, DAQProtocolError)
+    return _retried(lambda: open_daq(url, **options), errors, tries)
 
 
 def read_ok(daq: DAQ, tries: int = 20) -> list[Scan]:
     """read_scans, retrying through transient errors (what a daemon loop does), ``tries``
     times and at least :data:`RETRY_S`."""
-    deadline = time.monotonic() + RETRY_S
-    for k in itertools.count(1):
-        try:
-            return daq.read_scans()
-        except DAQError:
-            if k >= tries and time.monotonic() > deadline:
-                break
-            time.sleep(0.02)  # e.g. the TCP endpoint re-listens on the emulator's 10 ms tick
-    raise AssertionError("driver did not recover")
+    try:
+        return _retried(daq.read_scans, (DAQError,), tries)
+    except DAQError:
+        raise AssertionError("driver did not recover") from None
 
 
 @dataclass
