@@ -60,12 +60,12 @@ from .schemas import (
     TOPIC_STATE,
     our_channel_id,
 )
-from .walk import walk
+from .walk import OVERRAN, walk
 
 #: what :func:`~loopcal.daemon.recording.walk.walk` calls a file's damaged start
 _NO_MAGIC = "no MCAP magic at the start"
 #: what it calls a stretch of bytes that is no record (it may have held anything)
-_STRETCHES = ("zeros where records should be", "no valid record")
+_STRETCHES = ("zeros where records should be", "no valid record", OVERRAN)
 
 
 class FileReader:

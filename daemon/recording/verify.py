@@ -317,6 +317,7 @@ class Verifier(ChunkChecks, SummaryChecks):
         pos = 8
         first = True
         chunk: ChunkAt | None = None  # the chunk whose message indexes may follow
+        trusted_end, starts = pos, []  # the end of the last intact chunk, records since
         while pos < limit:
             at = record_at(buf, pos, limit)
             op = buf[pos]
@@ -326,6 +327,10 @@ class Verifier(ChunkChecks, SummaryChecks):
                     chunk.cut_index = op == Opcode.MESSAGE_INDEX
                     self.finish_chunk(chunk)
                     chunk = None
+                back = self.overran(trusted_end, starts, pos, limit)
+                if back is not None:
+                    pos, starts = back, []
+                    continue
                 pos, chunk = self.bad_bytes(pos, limit, cut=at is None and 0x01 <= op <= 0x0F)
                 if chunk is not None:
                     self.chunks.append(chunk)
@@ -335,6 +340,7 @@ class Verifier(ChunkChecks, SummaryChecks):
             whole = RECORD_HEAD + length
             body = buf[pos + RECORD_HEAD : pos + whole]
             self.out.records += 1
+            starts.append(pos)
             if op != Opcode.MESSAGE_INDEX and chunk is not None:
                 self.finish_chunk(chunk)
                 chunk = None
@@ -351,6 +357,8 @@ class Verifier(ChunkChecks, SummaryChecks):
             elif op == Opcode.CHUNK:
                 chunk = self.check_chunk(pos, whole, body)
                 self.chunks.append(chunk)
+                if not chunk.problem:
+                    trusted_end, starts = pos + whole, []
             elif op == Opcode.MESSAGE_INDEX:
                 mi = message_index_at(pos, whole, body)
                 if chunk is None:
@@ -468,6 +476,22 @@ class Verifier(ChunkChecks, SummaryChecks):
         self.damage(pos, end - pos, record, what, topics=topics, start_ns=start_ns,
                     end_ns=end_ns)  # fmt: skip
         return end, None
+
+    def overran(self, trusted_end: int, starts: list[int], pos: int, limit: int) -> int | None:
+        """Where to go back to when the walk reached bytes that are no record at ``pos``
+        because a record's length carried it past an intact chunk: that chunk (the record
+        whose length ran past it is named damaged), or None if no record did.
+
+        ``starts``: the records walked since ``trusted_end``, the end of the last intact
+        chunk."""
+        back = next_chunk(self.buf, trusted_end, pos, strict=self.strict, end=limit)
+        over = max((s for s in starts if back is not None and s < back), default=None)
+        if back is None or over is None:
+            return None
+        self.damage(over, back - over, opcode_name(self.buf[over]),
+                    f"its length runs past the intact chunk at byte {back} (the records "
+                    "between were skipped)")  # fmt: skip
+        return back
 
     def resync(self, lo: int, limit: int) -> int | None:
         """The first offset at or after ``lo`` where a chunk that checks out starts, or the

@@ -29,6 +29,10 @@ from .mcap_records import (
     record_at,
 )
 
+#: what a record is called whose length ran past an intact chunk (the bytes it covered held
+#: records the walk never read)
+OVERRAN = "a record length that ran past an intact chunk (the records it covered were skipped)"
+
 #: how far the resynchronisation looks for the next intact chunk after damage (bytes)
 _RESYNC_WINDOW = 1 << 30
 
@@ -52,6 +56,7 @@ def walk(
     if pos == 0:
         yield Damage(0, 8, "no MCAP magic at the start")
     trusted_end = pos  # the end of the last record verified by a CRC
+    starts: list[int] = []  # where the records walked since trusted_end start
     while pos < n:
         at = record_at(buf, pos, n)
         op = buf[pos]
@@ -63,16 +68,25 @@ def walk(
                 yield Damage(damage.offset, n - damage.offset, damage.what,
                              damage.start_ns, damage.end_ns)  # fmt: skip
                 return
-            yield Damage(damage.offset, max(0, resync - damage.offset), damage.what,
-                         damage.start_ns, damage.end_ns)  # fmt: skip
+            if resync < pos:
+                # a record's length carried the walk past an intact chunk: what it covered
+                # was never read, and the walk goes back to read from that chunk on
+                over = max((s for s in starts if s < resync), default=trusted_end)
+                yield Damage(over, resync - over, OVERRAN)
+            else:
+                yield Damage(damage.offset, resync - damage.offset, damage.what,
+                             damage.start_ns, damage.end_ns)  # fmt: skip
             pos = resync
+            starts = []
             continue
+        starts.append(pos)
         op, length = at
         end = pos + RECORD_HEAD + length
         if op == Opcode.CHUNK:
             got = read_chunk(buf, pos, strict=strict, wanted=wanted())
             if isinstance(got, ChunkRecords):
                 trusted_end = end
+                starts = []
             yield got
         elif op in (Opcode.DATA_END, Opcode.FOOTER):
             if _is_end(buf, pos, op, length):
@@ -118,4 +132,4 @@ def _damage_at(buf: memoryview, pos: int, cut_off: bool) -> Damage:
     return Damage(pos, 0, "no valid record")
 
 
-__all__ = ["walk"]
+__all__ = ["OVERRAN", "walk"]

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import struct
 import time
 
 import pytest
@@ -18,6 +19,7 @@ from mcap.reader import make_reader
 from loopcal.daemon import recording as rec
 from loopcal.daemon.recorder.compactor import DAY_S, Compactor
 from loopcal.daemon.recording.compact import DROPPED_VIEWS, compact
+from loopcal.daemon.recording.verify import verify_file
 from tests.support.emulator import hand_emulator
 from tests.support.js import read_ts
 from tests.support.mutations import chunk_spans, flip_bits, identities, swap_chunks, zero_run
@@ -172,6 +174,35 @@ def test_the_loss_a_warning_counts_is_the_loss_without_views(thinned, tmp_path, 
         assert f.lost_scans == lost, (f.lost_scans, lost, f.warning)
     if lost:
         assert f.warning
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("views", [True, False])
+def test_a_record_length_that_skips_the_first_chunk_is_not_taken_for_no_loss(
+    thinned, tmp_path, views
+):
+    """ci48, in bytes that do not depend on the run: the header's length carries the walk
+    from the start into the third chunk, the first chunk is damaged, and the summary's
+    CRC fails. The walk lands in the middle of an intact chunk; the reader once reported
+    "no valid record" there, inside the scans it read, and so no scan lost while the first
+    minute (and the record that counts the scans) was gone."""
+    rows, written, thin = thinned
+    data = (written if views else thin).read_bytes()
+    (a, na), _, (b, nb) = chunk_spans(data)[:3]
+    out = bytearray(flip_bits(data, [(a + na // 2) * 8]))
+    land = next(x for x in range(b + nb // 2, b + nb) if 0x0F < data[x] < 0x80)  # no opcode
+    struct.pack_into("<Q", out, 9, land - 17)  # the header record: opcode at 8
+    out[-8 - 4] ^= 1  # the footer's summary CRC
+    path = tmp_path / written.name
+    path.write_bytes(bytes(out))
+    got = rec.read_recordings(path)
+    [f] = got.files
+    assert len(got.scans) < N
+    assert f.lost_unknown or f.lost_scans == N - len(got.scans), f.warning
+    assert f.lost_scans <= N - len(got.scans)
+    assert "ran past an intact chunk" in f.warning and "no scan lost" not in f.warning
+    [header] = [d for d in verify_file(path).damaged if d.offset == 8]  # verify names it too
+    assert header.record == "header" and "runs past the intact chunk" in header.what
 
 
 def _named(directory, days_ago: float, rows) -> object:
