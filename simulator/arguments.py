@@ -16,7 +16,7 @@ import socket
 from collections.abc import Callable
 from pathlib import Path
 
-from .choices import SCENARIO_NAMES, TRANSPORTS
+from .choices import LINES, SCENARIO_NAMES, TRANSPORTS
 from .open_points import add_arguments as add_open_point_arguments
 from .options import add_simulation_options
 
@@ -153,7 +153,8 @@ def listen_host(text: str) -> str:
 
 
 def add_transport_option(p: argparse.ArgumentParser, what: str) -> None:
-    """Add ``--transport`` to a command that serves an emulated module (simulate, replay, demo).
+    """Add ``--transport`` and ``--line`` to a command that serves an emulated module
+    (simulate, replay, demo).
 
     Parameters
     ----------
@@ -165,6 +166,10 @@ def add_transport_option(p: argparse.ArgumentParser, what: str) -> None:
     """
     p.add_argument("--transport", choices=TRANSPORTS, default="modbus-tcp",
                    help=f"{what}: {', '.join(TRANSPORTS)} (default modbus-tcp)")  # fmt: skip
+    p.add_argument("--line", choices=LINES, default=LINES[0],
+                   help="a serial transport's line: pty (a pseudo-terminal a driver opens "
+                        "like /dev/ttyUSB0) or tcp (raw TCP through a serial device server "
+                        f"on the listening address) (default {LINES[0]})")  # fmt: skip
 
 
 def add_arguments(p: argparse.ArgumentParser, duration: Callable[[str], float] = float) -> None:

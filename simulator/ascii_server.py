@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+from collections.abc import Callable
 
 from .ascii_protocol import handle_frame
 from .handle import DeviceHandle
@@ -24,7 +25,8 @@ LINE_BUFFER_BYTES = 64
 
 
 class AsciiServer:
-    """Serve the ASCII protocol for module ``address`` on the (raw) serial fd ``fd``.
+    """Serve the ASCII protocol for module ``address`` on the (raw) serial fd ``fd``, or
+    on a byte stream that calls :meth:`feed` (``fd`` -1 and a ``send``).
 
     Parameters
     ----------
@@ -33,9 +35,13 @@ class AsciiServer:
     fd : int
         The module side of the serial line (a pty slave,
         :attr:`~loopcal.simulator.pty.PtyLink.device_fd`); made non-blocking by
-        :meth:`start`.
+        :meth:`start`. -1: no fd, the bytes come through :meth:`feed`.
     address : int
         The module address, 0..255 (``AA`` in the frames, two uppercase hex digits).
+    send : callable or None, default None
+        ``send(bytes)`` puts an answer on the line (a TCP connection's write, for a line
+        behind a serial device server: :mod:`loopcal.simulator.device_server`); None: the
+        fd.
 
     Attributes
     ----------
@@ -49,15 +55,21 @@ class AsciiServer:
     Raises
     ------
     ValueError
-        If ``address`` is outside 0..255.
+        If ``address`` is outside 0..255, or neither an fd nor ``send`` is given.
     """
 
-    def __init__(self, handle: DeviceHandle, fd: int, address: int) -> None:
+    def __init__(
+        self, handle: DeviceHandle, fd: int, address: int,
+        send: Callable[[bytes], None] | None = None,
+    ) -> None:  # fmt: skip
         if not 0 <= address <= 0xFF:
             raise ValueError("ASCII address must be 0..255")
+        if fd < 0 and send is None:
+            raise ValueError("an ASCII server needs an fd or a send callable")
         self.handle = handle
         self.fd = fd
         self.address = address
+        self._send = send if send is not None else self._write
         self._buffer = bytearray()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._send_at = 0.0  # loop time the latest delayed answer goes out
@@ -68,11 +80,12 @@ class AsciiServer:
         Parameters
         ----------
         loop : asyncio.AbstractEventLoop
-            The emulator's loop: it reads the fd and sends delayed answers.
+            The emulator's loop: it reads the fd (if any) and sends delayed answers.
         """
-        os.set_blocking(self.fd, False)
         self._loop = loop
-        loop.add_reader(self.fd, self._on_readable)
+        if self.fd >= 0:
+            os.set_blocking(self.fd, False)
+            loop.add_reader(self.fd, self._on_readable)
 
     def _on_readable(self) -> None:
         try:
@@ -81,6 +94,16 @@ class AsciiServer:
             return
         except OSError:
             return
+        self.feed(data)
+
+    def feed(self, data: bytes) -> None:
+        """Bytes the line carried to the module: answer each frame they complete.
+
+        Parameters
+        ----------
+        data : bytes
+            As received, any split (a frame may span calls).
+        """
         self._buffer += data
         while (end := self._buffer.find(b"\r")) >= 0:
             frame = bytes(self._buffer[:end])
@@ -101,9 +124,9 @@ class AsciiServer:
             delay = self.handle.wire.delay_s("ascii")
         if delay > 0 and self._loop is not None:
             self._send_at = max(self._loop.time() + delay, self._send_at)
-            self._loop.call_at(self._send_at, self._write, out)
+            self._loop.call_at(self._send_at, self._send, out)
             return
-        self._write(out)
+        self._send(out)
 
     def _write(self, out: bytes) -> None:
         view = memoryview(out)
@@ -118,6 +141,7 @@ class AsciiServer:
     def close(self) -> None:
         """Stop reading the fd (the fd itself belongs to the pty link, which closes it)."""
         if self._loop is not None:
-            with contextlib.suppress(Exception):
-                self._loop.remove_reader(self.fd)
+            if self.fd >= 0:
+                with contextlib.suppress(Exception):
+                    self._loop.remove_reader(self.fd)
             self._loop = None

@@ -10,6 +10,11 @@ from __future__ import annotations
 #: serial ones over a pseudo-terminal)
 TRANSPORTS = ("modbus-tcp", "modbus-rtu", "ascii")
 
+#: how a serial transport's line reaches the driver: a pair of pseudo-terminals (a port
+#: like /dev/ttyUSB0), or raw TCP through a serial device server on 127.0.0.1
+#: (:mod:`loopcal.simulator.device_server`); the first is the default
+LINES = ("pty", "tcp")
+
 #: how the simulated plate moves: a technician's hand, pausing; still; a sweep; the
 #: controller's task loop (:mod:`loopcal.simulator.scenarios`)
 SCENARIO_NAMES = ("hand", "static", "sweep", "task")

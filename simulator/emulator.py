@@ -15,6 +15,10 @@ Transports:
   end (``/dev/pts/N``) with pyserial.
 - ``"ascii"``: the module's ASCII protocol on a pseudo-terminal, same arrangement.
 
+A serial transport with ``line="tcp"`` is reached through a serial device server on
+``host:port`` instead (:mod:`loopcal.simulator.device_server`): ``modbus-rtu://HOST:PORT``,
+``ascii://HOST:PORT``.
+
 Everything (servers, pty relay, a 10 ms housekeeping tick) runs on one asyncio loop in
 one thread, started by :meth:`Emulator.start` and stopped by :meth:`Emulator.close`.
 With a :class:`~loopcal.simulator.clock.ManualClock`, the same scenario, seed and request sequence
@@ -40,9 +44,10 @@ from loopcal.drivers.ldq412 import (
 )
 
 from .ascii_server import AsciiServer
-from .choices import TRANSPORTS
+from .choices import LINES, TRANSPORTS
 from .clock import Clock, RealClock
 from .device import LDQ412, TruthScan
+from .device_server import DeviceServer
 from .faults import FaultInjector
 from .handle import DeviceHandle
 from .modbus_server import ModbusRtuHost, ModbusTcpHost
@@ -106,10 +111,10 @@ class Emulator:
         The module was powered on this long ago, s (for 32-bit wraps); only the last 256
         scans of that time exist (in the FIFO, overflow latched if more).
     host : str, default "127.0.0.1"
-        TCP listening address (modbus-tcp only).
+        TCP listening address (modbus-tcp, or a serial transport's device server).
     port : int, default 0
-        TCP port (modbus-tcp only); 0: a free port, reported in :attr:`port` and
-        :attr:`url` once started.
+        TCP port (as ``host``); 0: a free port, reported in :attr:`port` and :attr:`url`
+        once started.
     truth_limit : int or None, default None
         None keeps every scan in :attr:`truth`; N keeps at least the latest N (bounded
         memory for long real-time runs).
@@ -122,11 +127,17 @@ class Emulator:
         :class:`~loopcal.simulator.device.LDQ412` (a replay's); source, scan_rate_hz,
         serial_number, firmware, ascii_checksum, initial_uptime_s, truth_limit and the
         open points other than the latency are then the device's own.
+    line : {"pty", "tcp"}, default "pty"
+        A serial transport's line: a pair of pseudo-terminals, or raw TCP through a serial
+        device server on ``host:port`` (:mod:`loopcal.simulator.device_server`: no line
+        rate, the link cut or a module off leave the connection open and silent).
 
     Attributes
     ----------
     transport : str
         As given.
+    line : str
+        As given ("pty" for modbus-tcp, which has no serial line).
     clock : Clock
         The time base in use.
     source : SignalSource
@@ -140,7 +151,8 @@ class Emulator:
         What :func:`loopcal.drivers.open_daq` opens, e.g.
         ``modbus-tcp://127.0.0.1:40123?unit=1``,
         ``modbus-rtu:///dev/pts/7?baud=115200&unit=1`` or
-        ``ascii:///dev/pts/7?baud=115200&addr=01&checksum=0``; empty until started.
+        ``ascii:///dev/pts/7?baud=115200&addr=01&checksum=0`` (``line="tcp"``:
+        ``ascii://127.0.0.1:40124?...``); empty until started.
     port : int
         The TCP port (the one picked once started, for port 0).
     host : str
@@ -192,14 +204,18 @@ class Emulator:
         truth_limit: int | None = None,
         open_points: OpenPoints | None = None,
         device: LDQ412 | None = None,
+        line: str = LINES[0],
     ) -> None:
         if transport not in TRANSPORTS:
             raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
+        if line not in LINES:
+            raise ValueError(f"line must be one of {LINES}, got {line!r}")
         if not 1 <= unit <= 247:
             raise ValueError("unit must be 1..247")
         if not 0 <= ascii_addr <= 0xFF:
             raise ValueError("ascii_addr must be 0..255")
         self.transport = transport
+        self.line = line if transport != "modbus-tcp" else LINES[0]
         self.clock: Clock = clock if clock is not None else RealClock()
         self.source: SignalSource = source if source is not None else TestSource(seed)
         self.unit = unit
@@ -236,6 +252,7 @@ class Emulator:
         self._rtu: ModbusRtuHost | None = None
         self._ascii: AsciiServer | None = None
         self._link: PtyLink | None = None
+        self._device_server: DeviceServer | None = None
         self._reconcile_lock: asyncio.Lock | None = None
 
     # ------------------------------------------------------------------ public
@@ -309,7 +326,7 @@ class Emulator:
         """
         if self._thread is not None:
             return self
-        if self.transport == "modbus-tcp" and self.port:
+        if self._on_tcp and self.port:
             # pymodbus reports a taken port only as "could not start listen": ask the OS
             try:
                 with socket.create_server((self.host, self.port), reuse_port=False):
@@ -329,7 +346,7 @@ class Emulator:
         if self._startup_error is not None:
             err = self._startup_error
             self.close()
-            where = f" on {self.host}:{self.port}" if self.transport == "modbus-tcp" else ""
+            where = f" on {self.host}:{self.port}" if self._on_tcp else ""
             raise RuntimeError(f"emulator failed to start{where}: {_reason(err)}") from err
         return self
 
@@ -365,6 +382,11 @@ class Emulator:
 
     def __repr__(self) -> str:
         return f"Emulator({self.transport!r}, url={self.url!r})"
+
+    @property
+    def _on_tcp(self) -> bool:
+        """Whether it listens on ``host:port`` (Modbus TCP, or a device server's line)."""
+        return self.transport == "modbus-tcp" or self.line == "tcp"
 
     # ------------------------------------------------------------------ thread
 
@@ -409,19 +431,26 @@ class Emulator:
             self.port = self._tcp.port
             self.url = f"modbus-tcp://{self.host}:{self.port}?unit={self.unit}"
             return
+        line = f"baud={self.baud}"
+        ident = (f"unit={self.unit}" if self.transport == "modbus-rtu" else
+                 f"addr={self.ascii_addr:02X}&checksum={int(self.device.power_on_ascii_checksum)}")
+        if self.line == "tcp":
+            self._device_server = DeviceServer(self.handle, self.transport, unit=self.unit,
+                                               ascii_addr=self.ascii_addr, host=self.host,
+                                               port=self.port)  # fmt: skip
+            await self._device_server.listen()
+            self.port = self._device_server.port
+            self.url = f"{self.transport}://{self.host}:{self.port}?{line}&{ident}"
+            return
         self._link = PtyLink(self.baud)
         self._link.start(loop, connected=lambda: not self.wire.disconnected)
         if self.transport == "modbus-rtu":
             self._rtu = ModbusRtuHost(self.handle, self.unit, self._link.device_path, self.baud)
             await self._rtu.listen()
-            self.url = f"modbus-rtu://{self._link.host_path}?baud={self.baud}&unit={self.unit}"
         else:
             self._ascii = AsciiServer(self.handle, self._link.device_fd, self.ascii_addr)
             self._ascii.start(loop)
-            self.url = (
-                f"ascii://{self._link.host_path}?baud={self.baud}"
-                f"&addr={self.ascii_addr:02X}&checksum={int(self.device.power_on_ascii_checksum)}"
-            )
+        self.url = f"{self.transport}://{self._link.host_path}?{line}&{ident}"
 
     async def _teardown(self) -> None:
         if self._tcp is not None:
@@ -430,6 +459,8 @@ class Emulator:
             self._rtu.close()
         if self._ascii is not None:
             self._ascii.close()
+        if self._device_server is not None:
+            self._device_server.close()
         if self._link is not None:
             self._link.close()
         await asyncio.sleep(0)  # let transports deliver connection_lost before the loop ends

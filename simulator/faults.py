@@ -59,8 +59,9 @@ class FaultInjector:
     def disconnect(self) -> None:
         """Cut the link until :meth:`reconnect` (or :meth:`clear`).
 
-        Serial: every byte in either direction is lost. TCP: established connections are
-        reset and new ones refused. The module keeps scanning.
+        Serial: every byte in either direction is lost (behind a serial device server,
+        ``line="tcp"``, its connections stay open and unanswered). TCP: established
+        connections are reset and new ones refused. The module keeps scanning.
         """
         with self._handle.lock:
             self._handle.wire.disconnected = True

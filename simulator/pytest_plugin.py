@@ -50,7 +50,7 @@ _MARKER = (
     "ldq412(**options): options of the emulated LDQ-412 the ldq412 fixtures serve "
     "(transport, scan_rate_hz, speed, clock, seed, scenario, pause_s, task_waypoints, "
     "task_move_s, task_dwell_s, noise_volts, offset_error_mm, truth, open_points, unit, "
-    "ascii_addr, ascii_checksum)"
+    "ascii_addr, ascii_checksum, line)"
 )
 
 

@@ -49,6 +49,7 @@ from loopcal.drivers.ldq412 import (
     U32_MOD,
 )
 
+from .choices import LINES
 from .clock import PlayClock
 from .device import LDQ412, rail_bits
 from .emulator import Emulator
@@ -235,6 +236,8 @@ class Player:
     open_points : OpenPoints or None, default None
         How the module answers (latency, FIFO underrun, read limits); no scan phase or
         clock error.
+    line : {"pty", "tcp"}, default "pty"
+        A serial transport's line (:class:`~loopcal.simulator.emulator.Emulator`).
 
     Attributes
     ----------
@@ -270,6 +273,7 @@ class Player:
         port: int = 0,
         seed: int = 0,
         open_points: OpenPoints | None = None,
+        line: str = LINES[0],
     ) -> None:
         if not power_ons:
             raise ValueError("nothing to replay")
@@ -284,7 +288,7 @@ class Player:
         )
         self.emulator = Emulator(
             transport, clock=self.clock, seed=seed, host=host, port=port, device=self.module,
-            open_points=open_points,
+            open_points=open_points, line=line,
         )  # fmt: skip
 
     @property

@@ -435,6 +435,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         port=args.port,
         truth_limit=max(20_000, int(60 * args.scan_rate * args.speed)),
         open_points=open_points,
+        line=args.line,
     )
     try:
         try:
@@ -443,7 +444,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             raise SimulationError(str(exc)) from None
         with emu:
             print(f"listening: {emu.url}", flush=True)
-            if args.transport != "modbus-tcp":
+            if emu.link is not None:
                 print(f"serial device: {emu.url.split('://', 1)[1].split('?')[0]}", flush=True)
             writer = None
             if out is not None:

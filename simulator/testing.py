@@ -34,10 +34,11 @@ from loopcal.calibration.parameters import to_dict
 from loopcal.calibration.simulate import NOISE_VOLTS
 from loopcal.drivers.ldq412 import POWER_CYCLE_S
 
+from .choices import LINES, TRANSPORTS
 from .clock import Clock, ManualClock, clock_for
 from .device import TruthScan
 from .drift import OffsetDrift, offset_shift
-from .emulator import TRANSPORTS, Emulator
+from .emulator import Emulator
 from .faults import FaultInjector
 from .mechanism import MechanismSource, true_parameters
 from .open_points import OpenPoints
@@ -57,7 +58,10 @@ class LDQ412Options:
     ----------
     transport : {"modbus-tcp", "modbus-rtu", "ascii"}, default "modbus-tcp"
         ``"modbus-tcp"`` (127.0.0.1, a free port), ``"modbus-rtu"`` or ``"ascii"`` (each
-        on a pseudo-terminal whose path is in the URL).
+        on a pseudo-terminal whose path is in the URL, or as ``line`` says).
+    line : {"pty", "tcp"}, default "pty"
+        A serial transport's line: a pseudo-terminal, or raw TCP through a serial device
+        server on 127.0.0.1 (:mod:`loopcal.simulator.device_server`).
     scan_rate_hz : int, default 20
         The module's scan rate at power-on, 1..200 Hz.
     speed : float, default 1.0
@@ -116,6 +120,7 @@ class LDQ412Options:
     """
 
     transport: str = "modbus-tcp"
+    line: str = LINES[0]
     scan_rate_hz: int = 20
     speed: float = 1.0
     clock: str = "real"
@@ -139,6 +144,8 @@ class LDQ412Options:
 
         if self.transport not in TRANSPORTS:
             raise bad(f"transport={self.transport!r}: one of {', '.join(TRANSPORTS)}")
+        if self.line not in LINES:
+            raise bad(f"line={self.line!r}: one of {', '.join(LINES)}")
         if self.scenario not in SCENARIOS:
             raise bad(f"scenario={self.scenario!r}: one of {', '.join(SCENARIOS)}")
         if self.clock not in CLOCKS:
@@ -313,6 +320,7 @@ class EmulatedLDQ412(contextlib.AbstractContextManager):
             ascii_addr=o.ascii_addr,
             ascii_checksum=o.ascii_checksum,
             open_points=o.open_points,
+            line=o.line,
         )
         self.emulator.start()
 
@@ -334,11 +342,12 @@ class EmulatedLDQ412(contextlib.AbstractContextManager):
 
     @property
     def port(self) -> str | int:
-        """The TCP port (modbus-tcp), else the pseudo-terminal a serial client opens.
+        """The TCP port (modbus-tcp, or a serial device server's), else the pseudo-terminal
+        a serial client opens.
 
-        An int for modbus-tcp; a path such as ``/dev/pts/7`` for the serial transports.
+        An int on TCP; a path such as ``/dev/pts/7`` for a serial transport on a pty.
         """
-        if self.transport == "modbus-tcp":
+        if self.emulator.link is None:
             return self.emulator.port
         return self.url.split("://", 1)[1].split("?", 1)[0]
 

@@ -161,7 +161,8 @@ def _in(work: Path, args: argparse.Namespace, model: ParameterModel, speed: floa
     # start, its FIFO (12.8 s of scans, 1.3 s at x10) has not overflowed, and the file
     # holds no backlog stamped before the clock map knew the module's rate
     clock = HeldClock(speed)
-    with Emulator(args.transport, source, clock=clock, seed=args.seed, truth_limit=10_000) as emu:
+    with Emulator(args.transport, source, clock=clock, seed=args.seed, truth_limit=10_000,
+                  line=args.line) as emu:
         pace = "in real time" if speed == 1 else f"{speed:g} times as fast as wall time"
         print(f"\nThe emulated LDQ-412 runs {pace}: recording takes {session_s / speed:g} s.")
         status = _record(

@@ -112,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
         host=args.host,
         port=args.port,
         open_points=open_points,
+        line=args.line,
     )
     try:
         player.start()
@@ -123,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(sig, lambda *_: stop.set())
     with player:
         print(f"listening: {player.url}", flush=True)
-        if args.transport != "modbus-tcp":
+        if player.emulator.link is not None:
             print(f"serial device: {player.url.split('://', 1)[1].split('?')[0]}", flush=True)
         print(
             f"replaying {len(rec):,} scans in {len(player.power_ons)} power-on(s) at {rate} Hz, "
