@@ -1,7 +1,9 @@
 """LDQ-412 over its vendor ASCII protocol (pyserial).
 
 URL: ``ascii:///dev/ttyUSB0?baud=115200&addr=01&checksum=1`` (address as two hex digits,
-default 01; checksum 0/1 must match the module's checksum mode, default 0).
+default 01; checksum 0/1 must match the module's checksum mode, default 0), or
+``ascii://HOST:PORT?addr=01`` for a line behind a serial device server in raw TCP mode
+(:mod:`loopcal.drivers.url`).
 
 The protocol has no FIFO: read_scans polls ``#AA`` once per call and returns the scan if
 its counter is new; scans the module made between two polls are reported in Scan.missed.
@@ -41,8 +43,9 @@ from .errors import (
     DAQProtocolError,
     DAQTimeout,
 )
+from .lines import bytes_waiting
 from .sequence import RawSnapshot
-from .url import DaqUrl, serial_options
+from .url import DaqUrl, line_url, serial_options
 
 CR = ldq412.ASCII_CR
 _HEX_UPPER = frozenset(b"0123456789ABCDEF")
@@ -293,7 +296,9 @@ class AsciiDAQ(DAQ):
     Parameters
     ----------
     port : str
-        Serial device, e.g. ``"/dev/ttyUSB0"`` (or a pyserial URL).
+        Serial device, e.g. ``"/dev/ttyUSB0"``, or a pyserial URL: a serial device
+        server's TCP port is ``"socket://HOST:PORT"`` (its baud rate, parity and stop bits
+        are the device server's settings; pyserial ignores these arguments on it).
     baud : int
         Line speed, baud (default 115200).
     addr : int
@@ -343,7 +348,7 @@ class AsciiDAQ(DAQ):
             raise ValueError(f"stopbits {stopbits} not 1 or 2")
         self.port, self.baud, self.addr, self.checksum = port, baud, addr, checksum
         self.parity, self.stopbits, self.timeout = parity, stopbits, timeout
-        self.url = f"ascii://{port}?baud={baud}&addr={addr:02X}&checksum={int(checksum)}"
+        self.url = f"{line_url('ascii', port)}?baud={baud}&addr={addr:02X}&checksum={int(checksum)}"
         self._ser: serial.SerialBase | None = None
         self._closed = False
         self._pending: list[Scan] = []
@@ -436,7 +441,7 @@ class AsciiDAQ(DAQ):
         deadline = time.monotonic() + self.timeout
         buf = bytearray()
         while True:
-            waiting = ser.in_waiting
+            waiting = bytes_waiting(ser)
             chunk = ser.read(waiting if waiting else 1)
             if chunk:
                 buf += chunk

@@ -6,7 +6,10 @@ chained, ``__cause__``, from the socket's or the serial port's own error, whose 
 tells a closed port from a host that does not answer) and, for a serial line, what the
 device node says: :func:`port_problem` stats and opens it (without sending anything) to
 tell a missing device from one the user may not open or one another process holds. A
-recorder asks it while the module is unreachable, and ``loopcal probe``
+serial line behind a serial device server (``ascii://HOST:PORT``, :mod:`loopcal.drivers.url`)
+is a TCP connection to the device server as far as reaching it goes, and a serial line
+for the rest (:func:`server_problem` opens a connection to it for a moment). A recorder
+asks it while the module is unreachable, and ``loopcal probe``
 (:mod:`loopcal.drivers.probe`) for the failures it does not find out by trying.
 
 The causes (:data:`CAUSES`) are codes a program may test; the message and the hint are for
@@ -27,6 +30,7 @@ from pathlib import Path
 
 from . import errors, ldq412
 from .registry import driver_for_url
+from .url import device_server, host_port
 
 #: every cause code, and what it means (docs/hardware.md shows an example of each)
 CAUSES: dict[str, str] = {
@@ -86,8 +90,8 @@ class Diagnosis:
 
 
 def errno_of(exc: BaseException) -> tuple[int | None, BaseException | None]:
-    """The first OS-level error in an exception's chain (``__cause__``, else
-    ``__context__``) and its errno.
+    """The OS-level error in an exception's chain (``__cause__``, else ``__context__``)
+    that says what happened, and its errno.
 
     Parameters
     ----------
@@ -97,18 +101,23 @@ def errno_of(exc: BaseException) -> tuple[int | None, BaseException | None]:
     Returns
     -------
     tuple of (int or None, BaseException or None)
-        The errno (None for a timeout or a name that does not resolve, which have none
-        that says it) and the OSError itself (pyserial's SerialException is one); (None,
-        None) if the chain holds none.
+        The first OSError in the chain that has an errno, else the last OSError in it
+        (pyserial's SerialException is one, often without an errno: ``Could not open
+        port socket://...`` has the socket's ConnectionRefusedError or TimeoutError as its
+        ``__context__``), and its errno (None for a timeout or a name that does not
+        resolve, which have none that says it); (None, None) if the chain holds none.
     """
     seen: set[int] = set()
+    found: OSError | None = None
     e: BaseException | None = exc
     while e is not None and id(e) not in seen:
         seen.add(id(e))
         if isinstance(e, OSError) and not isinstance(e, errors.DAQError):
-            return e.errno, e
+            if e.errno is not None:
+                return e.errno, e
+            found = e
         e = e.__cause__ or e.__context__
-    return None, None
+    return None, found
 
 
 def serial_ports() -> list[str]:
@@ -352,51 +361,139 @@ def port_problem(path: str) -> Diagnosis | None:
     return None
 
 
-def _endpoint(url: str) -> tuple[str, dict]:
-    """``host:port`` or the serial device a URL names, and its driver's options."""
+@dataclass(frozen=True)
+class Endpoint:
+    """What a driver URL reaches (:func:`endpoint`).
+
+    Attributes
+    ----------
+    where : str
+        For messages: ``HOST:PORT`` of a TCP connection (Modbus TCP's, or a serial device
+        server's), else the serial device.
+    options : dict
+        The driver's options (:meth:`~loopcal.drivers.base.DAQ.url_options`).
+    serial : bool
+        A serial line (Modbus RTU, ASCII), on a device or behind a device server.
+    server : tuple of (str, int) or None
+        The serial device server's host and TCP port, for a line reached through one
+        (:func:`~loopcal.drivers.url.device_server`).
+    """
+
+    where: str
+    options: dict
+    serial: bool
+    server: tuple[str, int] | None
+
+    @property
+    def device(self) -> bool:
+        """A serial device of this host (which :func:`port_problem` can look at)."""
+        return self.serial and self.server is None
+
+
+def endpoint(url: str) -> Endpoint:
+    """What a driver URL reaches, for messages and for what to look at.
+
+    Parameters
+    ----------
+    url : str
+        A driver URL.
+
+    Returns
+    -------
+    Endpoint
+
+    Raises
+    ------
+    ValueError
+        For a URL no driver takes (as :func:`~loopcal.drivers.registry.driver_for_url`).
+    """
     cls, parsed = driver_for_url(url)
     options = cls.url_options(parsed)
     if isinstance(options.get("host"), str):
-        return f"{options['host']}:{options['port']}", options
-    return str(options["port"]), options
+        return Endpoint(host_port(options["host"], options["port"]), options, False, None)
+    server = device_server(str(options["port"]))
+    where = host_port(*server) if server else str(options["port"])
+    return Endpoint(where, options, True, server)
 
 
-def _socket_error(where: str, code: int | None, err: BaseException, timeout: float) -> Diagnosis:
-    """A TCP connection that failed, by its OS error."""
+def _socket_error(
+    where: str, code: int | None, err: BaseException, timeout: float, *, server: bool = False
+) -> Diagnosis:
+    """A TCP connection that failed, by its OS error (``server``: a serial device server's)."""
+    device = "device server" if server else "module"
     if code == errno.ECONNREFUSED:
         return Diagnosis(
             "refused",
             f"nothing listens at {where} (connection refused)",
-            "is the module powered, and is this its address? Modbus TCP is port "
+            "is the device server powered, is this its address, and is this the TCP port of "
+            "the module's serial port, in raw TCP server mode? (a Moxa NPort's first is 4001)"
+            if server
+            else "is the module powered, and is this its address? Modbus TCP is port "
             f"{ldq412.MODBUS_TCP_PORT}; another device may have the address",
         )
     if isinstance(err, socket.gaierror):
         return Diagnosis(
             "unknown_host",
             f"the host of {where} is not known ({err.strerror})",
-            "check the name, or give the module's IP address",
+            f"check the name, or give the {device}'s IP address",
         )
     if isinstance(err, TimeoutError) or code == errno.ETIMEDOUT:
         return Diagnosis(
             "timeout",
             f"{where} does not answer (no TCP connection within {timeout:g} s)",
-            "is the module powered and on this network? "
+            f"is the {device} powered and on this network? "
             "`ping` its address; a firewall may drop the connection",
         )
     if code in (errno.EHOSTUNREACH, errno.ENETUNREACH, errno.ENETDOWN, errno.EHOSTDOWN):
         return Diagnosis(
             "unreachable",
             f"no route to {where} ({os.strerror(code)})",
-            "is this host on the module's network (cable, address, routes)?",
+            f"is this host on the {device}'s network (cable, address, routes)?",
         )
     if code in (errno.ECONNRESET, errno.EPIPE, errno.ECONNABORTED):
         return Diagnosis(
             "lost",
             f"the connection to {where} was reset ({os.strerror(code)})",
-            "the module restarting, or another master taking its one connection",
+            "the device server restarting, or taking the port for another client"
+            if server
+            else "the module restarting, or another master taking its one connection",
         )
     what = os.strerror(code) if code else str(err)
     return Diagnosis("error", f"cannot reach {where}: {what}", "see the message")
+
+
+def _socket_line_connect_s() -> float:
+    """s pyserial's ``socket://`` line waits for its TCP connection (its own, whatever the
+    driver's timeout)."""
+    from serial.urlhandler import protocol_socket
+
+    return float(protocol_socket.POLL_TIMEOUT)
+
+
+def server_problem(host: str, port: int, timeout: float) -> Diagnosis | None:
+    """What keeps a serial device server's TCP port from being reached, found by opening a
+    connection to it for a moment (no byte is sent).
+
+    Parameters
+    ----------
+    host : str
+        The device server's host name or address.
+    port : int
+        The TCP port of the module's serial line.
+    timeout : float
+        s the connection may take.
+
+    Returns
+    -------
+    Diagnosis or None
+        ``refused``, ``timeout``, ``unreachable``, ``unknown_host`` (or ``error``), naming
+        ``HOST:PORT``; None if the connection opens.
+    """
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            return None
+    except OSError as exc:
+        return _socket_error(host_port(host, port), exc.errno, exc, timeout, server=True)
 
 
 def diagnose(exc: BaseException, url: str, *, timeout: float = ldq412.HOST_TIMEOUT_S) -> Diagnosis:
@@ -417,11 +514,11 @@ def diagnose(exc: BaseException, url: str, *, timeout: float = ldq412.HOST_TIMEO
     Diagnosis
         Its cause, one of :data:`CAUSES`.
     """
-    where, options = _endpoint(url)
-    serial = "host" not in options
+    ep = endpoint(url)
+    where, options, serial = ep.where, ep.options, ep.serial
     code, os_error = errno_of(exc)
     if isinstance(exc, errors.DAQDisconnected):
-        if serial:
+        if ep.device:
             found = port_problem(where)
             if found is not None:
                 return found
@@ -431,8 +528,17 @@ def diagnose(exc: BaseException, url: str, *, timeout: float = ldq412.HOST_TIMEO
                 "was the adapter unplugged? `dmesg | tail`",
                 {"device": where},
             )
+        cut = code is None and not isinstance(os_error, (TimeoutError, socket.gaierror))
+        if ep.server and cut:  # pyserial's "socket disconnected": the device server hung up
+            return Diagnosis(
+                "lost",
+                f"{where} closed the connection: {exc}",
+                "the device server restarting, or taking the port for another client "
+                "(how many it takes is its setting)",
+            )
         if os_error is not None:
-            return _socket_error(where, code, os_error, timeout)
+            waited = _socket_line_connect_s() if ep.server else timeout
+            return _socket_error(where, code, os_error, waited, server=ep.server is not None)
         return Diagnosis(
             "closed",
             f"{where} accepts the connection but closes it without an answer",
@@ -440,7 +546,10 @@ def diagnose(exc: BaseException, url: str, *, timeout: float = ldq412.HOST_TIMEO
             "(another master connected?)",
         )
     who = f"unit {options['unit']}" if "unit" in options else f"address {options['addr']:02X}"
-    rate = f" at {options['baud']} baud" if serial else ""
+    rate = f" at {options['baud']} baud" if ep.device else ""
+    baud = (
+        "the device server's baud rate (its own, not the URL's)" if ep.server else "the baud rate"
+    )
     if isinstance(exc, errors.DAQIdentityError):
         return Diagnosis(
             "not_module",
@@ -459,10 +568,10 @@ def diagnose(exc: BaseException, url: str, *, timeout: float = ldq412.HOST_TIMEO
             return Diagnosis(
                 "garbled",
                 f"bytes arrive on {where}{rate} but no valid frame",
-                "the baud rate or parity is not the module's, or another device "
-                "talks on the line: `loopcal probe` tries the usual rates (with no "
-                "recorder running)",
-            )
+                f"{baud} or parity is not the module's, or another device talks on the line"
+                + ("" if ep.server else ": `loopcal probe` tries the usual rates (with no "
+                   "recorder running)"),
+            )  # fmt: skip
         return Diagnosis(
             "not_modbus",
             f"something answers at {where}, but not a valid Modbus TCP answer: {exc}",
@@ -471,7 +580,7 @@ def diagnose(exc: BaseException, url: str, *, timeout: float = ldq412.HOST_TIMEO
     if isinstance(exc, errors.DAQTimeout):
         if serial:
             hint = (
-                "the unit id or address, the baud rate or the checksum mode may not be the "
+                f"the unit id or address, {baud} or the checksum mode may not be the "
                 "module's (`loopcal probe` tries the others, with no recorder running), or the "
                 "module is off or its RS-485 pair swapped"
             )

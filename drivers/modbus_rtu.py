@@ -1,7 +1,8 @@
 """LDQ-412 over Modbus RTU on RS-485 (pymodbus ModbusSerialClient, RTU framer).
 
 URL: ``modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1&parity=N&stopbits=1&fifo=1``
-(datasheet defaults: 115200 baud, 8N1, unit 1).
+(datasheet defaults: 115200 baud, 8N1, unit 1), or ``modbus-rtu://HOST:PORT?unit=1`` for
+a line behind a serial device server in raw TCP mode (:mod:`loopcal.drivers.url`).
 
 An RTU answer carries no transaction id: nothing in it says which request it answers.
 The driver therefore has one request on the line at a time, and a request given up on
@@ -20,15 +21,17 @@ import time
 from collections.abc import Callable
 from typing import ClassVar, Unpack
 
+import serial
 from pymodbus.client import ModbusSerialClient
 from pymodbus.client.base import ModbusBaseSyncClient
 from pymodbus.framer import FramerRTU, FramerType
 
 from . import ldq412
-from .errors import DAQProtocolError, DAQTimeout
+from .errors import DAQDisconnected, DAQProtocolError, DAQTimeout
+from .lines import bytes_waiting
 from .modbus import FC_WRITE_SINGLE, ModbusDAQ, ModbusOptions
 from .sequence import RawSnapshot, signed_delta
-from .url import DaqUrl, serial_options
+from .url import DaqUrl, line_url, serial_options
 
 #: silence on the line that ends a drain after an error, s (many RTU frame times)
 QUIET_S = 0.005
@@ -74,6 +77,35 @@ def holds_answer(data: bytes, unit: int) -> bool:
     return False
 
 
+class _SerialClient(ModbusSerialClient):
+    """pymodbus' serial client whose ``connect`` raises the port's error (pyserial's
+    SerialException, an OSError) where pymodbus' logs it and returns False: the driver's
+    DAQDisconnected then carries it, and a device server's TCP port that refuses or cannot
+    be reached is told from one that does not answer (:mod:`loopcal.drivers.diagnosis`).
+    The port is opened as pymodbus opens it."""
+
+    def connect(self) -> bool:
+        if self.socket:
+            return True
+        params = self.comm_params
+        try:
+            self.socket = serial.serial_for_url(
+                params.host, timeout=params.timeout_connect,
+                write_timeout=params.timeout_connect, bytesize=params.bytesize,
+                stopbits=params.stopbits, baudrate=params.baudrate, parity=params.parity,
+                exclusive=True,
+            )  # fmt: skip
+        except Exception as exc:  # pyserial lets termios.error and ValueError through too
+            if isinstance(exc, OSError):
+                raise
+            raise serial.SerialException(f"could not open port {params.host}: {exc}") from exc
+        self.socket.inter_byte_timeout = self.inter_byte_timeout
+        return True
+
+    def _in_waiting(self) -> int:
+        return bytes_waiting(self.socket) if self.socket is not None else 0
+
+
 class ModbusRtuDAQ(ModbusDAQ):
     """LDQ-412 on RS-485,
     ``modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1&parity=N&stopbits=1&fifo=1``.
@@ -91,7 +123,9 @@ class ModbusRtuDAQ(ModbusDAQ):
     Parameters
     ----------
     port : str
-        Serial device, e.g. ``"/dev/ttyUSB0"``.
+        Serial device, e.g. ``"/dev/ttyUSB0"``, or a pyserial URL: a serial device
+        server's TCP port is ``"socket://HOST:PORT"`` (its baud rate, parity and stop bits
+        are the device server's settings; pyserial ignores these arguments on it).
     baud : int
         Line speed, baud (> 0; default 115200).
     parity : {"N", "E", "O"}
@@ -138,7 +172,7 @@ class ModbusRtuDAQ(ModbusDAQ):
         self.late_answers_discarded = 0
         self._suspect: RawSnapshot | None = None  # the last snapshot refused as stale
         self._heard = bytearray()  # drained while the line is kept for a late answer
-        super().__init__(f"modbus-rtu://{port}", {"baud": baud}, **options)
+        super().__init__(line_url("modbus-rtu", port), {"baud": baud}, **options)
 
     @classmethod
     def url_options(cls, url: DaqUrl) -> dict[str, object]:
@@ -148,7 +182,7 @@ class ModbusRtuDAQ(ModbusDAQ):
         }
 
     def _make_client(self, trace: Callable[[bool, bytes], bytes]) -> ModbusBaseSyncClient:
-        return ModbusSerialClient(
+        return _SerialClient(
             self.port,
             framer=FramerType.RTU,
             baudrate=self.baud,
@@ -169,10 +203,15 @@ class ModbusRtuDAQ(ModbusDAQ):
         DAQTimeout
             If a late answer may still come when the timeout is up (the next call goes on
             waiting for it).
+        DAQDisconnected
+            If the port does not open (the next call tries again).
         """
         client = self._client
-        if not client.connect() or client.socket is None:
-            return  # the next request reports DAQDisconnected
+        try:
+            client.connect()
+        except OSError as exc:
+            self._resync_needed = True
+            raise DAQDisconnected(f"{self.url}: cannot connect: {exc}") from exc
         ser = client.socket
         awaited = self._unanswered_at
         kept_until = 0.0 if awaited is None else awaited + max(LATE_ANSWER_S, self.timeout)
@@ -181,8 +220,8 @@ class ModbusRtuDAQ(ModbusDAQ):
         deadline = now + self.timeout
         try:
             while now < deadline:
-                if ser.in_waiting:
-                    heard += ser.read(ser.in_waiting)
+                if waiting := bytes_waiting(ser):
+                    heard += ser.read(waiting)
                     last_rx = now
                 elif now - last_rx >= QUIET_S and (
                     now >= kept_until or holds_answer(bytes(heard), self.unit)

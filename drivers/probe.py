@@ -4,7 +4,9 @@ and when it does not answer, finds out why, within a time budget (:data:`PROBE_B
 What it does, in order, each step only while the budget lasts:
 
 1. a serial device is looked at first (:func:`~loopcal.drivers.diagnosis.port_problem`):
-   missing, not a device, not this user's to open, held by another process;
+   missing, not a device, not this user's to open, held by another process; a serial
+   device server's TCP port (``ascii://HOST:PORT``) is connected to for a moment
+   (:func:`~loopcal.drivers.diagnosis.server_problem`): refused, no answer, no route;
 2. the URL as given is opened (identity read without refusing another model). If it
    answers: one scan (codes and volts, status: FIFO level and overflow, restart), the
    scan rate, and the round trip of five answers; another model is ``not_module``;
@@ -17,15 +19,18 @@ What it does, in order, each step only while the budget lasts:
    (:data:`USUAL_BAUDS`) and the other units or addresses, until one answers or the
    budget runs out: ``wrong_unit``, ``wrong_address``, ``wrong_checksum``, ``wrong_baud``
    name the setting that answers and the URL to use; else ``no_answer`` or ``garbled``
-   (bytes, but never a valid frame).
+   (bytes, but never a valid frame). A device server's line is at the rate the device
+   server is set to (pyserial ignores the URL's on a socket): no other rate is tried.
 
 Every try is in the report (:attr:`ProbeReport.tried`). A try is started only if its worst
-case (twice the answer timeout, and a margin) fits in what is left of the budget, so a
-probe ends within the budget.
+case (twice the answer timeout, and a margin; on a device server's line also the
+:data:`SOCKET_CLOSE_S` pyserial waits after closing it) fits in what is left of the
+budget, so a probe ends within the budget.
 
 Over ASCII a carriage return is sent alone before each try: it ends whatever a try at
 another rate left in the module's line buffer (garbage the module would otherwise take as
-the start of the next command); an empty frame gets no answer.
+the start of the next command); an empty frame gets no answer. On a device server's line,
+where every try is at one rate, only before the first (what another program left).
 """
 
 from __future__ import annotations
@@ -40,7 +45,7 @@ from urllib.parse import urlencode
 from . import ldq412
 from .ascii import AsciiDAQ, encode_command, parse_scan
 from .base import DAQ
-from .diagnosis import Diagnosis, diagnose, errno_of, port_problem
+from .diagnosis import Diagnosis, diagnose, endpoint, errno_of, port_problem, server_problem
 from .errors import (
     DAQDisconnected,
     DAQError,
@@ -64,6 +69,9 @@ RTT_READS = 5
 MARGIN_S = 0.25
 #: bytes of a non-Modbus server's answer kept for the report
 PEEK_BYTES = 120
+#: s pyserial waits after closing a device server's line (``socket://``, for a quick
+#: reconnect): a try there that fails, and so closes it, costs that much more
+SOCKET_CLOSE_S = 0.3
 
 
 def with_params(url: DaqUrl, changes: dict[str, str]) -> str:
@@ -242,13 +250,10 @@ class _Prober:
     def __init__(self, url: str, timeout: float, budget: float) -> None:
         self.url = url
         self.cls, self.parsed = driver_for_url(url)
-        self.options = self.cls.url_options(self.parsed)
-        self.serial = "host" not in self.options
-        self.where = (
-            str(self.options["port"])
-            if self.serial
-            else f"{self.options['host']}:{self.options['port']}"
-        )
+        ep = endpoint(url)
+        self.options, self.serial, self.where, self.server = (
+            ep.options, ep.serial, ep.where, ep.server
+        )  # fmt: skip
         self.timeout = timeout
         self.budget = budget
         self.t0 = time.monotonic()
@@ -258,15 +263,16 @@ class _Prober:
     # -- tries ----------------------------------------------------------------------------
 
     def affordable(self) -> bool:
-        """Whether a try's worst case (two answer timeouts and the margin) fits in the
-        budget that is left."""
-        return self.deadline - time.monotonic() >= 2 * self.timeout + MARGIN_S
+        """Whether a try's worst case (two answer timeouts and the margin, and a device
+        server's line closed) fits in the budget that is left."""
+        closing = SOCKET_CLOSE_S if self.server else 0.0
+        return self.deadline - time.monotonic() >= 2 * self.timeout + MARGIN_S + closing
 
     def attempt(self, changes: dict[str, str]) -> tuple[DAQ | None, DAQError | None, str]:
         """Open the URL with ``changes``: the driver (connected, identity read) or the error."""
         url = with_params(self.parsed, changes) if changes else self.url
         parsed = parse_url(url)
-        if issubclass(self.cls, AsciiDAQ):
+        if issubclass(self.cls, AsciiDAQ) and (self.server is None or not self.tried):
             self._clear_line(self.cls.url_options(parsed))
         t = time.monotonic()
         try:
@@ -290,10 +296,10 @@ class _Prober:
         import serial
 
         try:
-            with serial.Serial(
+            with serial.serial_for_url(
                 str(options["port"]),
                 int(options["baud"]),
-                timeout=0,  # type: ignore[call-overload]
+                timeout=0,
                 write_timeout=self.timeout,
                 exclusive=True,
             ) as ser:
@@ -336,7 +342,7 @@ class _Prober:
             yield {key: fmt.format(default)}
         if key == "addr":  # the module's checksum mode may be the other one
             yield {"checksum": "0" if o["checksum"] else "1"}
-        for rate in USUAL_BAUDS:
+        for rate in USUAL_BAUDS if self.server is None else ():  # a device server: its own
             for unit in ids:
                 if (rate, unit) not in seen:
                     seen.add((rate, unit))
@@ -347,7 +353,10 @@ class _Prober:
 
     def run(self) -> ProbeReport:
         if self.serial:
-            problem = port_problem(self.where)
+            if self.server:
+                problem = server_problem(*self.server, self.timeout)
+            else:
+                problem = port_problem(self.where)
             if problem is not None:
                 return self.report(problem)
         daq, exc, _ = self.attempt({})
@@ -366,7 +375,7 @@ class _Prober:
 
     def port_or(self, exc: DAQError) -> Diagnosis:
         """What is wrong with the serial device, else what the error says."""
-        found = port_problem(self.where) if self.serial else None
+        found = port_problem(self.where) if self.serial and not self.server else None
         return found or diagnose(exc, self.url, timeout=self.timeout)
 
     def search(self, first: DAQError) -> ProbeReport:
@@ -612,7 +621,7 @@ class _Prober:
         parts = []
         for ids, rates in groups.items():
             part = f"{words[len(ids) > 1]} {_ranges(list(ids), fmt)}"
-            if self.serial:
+            if self.serial and not self.server:
                 part += f" at {', '.join(map(str, rates))} baud"
             parts.append(part)
         tried = "; ".join(parts)
@@ -631,7 +640,13 @@ class _Prober:
                 "module does not use, or noise: ground, termination",
                 {"garbled_tries": len(garbled)},
             )
-        if self.serial:
+        if self.server:
+            hint = (
+                "is the module powered, its RS-485 pair A/B the right way round, wired to "
+                "this port of the device server, and the device server set to its baud rate "
+                "and parity?"
+            )
+        elif self.serial:
             hint = (
                 "is the module powered, its RS-485 pair A/B the right way round, and the "
                 "adapter the one it is wired to? (`dmesg | tail` after plugging it in)"

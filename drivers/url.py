@@ -7,6 +7,14 @@ interfaces do::
     modbus-tcp://host:port?unit=1[&fifo=1]
     modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1[&parity=N&stopbits=1&fifo=1]
     ascii:///dev/ttyUSB0?baud=115200&addr=01&checksum=1
+    modbus-rtu://host:port?unit=1[&baud=115200&parity=N&stopbits=1&fifo=1]
+    ascii://host:port?addr=01&checksum=1[&baud=115200]
+
+The last two reach the serial line through a serial device server in raw TCP mode (a Moxa
+NPort's "TCP server" mode): its TCP port carries the line's bytes unchanged. The drivers
+open it as pyserial's ``socket://host:port`` (:func:`socket_line`; :func:`device_server`
+reads one back, :func:`line_url` writes one as a URL again); the line's rate, parity and
+stop bits are then the device server's settings, which pyserial ignores on a socket.
 
 Nothing here knows the drivers: :mod:`loopcal.drivers.registry` picks one by the scheme.
 """
@@ -31,13 +39,15 @@ class DaqUrl:
     scheme : str
         The scheme in lower case, e.g. ``"modbus-tcp"``.
     host : str or None
-        Network host, lower case (None for serial URLs, ``ascii:///dev/ttyUSB0``).
+        Network host, lower case, without an IPv6 address's brackets (None for a serial
+        device's URL, ``ascii:///dev/ttyUSB0``).
     port : int or None
         Network port, or None if the URL gives none.
     path : str
         Serial device: the URL's path (``"/dev/ttyUSB0"`` in ``ascii:///dev/ttyUSB0``),
         or its netloc if it has no path and no port (``"COM3"`` in ``ascii://COM3``);
-        ``""`` for a network URL with a port.
+        ``""`` for a URL with a host and a port and no path (a network URL, or a serial
+        device server's, ``ascii://192.168.1.60:4001``).
     params : Mapping[str, str]
         Query parameters, every value a string as written (read-only).
     raw : str
@@ -207,6 +217,94 @@ def parse_url(url: str) -> DaqUrl:
 MAX_BAUD = 4_000_000
 
 
+#: the scheme of pyserial's URL of a raw TCP line (a serial device server's port)
+SOCKET_SCHEME = "socket"
+
+
+def host_port(host: str, port: int) -> str:
+    """``HOST:PORT`` as a URL writes it (an IPv6 address in brackets).
+
+    Parameters
+    ----------
+    host : str
+        Host name or address, without brackets.
+    port : int
+        TCP port.
+
+    Returns
+    -------
+    str
+        E.g. ``"192.168.1.60:4001"``, ``"[fe80::1]:4001"``.
+    """
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+def socket_line(host: str, port: int) -> str:
+    """The serial line behind a serial device server's TCP port, as pyserial opens it.
+
+    Parameters
+    ----------
+    host : str
+        The device server's host name or address (an IPv6 address without brackets).
+    port : int
+        Its TCP port that carries the line's bytes (raw TCP server mode).
+
+    Returns
+    -------
+    str
+        ``"socket://HOST:PORT"`` (pyserial's ``serial_for_url`` opens it).
+    """
+    return f"{SOCKET_SCHEME}://{host_port(host, port)}"
+
+
+def device_server(line: str) -> tuple[str, int] | None:
+    """The serial device server a serial line is reached through, if it is one.
+
+    Parameters
+    ----------
+    line : str
+        A serial driver's ``port``: a device (``"/dev/ttyUSB0"``) or a pyserial URL.
+
+    Returns
+    -------
+    tuple of (str, int) or None
+        ``(host, port)`` (the host in lower case, without brackets) for
+        ``"socket://HOST:PORT"`` (:func:`socket_line`); None for anything else, a device
+        or another pyserial URL.
+    """
+    if not line.startswith(f"{SOCKET_SCHEME}://"):  # pyserial's own test: lower case only
+        return None
+    parts = urlsplit(line)
+    try:
+        port = parts.port
+    except ValueError:
+        return None
+    if not parts.hostname or port is None:
+        return None
+    return parts.hostname, port
+
+
+def line_url(scheme: str, line: str) -> str:
+    """A serial line written as a URL of a driver's scheme, without the query: what
+    :func:`parse_url` and :func:`serial_options` read back as the same line.
+
+    Parameters
+    ----------
+    scheme : str
+        The driver's scheme, e.g. ``"ascii"``.
+    line : str
+        The driver's ``port``: a device, or ``"socket://HOST:PORT"``.
+
+    Returns
+    -------
+    str
+        ``"SCHEME://HOST:PORT"`` for a device server's line (:func:`device_server`),
+        ``"SCHEME://DEVICE"`` (``"ascii:///dev/ttyUSB0"``) for anything else.
+    """
+    server = device_server(line)
+    return f"{scheme}://{host_port(*server) if server else line}"
+
+
 def serial_options(url: DaqUrl, example: str) -> dict[str, object]:
     """The serial line a URL names, every value checked (for the serial drivers'
     :meth:`DAQ.url_options`).
@@ -214,26 +312,42 @@ def serial_options(url: DaqUrl, example: str) -> dict[str, object]:
     Parameters
     ----------
     url : DaqUrl
-        A parsed serial URL.
+        A parsed serial URL: a device in its path (``ascii:///dev/ttyUSB0``, or
+        ``ascii://COM3``), or a serial device server's host and TCP port
+        (``ascii://192.168.1.60:4001``, no path).
     example : str
-        A URL of the scheme with a port, quoted in the error if the URL has none.
+        A URL of the scheme with a device, quoted in the error if the URL names no line.
 
     Returns
     -------
     dict
-        ``port`` (the URL's path), ``baud`` (1..:data:`MAX_BAUD`, default 115200),
-        ``parity`` (``"N"``, ``"E"`` or ``"O"``, default ``"N"``) and ``stopbits`` (1 or
-        2, default 1): the datasheet's 115200 8N1 unless the URL says otherwise.
+        ``port``: the line as ``serial.serial_for_url`` opens it, the URL's path (a
+        device) or, for a host and port, ``"socket://HOST:PORT"`` (:func:`socket_line`);
+        ``baud`` (1..:data:`MAX_BAUD`, default 115200), ``parity`` (``"N"``, ``"E"`` or
+        ``"O"``, default ``"N"``) and ``stopbits`` (1 or 2, default 1): the datasheet's
+        115200 8N1 unless the URL says otherwise. On a device server's line these three
+        are checked alike but only say what its serial side is set to: pyserial ignores
+        them on a socket.
 
     Raises
     ------
     ValueError
-        If the URL names no port or a value is out of range, naming the URL.
+        If the URL names neither a device nor a host and a TCP port (1..65535), or a value
+        is out of range, naming the URL.
     """
-    if not url.path:
-        raise ValueError(f"{url.raw}: no serial port ({example})")
+    if url.path:
+        line = url.path
+    elif url.host and url.port:
+        line = socket_line(url.host, url.port)
+    elif url.host and url.port == 0:
+        raise ValueError(f"{url.raw}: port 0 is not a TCP port")
+    else:
+        raise ValueError(
+            f"{url.raw}: no serial port ({example}, or {url.scheme}://HOST:PORT for a "
+            "serial device server's TCP port)"
+        )
     return {
-        "port": url.path,
+        "port": line,
         "baud": url.get_int("baud", ldq412.SERIAL_BAUD, lo=1, hi=MAX_BAUD),
         "parity": url.get_choice("parity", "N", ("N", "E", "O")),
         "stopbits": url.get_int("stopbits", 1, lo=1, hi=2),

@@ -14,9 +14,10 @@ Two URLs name the same module when they reach the same endpoint from this host:
 - Modbus TCP: the host's address (a name is resolved; every loopback address is one),
   the port (502 by default) and the unit (1 by default);
 - a serial line (Modbus RTU, ASCII): the device, its symlinks resolved
-  (``/dev/serial/by-id/...`` is the ``/dev/ttyUSB0`` it points to). A serial port is
-  one process's at a time whatever the unit or address on the bus (the drivers also open
-  it exclusively), so the lock is the port's.
+  (``/dev/serial/by-id/...`` is the ``/dev/ttyUSB0`` it points to), or, for a line behind
+  a serial device server (``ascii://HOST:PORT``), the device server's address and TCP
+  port, as Modbus TCP's. A serial port is one process's at a time whatever the unit or
+  address on the bus (the drivers also open it exclusively), so the lock is the port's.
 
 The lock files live in the runtime directory (:func:`runtime_directory`), which every
 loopcal process on the host must agree on: ``$LOOPCAL_RUNTIME_DIR`` if set, else
@@ -41,6 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from loopcal.drivers import driver_for_url
+from loopcal.drivers.url import device_server
 
 from ..times import time_text
 
@@ -92,12 +94,14 @@ def module_key(url: str) -> str:
     Parameters
     ----------
     url : str
-        A driver URL (``modbus-tcp://...``, ``modbus-rtu:///dev/...``, ``ascii:///dev/...``).
+        A driver URL (``modbus-tcp://...``, ``modbus-rtu:///dev/...``, ``ascii:///dev/...``,
+        or a serial device server's ``modbus-rtu://HOST:PORT``, ``ascii://HOST:PORT``).
 
     Returns
     -------
     str
-        ``"modbus-tcp ADDRESS:PORT unit N"`` or ``"serial DEVICE"``.
+        ``"modbus-tcp ADDRESS:PORT unit N"``, ``"serial DEVICE"`` or, for a line behind a
+        device server, ``"serial-tcp ADDRESS:PORT"`` (whatever the scheme, unit or address).
 
     Raises
     ------
@@ -111,6 +115,9 @@ def module_key(url: str) -> str:
         port = int(options["port"])  # type: ignore[call-overload]
         return f"{parsed.scheme} {_address(host, port)}:{port} unit {options.get('unit', 1)}"
     device = str(options["port"])
+    server = device_server(device)
+    if server is not None:
+        return f"serial-tcp {_address(*server)}:{server[1]}"
     return f"serial {os.path.realpath(device) if device.startswith('/') else device}"
 
 

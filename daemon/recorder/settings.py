@@ -95,7 +95,9 @@ class RecorderSettings:
         kind="url", key="[daq].url", option="--daq", metavar="URL",
         help="driver URL, e.g. modbus-tcp://192.168.1.50:502?unit=1, "
              "modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1 or "
-             "ascii:///dev/ttyS0?baud=115200&addr=01&checksum=0 (docs/daq.md lists every "
+             "ascii:///dev/ttyS0?baud=115200&addr=01&checksum=0; a serial line behind a "
+             "serial device server is modbus-rtu://HOST:PORT?unit=1 or "
+             "ascii://HOST:PORT?addr=01 (docs/daq.md, \"Driver URLs\", lists every "
              "parameter)")  # fmt: skip
     directory: Path = _setting(
         kind="path", key="[recording].directory", option="--out", metavar="DIR",

@@ -2,8 +2,8 @@
 it shown on a real part (a closed port, a listener that never accepts, servers of other
 protocols, a Modbus device of another model, the emulator at another unit id, ASCII
 address, checksum mode or line rate, a line where another device talks, a missing
-device, a port another process holds); and ``diagnose``, the recorder's words for a
-driver's error.
+device, a port another process holds, a serial device server's TCP port that refuses);
+and ``diagnose``, the recorder's words for a driver's error.
 
 Every probe must end within its budget, read from its own report (``elapsed_s``). The
 bound is the design's: a try is started only while twice its answer timeout and a margin
@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import pytest
 
-from loopcal.drivers import driver_for_url, ldq412, open_daq
-from loopcal.drivers.diagnosis import CAUSES, diagnose, serial_ports
+from loopcal.drivers import DAQDisconnected, driver_for_url, ldq412, open_daq
+from loopcal.drivers.diagnosis import CAUSES, diagnose, errno_of, serial_ports
 from loopcal.drivers.errors import DAQError
 from loopcal.drivers.probe import PROBE_BUDGET_S, ProbeReport, probe
 from loopcal.simulator.clock import ManualClock
@@ -236,7 +236,7 @@ def test_diagnose_names_the_cause_of_a_drivers_error() -> None:
     with tcp_server("echo") as port:
         url = f"modbus-tcp://127.0.0.1:{port}"
         assert diagnose(_error(url), url).cause == "not_modbus"
-    url = "modbus-rtu:///dev/ttyUSB-loopcal-none"  # pymodbus says only "cannot connect"
+    url = "modbus-rtu:///dev/ttyUSB-loopcal-none"  # the device is looked at
     found = diagnose(_error(url), url)
     assert found.cause == "no_device" and "no such device" in found.message
     with Emulator("modbus-tcp", clock=ManualClock()) as emu:
@@ -248,3 +248,19 @@ def test_diagnose_names_the_cause_of_a_drivers_error() -> None:
         url = f"modbus-rtu://{path}?baud=9600"
         found = diagnose(_error(url), url)
     assert found.cause == "garbled" and "9600 baud" in found.message
+
+
+@pytest.mark.parametrize("scheme", ["ascii", "modbus-rtu"])
+def test_a_device_server_that_refuses_is_named_by_its_host_and_port(scheme: str) -> None:
+    port = free_port()  # bound, its number taken, closed: nothing listens there
+    url = f"{scheme}://127.0.0.1:{port}"
+    with pytest.raises(DAQDisconnected) as caught:
+        open_daq(url, timeout=0.25)
+    _, os_error = errno_of(caught.value)  # pyserial's error's __context__
+    assert isinstance(os_error, ConnectionRefusedError), caught.value
+    found = diagnose(caught.value, url, timeout=0.25)
+    assert found.cause == "refused", found
+    assert found.message == f"nothing listens at 127.0.0.1:{port} (connection refused)"
+    assert "device server" in found.hint
+    report = _probe(url, timeout=0.25)  # the device server is connected to first
+    assert (report.cause, report.message, report.tried) == ("refused", found.message, [])

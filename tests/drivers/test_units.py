@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 
 from loopcal.drivers import ascii as asc
-from loopcal.drivers import ldq412, open_daq, parse_url
+from loopcal.drivers import driver_for_url, ldq412, open_daq, parse_url
 from loopcal.drivers.errors import DAQError, DAQInvalidCommand, DAQProtocolError, DAQTimeout
 from loopcal.drivers.modbus import format_firmware, parse_fifo, parse_snapshot
 from loopcal.drivers.records import Identity, Scan
 from loopcal.drivers.registry import registered_schemes
 from loopcal.drivers.sequence import RawSnapshot, Sequencer, derived_status, period_ticks_us
+from loopcal.drivers.url import device_server, line_url, serial_options, socket_line
 
 U32 = ldq412.U32_MOD
 R = ldq412.STATUS_RESTART
@@ -49,6 +50,9 @@ def test_schemes_registered() -> None:
             {"baud": "115200", "addr": "01", "checksum": "1"},
         ),
         ("ascii://COM3?addr=0A", "com3", None, "COM3", {"addr": "0A"}),
+        # a serial line behind a serial device server: a host and a TCP port, no path
+        ("modbus-rtu://192.168.1.60:4001?unit=1", "192.168.1.60", 4001, "", {"unit": "1"}),
+        ("ascii://[FE80::1]:4001/?addr=01", "fe80::1", 4001, "", {"addr": "01"}),
     ],
 )
 def test_parse_url(
@@ -73,11 +77,48 @@ def test_parse_url(
         "ascii:///dev/x?checksum=2",
         "ascii:///dev/x?addr=100",
         "ascii:///dev/x?addr=zz",
+        "ascii://10.0.0.2:0",  # a device server's port 0
+        "modbus-rtu://10.0.0.2:4001?baud=0",  # a device server's line: its settings checked
     ],
 )
 def test_bad_urls_raise_value_error_before_any_io(url: str) -> None:
     with pytest.raises(ValueError):
         open_daq(url)
+
+
+@pytest.mark.parametrize(("url", "line"), [
+    ("ascii://192.168.1.60:4001?addr=01&checksum=0", "socket://192.168.1.60:4001"),
+    ("modbus-rtu://NPort.local:4002?unit=1&baud=9600", "socket://nport.local:4002"),
+    ("modbus-rtu://[fe80::1]:4001", "socket://[fe80::1]:4001"),
+    ("ascii:///dev/ttyUSB0", "/dev/ttyUSB0"),
+    ("ascii://COM3", "COM3"),
+])  # fmt: skip
+def test_a_host_and_port_is_a_device_servers_line(url: str, line: str) -> None:
+    cls, parsed = driver_for_url(url)
+    options = cls.url_options(parsed)
+    assert options["port"] == line
+    server = device_server(line)
+    assert server == ((parsed.host, parsed.port) if parsed.port else None)
+    if server:
+        assert socket_line(*server) == line
+    # written as a URL again, the line is the same one
+    again = parse_url(line_url(parsed.scheme, line))
+    assert serial_options(again, "x")["port"] == line
+
+
+def test_a_device_servers_line_keeps_its_serial_settings_checked() -> None:
+    options = serial_options(parse_url("ascii://10.0.0.2:4001?baud=9600&parity=E&stopbits=2"), "")
+    assert (options["baud"], options["parity"], options["stopbits"]) == (9600, "E", 2)
+    for bad, words in [
+        ("ascii://10.0.0.2:4001?baud=0", "baud=0 is outside"),
+        ("modbus-rtu://10.0.0.2:4001?parity=Q", "parity='Q' is not one of"),
+        ("ascii://10.0.0.2:0", "port 0 is not a TCP port"),
+        ("modbus-rtu://?unit=1", "or modbus-rtu://HOST:PORT for a serial device server"),
+    ]:
+        with pytest.raises(ValueError, match=words):
+            driver_for_url(bad)
+    assert device_server("socket://h") is None and device_server("rfc2217://h:4001") is None
+    assert line_url("ascii", "socket://[::1]:4001") == "ascii://[::1]:4001"
 
 
 # --------------------------------------------------------------------------- ASCII frames

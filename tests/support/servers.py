@@ -26,19 +26,25 @@ HTTP_ANSWER = b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\nConnection: clo
 
 
 @contextmanager
-def tcp_server(kind: str) -> Iterator[int]:
-    """A TCP server on 127.0.0.1 that speaks no Modbus; yields its port.
+def tcp_server(kind: str | Callable[[bytearray], bytes]) -> Iterator[int]:
+    """A TCP server on 127.0.0.1 that speaks no Modbus TCP; yields its port.
 
     kind: ``echo`` (sends back what it gets), ``http`` (answers 400 and closes), ``close``
-    (closes every connection at its first bytes) or ``silent`` (reads, never answers).
+    (closes every connection at its first bytes), ``silent`` (reads, never answers), or a
+    function that answers a connection's bytes so far (a module on a serial device
+    server's line): it takes what it answers off the buffer and returns the answer.
     """
     listener = socket.create_server(("127.0.0.1", 0))
     conns: list[socket.socket] = []
 
     def serve(conn: socket.socket) -> None:
+        buffer = bytearray()
         with conn:
             while data := _recv(conn):
-                if kind == "echo":
+                if callable(kind):
+                    buffer += data
+                    conn.sendall(kind(buffer))
+                elif kind == "echo":
                     conn.sendall(data)
                 elif kind == "http":
                     conn.sendall(HTTP_ANSWER)

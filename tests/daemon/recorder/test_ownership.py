@@ -47,6 +47,16 @@ def test_urls_of_one_module_share_a_key_and_others_do_not(tmp_path):
     keys = {module_key(f"modbus-rtu://{device}?unit=1"), module_key(f"modbus-rtu://{device}?unit=9"),
             module_key(f"ascii://{tmp_path / 'by-id'}?addr=02")}  # fmt: skip
     assert keys == {f"serial {device}"}
+    # a serial line behind a device server: its address and TCP port, whatever the scheme
+    # or the unit, as Modbus TCP's host is
+    server = {module_key("modbus-rtu://127.0.0.1:4001?unit=1"),
+              module_key("ascii://localhost:4001?addr=02&baud=9600"),
+              module_key("modbus-rtu://[::1]:4001?unit=7")}  # fmt: skip
+    assert server == {"serial-tcp loopback:4001"}
+    assert module_key("ascii://10.1.2.3:4001") == "serial-tcp 10.1.2.3:4001"
+    apart = {module_key("ascii://10.1.2.3:4001"), module_key("ascii://10.1.2.3:4002"),
+             module_key("modbus-tcp://10.1.2.3:4001"), *server}  # fmt: skip
+    assert len(apart) == 4
 
 
 def test_a_bad_url_is_a_value_error_naming_it():
