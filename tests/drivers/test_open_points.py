@@ -31,6 +31,7 @@ from tests.support.drivers import (
     check_against_truth,
     open_ok,
     read_ok,
+    real_time,
     timed_reads,
 )
 
@@ -113,7 +114,8 @@ def test_overflow_recovery_keeps_what_arrived_while_reading(transport: str) -> N
     fixed = ldq412.HOST_TIMEOUT_S * 1000 / 10  # 10 ms
     ms = fixed / 2 if transport == "modbus-rtu" else fixed
     op = OpenPoints(latency=Latency(min_ms=ms, max_ms=ms))
-    with Emulator(transport, clock=RealClock(), scan_rate_hz=200, open_points=op) as emu:
+    with Emulator(transport, clock=RealClock(), scan_rate_hz=200, open_points=op,
+                  **real_time(transport)) as emu:
         daq = open_ok(emu.url, timeout=OK_TIMEOUT)
         try:
             calls = timed_reads(daq, until=0.0)

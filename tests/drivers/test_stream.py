@@ -1,7 +1,8 @@
 """The scan stream, ``DAQ.scans()`` and ``for scan in daq``, against the emulated LDQ-412.
 
-Real transports (Modbus TCP on 127.0.0.1, Modbus RTU and ASCII on pseudo-terminals) on a
-real clock at the datasheet's 20 Hz, through the pytest plugin's ``ldq412`` fixture; the
+Real transports (Modbus TCP on 127.0.0.1, Modbus RTU and ASCII through a serial device
+server on 127.0.0.1, or on pseudo-terminals where the clock is the test's) on a real clock
+at the datasheet's 20 Hz, through the pytest plugin's ``ldq412`` fixture; the
 README's example is run as it stands in a process of its own. The pacers' logic is also
 run against a simulated module's edges (no transport) over minutes of scans.
 """
@@ -23,10 +24,12 @@ from loopcal.drivers import DAQDisconnected, DAQError, DAQTimeout, Scan, ldq412,
 from loopcal.drivers.pacing import FIFO_READ_PERIOD_S, FifoPacer, PollPacer
 from loopcal.simulator.open_points import OpenPoints
 from tests.support import ROOT
-from tests.support.drivers import open_ok, worst_call_s
+from tests.support.drivers import open_ok, real_time, real_time_params, worst_call_s
 
 TRANSPORTS = ["modbus-tcp", "modbus-rtu", "ascii"]
 MODBUS = ["modbus-tcp", "modbus-rtu"]
+#: the module on a real clock: serial lines behind the emulated device server (real_time)
+REAL_TIME = real_time_params(TRANSPORTS)
 RATE = 20  # the datasheet's default, the fixture's
 PERIOD = 1.0 / RATE
 # Driver timeouts: generous where none is expected (a loaded machine has held a pty's bytes
@@ -68,8 +71,11 @@ def span(scans: list[Scan]) -> int:
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("ldq412", "polled"),
-    [("modbus-tcp", False), ("modbus-tcp", True), ("modbus-rtu", False), ("ascii", False)],
+    [("modbus-tcp", False), ("modbus-tcp", True),
+     ({"transport": "modbus-rtu", **real_time("modbus-rtu")}, False),
+     ({"transport": "ascii", **real_time("ascii")}, False)],
     indirect=["ldq412"],
+    ids=["modbus-tcp-False", "modbus-tcp-True", "modbus-rtu-False", "ascii-False"],
 )
 def test_stream_yields_every_scan_once_until_duration(ldq412, polled: bool) -> None:
     duration = 3.0
@@ -99,7 +105,8 @@ def test_stream_yields_every_scan_once_until_duration(ldq412, polled: bool) -> N
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "ldq412",
-    [{"transport": "ascii", "open_points": OpenPoints(clock_ppm=ppm)} for ppm in (1000, -1000)],
+    [{"transport": "ascii", **real_time("ascii"), "open_points": OpenPoints(clock_ppm=ppm)}
+     for ppm in (1000, -1000)],
     indirect=True,
     ids=["1000ppm-fast", "1000ppm-slow"],
 )
@@ -114,7 +121,7 @@ def test_polls_follow_a_module_whose_clock_is_off(ldq412) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
+@pytest.mark.parametrize("ldq412", REAL_TIME, indirect=True)
 def test_iterating_the_daq_is_the_stream(ldq412) -> None:
     with open_daq(ldq412.url, timeout=OK_TIMEOUT) as daq:
         scans: list[Scan] = []
@@ -129,7 +136,7 @@ def test_iterating_the_daq_is_the_stream(ldq412) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("ldq412", MODBUS, indirect=True)
+@pytest.mark.parametrize("ldq412", real_time_params(MODBUS), indirect=True)
 def test_a_stream_left_mid_batch_keeps_the_rest_for_the_next_read(ldq412) -> None:
     with open_daq(ldq412.url, timeout=OK_TIMEOUT) as daq:
         ldq412.wait_scans(30)  # the first FIFO read brings at least 30 scans at once
@@ -143,7 +150,7 @@ def test_a_stream_left_mid_batch_keeps_the_rest_for_the_next_read(ldq412) -> Non
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
+@pytest.mark.parametrize("ldq412", REAL_TIME, indirect=True)
 def test_a_stalled_module_raises_daqtimeout_after_the_timeout(ldq412) -> None:
     timeout = 0.6
     with open_ok(ldq412.url, timeout=STALL_TIMEOUT) as daq:
@@ -171,7 +178,7 @@ def test_a_stalled_module_raises_daqtimeout_after_the_timeout(ldq412) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
+@pytest.mark.parametrize("ldq412", REAL_TIME, indirect=True)
 def test_a_stall_shorter_than_the_timeout_is_ridden_out(ldq412) -> None:
     with open_ok(ldq412.url, timeout=STALL_TIMEOUT) as daq:
         scans: list[Scan] = []
@@ -215,7 +222,7 @@ def test_a_module_that_answers_but_makes_no_scans_raises_daqtimeout(ldq412) -> N
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
+@pytest.mark.parametrize("ldq412", REAL_TIME, indirect=True)
 @pytest.mark.ldq412(speed=4)  # a power cycle's 2 s dark take 0.5 s
 def test_a_power_cycle_in_the_stream(ldq412) -> None:
     with open_ok(ldq412.url, timeout=STALL_TIMEOUT) as daq:
@@ -286,7 +293,7 @@ def readme_drivers_example() -> str:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("ldq412", TRANSPORTS, indirect=True)
+@pytest.mark.parametrize("ldq412", REAL_TIME, indirect=True)
 def test_the_readme_example_streams_scans(ldq412) -> None:
     code = readme_drivers_example()
     urls = re.findall(r'open_daq\("([^"]+)"\)', code)

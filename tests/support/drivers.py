@@ -9,6 +9,8 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 
+import pytest
+
 from loopcal.drivers import DAQ, Scan, ldq412, open_daq
 from loopcal.drivers.errors import DAQDisconnected, DAQError, DAQProtocolError, DAQTimeout
 from loopcal.simulator.clock import ManualClock
@@ -30,6 +32,25 @@ LOW_BITS = 0xFF  # rail + fault bits (latched bits depend on when the status was
 # pty device (tests/drivers/test_ascii_pty.py).
 OK_TIMEOUT = 3.0
 TIMEOUT = 0.25
+
+
+def real_time(transport: str) -> dict[str, str]:
+    """The emulator's keyword arguments for a test of ``transport`` on a real clock: a
+    serial transport behind the emulated serial device server (``line="tcp"``,
+    :mod:`loopcal.simulator.device_server`), Modbus TCP as it is.
+
+    A pseudo-terminal's stalls (above) are the kernel's, not the driver's: on a real clock
+    the module goes on scanning through them and the FIFO overflows or a poll misses, which
+    a test of the driver cannot tell from a fault of its own. Loopback TCP carries the same
+    bytes without them. The tests of the tty itself (its rate, a port held by another
+    program, a cut cable's lost bytes) and those on a manual clock stay on the pty."""
+    return {} if transport == "modbus-tcp" else {"line": "tcp"}
+
+
+def real_time_params(transports: list[str]) -> list:
+    """``transports`` as indirect parameters of the ``ldq412`` fixture, served as
+    :func:`real_time` says (ids: the transports)."""
+    return [pytest.param({"transport": t, **real_time(t)}, id=t) for t in transports]
 
 
 def worst_call_s(timeout: float) -> float:

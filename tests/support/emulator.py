@@ -76,19 +76,21 @@ def hand_emulator(
     clock: Clock | None = None,
     open_points: OpenPoints | None = None,
     motion: Scenario | None = None,
+    line: str = "pty",
 ) -> Emulator:
     """An emulated LDQ-412 on a technician-moved shoulder joint (not started), whose clock
     (``speed`` times wall time) starts at the recorder's first request: however long the
     recorder subprocess takes to start on a busy machine, the FIFO (1.28 s deep at 200 Hz)
     does not overflow before it connects. ``clock``: another clock instead (``speed`` is
     then not used); ``open_points``: the emulator's settings for what the datasheet leaves
-    open; ``motion``: another scenario than the technician's hand (a task loop)."""
+    open; ``motion``: another scenario than the technician's hand (a task loop); ``line``:
+    a serial transport's line (tests.support.drivers.real_time)."""
     if clock is None:
         clock = HeldClock(speed)  # the emulator starts it at the first request
     source = MechanismSource(motion or HandMoves(seed), NOMINAL, noise_volts=0.04, seed=seed,
                              drifts=drifts)  # fmt: skip
     return Emulator(transport, source, scan_rate_hz=rate, clock=clock, seed=seed,
-                    open_points=open_points)  # fmt: skip
+                    open_points=open_points, line=line)  # fmt: skip
 
 
 def truth_table(emu: Emulator) -> dict[tuple[int, int], tuple[int, tuple[int, ...]]]:

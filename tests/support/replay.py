@@ -11,19 +11,23 @@ from pathlib import Path
 
 import numpy as np
 
+from .drivers import real_time
 from .processes import Proc, listening_url, record
 
 
 def replay_and_record(
     src: Path, out: Path, transport: str, speed: float, *options: str
 ) -> tuple[Proc, Proc]:
-    """``loopcal replay SRC [options]`` and ``loopcal record`` reading it (both running).
+    """``loopcal replay SRC [options]`` and ``loopcal record`` reading it (both running); a
+    serial transport behind the replay's device server (``--line tcp``: the replay runs on
+    a real clock, tests.support.drivers.real_time).
 
     The recorder waits 3 s for an answer (the datasheet's 0.1 s, and 2.5 s for a FIFO
     read, by default): a loaded machine has held a pseudo-terminal's bytes back for 2.7 s
     (tests/support/drivers.py), and a FIFO answer given up on takes its scans with it."""
+    line = ["--line", real_time(transport)["line"]] if real_time(transport) else []
     player = Proc(["replay", str(src), "--transport", transport, "--speed", f"{speed:g}",
-                   *options])  # fmt: skip
+                   *line, *options])  # fmt: skip
     return player, record(
         listening_url(player, timeout=30), out, "--read-period", "0.05", "--timeout", "3"
     )
@@ -63,7 +67,7 @@ class PlayerThread:
 def replay_in_process(
     rows: np.ndarray, out: Path, transport: str, rate: int, speed: float, **kw
 ) -> tuple[PlayerThread, Proc]:
-    player = PlayerThread(rows, transport, rate, speed, **kw)
+    player = PlayerThread(rows, transport, rate, speed, **{**real_time(transport), **kw})
     # a 0.5 s timeout: the module here shares this process, and its slow answers (50-70 ms
     # on purpose) can reach the recorder after 100 ms on a loaded machine, and a FIFO
     # answer that times out takes its scans with it

@@ -5,6 +5,7 @@ import signal
 import subprocess
 import sys
 import time
+from urllib.parse import urlsplit
 
 import numpy as np
 import pytest
@@ -31,13 +32,16 @@ def read_truth(path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("transport", ["modbus-tcp", "ascii"])
-def test_scans_read_match_the_ground_truth_file(tmp_path, transport):
+@pytest.mark.parametrize(("transport", "line"),
+                         [("modbus-tcp", "pty"), ("ascii", "pty"), ("modbus-rtu", "tcp")])
+def test_scans_read_match_the_ground_truth_file(tmp_path, transport, line):
     out = tmp_path / "truth.jsonl"
-    proc, url = start("--transport", transport, "--scan-rate", "50", "--seed", "4",
-                      "--truth-out", str(out), "--truth", "d03=101.25")  # fmt: skip
+    proc, url = start("--transport", transport, "--line", line, "--scan-rate", "50",
+                      "--seed", "4", "--truth-out", str(out), "--truth", "d03=101.25")  # fmt: skip
     try:
         assert url.startswith(transport + "://")
+        # a serial line behind the device server is reached at its host and port
+        assert (urlsplit(url).port is not None) is (transport == "modbus-tcp" or line == "tcp")
         daq = open_daq(url, timeout=1.0)
         scans = []
         deadline = time.monotonic() + 20  # about 1 s at 50 Hz; a loaded machine polls slower
@@ -58,7 +62,7 @@ def test_scans_read_match_the_ground_truth_file(tmp_path, transport):
         r = by_counter[(0, s.counter)]
         assert tuple(r["codes"]) == s.codes and r["time_us"] == s.time_us
     assert all(len(r["euler_deg"]) == 3 for r in truth)
-    if transport == "modbus-tcp":  # the FIFO gives every scan once; the file has them all
+    if transport != "ascii":  # the FIFO gives every scan once; the file has them all
         assert [s.counter for s in scans] == list(range(scans[0].counter, scans[-1].counter + 1))
 
 
