@@ -137,8 +137,9 @@ class RecordingFile:
             pieces.append(spans + more)
         if self.lost_unplaced:
             more = f"{self.lost_unplaced} more" if self.lost else f"{self.lost_unplaced}"
-            pieces.append(f"{more} whose counters are unknown (the file's statistics count "
-                          "them)")  # fmt: skip
+            counter = ("loopcal record counts" if self.metadata.get("loopcal", {}).get("views")
+                       == "dropped" else "statistics count")  # the views': the record's count
+            pieces.append(f"{more} whose counters are unknown (the file's {counter} them)")
         if self.lost_unknown:
             pieces.append(self.lost_unknown)
         return head + (": " + ", ".join(pieces) if pieces else "")

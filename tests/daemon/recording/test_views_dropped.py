@@ -205,6 +205,29 @@ def test_a_record_length_that_skips_the_first_chunk_is_not_taken_for_no_loss(
     assert header.record == "header" and "runs past the intact chunk" in header.what
 
 
+@pytest.mark.slow
+def test_a_wrong_count_in_the_loopcal_record_is_not_taken_for_lost_scans(thinned, tmp_path):
+    """ci51: no CRC covers a metadata record. A digit of the loopcal record's count flipped
+    (12000 to 12100), and the record after it damaged, was read as 100 scans lost, every
+    chunk the index lists intact. Damage that cannot hold a scan leaves the count wrong,
+    not the scans lost."""
+    _, _, thin = thinned
+    data = bytearray(thin.read_bytes())
+    count = data.find(b"\x05\x00\x00\x00scans\x05\x00\x00\x0012000")
+    assert count > 0
+    data[count + 9 + 4 + 2] ^= 1  # "12000" -> "12100"
+    device = data.find(b"\x06\x00\x00\x00device") - 9  # its opcode; the length follows
+    assert data[device] == 0x0C  # a metadata record
+    data[device + 2] ^= 1
+    path = tmp_path / thin.name
+    path.write_bytes(bytes(data))
+    out = rec.read_recordings(path)
+    [f] = out.files
+    assert len(out.scans) == N and f.lost_scans == 0 and not f.lost_unknown, f.warning
+    assert "the loopcal record counts 100 scan(s) more than the intact chunks hold" in f.warning
+    assert "no scan lost" in f.warning
+
+
 def _named(directory, days_ago: float, rows) -> object:
     path = directory / rec.recording_name(time.time_ns() - int(days_ago * DAY_S * 1e9))
     write_recording(path, rows, per=20)
