@@ -345,10 +345,11 @@ def test_the_readme_example_streams_scans(ldq412) -> None:
     # on a busy machine: ASCII and fifo=0 read the latest scan only) is declared by the next
     # one's `missed`, never silently skipped
     assert np.array_equal(np.diff(counters), 1 + missed[1:]), lines
-    assert counters[-1] - counters[0] + 1 >= 1.5 * RATE  # the stream ran on for 2 s
     if not ldq412.url.startswith("ascii"):  # the FIFO holds 12.8 s: read every 0.5 s, none lost
         assert not missed[1:].any(), lines
-    # more than one batch's worth: scans made a second and more after the first read
+    # the stream ran on: scans made a second and more after the first read, from a read
+    # that came at most a second late in the 2 s before the Ctrl-C (ci52: 1.5 s of scans
+    # asked for the read at +1.5 s, which a loaded machine had not made by +2 s)
     assert counters[-1] >= made_at_connect + RATE
 
 
