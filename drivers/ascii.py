@@ -461,17 +461,47 @@ class AsciiDAQ(DAQ):
     # -- device functions ----------------------------------------------------------------
 
     def _read_identity(self, check: bool) -> Identity:
+        model = self._read_model()
+        if check and model != ldq412.MODEL_NAME:
+            # "$AAM", "$AAF" and "$AAR" are all answered "!AA...": a late answer to an
+            # earlier request (a connect given up on: ci53, "model '3.07'", its firmware)
+            # reads as this one's. Asked again on a quiet line, a module that is not an
+            # LDQ-412 says so again
+            self._quiet_line()
+            model = self._read_model()
+        if check and model != ldq412.MODEL_NAME:
+            raise DAQIdentityError(f"{self.url}: model {model!r}, expected {ldq412.MODEL_NAME!r}")
+        firmware = parse_firmware(parse_ack(self._command("$", "F"), self.addr))
+        return Identity(model, firmware, None, None)
+
+    def _read_model(self) -> str:
         try:
-            model = parse_ack(self._command("$", "M"), self.addr).decode("ascii")
+            return parse_ack(self._command("$", "M"), self.addr).decode("ascii")
         except (DAQTimeout, DAQProtocolError) as exc:
             raise type(exc)(
                 f"{exc} (is checksum={int(self.checksum)} the module's checksum mode, and "
                 f"addr={self.addr:02X} its address?)"
             ) from exc
-        if check and model != ldq412.MODEL_NAME:
-            raise DAQIdentityError(f"{self.url}: model {model!r}, expected {ldq412.MODEL_NAME!r}")
-        firmware = parse_firmware(parse_ack(self._command("$", "F"), self.addr))
-        return Identity(model, firmware, None, None)
+
+    def _quiet_line(self) -> None:
+        """Drop what the line brings until it has been quiet for the timeout (for at most
+        three timeouts): late answers to earlier requests, no one's now.
+
+        Raises
+        ------
+        DAQDisconnected
+            If the port fails.
+        """
+        ser = self._open()
+        start = last = time.monotonic()
+        end = start + 3 * self.timeout
+        try:
+            while (now := time.monotonic()) - last < self.timeout and now < end:
+                if ser.read(bytes_waiting(ser) or 1):  # the port's read waits 10 ms at most
+                    last = time.monotonic()
+        except _PORT_ERRORS as exc:
+            self._drop()
+            raise DAQDisconnected(f"{self.url}: {exc}") from exc
 
     def _poll(self) -> Scan:
         body = self._command("#")

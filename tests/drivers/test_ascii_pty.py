@@ -131,6 +131,26 @@ def test_wrong_model_is_an_identity_error(device) -> None:
         assert daq.identity.model == "LDQ999"
 
 
+def test_a_late_answer_to_an_earlier_connect_is_not_taken_for_the_model(device) -> None:
+    """ci53: a connect given up on (its "$01F" answered after the timeout) and the next
+    connect's "$01M" read that late answer, "!013.07", as the model: DAQIdentityError for
+    an LDQ-412. Both are "!01..." answers; the model is asked again on a quiet line."""
+    late = [True]
+
+    def firmware_late_once(cmd: bytes) -> Reply:
+        if cmd == b"$01F" and late[0]:
+            late[0] = False
+            return [(0.4, b"!013.07\r")]  # after the first connect's 0.1 s
+        return good_device(cmd)
+
+    dev = device(firmware_late_once)
+    with pytest.raises(DAQTimeout):
+        open_daq(url(dev), timeout=ldq412.HOST_TIMEOUT_S)
+    with connect(dev) as daq:  # asked while the late answer is on its way
+        assert daq.identity.model == ldq412.MODEL_NAME
+    assert dev.commands.count(b"$01M") == 3  # the first connect's, and twice
+
+
 def test_silent_device_times_out_within_the_bound(device) -> None:
     dev = device(good_device)
     daq = connect(dev)
