@@ -35,12 +35,16 @@ def _read_for(daq, seconds: float, out: list, until=lambda: True) -> None:
     a loaded machine has held a pseudo-terminal's bytes back for 2.7 s)."""
     t_end = time.monotonic() + seconds
     deadline = t_end + 15.0
+    errors: list[str] = []
     while time.monotonic() < t_end or not until():
-        assert time.monotonic() < deadline, "no scan of what was waited for"
+        # (ci57: 15 s without a scan of the new power-on over ASCII, cause unseen: the
+        # reads' errors and the last scans say what the driver met)
+        assert time.monotonic() < deadline, ("no scan of what was waited for", errors[-5:],
+                                             len(errors), out[-3:])  # fmt: skip
         try:
             out += daq.read_scans()
-        except DAQError:
-            pass  # a power cycle: the next call reconnects
+        except DAQError as exc:  # a power cycle: the next call reconnects
+            errors.append(f"{type(exc).__name__}: {exc}")
         time.sleep(0.01)
 
 
