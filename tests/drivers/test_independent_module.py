@@ -59,12 +59,7 @@ def test_the_drivers_read_it_exactly(transport):
         daq = open_ok(mod.url, timeout=0.1)  # the connect is not the subject: retried
         got: list = []
         try:
-            # Over ASCII a restart shows only as the counter going back: one followed by more
-            # scans than the module made before, all between two polls, cannot be seen
-            # (drivers/ascii.py). With 0.5 s of scans first, polls that failed for 1.2 s
-            # after the power-on hid it (ci57: no scan of the new power-on in 15 s); 3 s of
-            # them take a longer outage than a loaded machine has held a pty's bytes (2.7 s)
-            _read_for(daq, 3.0 if transport == "ascii" else 0.5, got)
+            _read_for(daq, 0.5, got)
             mod.power_cycle(0.5)
             _read_for(daq, 1.0, got, until=lambda: bool(got) and got[-1].epoch == 1)
             time.sleep(0.5)  # 25 scans wait: more than one 64-register read holds
