@@ -37,10 +37,12 @@ def _read_for(daq, seconds: float, out: list, until=lambda: True) -> None:
     deadline = t_end + 15.0
     errors: list[str] = []
     while time.monotonic() < t_end or not until():
-        # (ci57: 15 s without a scan of the new power-on over ASCII, cause unseen: the
-        # reads' errors and the last scans say what the driver met)
-        assert time.monotonic() < deadline, ("no scan of what was waited for", errors[-5:],
-                                             len(errors), out[-3:])  # fmt: skip
+        # (ci57, ci59: 15 s without a scan of the new power-on over ASCII; the reads'
+        # errors, whole in the captured output, and the last scans say what the driver met)
+        if time.monotonic() >= deadline:
+            print(f"{len(errors)} errors, the last:", *errors[-8:], "last scans:", *out[-3:],
+                  sep="\n")  # fmt: skip
+        assert time.monotonic() < deadline, "no scan of what was waited for (see the output)"
         try:
             out += daq.read_scans()
         except DAQError as exc:  # a power cycle: the next call reconnects
