@@ -104,7 +104,12 @@ def assert_fifo_delivered(
     got = [s for s in got if boot in (None, s.epoch)]
     keys = [(s.epoch, s.counter) for s in got]
     if not daq.sequencer.fifo_reads_lost:
-        assert keys == truth, "scans missing though no FIFO read was lost"
+        missing = sorted(set(truth) - set(keys))
+        assert keys == truth, (
+            "scans missing though no FIFO read was lost",  # (ci59: which, and said how)
+            f"{len(missing)} missing, the first {missing[:5]}, the last {missing[-3:]}",
+            [s for s in got if s.missed or s.overflow or s.taken or s.restarted][:5],
+        )
     else:  # from the first delivered: a read lost before it left nothing to count in
         first, last = truth.index(keys[0]), truth.index(keys[-1])
         assert len(got) + sum(s.missed for s in got[1:]) == last - first + 1
