@@ -77,6 +77,10 @@ def test_every_scan_exactly_once_whatever_the_module_chose(transport: str, name:
             for step in steps * 3:
                 clock.advance(step * PERIOD)
                 calls += timed_reads(daq, until=0.0)
+            # what the FIFO holds at a power cycle goes with it, and nobody can count it
+            # (the datasheet): a read that failed before taking it off is read again first
+            while calls[-1].error is not None and len(calls) < 200:
+                calls += timed_reads(daq, until=0.0)
             emu.faults.restart(0.5)
             clock.advance(0.5)
             _settle(clock, op)
