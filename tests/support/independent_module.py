@@ -271,10 +271,18 @@ class IndependentModule:
         if out is None:
             return
         self._late()
-        try:
-            os.write(self._fd, out)
-        except OSError:
-            pass
+        # the whole answer, as a UART sends it: the master is non-blocking, and a write
+        # while the pty's buffer is full takes part of it or nothing (ignored, that would
+        # cut an answer short: no CR, a "partial answer" to the driver)
+        view = memoryview(out)
+        deadline = time.monotonic() + 2.0
+        while view and time.monotonic() < deadline and not self._stop.is_set():
+            try:
+                view = view[os.write(self._fd, view) :]
+            except BlockingIOError:
+                select.select([], [self._fd], [], 0.05)
+            except OSError:
+                return
 
     def _rtu(self, buf: bytes) -> bytes:
         """Answer every whole request in ``buf`` (all ours are 8 bytes); the rest back."""
