@@ -422,10 +422,8 @@ class FileReader:
         if expected is not None:
             info.lost_unplaced = max(0, expected - len(rows) - info.lost_scans)
             if info.lost_unplaced and not holders and not self.index_damage:
-                # every chunk the index lists read intact, and no damage that may have held
-                # any (a damaged metadata record holds none): the count, not the data, is
-                # wrong. The loopcal record's count has no CRC of its own (ci51: a digit
-                # flipped in it, and a record beside it damaged, said 100 scans lost)
+                # every indexed chunk intact and no damage that may hold scans (a metadata
+                # record holds none): the count, which no CRC covers, is wrong (ci51)
                 record = self.metadata.get("loopcal", {}).get("views") == "dropped"
                 info.damage.append(Damage(len(buf), 0, (
                     f"the {'loopcal' if record else 'statistics'} record counts "
