@@ -25,7 +25,7 @@ def replay_and_record(
     The recorder waits 3 s for an answer (the datasheet's 0.1 s, and 2.5 s for a FIFO
     read, by default): a loaded machine has held a pseudo-terminal's bytes back for 2.7 s
     (tests/support/drivers.py), and a FIFO answer given up on takes its scans with it."""
-    line = ["--line", real_time(transport)["line"]] if real_time(transport) else []
+    line = [f"--{k}={v}" for k, v in real_time(transport).items()]  # --line=tcp
     player = Proc(["replay", str(src), "--transport", transport, "--speed", f"{speed:g}",
                    *line, *options])  # fmt: skip
     return player, record(
