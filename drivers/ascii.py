@@ -9,9 +9,11 @@ The protocol has no FIFO: read_scans polls ``#AA`` once per call and returns the
 its counter is new; scans the module made between two polls are reported in Scan.missed.
 The protocol has no serial-number query (Identity.serial is None) and no command to clear
 the restart flag (clear_restart returns False); the restart flag therefore stays set after
-the first power-on, and later restarts are detected by the counter going backwards only
-(a restart followed by more scans than the module had made before, all between two polls,
-is not detectable over ASCII).
+the first power-on, and later restarts are detected by the counter going backwards, or,
+where polls failed long enough for the counter to come back past where it was, by the
+host's clock (:mod:`loopcal.drivers.sequence`): a restart in such a stretch is not
+detectable over ASCII only if the module was on before it and off for less than
+``ANSWER_AGE_S`` (3 s) together.
 
 Frames are built and parsed here (the vendor protocol is not a library's). The parser is
 strict: exact lengths, hex digits only, the ``>`` / ``!AA`` / ``?AA`` leads, uppercase
@@ -504,10 +506,11 @@ class AsciiDAQ(DAQ):
             raise DAQDisconnected(f"{self.url}: {exc}") from exc
 
     def _poll(self) -> Scan:
+        sent = time.monotonic()
         body = self._command("#")
         host_time = time.monotonic()
         snap = parse_scan(body, self.addr)
-        scan, new = self._seq.poll(snap, host_time)
+        scan, new = self._seq.poll(snap, host_time, sent=sent)
         if new:
             self._pending.append(scan)
         return scan

@@ -45,10 +45,22 @@ more than one means scans were taken: at least that many less one (``taken_unrep
 until a scan delivered reports the gap, exactly). One is tolerated: the datasheet leaves
 open whether a module updates its snapshot before it pushes the scan into its FIFO.
 
-Restart detection: the restart bit rising (or set at the first observation), or the
+Restart detection: the restart bit rising (or set at the first observation), the
 counter going backwards (a backwards step of less than 2**31 is a restart; a larger one
-is a 32-bit wrap). Each restart starts a new epoch with counter64 = the raw counter (the
-datasheet's power-on counter starts at 0).
+is a 32-bit wrap), or, where the driver says when it sent each request (the ASCII
+driver: its restart bit stays set), the host's clock: from the latest snapshot read to a
+new one, both the device time and the counter (at the nominal rate) advanced less than the
+host's clock by more than ``ANSWER_AGE_S`` + one period + ``CLOCK_TOLERANCE`` of the time
+between them. The host time counted is the new request's sending (the module answered
+after it, with a snapshot at most one period older, or ``ANSWER_AGE_S`` older for an
+answer held on the way) and the old answer's arrival, so neither a slow answer nor a host
+stopped while it waited looks like a restart. This rule sees a restart the other two
+cannot: a power cycle during polls that failed until the counter came back past where it
+was, the module on before it and off for longer than the allowance together. Taken
+between successive snapshots, it holds for a module whose clock runs slower than the
+host's (an emulator on its own clock, a replay slowed down) unless polls fail for long.
+Each restart starts a new epoch with counter64 = the raw counter (the datasheet's
+power-on counter starts at 0).
 """
 
 from __future__ import annotations
@@ -65,6 +77,12 @@ HALF = U32 // 2
 LATCHED_MASK = ldq412.STATUS_OVERFLOW | ldq412.STATUS_RESTART
 #: scans the FIFO level may lag the counter by with none taken (module docstring)
 LEVEL_TOLERANCE = 1
+#: how much older than its request an answer's snapshot may be, s: the datasheet's module
+#: answers within 10 ms, but on a loaded machine an emulator or a line (a pseudo-terminal,
+#: a device server) has held an answer for 2.7 s (module docstring, restart detection)
+ANSWER_AGE_S = 3.0
+#: how far the module's clock may run from the host's, relative (0.005: 0.5 %)
+CLOCK_TOLERANCE = 0.005
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,6 +118,16 @@ class _Anchor:
     time_us: int
     time64: int
     status: int
+
+
+@dataclass(frozen=True, slots=True)
+class _ClockRef:
+    """The power-on's latest snapshot read and when it arrived (the host-clock restart
+    rule's reference, module docstring)."""
+
+    arrived: float
+    counter: int
+    time_us: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -221,6 +249,7 @@ class Sequencer:
         self._batch_prev_anchor: _Anchor | None = None  # anchor before this batch's, same epoch
         self._last: _Last | None = None  # last scan delivered
         self._restart_bit_prev: bool | None = None
+        self._clock_ref: _ClockRef | None = None
         self._first_restart = False  # restart bit was set when first observed
         self._pending_overflow = False
         self._overflow_bit_prev = False
@@ -250,15 +279,43 @@ class Sequencer:
         """counter64 of the newest snapshot (anchor) seen, or None before the first."""
         return None if self._anchor is None else self._anchor.counter64
 
-    def _observe(self, snap: RawSnapshot) -> bool:
-        """Record a snapshot's restart evidence; True if it shows a new restart."""
+    def _observe(self, snap: RawSnapshot, sent: float | None, arrived: float | None) -> bool:
+        """Record a snapshot's restart evidence, and start a new epoch if it shows a new
+        restart (module docstring); True if it did. ``sent``: when its request was sent,
+        ``arrived``: when it arrived, ``time.monotonic()`` s (None: unknown)."""
         bit = bool(snap.status & ldq412.STATUS_RESTART)
         edge = bit and not self._restart_bit_prev
         self._restart_bit_prev = bit
+        restarted = False
         if self._ref_counter() is None:
             self._first_restart = self._first_restart or edge
+        elif edge or self.goes_back(snap.counter) or self._behind_host_clock(snap, sent):
+            self._start_epoch()
+            restarted = True
+        self._note_clock(snap, arrived)
+        return restarted
+
+    def _elapsed(self, ref: _ClockRef, snap: RawSnapshot, host: float) -> tuple[float, int, int]:
+        """From ``ref``'s arrival to ``host``: host s, device µs (its 32-bit wraps told by
+        the host's clock) and scans from ``ref`` to ``snap``."""
+        e = host - ref.arrived
+        dt = (snap.time_us - ref.time_us) % U32
+        dt += max(0, round((e * 1e6 - dt) / U32)) * U32
+        return e, dt, signed_delta(snap.counter, ref.counter)
+
+    def _behind_host_clock(self, snap: RawSnapshot, sent: float | None) -> bool:
+        """The host-clock restart rule (module docstring)."""
+        ref = self._clock_ref
+        if ref is None or sent is None:
             return False
-        return edge or self.goes_back(snap.counter)
+        e, dt_us, dc = self._elapsed(ref, snap, sent)
+        allow = ANSWER_AGE_S + 1 / self.scan_rate_hz + CLOCK_TOLERANCE * e
+        return dc >= 0 and e - dt_us / 1e6 > allow and e - dc / self.scan_rate_hz > allow
+
+    def _note_clock(self, snap: RawSnapshot, arrived: float | None) -> None:
+        """Make ``snap`` the clock reference (with a known arrival)."""
+        if arrived is not None:
+            self._clock_ref = _ClockRef(arrived, snap.counter, snap.time_us)
 
     def goes_back(self, counter: int) -> bool:
         """Whether a raw counter is behind the newest scan known of the current power-on:
@@ -291,6 +348,7 @@ class Sequencer:
 
     def _start_epoch(self) -> None:
         self._prev_anchor = self._anchor
+        self._clock_ref = None
         self.epoch += 1
         self.restarts_detected += 1
 
@@ -315,7 +373,7 @@ class Sequencer:
         self._anchor = anchor
         return anchor
 
-    def period_mismatch(self, tolerance: float = 0.005) -> bool:
+    def period_mismatch(self, tolerance: float = CLOCK_TOLERANCE) -> bool:
         """Whether the measured scan period disagrees with the nominal rate (somebody
         changed the module's rate).
 
@@ -343,6 +401,7 @@ class Sequencer:
         """
         self.scan_rate_hz = hz
         self.measured_period_us = None
+        self._clock_ref = None  # its scans counted at the old rate
 
     def _deliver(self, epoch: int, counter: int, c64: int) -> tuple[int, bool, bool]:
         """Commit a delivered scan; returns (missed, restarted, overflow)."""
@@ -362,7 +421,11 @@ class Sequencer:
     # -- snapshot polling ----------------------------------------------------------
 
     def poll(
-        self, snap: RawSnapshot, host_time: float, source: ScanSource = "snapshot"
+        self,
+        snap: RawSnapshot,
+        host_time: float,
+        source: ScanSource = "snapshot",
+        sent: float | None = None,
     ) -> tuple[Scan, bool]:
         """Feed one snapshot (a poll).
 
@@ -374,6 +437,10 @@ class Sequencer:
             ``time.monotonic()`` when the answer arrived, s.
         source : {"snapshot", "fifo"}
             Stored in the Scan.
+        sent : float or None
+            ``time.monotonic()`` when its request was sent, s: the host's clock then
+            tells a restart that neither the restart bit nor the counter shows (module
+            docstring). None: unknown.
 
         Returns
         -------
@@ -381,8 +448,7 @@ class Sequencer:
             The scan and whether it is new; a counter already delivered gives False and a
             Scan with no events.
         """
-        if self._observe(snap):
-            self._start_epoch()
+        self._observe(snap, sent, host_time)
         a = self._set_anchor(snap)
         last = self._last
         is_new = last is None or last.epoch != a.epoch or a.counter64 > last.counter64
@@ -407,7 +473,7 @@ class Sequencer:
         )
         return scan, is_new
 
-    def peek(self, snap: RawSnapshot, host_time: float) -> Scan:
+    def peek(self, snap: RawSnapshot, host_time: float, sent: float | None = None) -> Scan:
         """Like :meth:`poll`, without changing any state (a snapshot read beside the FIFO).
 
         Parameters
@@ -416,18 +482,22 @@ class Sequencer:
             What the device answered.
         host_time : float
             ``time.monotonic()`` when the answer arrived, s.
+        sent : float or None
+            ``time.monotonic()`` when its request was sent, s (:meth:`poll`).
 
         Returns
         -------
         Scan
             The scan as :meth:`poll` would make it.
         """
-        scan, _ = copy.deepcopy(self).poll(snap, host_time)
+        scan, _ = copy.deepcopy(self).poll(snap, host_time, sent=sent)
         return scan
 
     # -- FIFO ------------------------------------------------------------------------
 
-    def begin_batch(self, snap: RawSnapshot, host_time: float | None = None) -> None:
+    def begin_batch(
+        self, snap: RawSnapshot, host_time: float | None = None, sent: float | None = None
+    ) -> None:
         """Anchor the FIFO scans about to be read on the snapshot read just before.
 
         Parameters
@@ -436,13 +506,14 @@ class Sequencer:
             The snapshot (input registers 0..9).
         host_time : float or None
             ``time.monotonic()`` when it arrived, s; the FIFO scan equal to it keeps it.
+        sent : float or None
+            ``time.monotonic()`` when its request was sent, s (:meth:`poll`).
         """
         self._anchor_host_time = host_time
         if self._lost_in_batch:  # lost in an earlier batch: its gap shows from this one on
             self._lost_read, self._lost_in_batch = True, False
         old = self._anchor
-        if self._observe(snap):
-            self._start_epoch()
+        if self._observe(snap, sent, host_time):
             self._boundary_pending = True
         anchor = self._set_anchor(snap)
         self._batch_prev_anchor = old if old is not None and old.epoch == self.epoch else None

@@ -310,6 +310,58 @@ def test_poll_restart_by_counter_regression_and_by_bit_edge() -> None:
     assert seq.restarts_detected == 2
 
 
+def made(host: float, on: float, rate: int = 50, slow: float = 0.0) -> RawSnapshot:
+    """The snapshot a module powered on at host time ``on`` s holds at host time ``host``
+    s (its restart bit set, as over ASCII); its clock ``slow`` (relative) slow."""
+    counter = int((host - on) * (1 - slow) * rate)
+    return RawSnapshot(counter, 1809 + period_ticks_us(counter, rate), (1, 2, 3, 4), R)
+
+
+def test_a_restart_the_counter_hides_is_told_by_the_hosts_clock() -> None:
+    # ci65: the module ran 1.2 s, was off while polls failed, and the first answer after
+    # it showed a counter past the last one (its restart bit set all along, over ASCII)
+    seq = Sequencer(50)
+    seq.poll(made(11.2, on=10.0), 11.201, sent=11.199)
+    s, new = seq.poll(made(31.0, on=15.5), 31.003, sent=31.0)  # off 4 s: 4.3 s behind
+    assert new and s.restarted and s.epoch == 1 and s.counter64 == s.missed == 775
+    s, new = seq.poll(made(31.1, on=15.5), 31.103, sent=31.1)
+    assert new and not s.restarted and s.epoch == 1 and s.missed == 4
+
+
+@pytest.mark.parametrize(
+    ("case", "answer_at", "sent", "arrived"),
+    [
+        ("an answer held 2.9 s on the way", 17.1, 20.0, 20.002),
+        ("a host stopped 10 s while it waited", 20.003, 20.0, 30.0),
+    ],
+)
+def test_a_late_answer_is_not_taken_for_a_restart(case, answer_at, sent, arrived) -> None:
+    seq = Sequencer(50)
+    seq.poll(made(11.2, on=10.0), 11.201, sent=11.199)
+    s, new = seq.poll(made(answer_at, on=10.0), arrived, sent=sent)
+    assert new and not s.restarted and s.epoch == 0, case
+    s, _ = seq.poll(made(30.05, on=10.0), 30.052, sent=30.05)  # a prompt answer after it
+    assert not s.restarted and s.epoch == 0, case
+
+
+def test_the_hosts_clock_allows_for_drift_a_rate_change_and_a_short_power_cycle() -> None:
+    seq = Sequencer(50)
+    for h in np.arange(11.0, 111.0, 1.0):  # a clock 0.4 % slow, then polls fail 10 min
+        seq.poll(made(h, on=10.0, slow=0.004), h + 0.002, sent=h)
+    s, _ = seq.poll(made(711.0, on=10.0, slow=0.004), 711.002, sent=711.0)
+    assert not s.restarted and s.epoch == 0
+    seq = Sequencer(50)  # somebody set the rate to 25 Hz: half the scans, the time runs on
+    seq.poll(made(11.0, on=10.0), 11.002, sent=11.0)
+    late = made(31.0, on=10.0)
+    half = RawSnapshot(50 + 500, late.time_us, late.codes, R)
+    s, _ = seq.poll(half, 31.002, sent=31.0)
+    assert not s.restarted and s.epoch == 0
+    seq = Sequencer(50)  # on 1.2 s, off 1 s: within the allowance, not told (ASCII docs)
+    seq.poll(made(11.2, on=10.0), 11.202, sent=11.2)
+    s, _ = seq.poll(made(31.0, on=12.5), 31.002, sent=31.0)
+    assert not s.restarted and s.epoch == 0
+
+
 def fifo_raw(c0: int, n: int) -> list[tuple[int, tuple[int, int, int, int]]]:
     return [((c0 + i) % U32, (i % 4096, 1, 2, 3)) for i in range(n)]
 
