@@ -192,7 +192,9 @@ def test_corrupt_answer_is_a_protocol_error_then_recovers(emu_factory, transport
         with pytest.raises(DAQProtocolError):
             daq.read_scans()
         assert time.monotonic() - t0 < worst_call_s(daq.timeout)
-        got += daq.read_scans()
+        # recovered: the next reads deliver every scan (ci65: the pty held the next answer
+        # past 3 s under load, a timeout read_ok reads through as the daemon does)
+        got += read_ok(daq)
     check_against_truth(got, emu)
     if transport != "ascii":  # the corrupted answer was the snapshot: no scan lost
         assert_fifo_delivered(got, emu, daq)
