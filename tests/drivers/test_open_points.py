@@ -31,7 +31,7 @@ from tests.support.drivers import (
     check_against_truth,
     open_ok,
     read_ok,
-    real_time,
+    tcp_line,
     timed_reads,
 )
 
@@ -119,7 +119,7 @@ def test_overflow_recovery_keeps_what_arrived_while_reading(transport: str) -> N
     ms = fixed / 2 if transport == "modbus-rtu" else fixed
     op = OpenPoints(latency=Latency(min_ms=ms, max_ms=ms))
     with Emulator(transport, clock=RealClock(), scan_rate_hz=200, open_points=op,
-                  **real_time(transport)) as emu:
+                  **tcp_line(transport)) as emu:
         daq = open_ok(emu.url, timeout=OK_TIMEOUT)
         try:
             calls = timed_reads(daq, until=0.0)

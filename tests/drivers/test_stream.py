@@ -24,12 +24,12 @@ from loopcal.drivers import DAQDisconnected, DAQError, DAQTimeout, Scan, ldq412,
 from loopcal.drivers.pacing import FIFO_READ_PERIOD_S, FifoPacer, PollPacer
 from loopcal.simulator.open_points import OpenPoints
 from tests.support import ROOT
-from tests.support.drivers import open_ok, real_time, real_time_params, worst_call_s
+from tests.support.drivers import open_ok, tcp_line, tcp_line_params, worst_call_s
 
 TRANSPORTS = ["modbus-tcp", "modbus-rtu", "ascii"]
 MODBUS = ["modbus-tcp", "modbus-rtu"]
-#: the module on a real clock: serial lines behind the emulated device server (real_time)
-REAL_TIME = real_time_params(TRANSPORTS)
+#: the module on a real clock: serial lines behind the emulated device server (tcp_line)
+REAL_TIME = tcp_line_params(TRANSPORTS)
 RATE = 20  # the datasheet's default, the fixture's
 PERIOD = 1.0 / RATE
 # Driver timeouts: generous where none is expected (a loaded machine has held a pty's bytes
@@ -72,8 +72,8 @@ def span(scans: list[Scan]) -> int:
 @pytest.mark.parametrize(
     ("ldq412", "polled"),
     [("modbus-tcp", False), ("modbus-tcp", True),
-     ({"transport": "modbus-rtu", **real_time("modbus-rtu")}, False),
-     ({"transport": "ascii", **real_time("ascii")}, False)],
+     ({"transport": "modbus-rtu", **tcp_line("modbus-rtu")}, False),
+     ({"transport": "ascii", **tcp_line("ascii")}, False)],
     indirect=["ldq412"],
     ids=["modbus-tcp-False", "modbus-tcp-True", "modbus-rtu-False", "ascii-False"],
 )
@@ -105,7 +105,7 @@ def test_stream_yields_every_scan_once_until_duration(ldq412, polled: bool) -> N
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "ldq412",
-    [{"transport": "ascii", **real_time("ascii"), "open_points": OpenPoints(clock_ppm=ppm)}
+    [{"transport": "ascii", **tcp_line("ascii"), "open_points": OpenPoints(clock_ppm=ppm)}
      for ppm in (1000, -1000)],
     indirect=True,
     ids=["1000ppm-fast", "1000ppm-slow"],
@@ -136,7 +136,7 @@ def test_iterating_the_daq_is_the_stream(ldq412) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("ldq412", real_time_params(MODBUS), indirect=True)
+@pytest.mark.parametrize("ldq412", tcp_line_params(MODBUS), indirect=True)
 def test_a_stream_left_mid_batch_keeps_the_rest_for_the_next_read(ldq412) -> None:
     with open_daq(ldq412.url, timeout=OK_TIMEOUT) as daq:
         ldq412.wait_scans(30)  # the first FIFO read brings at least 30 scans at once

@@ -34,7 +34,7 @@ OK_TIMEOUT = 3.0
 TIMEOUT = 0.25
 
 
-def real_time(transport: str) -> dict[str, str]:
+def tcp_line(transport: str) -> dict[str, str]:
     """The emulator's keyword arguments for a test of ``transport`` on a real clock: a
     serial transport behind the emulated serial device server (``line="tcp"``,
     :mod:`loopcal.simulator.device_server`), Modbus TCP as it is.
@@ -47,10 +47,10 @@ def real_time(transport: str) -> dict[str, str]:
     return {} if transport == "modbus-tcp" else {"line": "tcp"}
 
 
-def real_time_params(transports: list[str]) -> list:
+def tcp_line_params(transports: list[str]) -> list:
     """``transports`` as indirect parameters of the ``ldq412`` fixture, served as
-    :func:`real_time` says (ids: the transports)."""
-    return [pytest.param({"transport": t, **real_time(t)}, id=t) for t in transports]
+    :func:`tcp_line` says (ids: the transports)."""
+    return [pytest.param({"transport": t, **tcp_line(t)}, id=t) for t in transports]
 
 
 def worst_call_s(timeout: float) -> float:

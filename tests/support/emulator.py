@@ -84,7 +84,7 @@ def hand_emulator(
     does not overflow before it connects. ``clock``: another clock instead (``speed`` is
     then not used); ``open_points``: the emulator's settings for what the datasheet leaves
     open; ``motion``: another scenario than the technician's hand (a task loop); ``line``:
-    a serial transport's line (tests.support.drivers.real_time)."""
+    a serial transport's line (tests.support.drivers.tcp_line)."""
     if clock is None:
         clock = HeldClock(speed)  # the emulator starts it at the first request
     source = MechanismSource(motion or HandMoves(seed), NOMINAL, noise_volts=0.04, seed=seed,

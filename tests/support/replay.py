@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .drivers import real_time
+from .drivers import tcp_line
 from .processes import Proc, listening_url, record
 
 
@@ -20,12 +20,12 @@ def replay_and_record(
 ) -> tuple[Proc, Proc]:
     """``loopcal replay SRC [options]`` and ``loopcal record`` reading it (both running); a
     serial transport behind the replay's device server (``--line tcp``: the replay runs on
-    a real clock, tests.support.drivers.real_time).
+    a real clock, tests.support.drivers.tcp_line).
 
     The recorder waits 3 s for an answer (the datasheet's 0.1 s, and 2.5 s for a FIFO
     read, by default): a loaded machine has held a pseudo-terminal's bytes back for 2.7 s
     (tests/support/drivers.py), and a FIFO answer given up on takes its scans with it."""
-    line = [f"--{k}={v}" for k, v in real_time(transport).items()]  # --line=tcp
+    line = [f"--{k}={v}" for k, v in tcp_line(transport).items()]  # --line=tcp
     player = Proc(["replay", str(src), "--transport", transport, "--speed", f"{speed:g}",
                    *line, *options])  # fmt: skip
     return player, record(
@@ -67,7 +67,7 @@ class PlayerThread:
 def replay_in_process(
     rows: np.ndarray, out: Path, transport: str, rate: int, speed: float, **kw
 ) -> tuple[PlayerThread, Proc]:
-    player = PlayerThread(rows, transport, rate, speed, **{**real_time(transport), **kw})
+    player = PlayerThread(rows, transport, rate, speed, **{**tcp_line(transport), **kw})
     # a 0.5 s timeout: the module here shares this process, and its slow answers (50-70 ms
     # on purpose) can reach the recorder after 100 ms on a loaded machine, and a FIFO
     # answer that times out takes its scans with it

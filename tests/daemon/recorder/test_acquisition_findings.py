@@ -16,7 +16,7 @@ from loopcal.daemon.recording import read_recordings
 from loopcal.simulator.clock import RealClock
 from loopcal.simulator.emulator import Emulator
 from loopcal.simulator.source import TestSource
-from tests.support.drivers import real_time
+from tests.support.drivers import tcp_line
 from tests.support.processes import record
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
@@ -30,7 +30,7 @@ def test_a_power_cycled_module_is_read_again_as_soon_as_it_answers(tmp_path):
     with an outage of 3.13 s. The bounds give a busy machine (2 cores, four workers) a
     second (20 scans) over the 1.75 s instead of 0.4 s, and still fail the old backoff:
     27 scans against fewer than 20, 3.13 s against less than 2.75 s."""
-    with Emulator("ascii", TestSource(1), clock=RealClock(), **real_time("ascii")) as emu:
+    with Emulator("ascii", TestSource(1), clock=RealClock(), **tcp_line("ascii")) as emu:
         rec = record(emu.url, tmp_path / "rec")
         rec.wait_for("recording to", timeout=30)
         time.sleep(1.0)

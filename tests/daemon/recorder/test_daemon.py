@@ -23,7 +23,7 @@ from loopcal.daemon.recorder.settings import (
     parse_size,
 )
 from loopcal.daemon.recording import find_recordings, read_recordings
-from tests.support.drivers import real_time
+from tests.support.drivers import tcp_line
 from tests.support.emulator import assert_matches_truth, hand_emulator
 from tests.support.processes import (
     LOOPCAL,
@@ -357,7 +357,7 @@ def test_a_stalling_disk_does_not_delay_reading(tmp_path):
     check = subprocess.run([sys.executable, "-c", code], env={**os.environ, **env},
                            capture_output=True, text=True)  # fmt: skip
     assert float(check.stdout) >= FSYNC_S - 0.1, check  # the shim works
-    with hand_emulator("ascii", rate=RATE_HZ, **real_time("ascii")) as emu:
+    with hand_emulator("ascii", rate=RATE_HZ, **tcp_line("ascii")) as emu:
         rec = record(emu.url, tmp_path / "rec", env=env)
         rec.wait_for("recording to", timeout=20)
         time.sleep(2 * FSYNC_S + 1)  # two fsyncs or more, back to back

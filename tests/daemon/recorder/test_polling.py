@@ -22,7 +22,7 @@ from loopcal.simulator.clock import RealClock
 from loopcal.simulator.emulator import Emulator
 from loopcal.simulator.open_points import Latency, OpenPoints
 from loopcal.simulator.source import TestSource
-from tests.support.drivers import real_time
+from tests.support.drivers import tcp_line
 from tests.support.processes import record
 from tests.support.timeline import Module, datasheet_latency, run_polls
 
@@ -83,7 +83,7 @@ def test_the_recorder_polls_once_per_scan_whatever_the_modules_clock(tmp_path):
     for ppm in (2000.0, -2000.0):
         op = OpenPoints(clock_ppm=ppm, scan_phase_us=1809, latency=Latency())
         emu = Emulator("ascii", TestSource(3), clock=RealClock(), open_points=op,
-                       **real_time("ascii")).start()
+                       **tcp_line("ascii")).start()
         runs[ppm] = (emu, record(emu.url, tmp_path / str(ppm)))
     try:
         for _, rec in runs.values():

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from loopcal.daemon.recording import find_recordings, read_recordings
-from tests.support.drivers import real_time
+from tests.support.drivers import tcp_line
 from tests.support.emulator import assert_matches_truth, hand_emulator
 from tests.support.processes import free_port, record
 
@@ -30,7 +30,7 @@ def test_a_recording_holds_exactly_the_modules_scans(tmp_path, transport):
     # module answers within 10 ms; 10 Hz leaves the emulator (Python, in this busy test
     # process) 97 ms to answer instead of 47.
     rate = 10 if transport == "ascii" else 20
-    with hand_emulator(transport, rate=rate, **real_time(transport)) as emu:
+    with hand_emulator(transport, rate=rate, **tcp_line(transport)) as emu:
         rec = record(emu.url, tmp_path, "--duration", "4", "--json")
         assert rec.wait(30) == 0, rec.text
         made = len(emu.truth)
