@@ -1,6 +1,7 @@
 """The three drivers against the emulated LDQ-412 over real transports.
 
-Modbus TCP on 127.0.0.1, Modbus RTU and ASCII on pseudo-terminals. Mostly on a
+Modbus TCP on 127.0.0.1, Modbus RTU and ASCII behind the emulated serial device server
+(loopback TCP: tests.support.drivers.tcp_line says why not a pseudo-terminal). Mostly on a
 ManualClock, so each scenario is deterministic and as fast as the wire allows: the test
 decides exactly how much device time passes between two driver calls. Every scan a
 driver delivers is compared with the emulator's ground truth (Emulator.truth).

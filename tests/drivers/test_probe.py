@@ -10,9 +10,12 @@ bound is the design's: a try is started only while twice its answer timeout and 
 (``MARGIN_S``) are left, and a try that gets no answer takes one timeout, so the last ends
 with at least one timeout and the margin in hand. The tries that must get an answer from
 the emulator in this process wait 3 s for it, within three times the default budget,
-which makes the same tries as 1 s within the default: a loaded machine has held a
-pseudo-terminal's bytes back for 2.7 s (tests/support/drivers.py), and at 1 s a probe
-found no answer at the module's own rate once under two CPU hogs. The probes that use
+which makes the same tries as 1 s within the default; at 1 s a probe found no answer at
+the module's own rate once under two CPU hogs. A loaded machine has held a
+pseudo-terminal's bytes back for 5.5 s (tests/support/drivers.py): a serial module is
+served behind the emulated device server (``tcp_line``) but where the tty is the subject
+(its rate, a port held), and a try there that must get an answer waits 6 s (ci66: none
+came at the module's own rate within 3 s). The probes that use
 their whole budget wait 0.5 s, so that 0.75 s of slack absorbs a busy machine's
 scheduling delays.
 """
@@ -27,6 +30,7 @@ from loopcal.drivers.errors import DAQError
 from loopcal.drivers.probe import PROBE_BUDGET_S, ProbeReport, probe
 from loopcal.simulator.clock import ManualClock
 from loopcal.simulator.emulator import Emulator
+from tests.support.drivers import tcp_line
 from tests.support.processes import free_port
 from tests.support.servers import (
     other_modbus_device,
@@ -37,6 +41,7 @@ from tests.support.servers import (
 )
 
 OK_TIMEOUT = 3.0  # answers the emulator must give (module docstring)
+PTY_TIMEOUT = 6.0  # ... on a pseudo-terminal (module docstring)
 FULL_TIMEOUT = 0.5  # probes that use their whole budget
 
 
@@ -52,7 +57,7 @@ def _probe(url: str, timeout: float = OK_TIMEOUT) -> ProbeReport:
 
 @pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu", "ascii"])
 def test_the_module_is_found_read_and_left_as_it_was(transport: str) -> None:
-    with Emulator(transport, clock=ManualClock()) as emu:
+    with Emulator(transport, clock=ManualClock(), **tcp_line(transport)) as emu:
         emu.clock.advance(1.0)
         with emu.handle.synced() as device:
             level, status = device.fifo_level, device.status
@@ -126,7 +131,7 @@ def test_another_modbus_device_is_not_the_module(model_code: int | None, words: 
 
 @pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu"])
 def test_a_unit_that_does_not_answer_names_the_one_that_does(transport: str) -> None:
-    with Emulator(transport, clock=ManualClock()) as emu:
+    with Emulator(transport, clock=ManualClock(), **tcp_line(transport)) as emu:
         url = emu.url.replace("unit=1", "unit=5")
         report = _probe(url)
     assert report.cause == "wrong_unit" and not report.found
@@ -151,7 +156,7 @@ def test_a_module_at_another_unit_is_found_by_scanning() -> None:
 def test_an_ascii_address_or_checksum_that_is_not_the_modules(
     given: str, cause: str, words: str
 ) -> None:
-    with Emulator("ascii", clock=ManualClock()) as emu:
+    with Emulator("ascii", clock=ManualClock(), **tcp_line("ascii")) as emu:
         report = _probe(emu.url.replace("addr=01&checksum=0", given))
     assert report.cause == cause and words in report.message, report.message
     assert report.answered_url == emu.url
@@ -170,7 +175,7 @@ def test_a_rate_that_is_not_the_modules_names_the_one_that_answers(
     transport: str, module: int, given: int
 ) -> None:
     with Emulator(transport, clock=ManualClock(), baud=module) as emu:
-        report = _probe(emu.url.replace(f"baud={module}", f"baud={given}"))
+        report = _probe(emu.url.replace(f"baud={module}", f"baud={given}"), PTY_TIMEOUT)
     assert report.cause == "wrong_baud", report
     assert f"{given} baud" in report.message
     assert report.message.endswith(f"the module answers with {module} baud: use {emu.url}")
