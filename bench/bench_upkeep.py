@@ -68,9 +68,10 @@ import numpy as np
 
 from loopcal.calibration.parameters import INDEX
 from loopcal.daemon.config.controller import load_controller_config, write_initial_config
+from loopcal.daemon.defaults import UPKEEP_SEGMENT_S
 from loopcal.daemon.live import upkeep as upkeep_module
 from loopcal.daemon.live.changes import LIMIT
-from loopcal.daemon.live.upkeep import SEGMENT_S, Upkeep
+from loopcal.daemon.live.upkeep import Upkeep
 from loopcal.simulator.drift import OffsetDrift
 from loopcal.simulator.motion import Scenario
 from loopcal.simulator.offline import mechanism_scans
@@ -515,7 +516,8 @@ def part_week(days: float, seed: int, jobs: int, chunk_s: float) -> None:
     fit_h = sum(r["fit_cpu"] for r in runs) / hours
     feed_h = sum(r["feed_cpu"] for r in runs) / hours
     print(f"total: {hours:.1f} h of operation ({hours / 24:.2f} days), "
-          f"{sum(r['scans'] for r in runs):,} scans, {segs:,} segments of {SEGMENT_S:g} s tested "
+          f"{sum(r['scans'] for r in runs):,} scans, {segs:,} segments of "
+          f"{UPKEEP_SEGMENT_S:g} s tested "
           f"({sum(r['w'].short for r in runs)} with too few usable scans), "
           f"{sum(r['w'].moved for r in runs)} moved (candidate changes)")  # fmt: skip
     print(f"events: {len(events)} (must be 0: {'ok' if not events else 'NOT met'}); largest "

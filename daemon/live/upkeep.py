@@ -5,7 +5,7 @@ recorder feeds every scan (:meth:`Upkeep.feed`, from the analysis thread); a wor
 of its own, at the lowest CPU priority, does the rest, so that neither the recording nor
 the other observers ever wait for a fit.
 
-1. **Test.** Every :data:`SEGMENT_S` of scans, loop closure on every usable scan (moving
+1. **Test.** Every ``[upkeep].segment`` of scans (15 s), loop closure on every usable scan (moving
    or still, the channel skew corrected) is summed into the four offsets' normal
    equations at the reference (:mod:`.changes`): the controller config in force, with the
    values of a pending proposal in place of its own (so that a change is proposed once).
@@ -54,6 +54,7 @@ import numpy as np
 from loopcal.calibration.parameters import INDEX
 
 from ..config.controller import ControllerConfig, ControllerConfigError
+from ..defaults import UPKEEP_SEGMENT_S
 from ..events import Level
 from ..recorder.engine import Recorder
 from ..recorder.settings import RecorderSettings
@@ -73,8 +74,6 @@ from .changes import BASELINE_SEGMENTS, Normal, OffsetTests, offset_tests, segme
 log = logging.getLogger(__name__)
 
 MODES = ("off", "propose", "write")
-#: scans screened at a time, s of the scans' own stamps
-SEGMENT_S = 15.0
 #: the refit uses at most the latest this many seconds of scans since the change
 FIT_WINDOW_S = 120.0
 #: a standing change the motion has not made identifiable for this long is refused, once
@@ -130,6 +129,8 @@ class Upkeep:
         The precision a refitted offset must reach, and the smallest shift that counts, mm.
     min_interval_s : float
         The least time between two proposals (or writes) that name the same offset, s.
+    segment_s : float, default 15
+        How much of the scans is tested at a time, s of their stamps (``[upkeep].segment``).
     directory : path or None
         The recordings' directory, named in the proposal (for ``loopcal upkeep apply``).
     threaded : bool, default True
@@ -150,6 +151,7 @@ class Upkeep:
         target_mm: float,
         threshold_mm: float,
         min_interval_s: float,
+        segment_s: float = UPKEEP_SEGMENT_S,
         directory: os.PathLike | None = None,
         threaded: bool = True,
         settings: Callable[[], RecorderSettings] | None = None,
@@ -159,6 +161,7 @@ class Upkeep:
         self.mode, self.emit = mode, emit
         self.target_mm, self.threshold_mm = float(target_mm), float(threshold_mm)
         self.min_interval_ns = int(min_interval_s * 1e9)
+        self.segment_ns = int(segment_s * 1e9)
         self.directory = None if directory is None else str(directory)
         self._settings = settings
         self.state = UpkeepState()
@@ -263,6 +266,7 @@ class Upkeep:
             self.mode = upkeep_mode(st.upkeep_mode, controller)
             self.target_mm, self.threshold_mm = st.upkeep_target_mm, st.upkeep_threshold_mm
             self.min_interval_ns = int(st.upkeep_min_interval_s * 1e9)
+            self.segment_ns = int(st.upkeep_segment_s * 1e9)
             self.directory = str(st.directory)
         if self.mode != "off" and controller.path is None:
             log.warning("upkeep off: it needs the robot's controller config")
@@ -317,7 +321,7 @@ class Upkeep:
         stamps = buf["stamp_ns"]
         if self._seg_start_ns is None:
             self._seg_start_ns = int(stamps[0])
-        seg_ns = int(SEGMENT_S * 1e9)
+        seg_ns = self.segment_ns
         while int(stamps[-1]) - self._seg_start_ns >= seg_ns:
             a, b = self._seg_start_ns, self._seg_start_ns + seg_ns
             i, j = np.searchsorted(stamps, [a, b])
@@ -532,6 +536,7 @@ def watch_upkeep(recorder: Recorder) -> Upkeep | None:
                                     "controller config ([controller].config)")  # fmt: skip
     up = Upkeep(recorder.controller, recorder.emit, mode=mode, target_mm=s.upkeep_target_mm,
                 threshold_mm=s.upkeep_threshold_mm, min_interval_s=s.upkeep_min_interval_s,
-                directory=s.directory, settings=lambda: recorder.settings)  # fmt: skip
+                segment_s=s.upkeep_segment_s, directory=s.directory,
+                settings=lambda: recorder.settings)  # fmt: skip
     recorder.add_observer(up)
     return up

@@ -25,7 +25,13 @@ from loopcal.drivers import driver_for_url, ldq412
 from loopcal.drivers.pacing import FIFO_READ_PERIOD_S
 
 from ..arguments import duration_argument, path_argument
-from ..defaults import FALSE_ALARM, FALSE_ALARM_MAX, UPKEEP_TARGET_MM, UPKEEP_THRESHOLD_MM
+from ..defaults import (
+    FALSE_ALARM,
+    FALSE_ALARM_MAX,
+    UPKEEP_SEGMENT_S,
+    UPKEEP_TARGET_MM,
+    UPKEEP_THRESHOLD_MM,
+)
 from .ownership import runtime_directory
 
 _SIZE_RE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(B|KiB|MiB|GiB|TiB|kB|MB|GB|TB)?\s*$")
@@ -200,6 +206,11 @@ class RecorderSettings:
         600.0, kind="seconds", key="[upkeep].min_interval", lo=10.0, hi=30 * 86400.0,
         help="the least time between two recalibrations of the same offset (a creeping "
              "sensor), s")  # fmt: skip
+    upkeep_segment_s: float = _setting(
+        UPKEEP_SEGMENT_S, kind="seconds", key="[upkeep].segment", lo=5.0, hi=600.0,
+        help="how much of the scans the upkeep tests at a time, s: a change stands after "
+             "two segments that moved, so shorter ones see it sooner, from fewer scans "
+             "each (a segment of fewer than 100 usable scans tells nothing)")  # fmt: skip
     live_listen: str | None = _setting(
         None, kind="listen", key="[live].listen", option="--live", metavar="HOST:PORT",
         shown_default="off",

@@ -56,6 +56,7 @@ mode = "propose"
 target_mm = 0.05
 threshold_mm = 0.1
 min_interval = 600
+segment = 15
 
 [metrics]
 listen = "127.0.0.1:9108"

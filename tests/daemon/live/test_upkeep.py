@@ -83,6 +83,20 @@ def test_a_swapped_sensor_is_proposed_once_within_two_minutes(tmp_path, seed, se
 
 
 @pytest.mark.slow
+def test_shorter_segments_see_a_change_sooner(tmp_path):
+    truth, rows = robot_at_work(1, 200, [OffsetDrift("step", 3, 120.0, 0.8)])
+    at, fits = {}, {}
+    for segment in (15.0, 5.0):
+        (tmp_path / f"{segment:g}").mkdir()
+        config = write_initial_config(tmp_path / f"{segment:g}" / "controller.toml", params=truth)
+        up = upkeep_for(config, segment_s=segment)
+        at[segment], fits[segment] = run(up, rows, until="recalibration_proposed"), up.state.fits
+        p = read_proposal(load_controller_config(config))
+        assert p is not None and abs(p.values["d03"] - (truth[INDEX["d03"]] + 0.8)) <= 0.05
+    assert at[5.0] < at[15.0] and at[5.0] - 120.0 <= 25.0, at  # 21 s and 31 s after
+    assert fits[5.0] > fits[15.0], fits
+
+
 def test_an_unchanged_robot_gets_no_proposal(tmp_path):
     truth, rows = robot_at_work(4, 1800)
     config = write_initial_config(tmp_path / "controller.toml", params=truth)

@@ -1,8 +1,10 @@
 """The daemon's upkeep end to end: ``loopcal daemon`` reading an emulated module on a robot
 at work (a task loop, the emulator's clock five times wall time), a sensor swapped or not:
 it proposes once, and writes once in write mode and then watches the new values. The
-upkeep's 15-s segments are of the scans' stamps, which are the host's time: a faster
-emulated clock would put more scans in each (and cost more CPU), not make them come sooner.
+upkeep's segments are of the scans' stamps, which are the host's time: a faster emulated
+clock would put more scans in each (and cost more CPU), not make them come sooner. So the
+daemon tests 5-s segments (``[upkeep].segment``; 500 scans each at this speed), which see
+the change sooner than the default 15 s (tests/daemon/live/test_upkeep.py).
 
 That an unchanged robot gets nothing is shown in-process over 120 segments
 (tests/daemon/live/test_upkeep.py): a change must stand two segments before anything is
@@ -30,7 +32,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 
 def start(tmp_path, emu, mode: str | None = None, extra: str = "") -> tuple[Proc, NotifySocket]:
     controller = tmp_path / "controller.toml"
-    upkeep = "" if mode is None else f'\n[upkeep]\nmode = "{mode}"\n'
+    upkeep = "\n[upkeep]\nsegment = 5\n" + ("" if mode is None else f'mode = "{mode}"\n')
     cfg = write_config(tmp_path / "daemon.toml", emu.url, tmp_path / "rec",
                        f'\n[controller]\nconfig = "{controller}"\n{upkeep}{extra}')  # fmt: skip
     notify = NotifySocket(tmp_path / "notify.sock")
