@@ -199,7 +199,9 @@ def check_vector(p: np.ndarray) -> np.ndarray:
     if nonpos:
         raise ParameterError(f"plate sizes and gains must be positive: {', '.join(nonpos)}")
     k1, k2, k3 = p[I_K1], p[I_K2], p[I_K3]
-    if not (abs(k1 - k2) < k3 < k1 + k2):
+    with np.errstate(over="ignore"):  # k1 + k2 past the largest float is inf: still right
+        triangle = abs(k1 - k2) < k3 < k1 + k2
+    if not triangle:
         raise ParameterError(f"k1={k1}, k2={k2}, k3={k3} do not form a triangle")
     return p
 

@@ -14,7 +14,15 @@ from loopcal.calibration.kinematics import (
     plate_points,
     tilt_swivel,
 )
-from loopcal.calibration.parameters import NAMES, NOMINAL, PAPER7, ParameterModel, Tie, from_dict
+from loopcal.calibration.parameters import (
+    NAMES,
+    NOMINAL,
+    PAPER7,
+    ParameterModel,
+    Tie,
+    check_vector,
+    from_dict,
+)
 from loopcal.calibration.residuals import loop_residuals, reference_points
 from loopcal.calibration.simulate import quantize_volts, sample_workspace, simulate_poses
 
@@ -131,6 +139,14 @@ def test_parameter_model_ties_and_errors():
         ParameterModel(("d01", "d01"))
     with pytest.raises(ParameterError, match="triangle"):
         inverse_kinematics(np.eye(3), from_dict({"k3": 250.0}))
+
+
+@pytest.mark.filterwarnings("error")
+def test_plates_near_the_largest_float_are_judged_without_an_overflow_warning():
+    huge = from_dict({"k1": 1e308, "k2": 1e308, "k3": 1.5e308})
+    assert check_vector(huge)[NAMES.index("k3")] == 1.5e308  # a triangle: k1 + k2 is inf
+    with pytest.raises(ParameterError, match="triangle"):
+        check_vector(from_dict({"k1": 1e308, "k2": 1.0, "k3": 1.0}))
 
 
 def test_bad_kinematics_input_is_named():
