@@ -30,6 +30,7 @@ def jac(ps, model):
     return c.jacobian[c.usable]
 
 
+@pytest.mark.slow
 def test_all_20_parameters_condition_above_10000(design):
     ix = observability_indices(jac(design, PRESETS["all"]))
     assert ix.condition > 1e4

@@ -201,6 +201,7 @@ def test_corrupt_answer_is_a_protocol_error_then_recovers(emu_factory, transport
         assert_fifo_delivered(got, emu, daq)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", MODBUS)
 def test_corrupt_fifo_answer_reports_the_lost_scans(emu_factory, transport: str) -> None:
     # the module answers (corrupt): no timeout is its subject, and under two CPU hogs the

@@ -125,6 +125,7 @@ def test_the_rtu_driver_reads_the_module_through_a_device_server() -> None:
             assert again.identity.firmware == "2.01"
 
 
+@pytest.mark.slow
 def test_the_probe_finds_the_module_behind_a_device_server() -> None:
     with tcp_server(ascii_module) as port:
         url = f"ascii://127.0.0.1:{port}?addr=01&checksum=0"
@@ -136,6 +137,7 @@ def test_the_probe_finds_the_module_behind_a_device_server() -> None:
     assert elsewhere.message.startswith(f"address 05 does not answer at 127.0.0.1:{port}; ")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scheme", ["ascii", "modbus-rtu"])
 def test_the_probe_tries_no_other_rate_on_a_device_servers_line(scheme: str) -> None:
     with tcp_server("silent") as port:

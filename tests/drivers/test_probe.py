@@ -95,6 +95,7 @@ def test_a_host_that_does_not_answer_times_out() -> None:
     assert "does not answer (no TCP connection within 0.25 s)" in report.message
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("kind", "words", "cause"), [
     ("http", "it sent b'HTTP/1.1 400 Bad Request", "not_modbus"),
     ("echo", "sends back what it is sent (an echo server)", "not_modbus"),
@@ -107,6 +108,7 @@ def test_a_server_of_another_protocol_is_named(kind: str, words: str, cause: str
     assert len(report.tried) == 1  # no unit is scanned on a server that is not Modbus
 
 
+@pytest.mark.slow
 def test_a_server_that_never_answers_has_every_unit_tried_within_the_budget() -> None:
     with tcp_server("silent") as port:
         report = _probe(f"modbus-tcp://127.0.0.1:{port}?unit=5", timeout=FULL_TIMEOUT)
@@ -129,6 +131,7 @@ def test_another_modbus_device_is_not_the_module(model_code: int | None, words: 
         assert report.identity["model_code"] == model_code
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu"])
 def test_a_unit_that_does_not_answer_names_the_one_that_does(transport: str) -> None:
     with Emulator(transport, clock=ManualClock(), **tcp_line(transport)) as emu:
@@ -141,6 +144,7 @@ def test_a_unit_that_does_not_answer_names_the_one_that_does(transport: str) -> 
     assert [a.outcome for a in report.tried] == ["no answer", "answers"]
 
 
+@pytest.mark.slow
 def test_a_module_at_another_unit_is_found_by_scanning() -> None:
     with Emulator("modbus-tcp", clock=ManualClock(), unit=3) as emu:
         report = _probe(emu.url.replace("unit=3", "unit=1"))
@@ -148,6 +152,7 @@ def test_a_module_at_another_unit_is_found_by_scanning() -> None:
     assert [a.url.rsplit("=", 1)[1] for a in report.tried] == ["1", "2", "3"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("given", "cause", "words"), [
     ("addr=05&checksum=0", "wrong_address", "address 05 does not answer at "),
     ("addr=01&checksum=1", "wrong_checksum", "with checksum on (bytes arrive, but no valid "
@@ -167,6 +172,7 @@ def _option(url: str, key: str) -> object:
     return cls.url_options(parsed)[key]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("transport", "module", "given"), [
     ("modbus-rtu", 19200, 115200),  # the datasheet's rate, then the usual ones: 9600, 19200
     ("ascii", 115200, 9600),  # the other checksum mode, then the datasheet's rate
@@ -184,6 +190,7 @@ def test_a_rate_that_is_not_the_modules_names_the_one_that_answers(
     assert report.tried[-1].outcome == "answers" and report.answered_url == emu.url
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scheme", ["modbus-rtu", "ascii"])
 def test_a_line_where_another_device_talks_is_garbled_at_every_rate(scheme: str) -> None:
     nmea = b"$GPGGA,123519,4807.038,N,01131.000,E,1,08,0.9,545.4,M,46.9,M,,*47\r\n"
@@ -232,6 +239,7 @@ def _error(url: str, timeout: float = 0.25) -> DAQError:
     return caught.value
 
 
+@pytest.mark.slow
 def test_diagnose_names_the_cause_of_a_drivers_error() -> None:
     url = f"modbus-tcp://127.0.0.1:{free_port()}"
     assert diagnose(_error(url), url).cause == "refused"

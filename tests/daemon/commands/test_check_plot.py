@@ -34,6 +34,7 @@ def _svg_texts(path: Path) -> list[str]:
     return re.findall(r"<!-- (.*?) -->", path.read_text())
 
 
+@pytest.mark.slow
 def test_the_plot_is_titled_by_the_verdict_the_command_prints_and_exits_with(session, tmp_path):
     config = fresh_config(tmp_path / "controller.toml")
     svg = tmp_path / "check.svg"

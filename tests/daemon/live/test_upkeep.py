@@ -97,6 +97,7 @@ def test_shorter_segments_see_a_change_sooner(tmp_path):
     assert fits[5.0] > fits[15.0], fits
 
 
+@pytest.mark.slow
 def test_an_unchanged_robot_gets_no_proposal(tmp_path):
     truth, rows = robot_at_work(4, 1800)
     config = write_initial_config(tmp_path / "controller.toml", params=truth)
