@@ -10,8 +10,11 @@ from pathlib import Path
 
 import pytest
 
+from tests.support import fuzz
 from tests.support.js import mcap_reader
 from tests.support.workers import SharedFixtureScheduling
+
+fuzz.register()  # Hypothesis's profiles, ci loaded: --hypothesis-profile=dev|deep (fuzz.py)
 
 
 def pytest_xdist_make_scheduler(config, log):

@@ -21,6 +21,7 @@ from loopcal.calibration.scans import (
     difference_noise,
 )
 from loopcal.simulator.scenarios import HandMoves
+from tests.support.fuzz import examples
 
 RATE = 20.0
 
@@ -81,7 +82,7 @@ def test_difference_noise_is_not_fooled_by_motion():
     assert np.all(naive > 2 * 0.04)  # scan-to-scan differences see the motion
 
 
-@settings(max_examples=80, deadline=None)
+@settings(max_examples=examples(80), deadline=None)
 @given(
     n=st.integers(0, 40),
     holes=st.lists(st.integers(0, 39), max_size=6),

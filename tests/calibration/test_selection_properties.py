@@ -26,6 +26,7 @@ from loopcal.calibration.selection import (
     select_poses,
 )
 from loopcal.calibration.simulate import simulate_poses
+from tests.support.fuzz import examples
 
 # A bound and the value it bounds come from different computations (eigenvalues of a sum,
 # singular values of a stack), exact to rounding of the largest eigenvalue's size: relative
@@ -244,7 +245,7 @@ def synthetic_pools(draw):
 
 
 @pytest.mark.slow
-@settings(max_examples=60, deadline=None, derandomize=True, database=None)
+@settings(max_examples=examples(60), deadline=None, derandomize=True, database=None)
 @given(synthetic_pools(), st.sampled_from(CRITERIA))
 def test_random_pools_every_subset_and_every_swap(pool, criterion):
     G, k = pool

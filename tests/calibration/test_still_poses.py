@@ -19,6 +19,7 @@ from hypothesis.extra.numpy import arrays
 from loopcal.calibration.errors import InputError
 from loopcal.calibration.poses import StillPoses, running_sums_at, still_poses
 from loopcal.calibration.simulate import quantize_volts
+from tests.support.fuzz import examples
 from tests.support.plate import held_and_moved
 
 EPS = np.finfo(float).eps
@@ -198,7 +199,7 @@ def streams(draw):
 
 
 @pytest.mark.slow
-@settings(max_examples=400, deadline=None, derandomize=True, database=None)
+@settings(max_examples=examples(400), deadline=None, derandomize=True, database=None)
 @given(streams())
 def test_small_streams_meet_the_definition(stream):
     V, kw = stream
@@ -206,7 +207,7 @@ def test_small_streams_meet_the_definition(stream):
 
 
 @pytest.mark.slow
-@settings(max_examples=100, deadline=None, derandomize=True, database=None)
+@settings(max_examples=examples(100), deadline=None, derandomize=True, database=None)
 @given(streams(), st.floats(-1e3, 1e3))
 def test_readings_of_invalid_scans_do_not_matter(stream, junk):
     V, kw = stream

@@ -35,6 +35,7 @@ from loopcal.daemon.recorder.settings import SettingsError, load_daemon_config
 from loopcal.drivers import DAQInvalidCommand, DAQProtocolError, driver_for_url
 from loopcal.drivers import ascii as ascii_proto
 from loopcal.simulator.arguments import speed_argument
+from tests.support.fuzz import examples
 from tests.support.mutations import ASCII_ANSWERS, DAEMON_TOML
 
 _FIXTURE = [HealthCheck.function_scoped_fixture]
@@ -50,7 +51,7 @@ def _answer_bytes():
 
 
 @pytest.mark.slow
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=examples(400), deadline=None)
 @given(line=_answer_bytes(), checksum=st.booleans(), addr=st.integers(0, 255))
 def test_ascii_answers_parse_or_raise_protocol_errors(line, checksum, addr):
     try:
@@ -87,7 +88,7 @@ _QUERY = st.lists(
 
 
 @pytest.mark.slow
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=examples(400), deadline=None)
 @given(
     head=_URL_PARTS,
     middle=st.text(alphabet=string.printable + "é\x00", max_size=24),
@@ -120,7 +121,7 @@ def _toml_like(base: str):
 
 
 @pytest.mark.slow
-@settings(max_examples=250, deadline=None, suppress_health_check=_FIXTURE)
+@settings(max_examples=examples(250), deadline=None, suppress_health_check=_FIXTURE)
 @given(data=st.one_of(_toml_like(_CONTROLLER), st.binary(max_size=300)))
 def test_controller_configs_load_or_raise_their_error(tmp_path, data):
     path = tmp_path / "controller.toml"
@@ -135,7 +136,7 @@ def _daemon_with(old: str, new: str) -> bytes:
     return DAEMON_TOML.replace(old, new).encode()
 
 
-@settings(max_examples=250, deadline=None, suppress_health_check=_FIXTURE)
+@settings(max_examples=examples(250), deadline=None, suppress_health_check=_FIXTURE)
 @given(data=st.one_of(_toml_like(DAEMON_TOML), st.binary(max_size=300)))
 @example(data=_daemon_with('"256 MiB"', '"' + "9" * 400 + ' TiB"'))  # was OverflowError
 @example(data=_daemon_with('"/etc/loopcal/controller/controller.toml"', '"\\u0000"'))
@@ -168,7 +169,7 @@ def _number_texts():
                                                " 2 ", "0x10", "1_0", ""]), st.text(max_size=12))
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(text=_number_texts())
 @example(text="10")
 @example(text="1e-300")

@@ -24,6 +24,7 @@ from loopcal.simulator.emulator import Emulator
 from loopcal.simulator.open_points import OpenPoints
 from tests.support.drivers import OK_TIMEOUT, PERIOD, RATE, check_against_truth, read_ok
 from tests.support.foreign import FIFO_WINDOW, SCAN_REGS, ForeignReader
+from tests.support.fuzz import examples
 from tests.support.servers import modbus_tcp_relay
 
 DEPTH = ldq412.FIFO_DEPTH
@@ -114,7 +115,7 @@ OPS = st.one_of(
 
 
 @pytest.mark.slow
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(first=st.integers(1, 300), ops=st.lists(OPS, min_size=1, max_size=40), lag=st.booleans())
 def test_taken_only_for_gaps_another_master_made_and_always_for_them(first, ops, lag):
     """Every gap is put down to what really made it: never ``taken`` where an overflow
@@ -168,7 +169,7 @@ def test_taken_only_for_gaps_another_master_made_and_always_for_them(first, ops,
         assert seq.fifo_reads_lost == module.lost_reads
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(
     made=st.integers(0, DEPTH + 10),
     taken=st.integers(0, 20),

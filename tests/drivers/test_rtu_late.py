@@ -39,6 +39,7 @@ from tests.support.drivers import (
     open_ok,
     read_ok,
 )
+from tests.support.fuzz import examples
 
 #: scans the module makes between two reads (0: a read with nothing new)
 STEPS = [1, 7, 20, 45, 3, 60, 2, 0, 13]
@@ -134,7 +135,7 @@ def test_late_answers_are_never_taken_for_another_requests(fifo: bool) -> None:
 
 @pytest.mark.slow
 @settings(
-    max_examples=12,
+    max_examples=examples(12),
     deadline=None,
     derandomize=True,
     database=None,
@@ -240,7 +241,7 @@ ANSWERS = st.one_of(
 )
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(answer=ANSWERS, unit=st.integers(1, 247), before=st.binary(max_size=40),
        after=st.binary(max_size=40))  # fmt: skip
 def test_holds_answer_finds_an_answer_among_noise(
@@ -251,7 +252,7 @@ def test_holds_answer_finds_an_answer_among_noise(
     assert modbus_rtu.holds_answer(before + frame + after, unit)
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(data=st.binary(max_size=300), unit=st.integers(1, 247))
 def test_holds_answer_takes_any_bytes(data: bytes, unit: int) -> None:
     assert modbus_rtu.holds_answer(data, unit) in (True, False)

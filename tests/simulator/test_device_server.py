@@ -17,6 +17,7 @@ from loopcal.simulator.clock import ManualClock
 from loopcal.simulator.emulator import Emulator
 from loopcal.simulator.testing import LDQ412Options
 from tests.support.emulator import ANSWER_S, SILENCE_S, ascii_ask, golden_source
+from tests.support.fuzz import examples
 
 SNAPSHOT = "0000 0014 000F 4240 0800 0001 0FFF 0BB8 0204 0015"  # 1 s at 20 Hz
 RTU_SNAPSHOT = bytes.fromhex("01 04 0000 000A 700D")
@@ -120,7 +121,7 @@ def served():
         emu.close()
 
 
-@settings(max_examples=40, deadline=None,
+@settings(max_examples=examples(40), deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
 @given(transport=st.sampled_from(sorted(IDENTITY)), junk=st.binary(min_size=1, max_size=300),
        hang_up=st.booleans())  # fmt: skip

@@ -19,6 +19,7 @@ from loopcal.drivers import open_daq
 from loopcal.simulator.scenarios import SCENARIOS, scenario_named
 from loopcal.simulator.task import TaskLoop
 from loopcal.simulator.testing import LDQ412Options
+from tests.support.fuzz import examples
 from tests.support.processes import Proc, listening_url, loopcal
 
 SEEDS = (0, 1, 2, 7)
@@ -141,7 +142,7 @@ _LOOPS: dict[tuple, TaskLoop] = {}
 
 
 @pytest.mark.slow
-@settings(max_examples=200, deadline=None, derandomize=True, database=None)
+@settings(max_examples=examples(200), deadline=None, derandomize=True, database=None)
 @given(st.lists(st.floats(-1e9, 1e9, allow_nan=False, allow_infinity=False),
                 min_size=1, max_size=20),
        st.sampled_from([(2, 2.0, 0.5), (5, 2.0, 0.0), (3, 0.1, 7.0)]))  # fmt: skip

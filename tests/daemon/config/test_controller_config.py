@@ -26,6 +26,7 @@ from loopcal.daemon.config.controller import (
     render_initial_config,
     write_initial_config,
 )
+from tests.support.fuzz import examples
 
 GOOD = render_initial_config()
 
@@ -328,7 +329,7 @@ def replace_params(config, params):
 
 
 @pytest.mark.slow
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(record=st.dictionaries(st.sampled_from([*NAMES, "path", "junk"]),
                               st.one_of(st.text(max_size=12), st.sampled_from(
                                   ["nan", "inf", "-inf", "1e308", "0", "97.4", " 1 "]))))

@@ -32,6 +32,7 @@ from loopcal.daemon.recorder.engine import Recorder
 from loopcal.daemon.recorder.settings import RecorderSettings
 from loopcal.daemon.recording import read_recordings
 from tests.support.emulator import hand_emulator
+from tests.support.fuzz import examples
 from tests.support.js import watch_live
 from tests.support.processes import (
     Proc,
@@ -50,7 +51,7 @@ pytestmark = pytest.mark.timeout(180)
 
 
 @pytest.mark.slow
-@settings(max_examples=500, deadline=None)
+@settings(max_examples=examples(500), deadline=None)
 @given(st.one_of(
     st.binary(max_size=300),
     st.dictionaries(st.text(max_size=12), st.recursive(
@@ -185,7 +186,7 @@ def test_hostile_clients_never_cost_the_recording_a_scan(daemon):
         s.connect(str(daemon.settings.control_socket))
         idle.append(s)
 
-    @settings(max_examples=150, deadline=None,
+    @settings(max_examples=examples(150), deadline=None,
               suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
     @given(st.lists(st.binary(min_size=1, max_size=200), min_size=1, max_size=5))
     def garbage(lines):

@@ -23,6 +23,7 @@ from loopcal.daemon.worker.proposal import apply_proposal, proposal_path, read_p
 from loopcal.simulator.drift import OffsetDrift
 from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.task import TaskLoop
+from tests.support.fuzz import examples
 from tests.support.recordings import write_directory
 from tests.support.rows import rows_from
 from tests.support.sessions import truth_for
@@ -219,7 +220,7 @@ def a_proposal(tmp_path_factory):
 
 @pytest.mark.slow
 @given(st.data())
-@settings(max_examples=150, deadline=None,
+@settings(max_examples=examples(150), deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
 def test_any_mutation_of_a_proposal_is_refused_or_reads_as_written(a_proposal, data):
     """Fuzzed: a proposal cut, with bytes flipped, inserted or deleted anywhere reads back

@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from loopcal.daemon.recorder.clockmap import ClockMap
+from tests.support.fuzz import examples
 from tests.support.timeline import Module, datasheet_latency, run_stamps
 
 
@@ -117,7 +118,7 @@ _answers = st.tuples(
 
 
 @pytest.mark.slow
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(st.lists(_answers, min_size=1, max_size=120), st.integers(0, 10**17))
 def test_stamps_never_go_back_whatever_the_answers(answers, utc0):
     """Adversarial arrivals: the module's clock anywhere from stopped to 10^7 times as fast

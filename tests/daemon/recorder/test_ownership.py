@@ -24,6 +24,7 @@ from loopcal.daemon.recorder.ownership import (
     module_key,
 )
 from loopcal.drivers import DAQDisconnected, open_daq
+from tests.support.fuzz import examples
 from tests.support.processes import Proc, listening_url, loopcal, record, write_config
 
 pytestmark = pytest.mark.timeout(60)
@@ -64,7 +65,7 @@ def test_a_bad_url_is_a_value_error_naming_it():
         module_key("can://vcan0")
 
 
-@settings(max_examples=100, deadline=None)
+@settings(max_examples=examples(100), deadline=None)
 @given(st.text(max_size=120))
 def test_any_key_gives_one_file_name_in_the_directory(tmp_path_factory, key):
     d = tmp_path_factory.getbasetemp()

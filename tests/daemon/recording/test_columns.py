@@ -19,6 +19,7 @@ from loopcal.daemon.recording.columns import (
     encode_columns,
     is_columns,
 )
+from tests.support.fuzz import examples
 from tests.support.rows import make_rows, synthetic_rows
 from tests.support.sessions import hand_rows
 
@@ -40,7 +41,7 @@ def hour() -> np.ndarray:
     return hand_rows(72_000, seed=1)
 
 
-@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=examples(200), deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.binary(min_size=0, max_size=40 * 56))
 def test_any_rows_come_back_bit_for_bit(data):
     rows = any_rows(data)
@@ -50,7 +51,7 @@ def test_any_rows_come_back_bit_for_bit(data):
 
 
 @pytest.mark.slow
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(st.lists(st.tuples(st.integers(0, 400), st.integers(0, 2**32 - 1)), min_size=1,
                 max_size=8))  # fmt: skip
 def test_many_blocks_at_once_are_each_block_in_turn(parts):
@@ -78,7 +79,7 @@ def test_a_replayed_recording_with_wraps_and_restarts_comes_back():
 
 
 @pytest.mark.slow
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(st.integers(0, 2**31))
 def test_a_flipped_bit_raises_and_never_yields_other_rows(bit):
     """The frame's checksum covers the header and the planes; CDR's padding must be zero."""

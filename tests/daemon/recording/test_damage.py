@@ -15,6 +15,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from loopcal.daemon import recording as rec
+from tests.support.fuzz import examples
 from tests.support.mutations import (
     ACCEPTABLE,
     MUTATIONS,
@@ -57,7 +58,7 @@ _FIXTURES_OK = [HealthCheck.function_scoped_fixture]  # tmp_path is reused: each
 
 
 @pytest.mark.slow
-@settings(max_examples=300, deadline=None, suppress_health_check=_FIXTURES_OK)
+@settings(max_examples=examples(300), deadline=None, suppress_health_check=_FIXTURES_OK)
 @given(closed=st.booleans(), mutation=MUTATION)
 def test_any_damage_gives_the_intact_scans_once_or_a_declared_error(
     originals, tmp_path, closed, mutation
@@ -71,7 +72,7 @@ def test_any_damage_gives_the_intact_scans_once_or_a_declared_error(
     assert verdict in ACCEPTABLE, (name, args, verdict)
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=_FIXTURES_OK)
+@settings(max_examples=examples(60), deadline=None, suppress_health_check=_FIXTURES_OK)
 @given(data=st.binary(max_size=200))
 def test_any_small_file_is_read_or_refused_by_name(tmp_path, data):
     path = tmp_path / "x.mcap"

@@ -14,6 +14,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from loopcal.daemon import recording as rec
+from tests.support.fuzz import examples
 from tests.support.mutations import MUTATIONS, chunk_spans, flip_bits, identities, zero_run
 from tests.support.recordings import write_recording
 from tests.support.rows import T0, make_rows
@@ -138,7 +139,7 @@ def _judge_counts(rows, events, original: bytes, mutation: tuple, path) -> None:
 _FIXTURES_OK = [HealthCheck.function_scoped_fixture]  # tmp_path is reused: each example rewrites
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=_FIXTURES_OK)
+@settings(max_examples=examples(150), deadline=None, suppress_health_check=_FIXTURES_OK)
 @given(closed=st.booleans(), mutation=MUTATION)
 @example(closed=False, mutation=("tear", 196, 353, 0))
 @example(closed=True, mutation=("swap_chunks", 7))  # was 401 of 1,457 scans lost, declared

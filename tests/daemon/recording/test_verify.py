@@ -25,6 +25,7 @@ from loopcal.daemon import recording as rec
 from loopcal.daemon.inspect.fleet import RobotDay, info_task
 from loopcal.daemon.recording.verify import verify_file
 from loopcal.daemon.times import span_text
+from tests.support.fuzz import examples
 from tests.support.js import run_node
 from tests.support.mutations import chunk_spans, flip_bits, zero_run
 from tests.support.processes import loopcal_main
@@ -365,7 +366,7 @@ def _messages(data: bytes) -> tuple[list, list]:
 
 
 @pytest.mark.slow
-@settings(max_examples=300, deadline=None,
+@settings(max_examples=examples(300), deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
 @given(at=st.integers(min_value=0), xor=st.integers(min_value=1, max_value=255))
 def test_any_changed_byte_is_named_or_changes_no_message(original, tmp_path, at, xor):

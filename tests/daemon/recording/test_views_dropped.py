@@ -21,6 +21,7 @@ from loopcal.daemon.recorder.compactor import DAY_S, Compactor
 from loopcal.daemon.recording.compact import DROPPED_VIEWS, compact
 from loopcal.daemon.recording.verify import verify_file
 from tests.support.emulator import hand_emulator
+from tests.support.fuzz import examples
 from tests.support.js import read_ts
 from tests.support.mutations import chunk_spans, flip_bits, identities, swap_chunks, zero_run
 from tests.support.processes import loopcal_main, record
@@ -144,7 +145,7 @@ def test_what_damage_costs_is_counted_against_the_files_own_count(thinned, tmp_p
 
 
 @pytest.mark.slow
-@settings(max_examples=60, deadline=None,
+@settings(max_examples=examples(60), deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
 @given(mutation=st.one_of(
     st.tuples(st.just("flip"), st.lists(st.integers(0, 1 << 28), min_size=1, max_size=4)),

@@ -21,6 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from loopcal.daemon.worker.scan_poses import scans_for_fit
+from tests.support.fuzz import examples
 from tests.support.rows import near_a_break, readings, synthetic_scans, untrustworthy
 
 SKEW_S = 250e-6
@@ -72,7 +73,7 @@ def recordings(draw):
     return synthetic_scans(rng, n, rate, **counts), rate, draw(st.sampled_from([50, 300, 10**6]))
 
 
-@settings(max_examples=80, deadline=None, derandomize=True, database=None)
+@settings(max_examples=examples(80), deadline=None, derandomize=True, database=None)
 @given(recordings())
 def test_usable_scans_are_what_the_docstring_says(recording):
     s, rate, max_scans = recording

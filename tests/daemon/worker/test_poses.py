@@ -23,6 +23,7 @@ from loopcal.calibration.poses import still_poses
 from loopcal.daemon.worker.recorded_poses import poses_of_scans
 from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.scenarios import HandMoves
+from tests.support.fuzz import examples
 from tests.support.rows import (
     LSB,
     near_a_break,
@@ -161,7 +162,7 @@ def recordings(draw):
                "longest": longest}  # fmt: skip
 
 
-@settings(max_examples=80, deadline=None, derandomize=True, database=None)
+@settings(max_examples=examples(80), deadline=None, derandomize=True, database=None)
 @given(recordings())
 def test_synthetic_recordings(recording):
     s, kw = recording
