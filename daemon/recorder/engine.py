@@ -110,6 +110,8 @@ class Recorder:
         self.exit_reason = ""
         self._stop = threading.Event()
         self._reload = threading.Event()
+        self._signalled_stop = ""  # signal_stop's reason, for the loop to act on
+        self._signalled_reload = False
         self._acq_stop = threading.Event()
         self._writer_done = threading.Event()
         self._queue = ScanQueue(settings.max_backlog_scans)
@@ -157,7 +159,8 @@ class Recorder:
         self.analysis.observers.append(observer)
 
     def request_stop(self, reason: str = "stop requested") -> None:
-        """Stop: close the file properly and return from :meth:`run` (signal-safe)."""
+        """Stop: close the file properly and return from :meth:`run` (from any thread; a
+        signal handler calls :meth:`signal_stop`)."""
         if not self.exit_reason:
             self.exit_reason = reason
         self._stop.set()
@@ -165,6 +168,17 @@ class Recorder:
     def request_reload(self) -> None:
         """Reload the settings and the controller config, and start a new file."""
         self._reload.set()
+
+    def signal_stop(self, reason: str) -> None:
+        """:meth:`request_stop` from a signal handler: only noted, no lock taken, and acted
+        on by :meth:`run`'s loop within its 0.2 s wait. A handler runs in the main thread,
+        which may be inside ``Event.wait`` holding the very lock ``Event.set`` takes (ci79:
+        SIGTERM there hung the daemon until it was killed)."""
+        self._signalled_stop = self._signalled_stop or reason
+
+    def signal_reload(self) -> None:
+        """:meth:`request_reload` from a signal handler (:meth:`signal_stop` says why)."""
+        self._signalled_reload = True
 
     @staticmethod
     def _load_controller(settings: RecorderSettings) -> ControllerConfig:
@@ -231,6 +245,12 @@ class Recorder:
         next_look = time.monotonic() + FOLLOW_CONFIG_S
         while not self._stop.is_set():
             now = time.monotonic()
+            if self._signalled_stop:
+                self.request_stop(self._signalled_stop)
+                break
+            if self._signalled_reload:
+                self._signalled_reload = False
+                self._reload.set()
             if t_end is not None and now >= t_end:
                 self.request_stop(f"--duration {s.duration_s:g} s reached")
                 break

@@ -13,6 +13,7 @@ import os
 import signal
 import sys
 import threading
+from collections.abc import Callable
 
 from .engine import Recorder
 
@@ -49,8 +50,17 @@ def run_recorder(recorder: Recorder) -> int:
     the process, so SIGXFSZ is ignored.
     """
     if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, lambda *_: recorder.request_stop("SIGTERM"))
-        signal.signal(signal.SIGINT, lambda *_: recorder.request_stop("SIGINT"))
-        signal.signal(signal.SIGHUP, lambda *_: recorder.request_reload())
+        for sig, handler in signal_handlers(recorder).items():
+            signal.signal(sig, handler)
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     return recorder.run()
+
+
+def signal_handlers(recorder: Recorder) -> dict[signal.Signals, Callable[[int, object], None]]:
+    """SIGTERM and SIGINT stop the recorder, SIGHUP reloads it: each handler only notes the
+    signal, taking no lock (:meth:`Recorder.signal_stop`)."""
+    return {
+        signal.SIGTERM: lambda *_: recorder.signal_stop("SIGTERM"),
+        signal.SIGINT: lambda *_: recorder.signal_stop("SIGINT"),
+        signal.SIGHUP: lambda *_: recorder.signal_reload(),
+    }

@@ -10,12 +10,15 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from loopcal.daemon.recorder.engine import Recorder
+from loopcal.daemon.recorder.process import signal_handlers
 from loopcal.daemon.recorder.settings import (
     RecorderSettings,
     SettingsError,
@@ -371,3 +374,25 @@ def test_a_stalling_disk_does_not_delay_reading(tmp_path):
     assert len(rows) >= 2 * one_fsync and rows["missed"].sum() < one_fsync / 3, rec.text
     host_s = np.diff(rows["host_ns"]) / 1e9
     assert host_s.max() < FSYNC_S / 2, f"no scan received for {host_s.max():.2f} s"
+
+
+def test_a_stop_or_reload_signal_takes_no_lock(tmp_path):
+    """ci79: SIGTERM landed while the daemon's main thread, in the recorder's loop, held
+    the stop event's own lock (inside Event.wait), and the handler's Event.set() waited for
+    it forever: the daemon hung until it was killed. The handlers only note the signal,
+    here called where it landed (a thread holding both events' locks stands for the main
+    thread interrupted there: it must not wait for itself)."""
+    settings = RecorderSettings(daq_url="modbus-tcp://127.0.0.1:1", directory=tmp_path / "rec")
+    recorder = Recorder(settings.checked(), command="test")
+    handlers = signal_handlers(recorder)
+    landed = threading.Event()
+
+    def interrupted_inside_wait() -> None:
+        with recorder._stop._cond, recorder._reload._cond:
+            handlers[signal.SIGHUP](signal.SIGHUP, None)
+            handlers[signal.SIGTERM](signal.SIGTERM, None)
+        landed.set()
+
+    threading.Thread(target=interrupted_inside_wait, daemon=True).start()
+    assert landed.wait(5), "a signal handler waited for a lock its own thread held"
+    assert recorder._signalled_stop == "SIGTERM" and recorder._signalled_reload
