@@ -16,4 +16,4 @@ UPKEEP_TARGET_MM = 0.05
 #: mm, the smallest change of an offset the upkeep acts on (``[upkeep].threshold_mm``)
 UPKEEP_THRESHOLD_MM = 0.1
 #: s of the scans' stamps, what the upkeep screens at a time (``[upkeep].segment``)
-UPKEEP_SEGMENT_S = 15.0
+UPKEEP_SEGMENT_S = 10.0

@@ -49,11 +49,17 @@ KINDS: dict[str, str] = {
     "offset_drift": "the loops no longer close at the controller config: a sensor's offset "
     "moved (details: sensor 1..4, shift_mm, std_mm, statistic, threshold, margin, poses, "
     "false_alarm)",
-    "offset_drift_cleared": "that sensor's loops close again (details: sensor, poses)",
+    "offset_drift_unattributed": "the loops no longer close at the controller config, and "
+    "the poses so far cannot tell which sensor's offset moved (details: candidates, each a "
+    "sensor, shift_mm and std_mm; since_ns, statistic, threshold, margin, poses, advice, "
+    "false_alarm)",
+    "offset_drift_cleared": "that sensor's loops close again (details: sensor, None after an "
+    "offset_drift_unattributed; poses)",
     "loops_open": "the loops have not closed at the controller config since the recording "
-    "began: the config does not describe the robot, calibrate; no offset_drift follows "
+    "began: at a config loopcal calibrated, a change since that calibration; at one it never "
+    "calibrated, the config does not describe the robot, calibrate; no offset_drift follows "
     "(details: poses, since_ns, detected_ns, statistic, threshold, largest_sensor, "
-    "largest_shift_mm, false_alarm)",
+    "largest_shift_mm, calibrated_utc, candidates, false_alarm)",
     "guidance": "the live guidance's verdict while recording (details: enough, reason)",
     "foreign_reader": "another Modbus master takes scans off the module's FIFO: its start "
     "(warning: since, scans taken so far) and its end (details: since_ns, until_ns, taken)",
@@ -61,6 +67,15 @@ KINDS: dict[str, str] = {
     "refused because another process holds the new module's (details: key, lock, holder)",
     "session_start": "a technician's calibration session began through the daemon's control "
     "socket (details: session, note, asked_by, target_mm, until_enough, duration_s)",
+    "offset_change": "upkeep: the loops no longer close at the controller config since a "
+    "change it has not fixed yet: the offsets told apart, or the candidates the robot's "
+    "motion cannot yet tell apart and the move that would (details: since_ns, names, "
+    "candidates, advice, mode)",
+    "offset_change_gone": "upkeep: the loops close again, the change it said is gone "
+    "(details: since_ns, until_ns)",
+    "upkeep_reset": "the upkeep's kept record (its baseline and any change in progress) "
+    "could not be taken up: damaged, or of another format version; set aside, and the upkeep "
+    "starts over from the controller config's own calibration (details: path, aside, error)",
     "recalibration_proposed": "upkeep found an offset changed and identified it from the "
     "robot's motion, every gate passed: a complete config written beside the controller "
     "config (.proposed) for a person to apply (details: path, values, std, shift_mm, since_ns, "

@@ -7,25 +7,40 @@ the change h_ki of e_k per mm of shift of sensor i's offset. For small shifts
 ``N = H^T H``, ``g = H^T e`` (4 x 4 and 4 numbers, scaled by the noise the segment itself
 shows), and any set of segments by their sums. The upkeep (:mod:`.upkeep`) keeps three:
 
-- the **baseline**: the first unchanged segments after a (re)start, what the loops showed
-  before anything changed (its least-squares shift, and that shift's covariance
-  ``N^+``); until it has :data:`BASELINE_SEGMENTS`, the reference config's own
-  uncertainty stands in. Held fixed afterwards, so that a creep cannot hide in it;
+- the **baseline**: what the loops showed while nothing changed at the reference. Its
+  shift ``b`` and covariance ``C_b`` combine the reference's own calibration (its
+  ``[provenance]`` std: the loops of a calibrated config close within it, so a change
+  against the calibration is told from the first segment on) with the baseline's segments
+  (:func:`baseline_of`); the data take over in what the robot's motion determines;
 - a **segment**, tested against the baseline: has anything moved?
 - a **change**, the segments since one began: which offsets moved (attribution).
 
-The test of "sensor i alone moved by s" against the baseline is the likelihood-ratio
-test of the health monitor: ``g'_i = g_i - (N delta_b)_i``, ``s = g'_i / N_ii``,
-``T_i = g'_i^2 / Var(g'_i)`` with ``Var = N_ii + (N C_b N)_ii`` (the baseline's own
-uncertainty counted), chi-square with one degree of freedom when nothing moved. Two
-sensors at once: with the best one's shift taken out, the others once more, jointly.
+Each test is a generalised likelihood-ratio test with the full covariance of what is
+tested, ``g' = g - N b``, ``V = N + N C_b N`` (the segment's noise and the baseline's
+uncertainty, which is largest where the motion tells two sensors apart least). An
+*explanation* is a set S of offsets that moved by shifts s: ``T_S = z^T F^-1 z`` with
+``z = H_S^T V^+ g'``, ``F = H_S^T V^+ H_S`` (``H_S`` the columns S of N), and everything
+at once is ``T = g'^T V^+ g'``, chi-square with rank(V) degrees of freedom when nothing
+moved. The smallest explanations that leave no significant remainder are compared: one
+that beats every other of its size by :data:`MARGIN` (its likelihood 7e7 times theirs)
+names the offsets; otherwise every explanation not ruled out is a candidate, and the
+change waits for motion that tells them apart.
+
+The loops are linear in the offsets only to first order: a shift of a few mm changes each
+scan's pattern h a little, and where two sensors' patterns differ by a few per cent over
+the motion seen, that second-order error would decide between them. The upkeep therefore
+tests a change's scans linearised at its best explanation (:meth:`Reference.at`: the
+reference config moved by that shift), where what is left is small and the test exact.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import combinations
+from typing import Any
 
 import numpy as np
+from scipy.special import chdtri
 
 from loopcal.calibration.closure import loop_closure, threshold
 from loopcal.calibration.poses import pose_noise_volts
@@ -37,13 +52,22 @@ from ..worker.scan_poses import scans_for_fit
 
 #: a segment with fewer usable scans than this is not tested
 MIN_SEGMENT_SCANS = 100
-#: unchanged segments the baseline takes (then it is held): 5 minutes of 15-s segments
+#: unchanged segments the baseline takes (then it is held, so that a creep cannot hide in it)
 BASELINE_SEGMENTS = 20
-#: the fewest it needs to stand in for the reference's uncertainty
-BASELINE_MIN_SEGMENTS = 4
 #: probability per test of naming a sensor that did not move
 FALSE_ALARM = 1e-8
+#: the statistic of one sensor's test that says something moved (Bonferroni over four)
 LIMIT = threshold(FALSE_ALARM, tests=4)
+#: how much likelier the best explanation must be than each other of its size, as a
+#: difference of statistics (twice the log-likelihood ratio)
+MARGIN = LIMIT
+#: eigenvalues of V below this share of the largest carry no information
+RANK_TOL = 1e-9
+
+
+def joint_limit(dof: int) -> float:
+    """The chi-square(dof) statistic exceeded with probability :data:`FALSE_ALARM`."""
+    return float(chdtri(dof, FALSE_ALARM))
 
 
 @dataclass
@@ -58,6 +82,8 @@ class Normal:
         ``H^T e / scale``, 1/mm.
     scans : int
         Usable scans summed.
+    segments : int
+        Segments summed.
     """
 
     N: np.ndarray = field(default_factory=lambda: np.zeros((4, 4)))
@@ -66,8 +92,48 @@ class Normal:
     segments: int = 0
 
     def __add__(self, other: Normal) -> Normal:
-        return Normal(self.N + other.N, self.g + other.g, self.scans + other.scans,
-                      self.segments + other.segments)  # fmt: skip
+        return Normal(
+            self.N + other.N,
+            self.g + other.g,
+            self.scans + other.scans,
+            self.segments + other.segments,
+        )
+
+    def shifted(self, delta: np.ndarray) -> Normal:
+        """The same scans seen at a reference whose offsets are ``delta`` (4,) mm further:
+        ``g - N delta`` (the loops are linear in small offset changes)."""
+        return Normal(self.N.copy(), self.g - self.N @ delta, self.scans, self.segments)
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "N": self.N.tolist(),
+            "g": self.g.tolist(),
+            "scans": self.scans,
+            "segments": self.segments,
+        }
+
+    @classmethod
+    def from_json(cls, doc: Any) -> Normal:
+        """Raises ValueError (naming what) for anything but :meth:`as_json`'s output."""
+        if not isinstance(doc, dict) or set(doc) != {"N", "g", "scans", "segments"}:
+            raise ValueError("normal equations: not a table of N, g, scans, segments")
+        try:
+            N = np.array(doc["N"], dtype=float)
+            g = np.array(doc["g"], dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError("normal equations: N and g must be numbers") from None
+        counts = (doc["scans"], doc["segments"])
+        if (
+            N.shape != (4, 4)
+            or g.shape != (4,)
+            or not (np.isfinite(N).all() and np.isfinite(g).all())
+        ):
+            raise ValueError("normal equations: N must be 4 x 4 and g 4 finite numbers")
+        if not np.allclose(N, N.T) or np.linalg.eigvalsh(N).min() < -1e-6 * max(1.0, abs(N).max()):
+            raise ValueError("normal equations: N is not symmetric positive semi-definite")
+        if any(type(c) is not int or c < 0 for c in counts):
+            raise ValueError("normal equations: scans and segments must be counts")
+        return cls(N, g, *counts)
 
 
 def segment_normal(rows: np.ndarray, reference: ControllerConfig) -> Normal | None:
@@ -103,58 +169,137 @@ def segment_normal(rows: np.ndarray, reference: ControllerConfig) -> Normal | No
 
 
 @dataclass(frozen=True)
+class Reference:
+    """What the loops are tested against: the offsets' shift from the reference config
+    ``shift`` (4,) mm, and its covariance ``cov`` (4, 4) mm^2."""
+
+    shift: np.ndarray
+    cov: np.ndarray
+
+    def moved_by(self, delta: np.ndarray, cov: np.ndarray) -> Reference:
+        """This reference after the offsets moved by ``delta`` (4,), known to ``cov``."""
+        return Reference(self.shift + delta, self.cov + cov)
+
+    def at(self, point: np.ndarray) -> Reference:
+        """The same, for scans linearised at the reference config moved by ``point`` (4,)
+        mm: what they show is then the shift beyond ``point``, and an explanation's shift
+        is still counted from the reference."""
+        return Reference(self.shift - point, self.cov)
+
+
+def baseline_of(base: Normal, reference: ControllerConfig) -> Reference:
+    """The baseline (module docstring): the reference config's own uncertainty (its
+    ``[provenance]`` std of the offsets) as a prior, updated by the baseline's segments.
+
+    Returns
+    -------
+    Reference
+        ``shift`` = ``C_b g``, ``cov`` = ``C_b`` = ``(C_0^-1 + N)^-1``.
+    """
+    std = config_std(reference)
+    prior = np.diag([1.0 / std[n] ** 2 for n in OFFSETS])
+    cov = np.linalg.inv(prior + base.N)
+    cov = (cov + cov.T) / 2
+    return Reference(cov @ base.g, cov)
+
+
+@dataclass(frozen=True)
+class Explanation:
+    """Some offsets that moved: ``names`` (``"d03"``...), their ``shift_mm`` and
+    ``std_mm`` (k,), and the likelihood-ratio ``statistic`` of the explanation."""
+
+    names: tuple[str, ...]
+    shift_mm: np.ndarray
+    std_mm: np.ndarray
+    statistic: float
+    cov: np.ndarray  # (k, k) of the shifts, mm^2
+
+    def delta(self) -> tuple[np.ndarray, np.ndarray]:
+        """The shift as a (4,) vector of the four offsets and its (4, 4) covariance."""
+        idx = [OFFSETS.index(n) for n in self.names]
+        d, C = np.zeros(4), np.zeros((4, 4))
+        d[idx] = self.shift_mm
+        C[np.ix_(idx, idx)] = self.cov
+        return d, C
+
+    def words(self) -> str:
+        """``d03 +0.60 mm`` (``and`` between offsets)."""
+        return " and ".join(
+            f"{n} {s:+.2f} mm" for n, s in zip(self.names, self.shift_mm, strict=True)
+        )
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "names": list(self.names),
+            "shift_mm": [round(float(s), 5) for s in self.shift_mm],
+            "std_mm": [round(float(s), 5) for s in self.std_mm],
+            "statistic": round(float(self.statistic), 2),
+        }
+
+
+@dataclass(frozen=True)
 class OffsetTests:
-    """Each sensor's "it alone moved" test against the baseline.
+    """What a test of some scans against a reference found.
 
     Attributes
     ----------
     shift_mm, std_mm, statistic : ndarray, shape (4,)
-        The shift from the baseline, its standard deviation, and T_i.
-    changed : list of str
-        The offsets found moved (``"d03"``...): when something moved, the sensor the data
-        point at (its likelihood, the baseline's uncertainty left out, above the
-        runner-up's by the limit) with its shift at ``threshold_mm``; then a second one
-        likewise with the first's shift taken out.
+        Each sensor's "it alone moved" test: its shift, standard deviation and statistic.
+    joint : float
+        The statistic of "anything moved", chi-square with ``dof`` degrees of freedom.
+    dof : int
+        The rank of what the scans tell (4 with motion, fewer with a plate held still).
     moved : bool
-        Something moved (the best T at the limit and its shift at ``threshold_mm``),
-        whichever sensor it was.
+        Something moved: a sensor's statistic at :data:`LIMIT`, or the joint one at its
+        limit, and the best explanation's largest shift at ``threshold_mm``.
+    candidates : list of Explanation
+        The explanations not ruled out, best first: the smallest ones that leave no
+        significant remainder, within :data:`MARGIN` of the best. One: the change is told;
+        more: the motion cannot yet tell them apart.
     """
 
     shift_mm: np.ndarray
     std_mm: np.ndarray
     statistic: np.ndarray
-    changed: list[str]
+    joint: float
+    dof: int
     moved: bool
+    candidates: list[Explanation]
+
+    @property
+    def changed(self) -> list[str]:
+        """The offsets found moved, when one explanation is told; else empty."""
+        return list(self.candidates[0].names) if len(self.candidates) == 1 else []
+
+    @property
+    def best(self) -> Explanation | None:
+        return self.candidates[0] if self.candidates else None
+
+    def words(self) -> str:
+        """The candidates in words: ``d03 +0.58 mm or d04 -0.60 mm``."""
+        return " or ".join(c.words() for c in self.candidates)
 
     def as_dict(self) -> dict[str, dict[str, float]]:
-        return {n: {"shift_mm": round(float(self.shift_mm[i]), 5),
-                    "std_mm": round(float(self.std_mm[i]), 5),
-                    "statistic": round(float(self.statistic[i]), 2)}
-                for i, n in enumerate(OFFSETS)}  # fmt: skip
+        return {
+            n: {
+                "shift_mm": round(float(self.shift_mm[i]), 5),
+                "std_mm": round(float(self.std_mm[i]), 5),
+                "statistic": round(float(self.statistic[i]), 2),
+            }
+            for i, n in enumerate(OFFSETS)
+        }
 
 
-def baseline_of(base: Normal, reference: ControllerConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(4,) shift of the baseline from the reference, mm, and its (4, 4) covariance: the
-    least-squares shift of its segments, or, with fewer than
-    :data:`BASELINE_MIN_SEGMENTS`, none and the reference's own uncertainty."""
-    if base.segments < BASELINE_MIN_SEGMENTS:
-        std = config_std(reference)
-        return np.zeros(4), np.diag([std[n] ** 2 for n in OFFSETS])
-    cov = np.linalg.pinv(base.N, rcond=1e-9)
-    return cov @ base.g, cov
-
-
-def offset_tests(
-    data: Normal, base: Normal, reference: ControllerConfig, *, threshold_mm: float
-) -> OffsetTests:
-    """Test ``data`` (a segment, or a change's segments) against the baseline ``base``.
+def offset_tests(data: Normal, against: Reference, *, threshold_mm: float) -> OffsetTests:
+    """Test ``data`` (a segment, or a change's segments) against ``against`` (the
+    baseline, or the baseline moved by a change).
 
     Parameters
     ----------
-    data, base : Normal
-        The scans tested, and the baseline's.
-    reference : ControllerConfig
-        The reference both were closed at (its uncertainty stands in for a short baseline).
+    data : Normal
+        The scans tested.
+    against : Reference
+        What they are expected to show, and how well it is known.
     threshold_mm : float
         The smallest shift that counts, mm.
 
@@ -162,55 +307,73 @@ def offset_tests(
     -------
     OffsetTests
     """
-    shift_b, cov_b = baseline_of(base, reference)
     N = data.N
-    g = data.g - N @ shift_b
-    var = np.diag(N) + np.einsum("ij,jk,ki->i", N, cov_b, N)
-    d = np.diag(N)
-    ok = d > 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        shift = np.where(ok, g / d, np.nan)
-        std = np.where(ok, np.sqrt(var) / d, np.nan)
-        T = np.where(ok, g * g / var, 0.0)
-    best = int(np.argmax(T))
-    moved = bool(T[best] >= LIMIT and abs(shift[best]) >= threshold_mm)
-    changed: list[str] = []
-    # which sensor: the data's own likelihood of each (the baseline's uncertainty, common
-    # to every hypothesis, would blur them all alike)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        own = np.where(ok, g * g / d, 0.0)
-    best = int(np.argmax(own))
-    margin = float(own[best] - np.max(np.delete(own, best)))
-    if moved and margin >= LIMIT and abs(shift[best]) >= threshold_mm:
-        changed.append(OFFSETS[best])
-        second = _second(N, g, var, best, threshold_mm)
-        if second is not None:
-            changed.append(OFFSETS[second])
-    return OffsetTests(shift, std, T, sorted(changed), moved)
+    gp = data.g - N @ against.shift
+    V = N + N @ against.cov @ N
+    w, U = np.linalg.eigh((V + V.T) / 2)
+    keep = w > RANK_TOL * max(float(w.max()), 1e-300)
+    dof = int(keep.sum())
+    Vi = (U[:, keep] / w[keep]) @ U[:, keep].T
+    joint = float(gp @ Vi @ gp)
+    z_all, F_all = N @ Vi @ gp, N @ Vi @ N  # N is symmetric: H = N's columns
+    models: dict[int, list[Explanation]] = {}
+    for k in range(1, 5):
+        for idx in combinations(range(4), k):
+            ix = list(idx)
+            F, z = F_all[np.ix_(ix, ix)], z_all[ix]
+            d = np.diag(F)
+            if d.min() <= 0 or np.linalg.cond(F) > 1e12:
+                continue
+            cov = np.linalg.inv(F)
+            s = cov @ z
+            models.setdefault(k, []).append(
+                Explanation(
+                    tuple(OFFSETS[i] for i in ix), s, np.sqrt(np.diag(cov)), float(z @ s), cov
+                )
+            )
+    singles = {e.names[0]: e for e in models.get(1, [])}
+    shift = np.array([singles[n].shift_mm[0] if n in singles else np.nan for n in OFFSETS])
+    std = np.array([singles[n].std_mm[0] if n in singles else np.nan for n in OFFSETS])
+    T = np.array([singles[n].statistic if n in singles else 0.0 for n in OFFSETS])
+    candidates: list[Explanation] = []
+    for k in sorted(models):
+        ranked = sorted(models[k], key=lambda e: -e.statistic)
+        if dof > k and joint - ranked[0].statistic >= joint_limit(dof - k):
+            continue  # a remainder no explanation of this size accounts for
+        top = ranked[0].statistic
+        candidates = [e for e in ranked if top - e.statistic < MARGIN]
+        break
+    significant = float(T.max()) >= LIMIT or (dof > 0 and joint >= joint_limit(dof))
+    large = bool(candidates) and float(np.max(np.abs(candidates[0].shift_mm))) >= threshold_mm
+    return OffsetTests(shift, std, T, joint, dof, significant and large, candidates)
 
 
-def _second(N: np.ndarray, g: np.ndarray, var: np.ndarray, first: int,
-            threshold_mm: float) -> int | None:  # fmt: skip
-    """A second sensor that moved too: each other one fitted jointly with ``first``; it
-    counts when its part of the joint fit reaches the limit, its margin over the others as
-    large, and its shift ``threshold_mm``."""
-    gain = np.zeros(4)
-    shifts = np.zeros(4)
-    for j in range(4):
-        if j == first:
-            continue
-        idx = [first, j]
-        Nj = N[np.ix_(idx, idx)]
-        if abs(np.linalg.det(Nj)) < 1e-12 * float(np.prod(np.diag(Nj))):
-            continue
-        s = np.linalg.solve(Nj, g[idx])
-        # the gain over the first alone, on the scale of the tests' variance
-        alone = g[first] ** 2 / N[first, first]
-        gain[j] = (float(g[idx] @ s) - alone) * N[first, first] / var[first]
-        shifts[j] = s[1]
-    j = int(np.argmax(gain))
-    rest = np.delete(gain, [first, j])
-    if gain[j] >= LIMIT and gain[j] - np.max(rest) >= LIMIT and abs(shifts[j]) >= threshold_mm:
-        return j
-    return None
+def segments_normal(rows: np.ndarray, reference: ControllerConfig, edges: np.ndarray) -> Normal:
+    """The normal equations of the segments ``[edges[k], edges[k + 1])`` of ``rows`` (by
+    their stamps, ns) at ``reference``, summed: a change's scans linearised anew."""
+    stamps, out = rows["stamp_ns"], Normal()
+    for a, b in zip(edges[:-1], edges[1:], strict=True):
+        i, j = np.searchsorted(stamps, [a, b])
+        n = segment_normal(rows[i:j], reference) if j > i else None
+        if n is not None:
+            out = out + n
+    return out
 
+
+def creeps(end_ns: np.ndarray, shift_mm: np.ndarray, std_mm: np.ndarray) -> bool:
+    """Whether segments' shifts of one offset grow steadily: their weighted slope in time
+    reaches :data:`LIMIT` (a creep, where a step's segments before it are flat).
+
+    Parameters
+    ----------
+    end_ns, shift_mm, std_mm : ndarray, shape (k,)
+        Each segment's end (ns), the offset's shift in it and its standard deviation, mm.
+    """
+    w = 1.0 / np.asarray(std_mm, dtype=float) ** 2
+    t = (np.asarray(end_ns, dtype=float) - float(end_ns[0])) / 1e9
+    tc = t - np.average(t, weights=w)
+    spread = float(np.sum(w * tc * tc))
+    if spread <= 0:
+        return False
+    slope = float(np.sum(w * tc * np.asarray(shift_mm, dtype=float))) / spread
+    return slope * slope * spread >= LIMIT

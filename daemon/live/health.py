@@ -60,6 +60,7 @@ from ..config.controller import ControllerConfig
 from ..events import Level
 from ..recorder.engine import Recorder
 from ..recorder.settings import DEFAULTS
+from ..worker.coverage import telling_move
 from ..worker.recorded_poses import RecordedPoses, completed_poses, margin_scans, window_scans
 
 WINDOW = 30  # poses per test
@@ -121,6 +122,11 @@ class HealthState:
     open_since_start: bool = False
     #: the stamps of the first :data:`EARLY_POSES` poses since the (re)start, ns
     early_ns: tuple[int, ...] = ()
+    #: the sensors that may have moved while the poses cannot tell which (an
+    #: ``offset_drift_unattributed`` stands), likeliest first; empty otherwise
+    unattributed: tuple[int, ...] = ()
+    #: and each one's shift, mm
+    unattributed_mm: tuple[float, ...] = ()
 
 
 def config_covariance(controller: ControllerConfig) -> np.ndarray:
@@ -173,6 +179,13 @@ class HealthMonitor:
         """Start over at a new controller config (a reload): earlier poses no longer count."""
         self.params = np.array(controller.params, dtype=float)
         self.covariance = config_covariance(controller)
+        prov = controller.provenance or {}
+        #: when loopcal calibrated the config (its provenance), None if it never did
+        self.calibrated_utc = (
+            str(prov.get("written_utc", "?"))
+            if isinstance(prov.get("std"), dict) and prov["std"]
+            else None
+        )
         #: False while there is no controller config to check the loops against
         self.watching = not (self.require_config and controller.path is None)
         # the last WINDOW poses' mean volts (4,), scan noise (4,), scans averaged, stamp ns,
@@ -255,8 +268,8 @@ class HealthMonitor:
         for m in np.unique(ends - starts):  # WINDOW, but fewer poses after a (re)start
             sel = ends[ends - starts == m]
             for lo in range(0, len(sel), _BATCH):
-                self._test(poses, sel[lo:lo + _BATCH] - m, int(m))
-        self._window = poses[max(0, len(poses) - WINDOW):]
+                self._test(poses, sel[lo : lo + _BATCH] - m, int(m))
+        self._window = poses[max(0, len(poses) - WINDOW) :]
 
     def _test(self, poses: _Poses, starts: np.ndarray, m: int) -> None:
         """Test the windows of m poses beginning at ``starts``, then judge them in order."""
@@ -280,6 +293,16 @@ class HealthMonitor:
         if self.on_test is not None:
             self.on_test(int(stamps[-1]), best)
         st = self.state
+        if st.unattributed and float(np.max(best.statistic)) < CLEAR_STATISTIC:
+            self.emit(
+                "offset_drift_cleared",
+                Level.INFO,
+                f"the loops close again at the controller config (over the last {best.poses} "
+                "poses): the offset that moved is back",
+                sensor=None,
+                poses=best.poses,
+            )
+            st.unattributed, st.unattributed_mm = (), ()
         if st.alarm_sensor is not None:
             if best.statistic[st.alarm_sensor - 1] < CLEAR_STATISTIC:
                 self.emit(
@@ -296,13 +319,18 @@ class HealthMonitor:
         if T >= self.threshold and int(stamps[-best.affected]) <= st.early_ns[-1]:
             self._open_since_start(best, int(stamps[-1]), T)
             return
-        if T < self.threshold or best.affected < MIN_AFFECTED or best.margin < ATTRIBUTION_MARGIN:
+        if T < self.threshold or best.affected < MIN_AFFECTED:
+            return
+        if best.margin < ATTRIBUTION_MARGIN:
+            self._unattributed(best, stamps)
             return
         # a creep fits a step of the wrong sensor now and then, and a step a creep: both
         # shapes must name the same sensor
         shaped = drift_test(closure(), self.covariance, change_points=True, creep=True)
         if shaped.sensor != best.sensor:
+            self._unattributed(best, stamps)
             return
+        st.unattributed, st.unattributed_mm = (), ()
         if shaped.shape == "creep":  # still moving: the creep's estimate is its shift now
             best = shaped
         sensor = best.sensor
@@ -329,22 +357,86 @@ class HealthMonitor:
             false_alarm=self.false_alarm,
         )  # fmt: skip
 
+    def _unattributed(self, best: DriftTest, stamps: np.ndarray) -> None:
+        """The loops no longer close, and the poses cannot tell which sensor moved: said
+        once, naming the candidates (until the loops close again, or an alarm names one)."""
+        st = self.state
+        if st.alarm_sensor is not None or st.unattributed:
+            return
+        T = float(np.max(best.statistic))
+        cands = [
+            i for i in np.argsort(-best.statistic) if best.statistic[i] > T - ATTRIBUTION_MARGIN
+        ]
+        st.unattributed = tuple(int(i) + 1 for i in cands)
+        st.unattributed_mm = tuple(round(float(best.shift_mm[i]), 4) for i in cands)
+        words = " or ".join(f"sensor {i + 1} ({best.shift_mm[i]:+.2f} mm)" for i in cands)
+        shifts = [np.eye(4)[i] * best.shift_mm[i] for i in cands]
+        move = telling_move(self.params, shifts, still=True).text if len(cands) > 1 else ""
+        self.emit(
+            "offset_drift_unattributed",
+            Level.WARNING,
+            f"the loops no longer close at the controller config: the offset of {words} "
+            f"moved, and the poses so far cannot tell which; check those LVDTs' mountings"
+            + (f"; to tell them apart, {move}" if move else ""),
+            candidates=[
+                {
+                    "sensor": int(i) + 1,
+                    "shift_mm": round(float(best.shift_mm[i]), 4),
+                    "std_mm": round(float(best.std_mm[i]), 4),
+                }
+                for i in cands
+            ],
+            since_ns=int(stamps[-best.affected]),
+            statistic=round(T, 2),
+            threshold=round(self.threshold, 2),
+            margin=round(best.margin, 2),
+            poses=best.affected,
+            advice=move,
+            false_alarm=self.false_alarm,
+        )
+
     def _open_since_start(self, best: DriftTest, now: int, statistic: float) -> None:
-        """The poses disagree with the config from the first one on: not a drift."""
+        """The poses disagree with the config from the first one on: not a drift during the
+        recording. At a config loopcal calibrated, something changed since that
+        calibration (a sensor swapped while the daemon was down); at one it never
+        calibrated, the config does not describe this robot."""
         st = self.state
         st.open_since_start = True
         sensor = best.sensor
+        T = float(np.max(best.statistic))
+        cands = [
+            i for i in np.argsort(-best.statistic) if best.statistic[i] > T - ATTRIBUTION_MARGIN
+        ]
+        words = " or ".join(f"sensor {i + 1}'s offset {best.shift_mm[i]:+.2f} mm" for i in cands)
+        if self.calibrated_utc is not None:
+            why = (
+                f"something changed since its calibration ({self.calibrated_utc}): "
+                f"{words}; the upkeep identifies it from the robot's motion, or calibrate "
+                "with loopcal session"
+            )
+        else:
+            why = (
+                "the config, which loopcal never calibrated, does not describe this robot: "
+                "calibrate with loopcal session"
+            )
         self.emit(
-            "loops_open", Level.WARNING,
+            "loops_open",
+            Level.WARNING,
             "the loops do not close at the controller config since the recording began "
-            f"(all {best.affected} poses so far disagree with it; nothing moved during the "
-            "recording): the config does not describe this robot, calibrate "
-            "(loopcal calibrate)",
-            poses=best.affected, since_ns=st.early_ns[0], detected_ns=now,
-            statistic=round(statistic, 2), threshold=round(self.threshold, 2),
-            largest_sensor=sensor, largest_shift_mm=round(float(best.shift_mm[sensor - 1]), 4),
+            f"(all {best.affected} poses so far disagree with it): {why}",
+            poses=best.affected,
+            since_ns=st.early_ns[0],
+            detected_ns=now,
+            statistic=round(statistic, 2),
+            threshold=round(self.threshold, 2),
+            largest_sensor=sensor,
+            largest_shift_mm=round(float(best.shift_mm[sensor - 1]), 4),
+            calibrated_utc=self.calibrated_utc,
+            candidates=[
+                {"sensor": int(i) + 1, "shift_mm": round(float(best.shift_mm[i]), 4)} for i in cands
+            ],
             false_alarm=self.false_alarm,
-        )  # fmt: skip
+        )
 
     # ------------------------------------------------------------------ output
 
@@ -356,10 +448,14 @@ class HealthMonitor:
 
         st = self.state
         out = [
-            CounterMetricFamily("loopcal_loop_closure_poses", "still poses checked for loop "
-                                "closure", value=st.poses),  # fmt: skip
-            GaugeMetricFamily("loopcal_loop_closure_threshold", "the statistic an alarm needs",
-                              value=self.threshold),  # fmt: skip
+            CounterMetricFamily(
+                "loopcal_loop_closure_poses", "still poses checked for loop closure", value=st.poses
+            ),  # fmt: skip
+            GaugeMetricFamily(
+                "loopcal_loop_closure_threshold",
+                "the statistic an alarm needs",
+                value=self.threshold,
+            ),  # fmt: skip
         ]
         per_sensor = [
             ("loopcal_loop_closure_statistic", "the latest test's statistic (chi-square, 1 "
@@ -375,6 +471,16 @@ class HealthMonitor:
                 for i, v in enumerate(getattr(st.last, attr)):
                     fam.add_metric([str(i + 1)], float(v))
             out.append(fam)
+        out.append(
+            GaugeMetricFamily(
+                "loopcal_loops_open",
+                "1 while the loops do not close at the controller config "
+                "(an offset_drift alarm, one the poses cannot attribute yet, or loops_open)",
+                value=1.0
+                if (st.alarm_sensor is not None or st.unattributed or st.open_since_start)
+                else 0.0,
+            )
+        )
         alarm = GaugeMetricFamily("loopcal_offset_drift_alarm", "1 while an offset_drift alarm "
                                   "stands for the sensor", labels=["sensor"])  # fmt: skip
         for i in range(4):
@@ -389,9 +495,23 @@ class HealthMonitor:
             return ("loop closure not watched: it needs the robot's controller config "
                     "(--controller-config, [controller].config)")  # fmt: skip
         if st.open_since_start:
-            return "LOOPS DO NOT CLOSE at the controller config since the start: calibrate"
+            if self.calibrated_utc is not None:
+                return (
+                    "LOOPS DO NOT CLOSE at the controller config since the start: changed "
+                    f"since its calibration ({self.calibrated_utc})"
+                )
+            return (
+                "LOOPS DO NOT CLOSE at the controller config since the start: calibrate "
+                "(loopcal session)"
+            )
         if st.alarm_sensor is not None:
             return f"OFFSET DRIFT sensor {st.alarm_sensor} {st.alarm_shift_mm:+.2f} mm"
+        if st.unattributed:
+            words = " or ".join(
+                f"sensor {s} {mm:+.2f} mm"
+                for s, mm in zip(st.unattributed, st.unattributed_mm, strict=True)
+            )
+            return f"LOOPS OPEN: {words}, not told apart yet"
         if st.last is None:
             return f"loop closure: {st.poses} still poses (need {MIN_AFFECTED})"
         worst = int(np.argmax(np.abs(st.last.shift_mm)))

@@ -1,41 +1,42 @@
-"""Upkeep: the daemon recalibrates what changed, from the robot's own motion.
+"""Upkeep: the daemon keeps the controller config right, from the robot's own motion.
 
-Scans -> segments -> screen -> change -> refit -> gates -> proposal (or config). The
-recorder feeds every scan (:meth:`Upkeep.feed`, from the analysis thread); a worker thread
-of its own, at the lowest CPU priority, does the rest, so that neither the recording nor
-the other observers ever wait for a fit.
+Scans -> segments -> test against the baseline -> change -> told apart -> refit -> gates
+-> proposal (or config). The recorder feeds every scan (:meth:`Upkeep.feed`, from the
+analysis thread); a worker thread of its own, at the lowest CPU priority, does the rest,
+so that neither the recording nor the other observers ever wait for a fit.
 
-1. **Test.** Every ``[upkeep].segment`` of scans (15 s), loop closure on every usable scan (moving
-   or still, the channel skew corrected) is summed into the four offsets' normal
-   equations at the reference (:mod:`.changes`): the controller config in force, with the
-   values of a pending proposal in place of its own (so that a change is proposed once).
-   Each segment is tested against the baseline, the first unchanged segments since the
-   (re)start: has any offset moved by at least ``threshold_mm``, at a false-alarm
-   probability of 1e-8 per segment?
+1. **Test.** Every ``[upkeep].segment`` of scans (15 s), loop closure on every usable
+   scan (moving or still, the channel skew corrected) is summed into the four offsets'
+   normal equations at the reference (:mod:`.changes`): the controller config in force,
+   with the values of a pending proposal in place of its own (so that a change is
+   proposed once). Each segment is tested against the baseline: the reference's own
+   calibration (its ``[provenance]`` std), sharpened by the first unchanged segments at
+   it. The baseline and any change in progress are kept across restarts
+   (:mod:`.upkeep_state`): a change made while the daemon was down is a change against
+   it, not a new baseline.
 2. **Change.** A segment that moved opens a candidate change; the next segment that tells
-   anything either moved too (the change stands) or not (a blip: dropped, nothing said).
-   The change began within the first segment; that segment is left out of what follows
-   (a few scans from before the change would bias it). Which offsets: the segments after
-   it, summed, point at one sensor (or two) clearly enough (:func:`.changes.offset_tests`).
-3. **Refit.** While the change stands, each new segment refits the named offsets on every
-   scan after the first segment (at most the latest :data:`FIT_WINDOW_S`, so that a creep
-   is fitted where it is now) with the gates that apply
-   (:func:`~loopcal.daemon.worker.offsets.refit_offsets`): the precision at
-   ``target_mm``, the holdout, the averaging, the plausibility, the fit's own. Motion that
-   does not make the change identifiable within :data:`REFUSE_AFTER_S` is refused, said
-   once (``recalibration_refused``), and the refit goes on with the motion that comes.
-4. **Act.** Accepted, and no offset named was proposed or written less than
-   ``min_interval_s`` ago: in ``propose`` mode the complete config beside the one in force
-   (:func:`~loopcal.daemon.worker.proposal.write_proposal`, event
-   ``recalibration_proposed``); in ``write`` mode the config itself, through the path a
-   person's calibration takes (:func:`~loopcal.daemon.worker.writeback.write_back`: the
-   previous version kept), event ``recalibrated``; the recorder follows the new file and
-   health watches against it.
-5. **Withdraw.** A pending proposal that later segments contradict (a change against it
-   that stands: the sensor moved on, or back) is withdrawn (renamed aside, event
-   ``recalibration_withdrawn``); what the later scans show is proposed in its turn, the
-   interval allowing. A proposal a person discards is not made again: its values stay the
-   reference until the config changes.
+   anything either moved too (the change stands, and is said: event ``offset_change``)
+   or not (a blip: dropped). The change began within its first segment, which is left out
+   of what follows. Which offsets: the smallest explanation of the segments after it that
+   beats every other (:func:`.changes.offset_tests`). While the motion cannot tell two
+   apart, the change names its candidates, each one's shift, and the move that would tell
+   them apart (:func:`~loopcal.daemon.worker.coverage.telling_move`), in the event, the
+   status line and the metrics, until it is told or gone. A segment that disagrees with
+   every candidate is a further step: the scans from there on alone tell what the config
+   needs now.
+3. **Refit.** Once told, each new segment refits the named offsets on the scans after the
+   change's (latest step's) first segment, at most the latest :data:`FIT_WINDOW_S`, with
+   the gates that apply (:func:`~loopcal.daemon.worker.offsets.refit_offsets`). Motion
+   that does not make the change identifiable within :data:`REFUSE_AFTER_S` is refused,
+   said once (``recalibration_refused``), and the upkeep goes on with the motion that
+   comes.
+4. **Act.** Accepted: in ``propose`` mode the complete config beside the one in force, in
+   ``write`` mode the config itself (:mod:`.upkeep_act`). A sensor that creeps (its shift
+   grew steadily since it was last acted on) is acted on at most every ``min_interval``;
+   a step is acted on at once. The refit's own scans, moved to the new values, are the new
+   baseline: a second change minutes later is told against them at once.
+5. **Gone.** A change the loops no longer show (the sensor moved back) is dropped, said
+   (``offset_change_gone``) if it had been said.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -58,18 +60,24 @@ from ..defaults import UPKEEP_SEGMENT_S
 from ..events import Level
 from ..recorder.engine import Recorder
 from ..recorder.settings import RecorderSettings
-from ..times import now_text, time_or
-from ..worker.offsets import OFFSETS, OffsetFit, refit_offsets
-from ..worker.proposal import (
-    Proposal,
-    discard_proposal,
-    proposal_path,
-    proposal_provenance,
-    read_proposal,
-    write_proposal,
+from ..times import time_or
+from ..worker.coverage import telling_move
+from ..worker.offsets import OFFSETS, refit_offsets
+from ..worker.proposal import Proposal, read_proposal
+from .changes import (
+    BASELINE_SEGMENTS,
+    Normal,
+    OffsetTests,
+    Reference,
+    baseline_of,
+    creeps,
+    offset_tests,
+    segment_normal,
+    segments_normal,
 )
-from ..worker.writeback import write_back
-from .changes import BASELINE_SEGMENTS, Normal, OffsetTests, offset_tests, segment_normal
+from .upkeep_act import Acts
+from .upkeep_state import Change, Keeper, UpkeepRecord, reference_digest, state_path
+from .upkeep_words import Words
 
 log = logging.getLogger(__name__)
 
@@ -78,28 +86,20 @@ MODES = ("off", "propose", "write")
 FIT_WINDOW_S = 120.0
 #: a standing change the motion has not made identifiable for this long is refused, once
 REFUSE_AFTER_S = 600.0
-
-@dataclass
-class _Change:
-    """A candidate change (one segment moved) or a standing one (two or more)."""
-
-    since_ns: int
-    first: Normal  # the first segment that moved: the change may have begun inside it
-    first_end_ns: int
-    rest: Normal = field(default_factory=Normal)  # the segments after it
-    names: list[str] = field(default_factory=list)
-    refused: bool = False
-
-    @property
-    def stood(self) -> bool:
-        return self.rest.segments > 0
+#: segments since the last action a creep needs to be told from a step
+TREND_MIN_SEGMENTS = 4
+#: a change's scans are linearised again at its best explanation when that moved this far
+#: from where they were, mm
+RELINEARISE_MM = 0.05
+#: the scans since a change kept for that, at most, s
+KEEP_S = 1800.0
 
 
 @dataclass
 class UpkeepState:
-    """What the status line and the metrics show."""
+    """What this run of the upkeep did (the metrics' counters), and what is pending."""
 
-    change: str = ""  # a standing change in words
+    change: str = ""  # the change in progress in words
     pending: Proposal | None = None
     pending_since_ns: int = 0
     fits: int = 0
@@ -108,12 +108,11 @@ class UpkeepState:
     written: int = 0
     withdrawn: int = 0
     refused: int = 0
-    last_proposed_ns: dict[str, int] = field(default_factory=dict)
     #: in report mode, what would have been proposed (the events' details)
     reported: list[dict] = field(default_factory=list)
 
 
-class Upkeep:
+class Upkeep(Acts, Words):
     """The daemon's upkeep (module docstring), an observer of the recorder's scans.
 
     Parameters
@@ -122,13 +121,13 @@ class Upkeep:
         The config in force.
     emit : callable
         ``emit(kind, level, message, **details)``: the recorder's events.
-    mode : {"propose", "write", "report"}
+    mode : {"off", "propose", "write", "report"}
         What an accepted change does; report: nothing written, the proposal only told
         (an event, and ``state.reported``), for ``loopcal check`` on archives.
     target_mm, threshold_mm : float
         The precision a refitted offset must reach, and the smallest shift that counts, mm.
     min_interval_s : float
-        The least time between two proposals (or writes) that name the same offset, s.
+        The least time between two proposals (or writes) for a creeping offset, s.
     segment_s : float, default 15
         How much of the scans is tested at a time, s of their stamps (``[upkeep].segment``).
     directory : path or None
@@ -138,6 +137,9 @@ class Upkeep:
     settings : callable, optional
         The recorder's settings in force: a reload takes ``[upkeep]`` from them again (the
         mode too: off, or on once the reload brings a controller config).
+    state : path or None
+        Where the baseline and the change in progress are kept across restarts
+        (:func:`~.upkeep_state.state_path` of the recordings directory); None: in memory.
     """
 
     name = "upkeep"
@@ -155,6 +157,7 @@ class Upkeep:
         directory: os.PathLike | None = None,
         threaded: bool = True,
         settings: Callable[[], RecorderSettings] | None = None,
+        state: os.PathLike | None = None,
     ) -> None:
         if mode not in ("off", "propose", "write", "report"):
             raise ValueError(f"upkeep mode must be off, propose, write or report, got {mode!r}")
@@ -165,9 +168,13 @@ class Upkeep:
         self.directory = None if directory is None else str(directory)
         self._settings = settings
         self.state = UpkeepState()
+        self.record: UpkeepRecord | None = None
+        self.tests: OffsetTests | None = None  # the change's latest attribution
+        self.keeper = Keeper(None if state is None else Path(state))
+        self.advice = ""  # the move that tells its candidates apart
+        self._advised: tuple = ()
         self._rows: np.ndarray | None = None  # the scans kept: the fit window and a segment
         self._seg_start_ns: int | None = None
-        self._change: _Change | None = None
         self._queue: queue.SimpleQueue | None = None
         self._thread: threading.Thread | None = None
         self._reset(controller)
@@ -186,55 +193,20 @@ class Upkeep:
             self._queue.put(("scans", rows))
 
     def reload(self, controller: ControllerConfig) -> None:
-        """The config in force changed (a write, an apply, an edit): start over against it."""
+        """The config in force changed (a write, an apply, an edit): go on against it."""
         if self._queue is None:
             self._reset(controller)
         else:
             self._queue.put(("reload", controller))
 
     def close(self, timeout: float = 10.0) -> None:
-        """Stop the worker thread (what it was fitting is finished first)."""
+        """Stop the worker thread (what it was fitting is finished first) and keep the
+        record."""
         if self._queue is not None and self._thread is not None:
             self._queue.put(("stop", None))
             self._thread.join(timeout)
-
-    def status(self) -> str:
-        st = self.state
-        if st.pending is not None:
-            names = ", ".join(st.pending.values)
-            since = time_or(st.pending_since_ns)
-            return f"RECALIBRATION PROPOSED ({names}) since {since}: loopcal upkeep apply"
-        if self.mode == "off":
-            return "upkeep off"
-        if st.change:
-            return f"upkeep: {st.change}"
-        return f"upkeep ({self.mode}): nothing changed"
-
-    def metrics(self) -> list:
-        """Prometheus families: a proposal pending and its age, fits and their CPU time,
-        proposals, writes, withdrawals and refusals."""
-        from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
-
-        st = self.state
-        pending = st.pending is not None
-        out = [GaugeMetricFamily("loopcal_upkeep_proposal_pending", "1 while a recalibration "
-                                 "the daemon proposed waits to be applied or discarded",
-                                 value=1.0 if pending else 0.0)]  # fmt: skip
-        if pending:
-            out.append(GaugeMetricFamily(
-                "loopcal_upkeep_proposal_age_seconds",
-                "seconds since the pending proposal was written", value=max(
-                    0.0, (time.time_ns() - st.pending_since_ns) / 1e9)))  # fmt: skip
-        for name, doc, value in (
-            ("loopcal_upkeep_fits", "upkeep fits run (screens and refits)", st.fits),
-            ("loopcal_upkeep_fit_cpu_seconds", "CPU time of the upkeep's fits, s", st.fit_cpu_s),
-            ("loopcal_upkeep_proposals", "recalibrations proposed", st.proposals),
-            ("loopcal_upkeep_writes", "recalibrations written to the config", st.written),
-            ("loopcal_upkeep_withdrawals", "proposals withdrawn", st.withdrawn),
-            ("loopcal_upkeep_refusals", "changes the motion did not identify", st.refused),
-        ):
-            out.append(CounterMetricFamily(name, doc, value=value))
-        return out
+        else:
+            self._save()
 
     # ------------------------------------------------------------------ worker
 
@@ -247,6 +219,7 @@ class Upkeep:
         while True:
             what, arg = self._queue.get()
             if what == "stop":
+                self._save()
                 return
             try:
                 if what == "reload":
@@ -254,13 +227,14 @@ class Upkeep:
                 else:
                     self._take(arg)
             except Exception:  # noqa: BLE001 - upkeep fails alone; the recording goes on
-                log.exception("upkeep failed on a segment; it starts over")
-                self._rows, self._change, self._seg_start_ns = None, None, None
+                log.exception("upkeep failed on a segment; it goes on from the next one")
+                self._rows, self._seg_start_ns = None, None
 
     def _reset(self, controller: ControllerConfig) -> None:
-        """Start over against ``controller`` (and the settings in force): a proposal
-        beside it that is still valid stays pending (a restarted daemon does not propose
-        the same change again); one that is not is set aside."""
+        """Go on against ``controller`` (and the settings in force): a proposal beside it
+        that is still valid stays pending (a restarted daemon does not propose the same
+        change again), one that is not is set aside; the record made at the same
+        reference is taken up again (a reload, a restart, the upkeep's own write)."""
         if self._settings is not None:
             st = self._settings()
             self.mode = upkeep_mode(st.upkeep_mode, controller)
@@ -268,52 +242,48 @@ class Upkeep:
             self.min_interval_ns = int(st.upkeep_min_interval_s * 1e9)
             self.segment_ns = int(st.upkeep_segment_s * 1e9)
             self.directory = str(st.directory)
+            if self.keeper.path != state_path(st.directory):
+                self.keeper, self.record = Keeper(state_path(st.directory)), None
         if self.mode != "off" and controller.path is None:
             log.warning("upkeep off: it needs the robot's controller config")
             self.mode = "off"
         self.controller = controller
-        self._change = None
-        self._base = Normal()
         self.state.change = ""
         self.state.pending = None
-        self._reference = controller
+        self.reference = controller
         try:
             pending = None if self.mode in ("report", "off") else read_proposal(controller)
         except ControllerConfigError as exc:
             pending = None
-            self._set_aside(f"it cannot be applied: {exc}")
+            self.set_aside(f"it cannot be applied: {exc}")
         if pending is not None:
             self.state.pending = pending
             since = pending.upkeep.get("proposed_ns")
             self.state.pending_since_ns = since if isinstance(since, int) else time.time_ns()
-            self._reference = self._with(pending.values)
+            self.reference = self.with_values(pending.values, pending.std)
+        if self.mode != "off":
+            digest = reference_digest(self.reference.params)
+            self.record = self.keeper.take_up(digest, controller.sha256, self.record, self._damaged)
+        ch = self.record.change if self.record is not None else None
+        self.tests = None
+        if ch is not None and ch.stood:  # a change taken up: said at once as it stands
+            base = baseline_of(self.record.baseline, self.reference)
+            self.tests = offset_tests(ch.rest, base.at(ch.point), threshold_mm=self.threshold_mm)
+            self._advise(self.tests)
 
-    def _set_aside(self, why: str) -> None:
-        """A proposal beside the config that can no longer be applied (the config changed
-        since, or it was damaged): renamed aside, said once, so that nobody applies it."""
-        try:
-            aside = discard_proposal(self.controller)
-        except OSError as exc:
-            log.error("upkeep: the proposal beside %s cannot be set aside: %s",
-                      self.controller.path, exc)  # fmt: skip
-            return
-        self.state.withdrawn += 1
-        self.emit("recalibration_withdrawn", Level.WARNING,
-                  f"upkeep: the proposal beside {self.controller.path} is withdrawn (kept as "
-                  f"{aside}): {why}", path=str(proposal_path(self.controller.path)),
-                  aside=str(aside), names=[],
-                  since_ns=time.time_ns())  # fmt: skip
-
-    def _with(self, values: dict[str, float]) -> ControllerConfig:
-        """The config in force with ``values`` in place of its own (and their std)."""
-        params = np.array(self.controller.params, dtype=float)
-        for n, v in values.items():
-            params[INDEX[n]] = v
-        prov = proposal_provenance(self.controller, values, {}, {})
-        return replace(self.controller, params=params, provenance=prov)
+    def _damaged(self, why: str, where: str) -> None:
+        self.emit(
+            "upkeep_reset",
+            Level.WARNING,
+            f"upkeep: its record {self.keeper.path} cannot be taken up ({why}); set aside as "
+            f"{where}: the upkeep starts over from the controller config's own calibration",
+            path=str(self.keeper.path),
+            aside=where,
+            error=why,
+        )
 
     def _take(self, rows: np.ndarray) -> None:
-        """Keep the scans; screen each full segment."""
+        """Keep the scans; test each full segment."""
         if not len(rows) or self.mode == "off":
             self._rows = self._seg_start_ns = None
             return
@@ -328,11 +298,12 @@ class Upkeep:
             self._segment(buf[i:j], a, b, buf[:j])
             self._seg_start_ns = b
         keep_ns = self._seg_start_ns - int(FIT_WINDOW_S * 1e9)
-        if self._change is not None:
-            keep_ns = min(keep_ns, self._change.since_ns)
+        ch = self.record.change if self.record is not None else None
+        if ch is not None:
+            keep_ns = min(keep_ns, max(ch.first_end_ns, int(stamps[-1]) - int(KEEP_S * 1e9)))
         self._rows = buf[np.searchsorted(stamps, keep_ns) :].copy()
 
-    def _fit(self, fn, *args, **kw):
+    def fit(self, fn, *args, **kw):
         t0 = time.thread_time()
         try:
             return fn(*args, **kw)
@@ -340,182 +311,211 @@ class Upkeep:
             self.state.fits += 1
             self.state.fit_cpu_s += time.thread_time() - t0
 
-    def _segment(self, rows: np.ndarray, start_ns: int, end_ns: int, upto: np.ndarray) -> None:
-        """One segment of scans ``rows`` [start_ns, end_ns); ``upto``: every scan kept
-        up to its end."""
-        self._check_pending()
-        seg = self._fit(segment_normal, rows, self._reference)
-        ch = self._change
-        if seg is None:  # too few usable scans: the motion told nothing new
-            if ch is not None and ch.stood:
-                self._refit(upto, end_ns)
-            return
-        test = offset_tests(seg, self._base, self._reference, threshold_mm=self.threshold_mm)
-        if ch is None:
-            if test.moved:
-                self._change = _Change(start_ns, seg, end_ns)
-            elif self._base.segments < BASELINE_SEGMENTS:
-                self._base = self._base + seg
-            return
-        if not test.moved:
-            if ch.stood:
-                log.info("upkeep: the change since %s is gone (segment ending %s)",
-                         time_or(ch.since_ns), time_or(end_ns))  # fmt: skip
-            self._change = None  # a blip, or gone
-            self.state.change = ""
-            return
-        if not ch.stood and self.state.pending is not None:
-            self._withdraw(test, start_ns)
-        ch.rest = ch.rest + seg
-        # the first segment, which the change may have fallen inside of, is left out of
-        # the attribution and the refit: a few scans from before it would bias both
-        use = offset_tests(ch.rest, self._base, self._reference, threshold_mm=self.threshold_mm)
-        ch.names = use.changed
-        words = ", ".join(f"{n} {use.shift_mm[OFFSETS.index(n)]:+.2f} mm" for n in use.changed)
-        if not ch.names:
-            self.state.change = (f"a change since {time_or(ch.since_ns)}, which "
-                                 "sensor not yet told apart")  # fmt: skip
-            self._maybe_refuse(ch, end_ns, "the motion does not yet tell which sensor moved")
-            return
-        self.state.change = (f"{words} since {time_or(ch.since_ns)}: "
-                             "identifying it from the robot's motion")  # fmt: skip
-        self._refit(upto, end_ns)
+    # ------------------------------------------------------------------ a segment
 
-    def _maybe_refuse(self, ch: _Change, end_ns: int, why: str) -> None:
+    def _segment(self, rows: np.ndarray, start_ns: int, end_ns: int, upto: np.ndarray) -> None:
+        """One segment of scans ``rows`` [start_ns, end_ns); ``upto``: every scan kept up
+        to its end."""
+        rec = self.record
+        assert rec is not None
+        self.check_pending()
+        if rec.uncalibrated:
+            return
+        if rec.watching_since_ns == 0:
+            rec.watching_since_ns = start_ns
+        seg = self.fit(segment_normal, rows, self.reference)
+        dirty = self._step(rec, rows, seg, start_ns, end_ns, upto)
+        self._save(end_ns, dirty)
+
+    def _step(
+        self,
+        rec: UpkeepRecord,
+        rows: np.ndarray,
+        seg: Normal | None,
+        start_ns: int,
+        end_ns: int,
+        upto: np.ndarray,
+    ) -> bool:
+        """The segment's part in the change (module docstring); whether ``rec`` changed."""
+        ch = rec.change
+        if seg is None:  # too few usable scans: the motion told nothing new
+            if ch is not None and ch.names:
+                self._refit(ch, upto, end_ns)
+            return False
+        rec.tested += 1
+        rec.tested_until_ns = end_ns
+        base = baseline_of(rec.baseline, self.reference)
+        test = offset_tests(seg, base, threshold_mm=self.threshold_mm)
+        if ch is None:
+            rec.note_trend(end_ns, test.shift_mm, test.std_mm)
+            if test.moved and rec.tested == 1 and not calibrated(self.reference):
+                rec.uncalibrated = True  # health says it, once: nothing to keep up
+                log.warning(
+                    "upkeep: the loops do not close at %s, which loopcal never "
+                    "calibrated: nothing to keep up until it is calibrated",
+                    self.controller.path,
+                )
+            elif test.moved:
+                rec.change = Change(start_ns, seg, end_ns)
+            elif rec.baseline.segments < BASELINE_SEGMENTS:
+                rec.baseline = rec.baseline + seg
+            return True
+        if not test.moved:
+            self._gone(rec, ch, end_ns)
+            return True
+        at = (
+            seg
+            if not ch.point.any()
+            else self.fit(segment_normal, rows, self.reference_at(ch.point))
+        )
+        if at is None:
+            return True
+        if ch.stood:
+            known = self.tests or offset_tests(
+                ch.rest, base.at(ch.point), threshold_mm=self.threshold_mm
+            )
+            if not self._agrees(at, base.at(ch.point), known):
+                ch.first, ch.first_end_ns, ch.steps = seg, end_ns, ch.steps + 1
+                ch.rest, ch.point, ch.names = Normal(), np.zeros(4), []
+                self.tests = None
+                self.state.change = f"it moved on at {time_or(start_ns)}: watching it again"
+                return True
+        elif self.state.pending is not None:
+            self.withdraw(test, start_ns)
+        ch.rest = ch.rest + at
+        self.tests = use = self._attribute(ch, base, upto, end_ns)
+        ch.names = use.changed
+        ch.candidates = [c.as_json() for c in use.candidates]
+        self._advise(use)
+        if not ch.names:
+            self.state.change = ""
+            self.announce(ch)
+            self._maybe_refuse(ch, end_ns, f"the motion does not yet tell {use.words()} apart")
+            return True
+        self.state.change = "identifying it from the robot's motion"
+        self._refit(ch, upto, end_ns)
+        if rec.change is ch:  # not fixed with this segment: said now
+            self.announce(ch)
+        return True
+
+    def reference_at(self, point: np.ndarray) -> ControllerConfig:
+        """The reference with its offsets moved by ``point`` (4,) mm."""
+        params = np.array(self.reference.params, dtype=float)
+        for i, n in enumerate(OFFSETS):
+            params[INDEX[n]] += point[i]
+        return replace(self.reference, params=params)
+
+    def _attribute(self, ch: Change, base: Reference, upto: np.ndarray, end_ns: int) -> OffsetTests:
+        """The change's explanations, its scans linearised again at the best one when it
+        moved :data:`RELINEARISE_MM` from where they were (:mod:`.changes`), if the scans
+        since the change are all still kept (not after a restart)."""
+        use = offset_tests(ch.rest, base.at(ch.point), threshold_mm=self.threshold_mm)
+        best = use.best
+        stamps = upto["stamp_ns"]
+        if best is None or not len(stamps) or int(stamps[0]) > ch.first_end_ns:
+            return use
+        point = best.delta()[0]
+        if np.abs(point - ch.point).max() < RELINEARISE_MM:
+            return use
+        edges = np.arange(ch.first_end_ns, end_ns + 1, self.segment_ns)
+        rest = self.fit(segments_normal, upto, self.reference_at(point), edges)
+        if not rest.segments:
+            return use
+        ch.rest, ch.point = rest, point
+        return offset_tests(rest, base.at(point), threshold_mm=self.threshold_mm)
+
+    def _agrees(self, seg: Normal, base: Reference, known: OffsetTests) -> bool:
+        """Whether a segment agrees with an explanation of the change not ruled out."""
+        for c in known.candidates:
+            against = base.moved_by(*c.delta())
+            if not offset_tests(seg, against, threshold_mm=self.threshold_mm).moved:
+                return True
+        return False
+
+    def _advise(self, tests: OffsetTests) -> None:
+        """The move that tells the candidates apart (made again only when they change)."""
+        key = tuple(c.names for c in tests.candidates)
+        if len(tests.candidates) < 2:
+            self.advice, self._advised = "", ()
+        elif key != self._advised:
+            shifts = [c.delta()[0] for c in tests.candidates]
+            self.advice = telling_move(np.asarray(self.reference.params), shifts).text
+            self._advised = key
+
+    def _gone(self, rec: UpkeepRecord, ch: Change, end_ns: int) -> None:
+        rec.change, self.tests, self.advice, self.state.change = None, None, "", ""
+        if ch.announced:
+            self.emit(
+                "offset_change_gone",
+                Level.INFO,
+                f"upkeep: the loops close again at the controller config (the change "
+                f"since {time_or(ch.since_ns)} is gone: the sensor moved back, or it "
+                "was no change of an offset)",
+                since_ns=ch.since_ns,
+                until_ns=end_ns,
+            )
+        elif ch.stood:
+            log.info("upkeep: the change since %s is gone", time_or(ch.since_ns))
+
+    def _maybe_refuse(self, ch: Change, end_ns: int, why: str) -> None:
         if ch.refused or end_ns - ch.since_ns < REFUSE_AFTER_S * 1e9:
             return
         ch.refused = True
-        self.state.refused += 1
-        self.emit("recalibration_refused", Level.WARNING,
-                  f"upkeep: an offset changed since {time_or(ch.since_ns)}, but the robot's "
-                  f"motion since does not identify it: {why}; calibrate with loopcal session",
-                  names=ch.names, since_ns=ch.since_ns, refusal=why)  # fmt: skip
+        self.refuse(
+            ch,
+            end_ns,
+            why,
+            Level.WARNING,
+            f"upkeep: an offset changed since {time_or(ch.since_ns)}, but the robot's "
+            f"motion since does not identify it: {why}; it goes on watching, and "
+            "fixes it as soon as the motion tells (or calibrate with loopcal "
+            "session)",
+        )
 
-    def _refit(self, upto: np.ndarray, end_ns: int) -> None:
-        ch = self._change
-        assert ch is not None
-        if not ch.names:
-            return
+    def _refit(self, ch: Change, upto: np.ndarray, end_ns: int) -> None:
         since = max(ch.first_end_ns, end_ns - int(FIT_WINDOW_S * 1e9))
-        rows = upto[np.searchsorted(upto["stamp_ns"], since):]
-        fit = self._fit(refit_offsets, rows, self.controller, ch.names, target_mm=self.target_mm)
+        rows = upto[np.searchsorted(upto["stamp_ns"], since) :]
+        fit = self.fit(refit_offsets, rows, self.controller, ch.names, target_mm=self.target_mm)
         if not fit.accepted:
             self._maybe_refuse(ch, end_ns, fit.refusal())
             return
-        recent = [n for n in fit.changed
-                  if end_ns - self.state.last_proposed_ns.get(n, -(1 << 62)) < self.min_interval_ns]
-        if recent:  # fmt: skip
-            self.state.change = (f"{', '.join(ch.names)}: identified, held back by the minimum "
-                                 f"interval ({', '.join(recent)} changed less than "
-                                 f"{self.min_interval_ns / 1e9:g} s ago)")  # fmt: skip
+        creeping = [n for n in fit.changed if self._creeping(n, ch, end_ns)]
+        if creeping:
+            self.state.change = (
+                f"identified; a creep, held back by the minimum interval "
+                f"({', '.join(creeping)} changed less than "
+                f"{self.min_interval_ns / 1e9:g} s ago and is still moving)"
+            )
             return
-        self._act(fit, ch, int(rows["stamp_ns"][0]), end_ns)
+        self.act(fit, ch, int(rows["stamp_ns"][0]), end_ns)
 
-    def _upkeep_table(self, fit: OffsetFit, ch: _Change, since: int, until: int) -> dict:
-        base = {n: float(self.controller.params[INDEX[n]]) for n in fit.changed}
-        values = fit.values()
-        gates = {g.name: bool(g.passed) for g in fit.gates}
-        return {
-            "mode": self.mode,
-            "change_since_ns": int(ch.since_ns), "change_since_utc": time_or(ch.since_ns),
-            "window_since_ns": int(since), "window_until_ns": int(until),
-            "proposed_ns": time.time_ns(),
-            "proposed_utc": now_text(),
-            "shift_mm": {n: round(values[n] - base[n], 5) for n in fit.changed},
-            "scans": int(fit.scans),
-            "target_mm": self.target_mm, "threshold_mm": self.threshold_mm,
-            "gates": gates, "recordings": self.directory or "",
-        }  # fmt: skip
+    def _creeping(self, name: str, ch: Change, end_ns: int) -> bool:
+        """Whether ``name``, acted on less than ``min_interval`` ago, creeps: it moved on
+        while its change stood, or its shift grew steadily over the segments between the
+        last action and this change (a slope at :data:`~.changes.LIMIT`)."""
+        rec = self.record
+        assert rec is not None
+        last = rec.acted.get(name)
+        if last is None or end_ns - last >= self.min_interval_ns:
+            return False
+        if ch.steps:
+            return True
+        i = OFFSETS.index(name)
+        pts = [(t, s[i], d[i]) for t, s, d in rec.trend if last < t <= ch.since_ns]
+        return len(pts) >= TREND_MIN_SEGMENTS and creeps(
+            *(np.array(x) for x in zip(*pts, strict=True))
+        )
 
-    def _act(self, fit: OffsetFit, ch: _Change, since: int, until: int) -> None:
-        values, std = fit.values(), fit.std()
-        table = self._upkeep_table(fit, ch, since, until)
-        words = ", ".join(f"{n} {values[n]:.4f} mm ({table['shift_mm'][n]:+.3f} +- {std[n]:.3f})"
-                          for n in fit.changed)  # fmt: skip
-        details = dict(values={n: round(v, 6) for n, v in values.items()},
-                       std={n: round(s, 6) for n, s in std.items()},
-                       shift_mm=table["shift_mm"], since_ns=ch.since_ns,
-                       window_since_ns=since, window_until_ns=until, scans=table["scans"],
-                       gates=table["gates"])  # fmt: skip
-        try:
-            if self.mode == "report":  # what it would propose (loopcal check), nothing written
-                self._reference = self._with(values)
-                self._base = Normal()
-                self.state.proposals += 1
-                self.state.reported.append({"names": list(fit.changed), **details})
-                self.emit("recalibration_proposed", Level.WARNING,
-                          f"upkeep would propose {words}, changed since "
-                          f"{table['change_since_utc']}, every gate passed", path="",
-                          **details)  # fmt: skip
-            elif self.mode == "propose":
-                path = write_proposal(self.controller, values, std, table)
-                self.state.pending = read_proposal(self.controller)
-                self.state.pending_since_ns = table["proposed_ns"]
-                self._reference = self._with(values)
-                self._base = Normal()
-                self.state.proposals += 1
-                self.emit("recalibration_proposed", Level.WARNING,
-                          f"upkeep: a recalibration is proposed in {path}: {words}, changed "
-                          f"since {table['change_since_utc']}, every gate passed; review it "
-                          "(loopcal upkeep status) and apply it (loopcal upkeep apply) or "
-                          "discard it", path=str(path), **details)  # fmt: skip
-            else:
-                params = np.array(self.controller.params, dtype=float)
-                for n, v in values.items():
-                    params[INDEX[n]] = v
-                prov = proposal_provenance(self.controller, values, std, table)
-                written = write_back(self.controller, params, prov)
-                self.state.written += 1
-                self.emit("recalibrated", Level.WARNING,
-                          f"upkeep: wrote {words} into {written.path} (changed since "
-                          f"{table['change_since_utc']}; every gate passed, as a person's "
-                          f"calibration needs; the previous version kept as "
-                          f"{written.backup})", path=str(written.path),
-                          previous=str(written.backup), **details)  # fmt: skip
-        except ControllerConfigError as exc:
-            done = "written" if self.mode == "write" else "proposed"
-            self.emit("recalibration_refused", Level.ERROR,
-                      f"upkeep: {words} identified but not {done}: {exc}",
-                      names=fit.changed, since_ns=ch.since_ns, refusal=str(exc))  # fmt: skip
-            self._change = None
-            return
-        for n in fit.changed:
-            self.state.last_proposed_ns[n] = until
-        self._change = None
-        self.state.change = ""
+    def _save(self, now_ns: int | None = None, dirty: bool = True) -> None:
+        """Keep the record (:mod:`.upkeep_state`) if it changed, or a minute went by."""
+        if self.record is not None and self.mode not in ("off", "report"):
+            self.keeper.save(self.record, now_ns, dirty)
 
-    def _withdraw(self, test: OffsetTests, start_ns: int) -> None:
-        """Later scans contradict the pending proposal: take it back."""
-        st = self.state
-        assert st.pending is not None
-        old = st.pending
-        try:
-            aside = discard_proposal(self.controller)
-        except OSError as exc:
-            log.error("upkeep: cannot withdraw %s: %s", old.path, exc)
-            return
-        st.pending, st.withdrawn = None, st.withdrawn + 1
-        b = int(np.argmax(test.statistic))
-        self.emit("recalibration_withdrawn", Level.WARNING,
-                  f"upkeep: the proposal {old.path} is withdrawn (kept as {aside}): the scans "
-                  f"since {time_or(start_ns)} disagree with it ({OFFSETS[b]} "
-                  f"{test.shift_mm[b]:+.3f} mm from its values)", path=str(old.path),
-                  aside=str(aside), names=list(old.values), since_ns=start_ns)  # fmt: skip
 
-    def _check_pending(self) -> None:
-        """A pending proposal a person applied or discarded is no longer pending; a
-        discarded one's values stay the reference (never two proposals for one change)."""
-        st = self.state
-        if st.pending is None or self.controller.path is None:
-            return
-        if not os.path.lexists(proposal_path(self.controller.path)):
-            log.info("upkeep: the proposal %s was taken away", st.pending.path)
-            st.pending = None
-
-    def _drop(self, why: str) -> None:
-        self._change = None
-        self.state.change = ""
-        log.info("upkeep: the change is gone: %s", why)
+def calibrated(config: ControllerConfig) -> bool:
+    """Whether loopcal calibrated ``config``: its ``[provenance]`` records the fit's std."""
+    std = (config.provenance or {}).get("std")
+    return isinstance(std, dict) and bool(std)
 
 
 def upkeep_mode(mode: str | None, controller: ControllerConfig) -> str:
@@ -534,9 +534,17 @@ def watch_upkeep(recorder: Recorder) -> Upkeep | None:
     if mode != "off" and recorder.controller.path is None:
         raise ControllerConfigError(f"[upkeep].mode = {mode!r} needs the robot's "
                                     "controller config ([controller].config)")  # fmt: skip
-    up = Upkeep(recorder.controller, recorder.emit, mode=mode, target_mm=s.upkeep_target_mm,
-                threshold_mm=s.upkeep_threshold_mm, min_interval_s=s.upkeep_min_interval_s,
-                segment_s=s.upkeep_segment_s, directory=s.directory,
-                settings=lambda: recorder.settings)  # fmt: skip
+    up = Upkeep(
+        recorder.controller,
+        recorder.emit,
+        mode=mode,
+        target_mm=s.upkeep_target_mm,
+        threshold_mm=s.upkeep_threshold_mm,
+        min_interval_s=s.upkeep_min_interval_s,
+        segment_s=s.upkeep_segment_s,
+        directory=s.directory,
+        settings=lambda: recorder.settings,
+        state=state_path(s.directory),
+    )
     recorder.add_observer(up)
     return up

@@ -338,6 +338,69 @@ def coverage_advice(volts: np.ndarray, params: np.ndarray, *, still: bool = True
     return coverage_move(volts, params, still=still).text
 
 
+def telling_move(params: np.ndarray, shifts: list[np.ndarray], *, still: bool = False) -> NextMove:
+    """The move that best tells apart explanations of a change in the offsets.
+
+    Each explanation (the offsets that moved, and by how much) predicts the loop-closure
+    error of every position; where two explanations predict nearly the same errors over the
+    motion seen, only a position where their predictions differ tells which is right. Among
+    the plate tilted :data:`GOOD_TILT_DEG` toward each sensor and twisted
+    :data:`GOOD_TWIST_DEG` each way about its own axis (the moves the guidance asks for),
+    the one where the explanations' predictions differ most.
+
+    Parameters
+    ----------
+    params : ndarray of float, shape (20,)
+        The parameters in force.
+    shifts : list of ndarray of float, shape (4,)
+        Each explanation's shift of the four offsets, mm (at least two).
+    still : bool, default False
+        As for :func:`next_move`.
+
+    Returns
+    -------
+    NextMove
+        ``"tilt"`` toward a sensor or ``"twist"`` one way; ``"anywhere"`` when no such
+        position is reachable.
+    """
+    from loopcal.calibration.closure import loop_closure
+    from loopcal.calibration.kinematics import (
+        from_euler_zyz,
+        in_stroke,
+        inverse_kinematics,
+        lengths_to_volts,
+    )
+
+    params = np.asarray(params, dtype=float)
+    az = np.radians(sensor_azimuths(params))
+    tilt, twist = np.radians(GOOD_TILT_DEG), np.radians(GOOD_TWIST_DEG)
+    angles = [[a, tilt, -a] for a in az] + [[0.0, 0.0, twist], [0.0, 0.0, -twist]]
+    R = from_euler_zyz(np.array(angles))
+    lengths = inverse_kinematics(R, params)
+    ok = in_stroke(lengths, params).all(axis=1)
+    volts = lengths_to_volts(lengths, params)
+    h = loop_closure(volts, params, np.full(4, 0.04)).offset_pattern  # (6, 4), 1/mm
+    D = np.array([a - b for i, a in enumerate(shifts) for b in shifts[i + 1 :]])  # (pairs, 4)
+    score = np.where(ok, np.min(np.abs(h @ D.T), axis=1) if len(D) else 0.0, -1.0)
+    best = int(np.argmax(score))
+    hold = ", holding it there a few seconds" if still else ""
+    if score[best] <= 0:
+        return NextMove("anywhere", "move the plate through its whole range, tilting it toward "
+                        "each sensor and twisting it both ways")
+    if best < 4:
+        return NextMove(
+            "tilt", f"tilt the plate toward sensor {best + 1}, about {GOOD_TILT_DEG:.0f} deg"
+            f"{hold}: there the explanations differ most",
+            sensor=best + 1, azimuth_deg=float(np.degrees(az[best])), aim_deg=GOOD_TILT_DEG,
+        )
+    way = TWIST_WAYS[0] if best == 5 else TWIST_WAYS[1]
+    return NextMove(
+        "twist", f"twist the plate about its own axis, {way} seen from above, about "
+        f"{GOOD_TWIST_DEG:.0f} deg{hold}: there the explanations differ most",
+        aim_deg=GOOD_TWIST_DEG, way=way,
+    )
+
+
 class LazyAdvice:
     """:func:`coverage_move` of poses, made on first use and only then: the advice the
     acceptance gates give when the motion was too little or badly spread.

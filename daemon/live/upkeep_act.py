@@ -1,0 +1,309 @@
+"""What the upkeep does about a change: say it, propose or write its fix, take a proposal back.
+
+:class:`Acts` is a part of :class:`~loopcal.daemon.live.upkeep.Upkeep` (a mixin): its
+methods act on the upkeep's change and speak through its ``emit`` (the recorder's events):
+
+- :meth:`~Acts.announce`: a change stands (``offset_change``): the offsets told apart, or
+  the candidates the motion cannot yet tell apart, each one's shift, and the move that
+  would tell them (the config in force is wrong: never silence);
+- :meth:`~Acts.act`: a refit every gate passed: in ``propose`` mode the complete config
+  beside the one in force (``recalibration_proposed``), in ``write`` mode the config
+  itself through the path a person's calibration takes (``recalibrated``: the previous
+  version kept), in ``report`` mode only told. The change's own scans, seen at the new
+  values, are then the baseline (:meth:`~Acts.after_act`). A write or proposal that fails
+  (a full disk, a config edited meanwhile) keeps the change: it is said once, and tried
+  again with the next segment;
+- :meth:`~Acts.withdraw`, :meth:`~Acts.set_aside`, :meth:`~Acts.check_pending`: a pending
+  proposal that later scans contradict, that can no longer be applied, or that a person
+  applied or discarded.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from loopcal.calibration.parameters import INDEX
+
+from ..config.controller import ControllerConfig, ControllerConfigError, load_controller_config
+from ..events import Level
+from ..times import now_text, time_or
+from ..worker.offsets import OFFSETS, OffsetFit
+from ..worker.proposal import (
+    Proposal,
+    discard_proposal,
+    proposal_path,
+    proposal_provenance,
+    read_proposal,
+    write_proposal,
+)
+from ..worker.writeback import write_back
+from .changes import OffsetTests
+from .upkeep_state import Change, Keeper, UpkeepRecord, reference_digest
+
+log = logging.getLogger(__name__)
+
+#: what each mode does once a change is identified, for the announcement
+WILL = {
+    "write": "it will be written into the controller config once every gate passes",
+    "propose": "a recalibration will be proposed once every gate passes",
+    "report": "a recalibration would be proposed once every gate passes",
+}
+
+
+class Acts:
+    """The upkeep's actions (module docstring); the attributes are the upkeep's."""
+
+    mode: str
+    emit: Any
+    controller: ControllerConfig
+    reference: ControllerConfig
+    record: UpkeepRecord | None
+    tests: OffsetTests | None
+    advice: str
+    keeper: Keeper
+    directory: str | None
+    target_mm: float
+    threshold_mm: float
+    state: Any  # UpkeepState
+
+    def with_values(self, values: dict[str, float], std: dict[str, float]) -> ControllerConfig:
+        """The config in force with ``values`` (and their ``std``) in place of its own."""
+        params = np.array(self.controller.params, dtype=float)
+        for n, v in values.items():
+            params[INDEX[n]] = v
+        prov = proposal_provenance(self.controller, values, std, {})
+        return replace(self.controller, params=params, provenance=prov)
+
+    def announce(self, ch: Change) -> None:
+        """Say, once, that the loops no longer close at the config, and what is known."""
+        tests = self.tests
+        if ch.announced or tests is None:
+            return
+        ch.announced = True
+        since = time_or(ch.since_ns)
+        if ch.names:
+            best = tests.candidates[0]
+            std = ", ".join(f"+-{s:.2f}" for s in best.std_mm)
+            text = (
+                f"upkeep: the loops no longer close at the controller config since {since}: "
+                f"{best.words()} ({std}); {WILL[self.mode]}"
+            )
+        else:
+            text = (
+                f"upkeep: the loops no longer close at the controller config since {since}, "
+                "and the robot's motion so far cannot tell which offset moved: "
+                f"{tests.words()}; to tell them apart, {self.advice} (the upkeep fixes it "
+                "as soon as the motion tells)"
+            )
+        self.emit(
+            "offset_change",
+            Level.WARNING,
+            text,
+            since_ns=ch.since_ns,
+            names=list(ch.names),
+            candidates=[c.as_json() for c in tests.candidates],
+            advice=self.advice,
+            mode=self.mode,
+        )
+
+    def refuse(self, ch: Change, end_ns: int, why: str, level: Level, message: str) -> None:
+        """Say that a change is not (yet) fixed, and why."""
+        rec = self.record
+        assert rec is not None
+        self.state.refused += 1
+        rec.refusals += 1
+        rec.last_refusal = {"ns": int(end_ns), "names": list(ch.names), "why": why}
+        self.emit(
+            "recalibration_refused",
+            level,
+            message,
+            names=list(ch.names),
+            since_ns=ch.since_ns,
+            refusal=why,
+        )
+
+    def _table(self, fit: OffsetFit, ch: Change, since: int, until: int) -> dict[str, Any]:
+        base = {n: float(self.controller.params[INDEX[n]]) for n in fit.changed}
+        values = fit.values()
+        return {
+            "mode": self.mode,
+            "change_since_ns": int(ch.since_ns),
+            "change_since_utc": time_or(ch.since_ns),
+            "window_since_ns": int(since),
+            "window_until_ns": int(until),
+            "proposed_ns": time.time_ns(),
+            "proposed_utc": now_text(),
+            "shift_mm": {n: round(values[n] - base[n], 5) for n in fit.changed},
+            "scans": int(fit.scans),
+            "target_mm": self.target_mm,
+            "threshold_mm": self.threshold_mm,
+            "gates": {g.name: bool(g.passed) for g in fit.gates},
+            "recordings": self.directory or "",
+        }
+
+    def act(self, fit: OffsetFit, ch: Change, since: int, until: int) -> None:
+        """Propose, write or report an accepted refit (module docstring)."""
+        values, std = fit.values(), fit.std()
+        table = self._table(fit, ch, since, until)
+        words = ", ".join(
+            f"{n} {values[n]:.4f} mm ({table['shift_mm'][n]:+.3f} +- {std[n]:.3f})"
+            for n in fit.changed
+        )
+        details: dict[str, Any] = dict(
+            values={n: round(v, 6) for n, v in values.items()},
+            std={n: round(s, 6) for n, s in std.items()},
+            shift_mm=table["shift_mm"],
+            since_ns=ch.since_ns,
+            window_since_ns=since,
+            window_until_ns=until,
+            scans=table["scans"],
+            gates=table["gates"],
+        )
+        delta = np.zeros(4)
+        for n, v in values.items():
+            delta[OFFSETS.index(n)] = v - float(self.reference.params[INDEX[n]])
+        written = None
+        try:
+            if self.mode == "report":  # what it would propose (loopcal check), nothing written
+                self.state.reported.append({"names": list(fit.changed), **details})
+                kind, path = "recalibration_proposed", ""
+                text = (
+                    f"upkeep would propose {words}, changed since "
+                    f"{table['change_since_utc']}, every gate passed"
+                )
+            elif self.mode == "propose":
+                path = str(write_proposal(self.controller, values, std, table))
+                self.state.pending = read_proposal(self.controller)
+                self.state.pending_since_ns = table["proposed_ns"]
+                kind = "recalibration_proposed"
+                text = (
+                    f"upkeep: a recalibration is proposed in {path}: {words}, changed since "
+                    f"{table['change_since_utc']}, every gate passed; review it (loopcal "
+                    "upkeep status) and apply it (loopcal upkeep apply) or discard it"
+                )
+            else:
+                params = np.array(self.controller.params, dtype=float)
+                for n, v in values.items():
+                    params[INDEX[n]] = v
+                prov = proposal_provenance(self.controller, values, std, table)
+                out = write_back(self.controller, params, prov)
+                written = load_controller_config(out.path)
+                path, kind = str(out.path), "recalibrated"
+                details["previous"] = str(out.backup)
+                text = (
+                    f"upkeep: wrote {words} into {out.path} (changed since "
+                    f"{table['change_since_utc']}; every gate passed, as a person's "
+                    f"calibration needs; the previous version kept as {out.backup})"
+                )
+        except ControllerConfigError as exc:
+            failed = "written" if self.mode == "write" else "proposed"
+            if not ch.refused:  # said once; tried again with the next segment
+                ch.refused = True
+                self.refuse(
+                    ch,
+                    until,
+                    str(exc),
+                    Level.ERROR,
+                    f"upkeep: {words} identified but not {failed}: {exc}; trying again with "
+                    "the next scans",
+                )
+            self.state.change = f"identified but not {failed}: {exc}"
+            return
+        if kind == "recalibrated":
+            self.state.written += 1
+        else:
+            self.state.proposals += 1
+        self.emit(kind, Level.WARNING, text, path=path, **details)
+        rec = self.record
+        assert rec is not None
+        rec.last_action = {"kind": kind, "ns": time.time_ns(), "path": path, **details}
+        self.after_act(delta, values, std, ch, until, written)
+
+    def after_act(
+        self,
+        delta: np.ndarray,
+        values: dict[str, float],
+        std: dict[str, float],
+        ch: Change,
+        until: int,
+        written: ControllerConfig | None,
+    ) -> None:
+        """The change was proposed (or ``written``, the config now in force): the reference
+        moves to ``values`` (``delta`` (4,) from where it was), and the change's own scans,
+        seen at them, are its baseline: a second change minutes later is told at once."""
+        rec = self.record
+        assert rec is not None
+        if written is not None:
+            self.controller = self.reference = written
+        else:
+            self.reference = self.with_values(values, std)
+        for n in values:
+            rec.acted[n] = until
+        rec.reference = reference_digest(self.reference.params)
+        rec.config_sha256 = self.controller.sha256
+        rec.baseline = ch.rest.shifted(delta - ch.point)
+        rec.change, rec.trend = None, []
+        self.tests, self.advice, self.state.change = None, "", ""
+        if self.mode != "report":
+            self.keeper.save(rec, until)
+
+    def withdraw(self, test: OffsetTests, start_ns: int) -> None:
+        """Later scans contradict the pending proposal: take it back."""
+        st = self.state
+        old: Proposal = st.pending
+        try:
+            aside = discard_proposal(self.controller)
+        except OSError as exc:
+            log.error("upkeep: cannot withdraw %s: %s", old.path, exc)
+            return
+        st.pending, st.withdrawn = None, st.withdrawn + 1
+        b = int(np.argmax(test.statistic))
+        self.emit(
+            "recalibration_withdrawn",
+            Level.WARNING,
+            f"upkeep: the proposal {old.path} is withdrawn (kept as {aside}): the scans since "
+            f"{time_or(start_ns)} disagree with it ({OFFSETS[b]} {test.shift_mm[b]:+.3f} mm "
+            "from its values)",
+            path=str(old.path),
+            aside=str(aside),
+            names=list(old.values),
+            since_ns=start_ns,
+        )
+
+    def set_aside(self, why: str) -> None:
+        """A proposal beside the config that can no longer be applied (the config changed
+        since, or it was damaged): renamed aside, said once, so that nobody applies it."""
+        try:
+            aside = discard_proposal(self.controller)
+        except OSError as exc:
+            log.error(
+                "upkeep: the proposal beside %s cannot be set aside: %s", self.controller.path, exc
+            )
+            return
+        self.state.withdrawn += 1
+        self.emit(
+            "recalibration_withdrawn",
+            Level.WARNING,
+            f"upkeep: the proposal beside {self.controller.path} is withdrawn (kept as "
+            f"{aside}): {why}",
+            path=str(proposal_path(self.controller.path)),
+            aside=str(aside),
+            names=[],
+            since_ns=time.time_ns(),
+        )
+
+    def check_pending(self) -> None:
+        """A pending proposal a person applied or discarded is no longer pending; a
+        discarded one's values stay the reference (never two proposals for one change)."""
+        st = self.state
+        if st.pending is None or self.controller.path is None:
+            return
+        if not os.path.lexists(proposal_path(self.controller.path)):
+            log.info("upkeep: the proposal %s was taken away", st.pending.path)
+            st.pending = None

@@ -1,0 +1,266 @@
+"""The upkeep through a robot's life, offline: motion that cannot tell two sensors apart,
+restarts that must lose nothing, and chains of events (two swaps, a swap during a creep, a
+full disk when a write is due). The scans are the emulator's own (mechanism_scans), fed
+to :class:`Upkeep` a second at a time as the recorder feeds it, its record kept in a real
+state file where a test restarts it.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from loopcal.calibration.parameters import INDEX
+from loopcal.daemon.config.controller import load_controller_config, write_initial_config
+from loopcal.daemon.live.upkeep import Upkeep
+from loopcal.daemon.live.upkeep_state import state_path
+from loopcal.daemon.worker.writeback import write_back
+from loopcal.simulator.drift import OffsetDrift
+from loopcal.simulator.offline import mechanism_scans
+from loopcal.simulator.phases import Phases
+from loopcal.simulator.scenarios import HandMoves
+from loopcal.simulator.task import TaskLoop
+from tests.support.rows import rows_from
+from tests.support.sessions import truth_for
+
+RATE = 20
+#: a task loop of two waypoints that cannot tell sensor 3 from sensor 4 (their patterns
+#: correlate 0.9998 over it): seed 1
+AMBIGUOUS = dict(seed=1, waypoints=2)
+
+
+class Events(list):
+    """The upkeep's emit: (s of scans fed, kind, message, details)."""
+
+    clock = 0.0
+
+    def __call__(self, kind, level, message, **details):
+        self.append((self.clock, kind, message, details))
+
+    def of(self, kind: str) -> list:
+        return [e for e in self if e[1] == kind]
+
+    def kinds(self) -> list[str]:
+        return [e[1] for e in self]
+
+
+def scans(seed: int, seconds: float, motion, drifts=()) -> tuple[np.ndarray, np.ndarray]:
+    truth = truth_for(seed)
+    t_us, codes = mechanism_scans(
+        motion, truth, int(seconds * RATE), seed=seed, drifts=tuple(drifts)
+    )
+    return truth, rows_from(t_us, codes)
+
+
+def upkeep(config: Path, mode: str = "write", state: Path | None = None) -> Upkeep:
+    return Upkeep(
+        load_controller_config(config),
+        Events(),
+        mode=mode,
+        target_mm=0.05,
+        threshold_mm=0.1,
+        min_interval_s=600.0,
+        threaded=False,
+        state=state,
+    )
+
+
+def feed(up: Upkeep, rows: np.ndarray, *, follow: Path | None = None) -> None:
+    """A second at a time; ``follow``: reload the config when it changes, as the recorder
+    does within 2 s."""
+    seen = None if follow is None else follow.read_bytes()
+    for a in range(0, len(rows), RATE):
+        up.emit.clock = float(rows["time64_us"][min(a + RATE, len(rows)) - 1]) / 1e6
+        up.feed(rows[a : a + RATE])
+        if follow is not None and follow.read_bytes() != seen:
+            seen = follow.read_bytes()
+            up.reload(load_controller_config(follow))
+
+
+def offset(config: Path, name: str) -> float:
+    return float(load_controller_config(config).params[INDEX[name]])
+
+
+def test_a_change_the_motion_cannot_attribute_is_said_at_once_and_never_written(tmp_path):
+    truth, rows = scans(1, 420, TaskLoop(**AMBIGUOUS), [OffsetDrift("step", 4, 120.0, -0.6)])
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    before = config.read_bytes()
+    up = upkeep(config)
+    feed(up, rows)
+    said = up.emit.of("offset_change")
+    assert len(said) == 1, up.emit
+    t, _, message, d = said[0]
+    assert t - 120.0 <= 30.0, t
+    names = [c["names"] for c in d["candidates"]]
+    assert ["d04"] in names and ["d03"] in names and d["names"] == [], d
+    assert "cannot tell which offset moved" in message and d["advice"] in message
+    assert d["advice"].startswith(("tilt", "twist")), d["advice"]
+    status = up.status()
+    assert "LOOPS OPEN" in status and "d04" in status and "d03" in status, status
+    metrics = {m.name: m for m in up.metrics()}
+    assert metrics["loopcal_upkeep_change_unattributed"].samples[0].value == 1.0
+    assert metrics["loopcal_upkeep_change"].samples[0].value == 1.0
+    cands = {
+        (s.labels["candidate"], s.labels["offset"])
+        for s in metrics["loopcal_upkeep_candidate_shift_mm"].samples
+    }
+    assert {o for _, o in cands} >= {"d03", "d04"}
+    assert config.read_bytes() == before  # nothing written to a sensor it cannot name
+    assert not up.emit.of("recalibrated")
+
+
+def test_the_motion_that_tells_them_apart_fixes_the_right_sensor(tmp_path):
+    truth = truth_for(1)
+    life = Phases([(0.0, TaskLoop(**AMBIGUOUS)), (300.0, HandMoves(1, params=truth))])
+    truth, rows = scans(1, 420, life, [OffsetDrift("step", 4, 120.0, -0.6)])
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    up = upkeep(config)
+    feed(up, rows, follow=config)
+    written = up.emit.of("recalibrated")
+    assert len(written) == 1, up.emit
+    t, _, _, d = written[0]
+    assert 300.0 < t <= 360.0, t  # within a minute of the hand
+    assert list(d["values"]) == ["d04"]
+    assert abs(offset(config, "d04") - (truth[INDEX["d04"]] - 0.6)) <= 0.05
+    for name in ("d01", "d02", "d03"):
+        assert offset(config, name) == truth[INDEX[name]]
+    assert "nothing changed" in up.status()
+
+
+def test_a_restart_takes_up_the_change_in_progress_and_says_it_at_once(tmp_path):
+    truth, rows = scans(1, 420, TaskLoop(**AMBIGUOUS), [OffsetDrift("step", 4, 120.0, -0.6)])
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    state = state_path(tmp_path)
+    first = upkeep(config, state=state)
+    feed(first, rows[: 200 * RATE])
+    assert len(first.emit.of("offset_change")) == 1
+    first.close()  # the daemon stops (SIGKILL: the record is as of the last segment)
+    again = upkeep(config, state=state)
+    assert "LOOPS OPEN" in again.status() and "d04" in again.status()  # before any scan
+    feed(again, rows[200 * RATE :])
+    assert again.emit.kinds() == [], again.emit  # said once, in the first run
+    assert "LOOPS OPEN" in again.status()
+
+
+def test_a_swap_while_the_daemon_was_down_is_fixed_against_the_kept_baseline(tmp_path):
+    truth, before = scans(2, 300, TaskLoop(2))
+    _, after = scans(2, 240, TaskLoop(2), [OffsetDrift("step", 2, 0.0, 0.7)])
+    after["stamp_ns"] += before["stamp_ns"][-1] - after["stamp_ns"][0] + 600 * 10**9
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    state = state_path(tmp_path)
+    first = upkeep(config, state=state)
+    feed(first, before)
+    first.close()
+    assert first.emit == [] and first.record.baseline.segments == 20
+    again = upkeep(config, state=state)
+    feed(again, after, follow=config)
+    written = again.emit.of("recalibrated")
+    assert len(written) == 1 and list(written[0][3]["values"]) == ["d02"], again.emit
+    assert written[0][0] <= 60.0  # s of scans after the restart
+    assert abs(offset(config, "d02") - (truth[INDEX["d02"]] + 0.7)) <= 0.05
+    # without its record, at a config loopcal never calibrated, nothing is written
+    (tmp_path / "other").mkdir()
+    config2 = write_initial_config(tmp_path / "other" / "controller.toml", params=truth)
+    fresh = upkeep(config2, state=state_path(tmp_path / "other"))
+    feed(fresh, after)
+    assert fresh.emit == [] and "never calibrated" in fresh.status()
+    assert offset(config2, "d02") == truth[INDEX["d02"]]
+
+
+def test_a_change_against_a_calibrated_config_is_fixed_with_no_baseline_kept(tmp_path):
+    """The config's own calibration is the baseline: a sensor swapped before the daemon
+    ever ran is a change since that calibration."""
+    truth, rows = scans(3, 240, TaskLoop(3), [OffsetDrift("step", 1, 0.0, -0.5)])
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    calibrated = write_back(
+        load_controller_config(config),
+        np.array(truth, dtype=float),
+        {
+            "method": "ml",
+            "written_utc": "2026-12-01T08:00:00Z",
+            "std": {n: 0.01 for n in ("d01", "d02", "d03", "d04")},
+        },
+    )
+    up = upkeep(calibrated.path)
+    feed(up, rows, follow=config)
+    written = up.emit.of("recalibrated")
+    assert len(written) == 1 and list(written[0][3]["values"]) == ["d01"], up.emit
+    assert written[0][0] <= 60.0
+    assert abs(offset(config, "d01") - (truth[INDEX["d01"]] - 0.5)) <= 0.05
+
+
+@pytest.mark.parametrize(("second", "mm"), [(1, -0.8), (3, -0.8)], ids=["another", "same"])
+def test_two_swaps_minutes_apart_are_each_fixed_within_a_minute(tmp_path, second, mm):
+    drifts = [OffsetDrift("step", 3, 60.0, 0.6), OffsetDrift("step", second, 240.0, mm)]
+    truth, rows = scans(4, 420, TaskLoop(4), drifts)
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    up = upkeep(config)
+    feed(up, rows, follow=config)
+    written = up.emit.of("recalibrated")
+    assert [list(d["values"]) for _, _, _, d in written] == [["d03"], [f"d0{second}"]], up.emit
+    assert written[0][0] - 60.0 <= 60.0 and written[1][0] - 240.0 <= 60.0, written
+    want = dict.fromkeys(("d01", "d02", "d03", "d04"), 0.0)
+    want["d03"] += 0.6
+    want[f"d0{second}"] += mm
+    for name, shift in want.items():
+        assert abs(offset(config, name) - (truth[INDEX[name]] + shift)) <= 0.05, name
+
+
+@pytest.mark.slow
+def test_a_swap_during_a_creep_is_fixed_and_nothing_else_moves(tmp_path):
+    drifts = [OffsetDrift("creep", 1, 60.0, 0.02), OffsetDrift("step", 3, 300.0, -0.9)]
+    truth, rows = scans(5, 480, TaskLoop(5), drifts)
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    up = upkeep(config)
+    feed(up, rows, follow=config)
+    fixed3 = [e for e in up.emit.of("recalibrated") if "d03" in e[3]["values"]]
+    assert fixed3 and fixed3[0][0] - 300.0 <= 60.0, up.emit
+    # within the tolerance, not the fit's 0.05 mm: d01 creeps by less than the threshold
+    # when d03 is refitted alone, and their patterns correlate 0.9 over this loop
+    assert abs(offset(config, "d03") - (truth[INDEX["d03"]] - 0.9)) <= 0.1
+    for name in ("d02", "d04"):  # only what moved
+        assert offset(config, name) == truth[INDEX[name]]
+    creep_now = 0.02 * (480 - 60) / 60
+    assert abs(offset(config, "d01") - (truth[INDEX["d01"]] + creep_now)) <= 0.2
+
+
+def _can_mount() -> bool:
+    return os.geteuid() == 0 and "tmpfs" in Path("/proc/filesystems").read_text()
+
+
+@pytest.mark.skipif(not _can_mount(), reason="mounting a small tmpfs needs root")
+def test_a_full_disk_when_a_write_is_due_keeps_the_change_and_writes_once_it_can(tmp_path):
+    truth, rows = scans(6, 300, TaskLoop(6), [OffsetDrift("step", 2, 60.0, 0.8)])
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mnt)], check=True)
+    try:
+        config = write_initial_config(mnt / "controller.toml", params=truth)
+        before = config.read_bytes()
+        filler = mnt / "filler"
+        fd = os.open(filler, os.O_WRONLY | os.O_CREAT)
+        try:  # the disk full to the last page
+            while True:
+                os.write(fd, b"\0" * 4096)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+        up = upkeep(config)
+        feed(up, rows[: 150 * RATE])
+        refused = up.emit.of("recalibration_refused")
+        assert len(refused) == 1 and "not written" in refused[0][2], up.emit
+        assert "ENOSPC" in refused[0][2] or "space" in refused[0][2]
+        assert config.read_bytes() == before and "identified but not written" in up.status()
+        assert not [p for p in os.listdir(mnt) if p.endswith(".tmp")]
+        filler.unlink()  # room again: written with the next segment
+        feed(up, rows[150 * RATE :], follow=config)
+        assert len(up.emit.of("recalibration_refused")) == 1  # said once
+        assert len(up.emit.of("recalibrated")) == 1, up.emit
+        assert abs(offset(config, "d02") - (truth[INDEX["d02"]] + 0.8)) <= 0.05
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
