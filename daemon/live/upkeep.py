@@ -261,15 +261,19 @@ class Upkeep(Acts, Words):
             since = pending.upkeep.get("proposed_ns")
             self.state.pending_since_ns = since if isinstance(since, int) else time.time_ns()
             self.reference = self.with_values(pending.values, pending.std)
+        prev = self.record
         if self.mode != "off":
             digest = reference_digest(self.reference.params)
-            self.record = self.keeper.take_up(digest, controller.sha256, self.record, self._damaged)
+            self.record = self.keeper.take_up(digest, controller.sha256, prev, self._damaged)
         ch = self.record.change if self.record is not None else None
         self.tests = None
-        if ch is not None and ch.stood:  # a change taken up: said at once as it stands
+        if ch is not None and ch.stood:
             base = baseline_of(self.record.baseline, self.reference)
             self.tests = offset_tests(ch.rest, base.at(ch.point), threshold_mm=self.threshold_mm)
             self._advise(self.tests)
+            if prev is None:  # taken up at start: this run's recording says it too, at once
+                ch.announced = False
+                self.announce(ch)
 
     def _damaged(self, why: str, where: str) -> None:
         self.emit(
@@ -326,6 +330,8 @@ class Upkeep(Acts, Words):
         seg = self.fit(segment_normal, rows, self.reference)
         dirty = self._step(rec, rows, seg, start_ns, end_ns, upto)
         self._save(end_ns, dirty)
+        if rec.change is not None and rec.change.stood:  # said once kept: a kill after
+            self.announce(rec.change)  # the words leaves the change in the record
 
     def _step(
         self,
@@ -387,15 +393,13 @@ class Upkeep(Acts, Words):
         ch.names = use.changed
         ch.candidates = [c.as_json() for c in use.candidates]
         self._advise(use)
+        ch.advice = self.advice
         if not ch.names:
             self.state.change = ""
-            self.announce(ch)
             self._maybe_refuse(ch, end_ns, f"the motion does not yet tell {use.words()} apart")
             return True
         self.state.change = "identifying it from the robot's motion"
         self._refit(ch, upto, end_ns)
-        if rec.change is ch:  # not fixed with this segment: said now
-            self.announce(ch)
         return True
 
     def reference_at(self, point: np.ndarray) -> ControllerConfig:

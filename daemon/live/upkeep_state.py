@@ -86,6 +86,8 @@ class Change:
     candidates : list of dict
         The explanations not ruled out, best first
         (:meth:`~loopcal.daemon.live.changes.Explanation.as_json`).
+    advice : str
+        While there are several, the move that would tell them apart.
     announced : bool
         Said (event ``offset_change``).
     refused : bool
@@ -102,6 +104,7 @@ class Change:
     point: np.ndarray = field(default_factory=lambda: np.zeros(4))
     names: list[str] = field(default_factory=list)
     candidates: list[dict[str, Any]] = field(default_factory=list)
+    advice: str = ""
     announced: bool = False
     refused: bool = False
     steps: int = 0
@@ -119,6 +122,7 @@ class Change:
             "point": [float(x) for x in self.point],
             "names": list(self.names),
             "candidates": self.candidates,
+            "advice": self.advice,
             "announced": self.announced,
             "refused": self.refused,
             "steps": self.steps,
@@ -137,6 +141,7 @@ class Change:
                 "point",
                 "names",
                 "candidates",
+                "advice",
                 "announced",
                 "refused",
                 "steps",
@@ -152,10 +157,10 @@ class Change:
         names = d["names"]
         if not isinstance(names, list) or not all(n in ("d01", "d02", "d03", "d04") for n in names):
             raise ValueError("change: names must be a list of d01..d04")
-        if not isinstance(d["candidates"], list) or not all(
-            isinstance(c, dict) for c in d["candidates"]
-        ):
+        if not isinstance(d["candidates"], list):
             raise ValueError("change: candidates must be a list of tables")
+        if not isinstance(d["advice"], str):
+            raise ValueError("change: advice must be a text")
         return cls(
             _ns(d, "since_ns"),
             Normal.from_json(d["first"]),
@@ -163,7 +168,8 @@ class Change:
             Normal.from_json(d["rest"]),
             np.array(point, dtype=float),
             list(names),
-            list(d["candidates"]),
+            [_candidate(c) for c in d["candidates"]],
+            d["advice"],
             _flag(d, "announced"),
             _flag(d, "refused"),
             _count(d, "steps"),
@@ -424,6 +430,27 @@ def _table(doc: Any, what: str, keys: set[str]) -> dict[str, Any]:
         odd = sorted(set(doc) ^ keys)
         raise ValueError(f"{what}: keys {', '.join(map(str, odd))} missing or unknown")
     return doc
+
+
+def _candidate(doc: Any) -> dict[str, Any]:
+    """An explanation as :meth:`~loopcal.daemon.live.changes.Explanation.as_json` wrote it."""
+    d = _table(doc, "candidate", {"names", "shift_mm", "std_mm", "statistic"})
+    names, k = d["names"], len(d["names"]) if isinstance(d["names"], list) else 0
+    ok = (
+        0 < k <= 4
+        and all(n in ("d01", "d02", "d03", "d04") for n in names)
+        and all(
+            isinstance(d[key], list)
+            and len(d[key]) == k
+            and all(type(x) in (int, float) and np.isfinite(x) for x in d[key])
+            for key in ("shift_mm", "std_mm")
+        )
+        and type(d["statistic"]) in (int, float)
+        and np.isfinite(d["statistic"])
+    )
+    if not ok:
+        raise ValueError("candidate: names d01..d04, each with a shift_mm and a std_mm")
+    return d
 
 
 def _ns(d: dict[str, Any], key: str) -> int:

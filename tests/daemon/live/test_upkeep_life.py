@@ -7,6 +7,7 @@ state file where a test restarts it.
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 from pathlib import Path
@@ -24,6 +25,7 @@ from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.phases import Phases
 from loopcal.simulator.scenarios import HandMoves
 from loopcal.simulator.task import TaskLoop
+from tests.support.processes import loopcal_main
 from tests.support.rows import rows_from
 from tests.support.sessions import truth_for
 
@@ -141,9 +143,23 @@ def test_a_restart_takes_up_the_change_in_progress_and_says_it_at_once(tmp_path)
     first.close()  # the daemon stops (SIGKILL: the record is as of the last segment)
     again = upkeep(config, state=state)
     assert "LOOPS OPEN" in again.status() and "d04" in again.status()  # before any scan
+    assert again.emit.kinds() == ["offset_change"]  # this run's recording says it too
     feed(again, rows[200 * RATE :])
-    assert again.emit.kinds() == [], again.emit  # said once, in the first run
+    assert again.emit.kinds() == ["offset_change"], again.emit  # once
     assert "LOOPS OPEN" in again.status()
+    again.close()
+    # and loopcal upkeep status shows it from the record, the daemon running or not
+    st = loopcal_main(
+        "upkeep", "status", "--controller-config", config, "--recordings", tmp_path, "--json"
+    )
+    doc = json.loads(st.stdout)["record"]
+    assert st.returncode == 1 and doc["current"] and not doc["baseline_ready"]
+    assert doc["change"]["names"] == [] and doc["change"]["advice"]
+    assert {c["names"][0] for c in doc["change"]["candidates"]} >= {"d03", "d04"}
+    text = loopcal_main(
+        "upkeep", "status", "--controller-config", config, "--recordings", tmp_path
+    ).stdout
+    assert "LOOPS OPEN since" in text and "not told apart yet" in text and "d04" in text
 
 
 def test_a_swap_while_the_daemon_was_down_is_fixed_against_the_kept_baseline(tmp_path):
