@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     upkeep = upkeep_settings(args)
     if args.plot is not None:
         check_plot_file(args.plot)
-    from ..inspect.loops import check, plot, verdict
+    from ..inspect.loops import check, plot, sensor_words, verdict
     from ..recording.names import recording_paths
 
     try:
@@ -154,18 +154,26 @@ def run(args: argparse.Namespace) -> int:
               f"against {doc['config']['path']}")  # fmt: skip
         if doc["loops_close"]:
             print("The loops close: no sensor's offset moved.")
-        if (o := doc["loops_open"]) is not None:
+        if (o := doc["loops_open"]) is not None and o["calibrated_utc"]:
+            print(f"The loops do not close at this config since the recordings began (all "
+                  f"{o['poses']} poses from {o['since_utc']} on disagree with it): something "
+                  f"changed since its calibration ({o['calibrated_utc']}), before the "
+                  f"recordings; the largest difference: sensor {o['largest_sensor']}'s "
+                  f"offset, {o['largest_shift_mm']:+.3f} mm.")  # fmt: skip
+        elif o is not None:
             print(f"The loops do not close at this config since the recordings began (all "
                   f"{o['poses']} poses from {o['since_utc']} on disagree with it; nothing "
                   f"moved during the recordings): the config does not describe this robot, "
-                  f"calibrate (loopcal calibrate). Largest apparent difference: sensor "
+                  f"calibrate (loopcal session). Largest apparent difference: sensor "
                   f"{o['largest_sensor']}'s offset, {o['largest_shift_mm']:+.3f} mm, though "
                   "a config never calibrated is off in every parameter.")  # fmt: skip
         for c in doc["changes"]:
             shape = "a creep, still moving" if c["shape"] == "creep" else "a step"
             end = (f"; the loops closed again at {c['end_utc']}" if c["end_utc"] else
                    "; the loops have not closed again")  # fmt: skip
-            print(f"sensor {c['sensor']}: offset moved by {c['shift_mm']:+.3f} mm "
+            who = (f"sensor {c['sensor']}" if c["sensor"] is not None else
+                   f"sensor {sensor_words(c)} (the poses could not tell which)")  # fmt: skip
+            print(f"{who}: offset moved by {c['shift_mm']:+.3f} mm "
                   f"(+- {c['std_mm']:.3f}, {shape}), from {c['start_utc']} "
                   f"({c['start_offset_s']:,.0f} s into the recordings), detected "
                   f"{c['detected_utc']}{end}")  # fmt: skip

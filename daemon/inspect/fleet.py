@@ -138,7 +138,7 @@ def check_task(task: RobotDay, false_alarm: float,
     """One row of ``fleet check``: loop closure of a robot-day at its controller config,
     and what the daemon's upkeep would propose from it (``upkeep``: its settings, None the
     daemon's defaults)."""
-    from .loops import check
+    from .loops import check, sensor_words
     from .proposals import proposal_column
 
     if task.config is None:
@@ -153,7 +153,7 @@ def check_task(task: RobotDay, false_alarm: float,
         "robot": task.robot, "day": task.day, "files": len(task.files), "poses": doc["poses"],
         "loops_close": doc["loops_close"], "loops_open": doc["loops_open"] is not None,
         "changes": len(changes),
-        "sensors": " ".join(str(c["sensor"]) for c in changes),
+        "sensors": " ".join(sensor_words(c).replace(" or ", "|") for c in changes),
         "shifts_mm": " ".join(f"{c['shift_mm']:+.3f}" for c in changes),
         "first_change_utc": changes[0]["start_utc"] if changes else "",
         "proposals": proposal_column(doc["proposals"]),

@@ -96,13 +96,28 @@ def check(files: list[Path], config_path: Path, false_alarm: float, *,
 
     def emit(kind: str, level: object, message: str, **d: Any) -> None:
         now = latest[0]
+        if kind == "offset_drift_unattributed":
+            best = d["candidates"][0]
+            changes.append({
+                "sensor": None, "candidates": [c["sensor"] for c in d["candidates"]],
+                "start_utc": time_json(d["since_ns"]),
+                "start_offset_s": round((d["since_ns"] - first_ns[0]) / 1e9, 3),
+                "detected_utc": time_json(now), "last_report_utc": time_json(now),
+                "shift_mm": best["shift_mm"], "std_mm": best["std_mm"], "shape": "step",
+                "statistic": d["statistic"], "end_utc": None, "message": message,
+            })  # fmt: skip
+            return
+        if kind == "offset_drift" and changes and changes[-1]["sensor"] is None and changes[-1][
+                "end_utc"] is None and d["sensor"] in changes[-1]["candidates"]:  # fmt: skip
+            changes[-1].update(sensor=d["sensor"], candidates=[d["sensor"]])  # told apart now
         if kind == "offset_drift":
             if changes and changes[-1]["sensor"] == d["sensor"] and changes[-1]["end_utc"] is None:
                 changes[-1].update(shift_mm=d["shift_mm"], std_mm=d["std_mm"],
                                    shape=d["shape"], last_report_utc=time_json(now))  # fmt: skip
                 return
             changes.append({
-                "sensor": d["sensor"], "start_utc": time_json(d["since_ns"]),
+                "sensor": d["sensor"], "candidates": [d["sensor"]],
+                "start_utc": time_json(d["since_ns"]),
                 "start_offset_s": round((d["since_ns"] - first_ns[0]) / 1e9, 3),
                 "detected_utc": time_json(now), "last_report_utc": time_json(now),
                 "shift_mm": d["shift_mm"], "std_mm": d["std_mm"], "shape": d["shape"],
@@ -112,6 +127,7 @@ def check(files: list[Path], config_path: Path, false_alarm: float, *,
             changes[-1]["end_utc"] = time_json(now)
         elif kind == "loops_open":
             opened.append({
+                "calibrated_utc": d.get("calibrated_utc"),
                 "since_utc": time_json(d["since_ns"]), "detected_utc": time_json(d["detected_ns"]),
                 "poses": d["poses"], "statistic": d["statistic"],
                 "largest_sensor": d["largest_sensor"], "largest_shift_mm": d["largest_shift_mm"],
@@ -151,6 +167,11 @@ def check(files: list[Path], config_path: Path, false_alarm: float, *,
     }
 
 
+def sensor_words(change: dict[str, Any]) -> str:
+    """A change's sensor, or its candidates while the poses could not tell: ``3 or 4``."""
+    return " or ".join(str(s) for s in change.get("candidates") or [change["sensor"]])
+
+
 @dataclass(frozen=True)
 class Verdict:
     """What a check found, in one place: the exit status and the words the text output ends
@@ -167,11 +188,12 @@ class Verdict:
 def verdict(doc: dict[str, Any]) -> Verdict:
     """The :class:`Verdict` of a :func:`check` document."""
     found = []
-    if doc["loops_open"] is not None:
+    if (o := doc["loops_open"]) is not None:
         found.append("the loops do not close at this config since the recordings began: "
-                     "calibrate")  # fmt: skip
+                     + ("a change since its calibration" if o["calibrated_utc"] else
+                        "calibrate"))  # fmt: skip
     if changes := doc["changes"]:
-        sensors = ", ".join(dict.fromkeys(str(c["sensor"]) for c in changes))
+        sensors = ", ".join(dict.fromkeys(sensor_words(c) for c in changes))
         found.append(f"{len(changes)} change{'s' if len(changes) > 1 else ''} found (sensor"
                      f"{'s' if ',' in sensors else ''} {sensors})")  # fmt: skip
     if proposals := doc["proposals"]:

@@ -292,3 +292,21 @@ def test_check_takes_the_daemons_upkeep_settings_or_the_options(swapped):
     assert json.loads(proc.stdout)["proposals"] == []
     bad = loopcal_main("check", rec_dir, "--controller-config", config, "--upkeep-target-mm", "0")
     assert bad.returncode == 2 and "--upkeep-target-mm 0" in bad.stderr
+
+
+def test_check_names_both_sensors_where_the_poses_cannot_tell_which(tmp_path):
+    """A two-waypoint task loop cannot tell sensor 3 from sensor 4: check names both, and
+    the upkeep it runs would propose nothing (it names no sensor it cannot tell)."""
+    truth = truth_for(1)
+    t_us, codes = mechanism_scans(TaskLoop(1, waypoints=2), truth, 300 * 20, seed=1,
+                                  drifts=(OffsetDrift("step", 4, 90.0, -0.6),))
+    write_directory(tmp_path / "rec", rows_from(t_us, codes), scans_per_file=1200)
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    proc = loopcal_main("check", tmp_path / "rec", "--controller-config", config, "--json")
+    assert proc.returncode == 1, proc.stderr
+    doc = json.loads(proc.stdout)
+    [change] = doc["changes"]
+    assert change["sensor"] is None and {3, 4} <= set(change["candidates"]), change
+    assert doc["proposals"] == []
+    human = loopcal_main("check", tmp_path / "rec", "--controller-config", config).stdout
+    assert "(the poses could not tell which)" in human and "Verdict: 1 change found" in human
