@@ -51,6 +51,8 @@ def run(args: argparse.Namespace) -> int:
         control = ControlServer(recorder, settings.control_socket, live=live,
                                 client_timeout=settings.control_client_timeout_s)  # fmt: skip
         recorder.stop_listeners.append(control.stop_session)
+        if upkeep is not None:
+            upkeep.hold = control.session_words
     except BaseException:  # bad input (a refused config, a module held elsewhere) or a bug
         if live is not None:
             live.close()

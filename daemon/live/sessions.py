@@ -54,6 +54,9 @@ from .view import LiveView
 
 log = logging.getLogger(__name__)
 
+#: s after a session ends during which the upkeep still holds its fixes: the session's
+#: client calibrates the window and writes the config then
+SESSION_GRACE_S = 120.0
 #: connections served at once; more are told so and closed
 MAX_CONNECTIONS = 16
 #: bytes waiting for a slow client beyond which its guidance updates are dropped (its
@@ -215,6 +218,8 @@ class ControlServer:
         self.client_timeout = client_timeout
         self.live = live
         self.session: Session | None = None
+        #: the last session's words and when it ended (time.monotonic), for the upkeep
+        self._last: tuple[str, float] | None = None
         self.sessions_started = 0
         self._requested_end: str | None = None
         self._listener = bind_control_socket(path)
@@ -232,6 +237,17 @@ class ControlServer:
         log.info("control socket: %s", path)
 
     # ------------------------------------------------------------------ life
+
+    def session_words(self) -> str:
+        """The session under way in words, for the upkeep, which holds its fixes meanwhile
+        (the technician's own calibration decides), and for :data:`SESSION_GRACE_S` after
+        it ended (its client calibrates and writes then); "" otherwise."""
+        s, last = self.session, self._last
+        if s is not None:
+            return f"a technician's session runs ({s.who()}): its calibration decides"
+        if last is not None and time.monotonic() - last[1] < SESSION_GRACE_S:
+            return f"a technician's session just ended ({last[0]}): its calibration decides"
+        return ""
 
     def close(self, reason: str = "daemon stopping") -> None:
         """End a running session (``reason``), tell its clients, stop serving, remove the
@@ -576,4 +592,5 @@ class ControlServer:
             if c is not None:
                 self._reply(c, {"type": "ended", "session": message})
                 self._want_write(c)
+        self._last = (s.who(), time.monotonic())
         self.session = None

@@ -173,6 +173,9 @@ class Upkeep(Acts, Words):
         self.keeper = Keeper(None if state is None else Path(state))
         self.advice = ""  # the move that tells its candidates apart
         self._advised: tuple = ()
+        #: why the upkeep must not act now ("" when it may): a technician's session runs
+        #: through the daemon, whose own calibration decides (set by ``loopcal daemon``)
+        self.hold: Callable[[], str] = lambda: ""
         self._rows: np.ndarray | None = None  # the scans kept: the fit window and a segment
         self._seg_start_ns: int | None = None
         self._queue: queue.SimpleQueue | None = None
@@ -482,6 +485,9 @@ class Upkeep(Acts, Words):
         fit = self.fit(refit_offsets, rows, self.controller, ch.names, target_mm=self.target_mm)
         if not fit.accepted:
             self._maybe_refuse(ch, end_ns, fit.refusal())
+            return
+        if why := self.hold():
+            self.state.change = f"identified; held while {why}"
             return
         creeping = [n for n in fit.changed if self._creeping(n, ch, end_ns)]
         if creeping:

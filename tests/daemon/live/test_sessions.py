@@ -222,9 +222,11 @@ def test_hostile_clients_never_cost_the_recording_a_scan(daemon):
 def test_one_session_at_a_time_its_owner_stops_it_and_its_window_is_exact(daemon):
     daemon.wait_scans(20)
     with daemon.client() as owner, daemon.client() as other:
+        assert daemon.control.session_words() == ""  # the upkeep may act
         owner.send("start", note="sensor 3 replaced", target_mm=0.1)
         started = expect(owner, "started")["session"]
         assert started["note"] == "sensor 3 replaced"
+        assert "a technician's session runs" in daemon.control.session_words()  # it holds
         assert started["asked_by"]["pid"] == os.getpid()
         other.send("start")
         refused = expect(other, "error")["error"]
@@ -240,6 +242,8 @@ def test_one_session_at_a_time_its_owner_stops_it_and_its_window_is_exact(daemon
         ended = expect(owner, "ended")["session"]
         assert expect(other, "ended")["session"] == ended
     assert ended["reason"] == "stopped" and ended["flushed"] is True and ended["scans"] > 0
+    # and a while after: the session's client calibrates and writes now
+    assert "session just ended" in daemon.control.session_words()
     out = daemon.stop()
     no_scan_lost(out)
     stamps = out.scans["stamp_ns"]

@@ -280,3 +280,39 @@ def test_a_full_disk_when_a_write_is_due_keeps_the_change_and_writes_once_it_can
         assert abs(offset(config, "d02") - (truth[INDEX["d02"]] + 0.8)) <= 0.05
     finally:
         subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def test_a_swap_during_a_technicians_session_is_said_and_left_to_the_session(tmp_path):
+    """While a session runs through the daemon (and a while after: its client writes
+    then), the upkeep says what it sees but writes nothing: the technician's own
+    calibration decides. Once it is over and nothing was written, the upkeep fixes it."""
+    truth = truth_for(7)
+    truth, rows = scans(7, 300, HandMoves(7, params=truth), [OffsetDrift("step", 1, 60.0, 0.5)])
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    before = config.read_bytes()
+    up = upkeep(config)
+    held = ["a technician's session runs (session 1 of tech)"]
+    up.hold = lambda: held[0]
+    feed(up, rows[: 150 * RATE])
+    assert up.emit.kinds() == ["offset_change"], up.emit
+    assert config.read_bytes() == before and "held while a technician's session" in up.status()
+    held[0] = ""  # the session ended and wrote nothing
+    feed(up, rows[150 * RATE :], follow=config)
+    written = up.emit.of("recalibrated")
+    assert len(written) == 1 and written[0][0] <= 150 + 20, up.emit
+    assert abs(offset(config, "d01") - (truth[INDEX["d01"]] + 0.5)) <= 0.05
+
+
+def test_a_swap_while_the_module_was_off_is_fixed_after_it_comes_back(tmp_path):
+    """The module power-cycled (a new power-on: its counter and clock from 0) and a sensor
+    was swapped meanwhile: the scans after it show the change against the baseline."""
+    truth, before = scans(8, 240, TaskLoop(8))
+    _, after = scans(8, 180, TaskLoop(8), [OffsetDrift("step", 3, 0.0, -0.7)])
+    after["stamp_ns"] += before["stamp_ns"][-1] - after["stamp_ns"][0] + 20 * 10**9
+    after["epoch"] = 1
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    up = upkeep(config)
+    feed(up, np.concatenate([before, after]), follow=config)
+    written = up.emit.of("recalibrated")
+    assert len(written) == 1 and list(written[0][3]["values"]) == ["d03"], up.emit
+    assert abs(offset(config, "d03") - (truth[INDEX["d03"]] - 0.7)) <= 0.05
