@@ -138,6 +138,7 @@ class Case:
     early: list = field(default_factory=list)  # events before the change
     proposals: list = field(default_factory=list)  # (device s, details)
     other: list = field(default_factory=list)  # other events after the change (kind, msg)
+    said: list = field(default_factory=list)  # when an offset_change said it, device s
     truth: dict = field(default_factory=dict)  # name -> true new offset
 
     @property
@@ -215,6 +216,8 @@ def run_case(seed: int, sensors: tuple[int, ...], amounts: tuple[float, ...], at
             case.early.append((t, kind, msg, d))
         elif kind == "recalibration_proposed":
             case.proposals.append((t, d))
+        elif kind == "offset_change" and not case.proposals:
+            case.said.append(t)  # the change said before it was proposed
         else:
             case.other.append((t, kind, msg))
     return case
@@ -291,6 +294,9 @@ def part_swaps(n: int, mode: str, jobs: int) -> None:
           f"{TARGET_S:g} s: {in_time}/{n}; within 3 std: {in3}/{n}; within {TARGET_MM} mm: "
           f"{in05}/{n}")  # fmt: skip
     print(f"delay from the change to the proposal, s: {quartiles(delays, '.0f')}")
+    first_said = [min([c.first[0], *c.said]) - c.at for c in found]
+    print(f"delay from the change to the first word of it (offset_change, or the proposal), s: "
+          f"{quartiles(first_said, '.0f')}")
     print(f"|error| of the proposed value, mm: {quartiles(np.abs(errs), '.4f')}; RMS "
           f"{np.sqrt(np.mean(np.square(errs))):.4f}")  # fmt: skip
     print(f"its reported std, mm: {quartiles(stds, '.4f')}; RMS error / std "
@@ -442,8 +448,8 @@ def watched(w: Watch):
     """Count the upkeep's segment tests (its module's names wrapped, then restored)."""
     tests, normal = upkeep_module.offset_tests, upkeep_module.segment_normal
 
-    def offset_tests(data, base, reference, *, threshold_mm):
-        out = tests(data, base, reference, threshold_mm=threshold_mm)
+    def offset_tests(data, against, *, threshold_mm):
+        out = tests(data, against, threshold_mm=threshold_mm)
         if data.segments == 1 and threshold_mm > 0:
             w.segments += 1
             w.moved += out.moved

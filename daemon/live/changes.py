@@ -360,20 +360,72 @@ def segments_normal(rows: np.ndarray, reference: ControllerConfig, edges: np.nda
     return out
 
 
+def trend(
+    end_ns: np.ndarray, shift_mm: np.ndarray, std_mm: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The straight line through segments' shifts, weighted by their variances.
+
+    Parameters
+    ----------
+    end_ns : ndarray, shape (k,)
+        Each segment's end, ns.
+    shift_mm, std_mm : ndarray, shape (k,) or (k, m)
+        Each segment's shift of one offset (or of m, in columns) and its standard
+        deviation, mm.
+
+    Returns
+    -------
+    slope : ndarray, shape () or (m,)
+        mm/s.
+    now : ndarray
+        The line at the last segment, mm.
+    statistic : ndarray
+        ``slope^2 / Var(slope)``, chi-square(1) when the shift does not grow.
+    """
+    s = np.asarray(shift_mm, dtype=float)
+    w = 1.0 / np.asarray(std_mm, dtype=float) ** 2
+    t = (np.asarray(end_ns, dtype=float) - float(end_ns[0])) / 1e9
+    if s.ndim == 2:
+        t = t[:, None]
+    tm = np.sum(w * t, axis=0) / np.sum(w, axis=0)
+    sm = np.sum(w * s, axis=0) / np.sum(w, axis=0)
+    spread = np.sum(w * (t - tm) ** 2, axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = np.where(spread > 0, np.sum(w * (t - tm) * s, axis=0) / spread, 0.0)
+    now = sm + slope * (t[-1] - tm)
+    return slope, now, slope * slope * spread
+
+
+def steplike(end_ns: np.ndarray, shift_mm: np.ndarray, std_mm: np.ndarray) -> bool:
+    """Whether segments' shifts of one offset are told better by a step (flat, then flat
+    again from some segment on) than by a straight line: a swap, not a creep.
+
+    Parameters
+    ----------
+    end_ns, shift_mm, std_mm : ndarray, shape (k,)
+        As for :func:`trend`.
+    """
+    s = np.asarray(shift_mm, dtype=float)
+    w = 1.0 / np.asarray(std_mm, dtype=float) ** 2
+    slope, now, _ = trend(end_ns, s, std_mm)
+    t = (np.asarray(end_ns, dtype=float) - float(end_ns[-1])) / 1e9
+    line = float(np.sum(w * (s - (now + slope * t)) ** 2))
+    best = np.inf
+    for k in range(1, len(s)):  # the step at segment k
+        a, b = s[:k], s[k:]
+        ma, mb = np.average(a, weights=w[:k]), np.average(b, weights=w[k:])
+        best = min(best, float(np.sum(w[:k] * (a - ma) ** 2) + np.sum(w[k:] * (b - mb) ** 2)))
+    return best < line
+
+
 def creeps(end_ns: np.ndarray, shift_mm: np.ndarray, std_mm: np.ndarray) -> bool:
     """Whether segments' shifts of one offset grow steadily: their weighted slope in time
-    reaches :data:`LIMIT` (a creep, where a step's segments before it are flat).
+    reaches :data:`LIMIT` (:func:`trend`; a creep, where a step's segments before it are
+    flat).
 
     Parameters
     ----------
     end_ns, shift_mm, std_mm : ndarray, shape (k,)
         Each segment's end (ns), the offset's shift in it and its standard deviation, mm.
     """
-    w = 1.0 / np.asarray(std_mm, dtype=float) ** 2
-    t = (np.asarray(end_ns, dtype=float) - float(end_ns[0])) / 1e9
-    tc = t - np.average(t, weights=w)
-    spread = float(np.sum(w * tc * tc))
-    if spread <= 0:
-        return False
-    slope = float(np.sum(w * tc * np.asarray(shift_mm, dtype=float))) / spread
-    return slope * slope * spread >= LIMIT
+    return bool(trend(end_ns, shift_mm, std_mm)[2] >= LIMIT)

@@ -46,6 +46,7 @@ import os
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -70,7 +71,6 @@ from .changes import (
     OffsetTests,
     Reference,
     baseline_of,
-    creeps,
     offset_tests,
     segment_normal,
     segments_normal,
@@ -86,13 +86,14 @@ MODES = ("off", "propose", "write")
 FIT_WINDOW_S = 120.0
 #: a standing change the motion has not made identifiable for this long is refused, once
 REFUSE_AFTER_S = 600.0
-#: segments since the last action a creep needs to be told from a step
-TREND_MIN_SEGMENTS = 4
 #: a change's scans are linearised again at its best explanation when that moved this far
 #: from where they were, mm
 RELINEARISE_MM = 0.05
 #: the scans since a change kept for that, at most, s
 KEEP_S = 1800.0
+#: segments tested together too while nothing changed: a shift near the threshold, or a
+#: creep, that one segment cannot tell from the noise (a minute of 10-s segments)
+WINDOW_SEGMENTS = 6
 
 
 @dataclass
@@ -177,6 +178,7 @@ class Upkeep(Acts, Words):
         #: through the daemon, whose own calibration decides (set by ``loopcal daemon``)
         self.hold: Callable[[], str] = lambda: ""
         self._rows: np.ndarray | None = None  # the scans kept: the fit window and a segment
+        self._recent: deque = deque(maxlen=WINDOW_SEGMENTS)  # (start, end, Normal)
         self._seg_start_ns: int | None = None
         self._queue: queue.SimpleQueue | None = None
         self._thread: threading.Thread | None = None
@@ -251,6 +253,7 @@ class Upkeep(Acts, Words):
             log.warning("upkeep off: it needs the robot's controller config")
             self.mode = "off"
         self.controller = controller
+        self._recent.clear()
         self.state.change = ""
         self.state.pending = None
         self.reference = controller
@@ -355,23 +358,17 @@ class Upkeep(Acts, Words):
         rec.tested_until_ns = end_ns
         base = baseline_of(rec.baseline, self.reference)
         test = offset_tests(seg, base, threshold_mm=self.threshold_mm)
+        # and against the config's own calibration alone: a creep the baseline took in
+        # part still shows once the config is off by the threshold
+        absolute = offset_tests(
+            seg, baseline_of(Normal(), self.reference), threshold_mm=self.threshold_mm
+        )
+        moved = test.moved or absolute.moved
         if ch is None:
-            rec.note_trend(end_ns, test.shift_mm, test.std_mm)
-            if test.moved and rec.tested == 1 and not calibrated(self.reference):
-                rec.uncalibrated = True  # health says it, once: nothing to keep up
-                log.warning(
-                    "upkeep: the loops do not close at %s, which loopcal never "
-                    "calibrated: nothing to keep up until it is calibrated",
-                    self.controller.path,
-                )
-            elif test.moved:
-                rec.change = Change(start_ns, seg, end_ns)
-            elif rec.baseline.segments < BASELINE_SEGMENTS:
-                rec.baseline = rec.baseline + seg
-            return True
-        if not test.moved:
-            self._gone(rec, ch, end_ns)
-            return True
+            # the trend: each segment's shift from the config, with its own noise alone
+            # (the config's uncertainty is one error common to every segment)
+            own = offset_tests(seg, Reference(np.zeros(4), np.zeros((4, 4))), threshold_mm=0)
+            return self._watch(rec, seg, start_ns, end_ns, own, moved, base)
         at = (
             seg
             if not ch.point.any()
@@ -379,17 +376,20 @@ class Upkeep(Acts, Words):
         )
         if at is None:
             return True
-        if ch.stood:
-            known = self.tests or offset_tests(
-                ch.rest, base.at(ch.point), threshold_mm=self.threshold_mm
-            )
-            if not self._agrees(at, base.at(ch.point), known):
-                ch.first, ch.first_end_ns, ch.steps = seg, end_ns, ch.steps + 1
-                ch.rest, ch.point, ch.names = Normal(), np.zeros(4), []
-                self.tests = None
-                self.state.change = f"it moved on at {time_or(start_ns)}: watching it again"
-                return True
-        elif self.state.pending is not None:
+        known = self.tests or offset_tests(
+            ch.rest if ch.stood else ch.first, base.at(ch.point), threshold_mm=self.threshold_mm
+        )
+        agrees = self._agrees(at, base.at(ch.point), known)
+        if not moved and not agrees:  # the loops close again, and the change is refuted
+            self._gone(rec, ch, end_ns)
+            return True
+        if moved and ch.stood and not agrees:
+            ch.first, ch.first_end_ns, ch.steps = seg, end_ns, ch.steps + 1
+            ch.rest, ch.point, ch.names = Normal(), np.zeros(4), []
+            self.tests = None
+            self.state.change = f"it moved on at {time_or(start_ns)}: watching it again"
+            return True
+        if not ch.stood and self.state.pending is not None:
             self.withdraw(test, start_ns)
         ch.rest = ch.rest + at
         self.tests = use = self._attribute(ch, base, upto, end_ns)
@@ -403,6 +403,51 @@ class Upkeep(Acts, Words):
             return True
         self.state.change = "identifying it from the robot's motion"
         self._refit(ch, upto, end_ns)
+        return True
+
+    def _watch(
+        self,
+        rec: UpkeepRecord,
+        seg: Normal,
+        start_ns: int,
+        end_ns: int,
+        test: OffsetTests,
+        moved: bool,
+        base: Reference,
+    ) -> bool:
+        """No change in progress: does this segment, or the latest :data:`WINDOW_SEGMENTS`
+        together (a shift near the threshold, or a creep, that one segment cannot tell
+        from the noise), open one? Else the segment joins a baseline not yet full.
+        ``test``: the segment's shifts from the config, its own noise alone, which the
+        trend keeps (a creep shows there however much of it the baseline took in)."""
+        recent = self._recent
+        recent.append((start_ns, end_ns, seg))
+        if moved and rec.tested == 1 and not calibrated(self.reference):
+            rec.uncalibrated = True  # health says it, once: nothing to keep up
+            log.warning(
+                "upkeep: the loops do not close at %s, which loopcal never "
+                "calibrated: nothing to keep up until it is calibrated",
+                self.controller.path,
+            )
+            return True
+        if moved:
+            rec.change = Change(start_ns, seg, end_ns)
+            recent.clear()
+            return True
+        if len(recent) == WINDOW_SEGMENTS:
+            win = sum((n for _, _, n in list(recent)[1:]), Normal())
+            if any(
+                offset_tests(win, ref, threshold_mm=self.threshold_mm).moved
+                for ref in (base, baseline_of(Normal(), self.reference))
+            ):
+                a, b, first = recent[0]
+                rec.change = Change(a, first, b, rest=win)  # stands: its segments agree
+                recent.clear()
+                return True
+        rec.note_trend(end_ns, test.shift_mm, test.std_mm)  # nothing moved: a creep's ramp
+        self.warn_creep(rec)
+        if rec.baseline.segments < BASELINE_SEGMENTS:
+            rec.baseline = rec.baseline + seg
         return True
 
     def reference_at(self, point: np.ndarray) -> ControllerConfig:
@@ -489,7 +534,7 @@ class Upkeep(Acts, Words):
         if why := self.hold():
             self.state.change = f"identified; held while {why}"
             return
-        creeping = [n for n in fit.changed if self._creeping(n, ch, end_ns)]
+        creeping = [n for n in fit.changed if self.creeping(n, ch, end_ns)]
         if creeping:
             self.state.change = (
                 f"identified; a creep, held back by the minimum interval "
@@ -498,23 +543,6 @@ class Upkeep(Acts, Words):
             )
             return
         self.act(fit, ch, int(rows["stamp_ns"][0]), end_ns)
-
-    def _creeping(self, name: str, ch: Change, end_ns: int) -> bool:
-        """Whether ``name``, acted on less than ``min_interval`` ago, creeps: it moved on
-        while its change stood, or its shift grew steadily over the segments between the
-        last action and this change (a slope at :data:`~.changes.LIMIT`)."""
-        rec = self.record
-        assert rec is not None
-        last = rec.acted.get(name)
-        if last is None or end_ns - last >= self.min_interval_ns:
-            return False
-        if ch.steps:
-            return True
-        i = OFFSETS.index(name)
-        pts = [(t, s[i], d[i]) for t, s, d in rec.trend if last < t <= ch.since_ns]
-        return len(pts) >= TREND_MIN_SEGMENTS and creeps(
-            *(np.array(x) for x in zip(*pts, strict=True))
-        )
 
     def _save(self, now_ns: int | None = None, dirty: bool = True) -> None:
         """Keep the record (:mod:`.upkeep_state`) if it changed, or a minute went by."""

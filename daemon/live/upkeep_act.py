@@ -43,10 +43,22 @@ from ..worker.proposal import (
     write_proposal,
 )
 from ..worker.writeback import write_back
-from .changes import OffsetTests
+from .changes import (
+    LIMIT,
+    Normal,
+    OffsetTests,
+    Reference,
+    creeps,
+    offset_tests,
+    steplike,
+    trend,
+)
 from .upkeep_state import Change, Keeper, UpkeepRecord, reference_digest
 
 log = logging.getLogger(__name__)
+
+#: segments since the last action a creep needs to be told from a step
+TREND_MIN_SEGMENTS = 4
 
 #: what each mode does once a change is identified, for the announcement
 WILL = {
@@ -71,6 +83,8 @@ class Acts:
     target_mm: float
     threshold_mm: float
     state: Any  # UpkeepState
+    _recent: Any  # deque of the latest segments
+    min_interval_ns: int
 
     def with_values(self, values: dict[str, float], std: dict[str, float]) -> ControllerConfig:
         """The config in force with ``values`` (and their ``std``) in place of its own."""
@@ -249,9 +263,77 @@ class Acts:
         rec.config_sha256 = self.controller.sha256
         rec.baseline = ch.rest.shifted(delta - ch.point)
         rec.change, rec.trend = None, []
+        self._recent.clear()  # tested at the old values
         self.tests, self.advice, self.state.change = None, "", ""
         if self.mode != "report":
             self.keeper.save(rec, until)
+
+    def creeping(self, name: str, ch: Change, end_ns: int) -> bool:
+        """Whether ``name``, acted on less than ``min_interval`` ago, creeps: it moved on
+        while its change stood, or its shift grew steadily over the segments between the
+        last action and this change (a slope at :data:`~.changes.LIMIT`)."""
+        rec = self.record
+        assert rec is not None
+        last = rec.acted.get(name)
+        if last is None or end_ns - last >= self.min_interval_ns:
+            return False
+        if ch.steps:
+            return True
+        i = OFFSETS.index(name)
+        pts = [(t, s[i], d[i]) for t, s, d in rec.trend if last < t <= ch.since_ns]
+        return len(pts) >= TREND_MIN_SEGMENTS and creeps(
+            *(np.array(x) for x in zip(*pts, strict=True))
+        )
+
+    def warn_creep(self, rec: UpkeepRecord) -> None:
+        """An offset whose shift from the config grows steadily (a slope at
+        :data:`~.changes.LIMIT` over the segments since the reference took force or the
+        last fix, and a straight line tells it better than a step) and has reached half the
+        threshold is said before it reaches it (``offset_change``, ``creeping``): once,
+        until no shift grows any more (again after a fix, if it goes on)."""
+        if len(rec.trend) < 2 * TREND_MIN_SEGMENTS:
+            return
+        t, shift, std = (np.array(x, dtype=float) for x in zip(*rec.trend, strict=True))
+        slope, now, T = trend(t, shift, std)
+        going = (T >= LIMIT) & (np.abs(now) >= self.threshold_mm / 2) & (slope * now > 0)
+        going &= [not steplike(t, shift[:, i], std[:, i]) for i in range(4)]
+        if rec.creeping:  # said once while it creeps: until no shift grows at all
+            if T.max() < 4.0:
+                rec.creeping = []
+            return
+        if not going.any():
+            return
+        # which one: the latest segments' explanations not ruled out (a single offset each)
+        recent = sum((n for _, _, n in self._recent), Normal())
+        told = offset_tests(recent, Reference(np.zeros(4), np.zeros((4, 4))), threshold_mm=0)
+        names = [c.names[0] for c in told.candidates if len(c.names) == 1]
+        names = names or [OFFSETS[i] for i in np.argsort(-T) if going[i]]
+        rec.creeping = names
+        words = " or ".join(
+            f"{n} {now[OFFSETS.index(n)]:+.3f} mm, growing "
+            f"{slope[OFFSETS.index(n)] * 60:+.3f} mm/min"
+            for n in names
+        )
+        self.emit(
+            "offset_change",
+            Level.WARNING,
+            f"upkeep: an offset creeps away from the controller config: {words}; a creep is "
+            "a sensor's mounting giving way (check that LVDT's core): the upkeep fixes it "
+            f"each time it reaches {self.threshold_mm:g} mm",
+            since_ns=int(t[0]),
+            names=[],
+            candidates=[
+                {
+                    "names": [n],
+                    "shift_mm": [round(float(now[OFFSETS.index(n)]), 5)],
+                    "rate_mm_min": round(float(slope[OFFSETS.index(n)] * 60), 5),
+                }
+                for n in names
+            ],
+            advice="",
+            mode=self.mode,
+            creeping=True,
+        )
 
     def withdraw(self, test: OffsetTests, start_ns: int) -> None:
         """Later scans contradict the pending proposal: take it back."""

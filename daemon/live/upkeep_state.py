@@ -211,6 +211,8 @@ class UpkeepRecord:
     uncalibrated : bool
         The loops did not close from the first segment on at a config loopcal never
         calibrated: nothing to keep up until a person calibrates.
+    creeping : list of str
+        The offsets said to creep toward the threshold (said once while they do).
     """
 
     reference: str
@@ -226,6 +228,7 @@ class UpkeepRecord:
     tested: int = 0
     tested_until_ns: int = 0
     uncalibrated: bool = False
+    creeping: list[str] = field(default_factory=list)
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -243,6 +246,7 @@ class UpkeepRecord:
             "tested": self.tested,
             "tested_until_ns": self.tested_until_ns,
             "uncalibrated": self.uncalibrated,
+            "creeping": list(self.creeping),
         }
 
     @classmethod
@@ -276,6 +280,7 @@ class UpkeepRecord:
                 "tested",
                 "tested_until_ns",
                 "uncalibrated",
+                "creeping",
             },
         )
         if d["version"] != VERSION:
@@ -288,6 +293,11 @@ class UpkeepRecord:
             k in ("d01", "d02", "d03", "d04") and type(v) is int for k, v in acted.items()
         ):
             raise ValueError("record: acted must map d01..d04 to times in ns")
+        creeping = d["creeping"]
+        if not isinstance(creeping, list) or not all(
+            n in ("d01", "d02", "d03", "d04") for n in creeping
+        ):
+            raise ValueError("record: creeping must be a list of d01..d04")
         for key in ("last_action", "last_refusal"):
             if d[key] is not None and not isinstance(d[key], dict):
                 raise ValueError(f"record: {key} must be a table or null")
@@ -305,6 +315,7 @@ class UpkeepRecord:
             _count(d, "tested"),
             _ns(d, "tested_until_ns"),
             _flag(d, "uncalibrated"),
+            list(creeping),
         )
 
     def note_trend(self, end_ns: int, shift: np.ndarray, std: np.ndarray) -> None:

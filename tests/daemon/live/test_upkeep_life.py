@@ -316,3 +316,23 @@ def test_a_swap_while_the_module_was_off_is_fixed_after_it_comes_back(tmp_path):
     written = up.emit.of("recalibrated")
     assert len(written) == 1 and list(written[0][3]["values"]) == ["d03"], up.emit
     assert abs(offset(config, "d03") - (truth[INDEX["d03"]] - 0.7)) <= 0.05
+
+
+def test_a_creep_is_said_before_the_config_is_out_of_tolerance(tmp_path):
+    """A sensor creeping 0.04 mm/min: its shift's steady growth is said once it reaches
+    half the threshold, before the config is 0.1 mm off, and fixed once the motion tells
+    which sensor (over this loop sensors 1 and 2 correlate 0.97: at 0.35 mm)."""
+    truth, rows = scans(9, 900, TaskLoop(9), [OffsetDrift("creep", 2, 60.0, 0.04)])
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    up = upkeep(config)
+    feed(up, rows, follow=config)
+    warned = [e for e in up.emit.of("offset_change") if e[3].get("creeping")]
+    assert warned, up.emit
+    t, _, message, d = warned[0]
+    assert 0.04 * (t - 60.0) / 60 < 0.1, t  # before it was out of tolerance
+    fixed_at = [e[0] for e in up.emit.of("recalibrated")]
+    for a, b in zip(warned, warned[1:], strict=False):  # again only after a fix
+        assert any(a[0] < f < b[0] for f in fixed_at), up.emit
+    assert "creeps" in message and "d02" in [c["names"][0] for c in d["candidates"]]
+    fixes = up.emit.of("recalibrated")
+    assert fixes and all(list(e[3]["values"]) == ["d02"] for e in fixes), up.emit
