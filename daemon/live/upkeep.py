@@ -31,10 +31,11 @@ so that neither the recording nor the other observers ever wait for a fit.
    said once (``recalibration_refused``), and the upkeep goes on with the motion that
    comes.
 4. **Act.** Accepted: in ``propose`` mode the complete config beside the one in force, in
-   ``write`` mode the config itself (:mod:`.upkeep_act`). A sensor that creeps (its shift
-   grew steadily since it was last acted on) is acted on at most every ``min_interval``;
-   a step is acted on at once. The refit's own scans, moved to the new values, are the new
-   baseline: a second change minutes later is told against them at once.
+   ``write`` mode the config itself (:mod:`.upkeep_act`). A sensor that creeps (it moves on
+   the same way as its last fix, less than ``min_interval`` ago) is fixed at most every
+   ``min_interval``; a swap (either way) is fixed at once. The refit's own scans, moved to
+   the new values, are the new baseline: a second change minutes later is told against
+   them at once.
 5. **Gone.** A change the loops no longer show (the sensor moved back) is dropped, said
    (``offset_change_gone``) if it had been said.
 """
@@ -436,8 +437,12 @@ class Upkeep(Acts, Words):
             return True
         if len(recent) == WINDOW_SEGMENTS:
             win = sum((n for _, _, n in list(recent)[1:]), Normal())
+            # a creep that stopped may have left a shift under the threshold: a quarter
+            # of it counts then, once (later fixes of an offset alike would take it in)
+            least = self.threshold_mm / 4 if rec.settle else self.threshold_mm
+            rec.settle = []
             if any(
-                offset_tests(win, ref, threshold_mm=self.threshold_mm).moved
+                offset_tests(win, ref, threshold_mm=least).moved
                 for ref in (base, baseline_of(Normal(), self.reference))
             ):
                 a, b, first = recent[0]
@@ -534,7 +539,12 @@ class Upkeep(Acts, Words):
         if why := self.hold():
             self.state.change = f"identified; held while {why}"
             return
-        creeping = [n for n in fit.changed if self.creeping(n, ch, end_ns)]
+        values = fit.values()
+        creeping = [
+            n
+            for n in fit.changed
+            if self.creeping(n, values[n] - float(self.controller.params[INDEX[n]]), ch, end_ns)
+        ]
         if creeping:
             self.state.change = (
                 f"identified; a creep, held back by the minimum interval "

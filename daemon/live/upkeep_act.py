@@ -48,7 +48,6 @@ from .changes import (
     Normal,
     OffsetTests,
     Reference,
-    creeps,
     offset_tests,
     steplike,
     trend,
@@ -258,7 +257,7 @@ class Acts:
         else:
             self.reference = self.with_values(values, std)
         for n in values:
-            rec.acted[n] = until
+            rec.acted[n] = [int(until), round(float(delta[OFFSETS.index(n)]), 6)]
         rec.reference = reference_digest(self.reference.params)
         rec.config_sha256 = self.controller.sha256
         rec.baseline = ch.rest.shifted(delta - ch.point)
@@ -268,22 +267,16 @@ class Acts:
         if self.mode != "report":
             self.keeper.save(rec, until)
 
-    def creeping(self, name: str, ch: Change, end_ns: int) -> bool:
-        """Whether ``name``, acted on less than ``min_interval`` ago, creeps: it moved on
-        while its change stood, or its shift grew steadily over the segments between the
-        last action and this change (a slope at :data:`~.changes.LIMIT`)."""
+    def creeping(self, name: str, shift: float, ch: Change, end_ns: int) -> bool:
+        """Whether ``name``, fixed less than ``min_interval`` ago, creeps: it moved on while
+        its change stood, or it moved on the same way as the last fix (``shift`` mm from
+        the config; a creep goes on one way, a swapped sensor's offset either way)."""
         rec = self.record
         assert rec is not None
         last = rec.acted.get(name)
-        if last is None or end_ns - last >= self.min_interval_ns:
+        if last is None or end_ns - last[0] >= self.min_interval_ns:
             return False
-        if ch.steps:
-            return True
-        i = OFFSETS.index(name)
-        pts = [(t, s[i], d[i]) for t, s, d in rec.trend if last < t <= ch.since_ns]
-        return len(pts) >= TREND_MIN_SEGMENTS and creeps(
-            *(np.array(x) for x in zip(*pts, strict=True))
-        )
+        return bool(ch.steps) or shift * last[1] > 0
 
     def warn_creep(self, rec: UpkeepRecord) -> None:
         """An offset whose shift from the config grows steadily (a slope at
@@ -298,8 +291,8 @@ class Acts:
         going = (T >= LIMIT) & (np.abs(now) >= self.threshold_mm / 2) & (slope * now > 0)
         going &= [not steplike(t, shift[:, i], std[:, i]) for i in range(4)]
         if rec.creeping:  # said once while it creeps: until no shift grows at all
-            if T.max() < 4.0:
-                rec.creeping = []
+            if T.max() < 4.0:  # it stopped: what it left under the threshold is settled
+                rec.settle, rec.creeping = rec.creeping, []
             return
         if not going.any():
             return

@@ -194,7 +194,8 @@ class UpkeepRecord:
     change : Change or None
         The change in progress.
     acted : dict
-        Offset -> the end of the window of the last proposal or write naming it, ns.
+        Offset -> [the end of the window of the last proposal or write naming it, ns; the
+        shift it made, mm].
     trend : list
         The latest segments' single-sensor shifts: ``[end_ns, [4 shifts], [4 std]]``, mm.
     last_action : dict or None
@@ -213,6 +214,9 @@ class UpkeepRecord:
         calibrated: nothing to keep up until a person calibrates.
     creeping : list of str
         The offsets said to creep toward the threshold (said once while they do).
+    settle : list of str
+        Those whose creep just stopped: what it left under the threshold is settled with
+        the next minute of segments.
     """
 
     reference: str
@@ -220,7 +224,7 @@ class UpkeepRecord:
     watching_since_ns: int
     baseline: Normal = field(default_factory=Normal)
     change: Change | None = None
-    acted: dict[str, int] = field(default_factory=dict)
+    acted: dict[str, list] = field(default_factory=dict)
     trend: list[list[Any]] = field(default_factory=list)
     last_action: dict[str, Any] | None = None
     refusals: int = 0
@@ -229,6 +233,7 @@ class UpkeepRecord:
     tested_until_ns: int = 0
     uncalibrated: bool = False
     creeping: list[str] = field(default_factory=list)
+    settle: list[str] = field(default_factory=list)
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -247,6 +252,7 @@ class UpkeepRecord:
             "tested_until_ns": self.tested_until_ns,
             "uncalibrated": self.uncalibrated,
             "creeping": list(self.creeping),
+            "settle": list(self.settle),
         }
 
     @classmethod
@@ -281,6 +287,7 @@ class UpkeepRecord:
                 "tested_until_ns",
                 "uncalibrated",
                 "creeping",
+                "settle",
             },
         )
         if d["version"] != VERSION:
@@ -290,14 +297,20 @@ class UpkeepRecord:
                 raise ValueError(f"record: {key} must be a SHA-256 in hex")
         acted = d["acted"]
         if not isinstance(acted, dict) or not all(
-            k in ("d01", "d02", "d03", "d04") and type(v) is int for k, v in acted.items()
+            k in ("d01", "d02", "d03", "d04")
+            and isinstance(v, list)
+            and len(v) == 2
+            and type(v[0]) is int
+            and type(v[1]) in (int, float)
+            and np.isfinite(v[1])
+            for k, v in acted.items()
         ):
-            raise ValueError("record: acted must map d01..d04 to times in ns")
-        creeping = d["creeping"]
-        if not isinstance(creeping, list) or not all(
-            n in ("d01", "d02", "d03", "d04") for n in creeping
-        ):
-            raise ValueError("record: creeping must be a list of d01..d04")
+            raise ValueError("record: acted must map d01..d04 to [time in ns, shift in mm]")
+        for key in ("creeping", "settle"):
+            if not isinstance(d[key], list) or not all(
+                n in ("d01", "d02", "d03", "d04") for n in d[key]
+            ):
+                raise ValueError(f"record: {key} must be a list of d01..d04")
         for key in ("last_action", "last_refusal"):
             if d[key] is not None and not isinstance(d[key], dict):
                 raise ValueError(f"record: {key} must be a table or null")
@@ -307,7 +320,7 @@ class UpkeepRecord:
             _ns(d, "watching_since_ns"),
             Normal.from_json(d["baseline"]),
             None if d["change"] is None else Change.from_json(d["change"]),
-            dict(acted),
+            {k: list(v) for k, v in acted.items()},
             _trend(d["trend"]),
             d["last_action"],
             _count(d, "refusals"),
@@ -315,7 +328,8 @@ class UpkeepRecord:
             _count(d, "tested"),
             _ns(d, "tested_until_ns"),
             _flag(d, "uncalibrated"),
-            list(creeping),
+            list(d["creeping"]),
+            list(d["settle"]),
         )
 
     def note_trend(self, end_ns: int, shift: np.ndarray, std: np.ndarray) -> None:

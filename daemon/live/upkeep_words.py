@@ -60,8 +60,10 @@ class Words:
         if change:
             return f"upkeep: {change}"
         if rec is not None and rec.creeping:
-            return (f"upkeep ({self.mode}): {' or '.join(rec.creeping)} CREEPS away from the "
-                    "config (fixed each time it reaches the threshold)")
+            return (
+                f"upkeep ({self.mode}): {' or '.join(rec.creeping)} CREEPS away from the "
+                "config (fixed each time it reaches the threshold)"
+            )
         if st.change:
             return f"upkeep: {st.change}"
         if rec is not None and rec.baseline.segments < BASELINE_SEGMENTS:
