@@ -316,30 +316,31 @@ def offset_tests(data: Normal, against: Reference, *, threshold_mm: float) -> Of
     Vi = (U[:, keep] / w[keep]) @ U[:, keep].T
     joint = float(gp @ Vi @ gp)
     z_all, F_all = N @ Vi @ gp, N @ Vi @ N  # N is symmetric: H = N's columns
-    models: dict[int, list[Explanation]] = {}
-    for k in range(1, 5):
+
+    def of_size(k: int) -> list[Explanation]:
+        out = []
         for idx in combinations(range(4), k):
             ix = list(idx)
             F, z = F_all[np.ix_(ix, ix)], z_all[ix]
-            d = np.diag(F)
-            if d.min() <= 0 or np.linalg.cond(F) > 1e12:
+            if np.diag(F).min() <= 0 or np.linalg.cond(F) > 1e12:
                 continue
             cov = np.linalg.inv(F)
             s = cov @ z
-            models.setdefault(k, []).append(
-                Explanation(
-                    tuple(OFFSETS[i] for i in ix), s, np.sqrt(np.diag(cov)), float(z @ s), cov
-                )
-            )
-    singles = {e.names[0]: e for e in models.get(1, [])}
+            names = tuple(OFFSETS[i] for i in ix)
+            out.append(Explanation(names, s, np.sqrt(np.diag(cov)), float(z @ s), cov))
+        return sorted(out, key=lambda e: -e.statistic)
+
+    singles = {e.names[0]: e for e in of_size(1)}
     shift = np.array([singles[n].shift_mm[0] if n in singles else np.nan for n in OFFSETS])
     std = np.array([singles[n].std_mm[0] if n in singles else np.nan for n in OFFSETS])
     T = np.array([singles[n].statistic if n in singles else 0.0 for n in OFFSETS])
     candidates: list[Explanation] = []
-    for k in sorted(models):
-        ranked = sorted(models[k], key=lambda e: -e.statistic)
+    for k in range(1, 5):  # the smallest size that leaves no significant remainder
+        ranked = sorted(singles.values(), key=lambda e: -e.statistic) if k == 1 else of_size(k)
+        if not ranked:
+            continue
         if dof > k and joint - ranked[0].statistic >= joint_limit(dof - k):
-            continue  # a remainder no explanation of this size accounts for
+            continue
         top = ranked[0].statistic
         candidates = [e for e in ranked if top - e.statistic < MARGIN]
         break

@@ -289,7 +289,7 @@ class Acts:
         t, shift, std = (np.array(x, dtype=float) for x in zip(*rec.trend, strict=True))
         slope, now, T = trend(t, shift, std)
         going = (T >= LIMIT) & (np.abs(now) >= self.threshold_mm / 2) & (slope * now > 0)
-        going &= [not steplike(t, shift[:, i], std[:, i]) for i in range(4)]
+        going &= [not (g and steplike(t, shift[:, i], std[:, i])) for i, g in enumerate(going)]
         if rec.creeping:  # said once while it creeps: until no shift grows at all
             if T.max() < 4.0:  # it stopped: what it left under the threshold is settled
                 rec.settle, rec.creeping = rec.creeping, []

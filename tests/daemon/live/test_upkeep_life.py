@@ -336,3 +336,20 @@ def test_a_creep_is_said_before_the_config_is_out_of_tolerance(tmp_path):
     assert "creeps" in message and "d02" in [c["names"][0] for c in d["candidates"]]
     fixes = up.emit.of("recalibrated")
     assert fixes and all(list(e[3]["values"]) == ["d02"] for e in fixes), up.emit
+
+
+def test_a_reload_in_the_middle_of_a_change_forgets_nothing(tmp_path):
+    """SIGHUP (the recorder reloads the same controller config) while a change stands:
+    the change goes on, said once, fixed once."""
+    truth, rows = scans(10, 300, TaskLoop(10), [OffsetDrift("step", 4, 60.0, 0.9)])
+    config = write_initial_config(tmp_path / "controller.toml", params=truth)
+    up = upkeep(config, state=state_path(tmp_path))
+    cut = 80 * RATE  # the change stands, not yet fixed
+    feed(up, rows[:cut])
+    before = up.record.change
+    assert before is not None and not up.emit.of("recalibrated")
+    up.reload(load_controller_config(config))
+    assert up.record.change is before
+    feed(up, rows[cut:], follow=config)
+    assert len(up.emit.of("recalibrated")) == 1 and len(up.emit.of("offset_change")) <= 1
+    assert abs(offset(config, "d04") - (truth[INDEX["d04"]] + 0.9)) <= 0.05
