@@ -446,7 +446,8 @@ class Upkeep(Acts, Words):
                 for ref in (base, baseline_of(Normal(), self.reference))
             ):
                 a, b, first = recent[0]
-                rec.change = Change(a, first, b, rest=win)  # stands: its segments agree
+                # stands (its segments agree); gradual: no one segment could tell it
+                rec.change = Change(a, first, b, rest=win, gradual=True)
                 recent.clear()
                 return True
         rec.note_trend(end_ns, test.shift_mm, test.std_mm)  # nothing moved: a creep's ramp
@@ -545,7 +546,7 @@ class Upkeep(Acts, Words):
             for n in fit.changed
             if self.creeping(n, values[n] - float(self.controller.params[INDEX[n]]), ch, end_ns)
         ]
-        if creeping:
+        if creeping and len(creeping) == len(fit.changed):  # a creep alone waits
             self.state.change = (
                 f"identified; a creep, held back by the minimum interval "
                 f"({', '.join(creeping)} changed less than "

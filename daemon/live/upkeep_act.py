@@ -257,7 +257,7 @@ class Acts:
         else:
             self.reference = self.with_values(values, std)
         for n in values:
-            rec.acted[n] = [int(until), round(float(delta[OFFSETS.index(n)]), 6)]
+            rec.acted[n] = [int(until), round(float(delta[OFFSETS.index(n)]), 6), ch.gradual]
         rec.reference = reference_digest(self.reference.params)
         rec.config_sha256 = self.controller.sha256
         rec.baseline = ch.rest.shifted(delta - ch.point)
@@ -270,13 +270,14 @@ class Acts:
     def creeping(self, name: str, shift: float, ch: Change, end_ns: int) -> bool:
         """Whether ``name``, fixed less than ``min_interval`` ago, creeps: it moved on while
         its change stood, or it moved on the same way as the last fix (``shift`` mm from
-        the config; a creep goes on one way, a swapped sensor's offset either way)."""
+        the config) and little by little, this change or that fix's (no one segment told
+        it): a creep goes on one way, a swapped sensor's offset jumps, either way."""
         rec = self.record
         assert rec is not None
         last = rec.acted.get(name)
         if last is None or end_ns - last[0] >= self.min_interval_ns:
             return False
-        return bool(ch.steps) or shift * last[1] > 0
+        return bool(ch.steps) or ((ch.gradual or bool(last[2])) and shift * last[1] > 0)
 
     def warn_creep(self, rec: UpkeepRecord) -> None:
         """An offset whose shift from the config grows steadily (a slope at

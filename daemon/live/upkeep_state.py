@@ -95,6 +95,9 @@ class Change:
     steps : int
         Times it moved on while it stood (a second step, or a creep): the scans since the
         latest one alone tell what the config needs now.
+    gradual : bool
+        Opened by a minute of segments together, no one of them telling it (a creep, or a
+        shift near the threshold), not by one segment (a step).
     """
 
     since_ns: int
@@ -108,6 +111,7 @@ class Change:
     announced: bool = False
     refused: bool = False
     steps: int = 0
+    gradual: bool = False
 
     @property
     def stood(self) -> bool:
@@ -126,6 +130,7 @@ class Change:
             "announced": self.announced,
             "refused": self.refused,
             "steps": self.steps,
+            "gradual": self.gradual,
         }
 
     @classmethod
@@ -145,6 +150,7 @@ class Change:
                 "announced",
                 "refused",
                 "steps",
+                "gradual",
             },
         )
         point = d["point"]
@@ -173,6 +179,7 @@ class Change:
             _flag(d, "announced"),
             _flag(d, "refused"),
             _count(d, "steps"),
+            _flag(d, "gradual"),
         )
 
 
@@ -195,7 +202,7 @@ class UpkeepRecord:
         The change in progress.
     acted : dict
         Offset -> [the end of the window of the last proposal or write naming it, ns; the
-        shift it made, mm].
+        shift it made, mm; whether its change was gradual].
     trend : list
         The latest segments' single-sensor shifts: ``[end_ns, [4 shifts], [4 std]]``, mm.
     last_action : dict or None
@@ -299,13 +306,16 @@ class UpkeepRecord:
         if not isinstance(acted, dict) or not all(
             k in ("d01", "d02", "d03", "d04")
             and isinstance(v, list)
-            and len(v) == 2
+            and len(v) == 3
             and type(v[0]) is int
             and type(v[1]) in (int, float)
             and np.isfinite(v[1])
+            and type(v[2]) is bool
             for k, v in acted.items()
         ):
-            raise ValueError("record: acted must map d01..d04 to [time in ns, shift in mm]")
+            raise ValueError(
+                "record: acted must map d01..d04 to [time in ns, shift in mm, gradual]"
+            )
         for key in ("creeping", "settle"):
             if not isinstance(d[key], list) or not all(
                 n in ("d01", "d02", "d03", "d04") for n in d[key]

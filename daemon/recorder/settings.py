@@ -204,9 +204,9 @@ class RecorderSettings:
         help="the smallest change of an offset upkeep acts on, mm")  # fmt: skip
     upkeep_min_interval_s: float = _setting(
         600.0, kind="seconds", key="[upkeep].min_interval", lo=10.0, hi=30 * 86400.0,
-        help="the least time between two recalibrations of an offset that creeps (its shift "
-             "grew steadily since the last one), s; a step, a swapped sensor, is fixed at "
-             "once")  # fmt: skip
+        help="the least time between two recalibrations of an offset that creeps (it goes "
+             "on the same way, little by little, after a fix), s; a step, a swapped sensor, "
+             "is fixed at once")  # fmt: skip
     upkeep_segment_s: float = _setting(
         UPKEEP_SEGMENT_S, kind="seconds", key="[upkeep].segment", lo=5.0, hi=600.0,
         help="how much of the scans the upkeep tests at a time, s: a change stands after "

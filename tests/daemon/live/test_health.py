@@ -351,3 +351,55 @@ def test_poses_fed_a_second_at_a_time_are_those_of_one_search_over_the_session()
     P, done, _ = completed_poses(rows)
     assert mon.state.poses == len(done) > 250
     assert tested == P.stamp_ns[done][MIN_AFFECTED - 1 :].tolist()
+
+
+@pytest.mark.slow
+def test_loops_open_at_a_calibrated_config_are_a_change_since_its_calibration():
+    """A sensor replaced before the start at a config loopcal calibrated: said as a change
+    since that calibration, with the sensors that may have moved, not as a config that
+    does not describe the robot."""
+    scenario = HandMoves(3, params=TRUTH, pause_s=PAUSE_S)
+    t_us, codes = mechanism_scans(scenario, TRUTH, 20 * 300, noise_volts=0.04, seed=3)
+    rows = rows_from(t_us, codes)
+    events = []
+    config = replace(nominal_config(), params=_config_off({"d04": -0.8}), path="controller.toml",
+                     provenance={"written_utc": "2026-12-01T08:00:00Z", "method": "ml",
+                                 "std": {n: 0.01 for n in ("d01", "d02", "d03", "d04")}})
+    mon = HealthMonitor(config, lambda kind, level, msg, **d: events.append((kind, msg, d)),
+                        require_config=True)
+    for a in range(0, len(rows), 5):
+        mon.feed(rows[a : a + 5])
+    assert [k for k, _, _ in events] == ["loops_open"], events
+    _, message, details = events[0]
+    assert "changed since its calibration (2026-12-01T08:00:00Z)" in message
+    assert "does not describe this robot" not in message
+    assert details["calibrated_utc"] == "2026-12-01T08:00:00Z"
+    assert 4 in [c["sensor"] for c in details["candidates"]]
+    assert "changed since its calibration" in mon.status()
+
+
+@pytest.mark.slow
+def test_a_drift_the_poses_cannot_attribute_is_said_with_its_candidates():
+    """A task loop of two waypoints cannot tell sensor 3 from sensor 4: sensor 4's step is
+    said within half a minute as one of them, with the move that tells them apart, kept in
+    the status line and the metrics; no sensor is named that the poses cannot tell."""
+    from loopcal.simulator.task import TaskLoop
+
+    truth = truth_for(1)
+    t_us, codes = mechanism_scans(TaskLoop(1, waypoints=2), truth, 20 * 240, seed=1,
+                                  drifts=(OffsetDrift("step", 4, 60.0, -0.6),))
+    rows = rows_from(t_us, codes)
+    events, clock = [], [0.0]
+    mon = HealthMonitor(replace(nominal_config(), params=tuple(truth)),
+                        lambda kind, level, msg, **d: events.append((clock[0], kind, msg, d)))
+    for a in range(0, len(rows), 20):
+        clock[0] = t_us[min(a + 19, len(rows) - 1)] / 1e6
+        mon.feed(rows[a : a + 20])
+    said = [e for e in events if e[1] == "offset_drift_unattributed"]
+    assert said and said[0][0] - 60.0 <= 30.0, events
+    sensors = [c["sensor"] for c in said[0][3]["candidates"]]
+    assert 3 in sensors and 4 in sensors and said[0][3]["advice"], said
+    assert not [e for e in events if e[1] == "offset_drift" and e[3]["sensor"] != 4]
+    assert "LOOPS OPEN" in mon.status()
+    metrics = {m.name: m for m in mon.metrics()}
+    assert metrics["loopcal_loops_open"].samples[0].value == 1.0

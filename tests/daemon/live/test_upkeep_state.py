@@ -50,7 +50,7 @@ def a_record() -> UpkeepRecord:
         1_795_000_000_000_000_000,
         n,
         change,
-        {"d03": [1_795_000_050_000_000_000, 0.8]},
+        {"d03": [1_795_000_050_000_000_000, 0.8, False]},
     )
     rec.note_trend(1_795_000_090_000_000_000, np.array([0.1, 0.0, -0.1, 0.02]), np.full(4, 0.01))
     rec.last_action = {"kind": "recalibrated", "ns": 1, "values": {"d03": 99.1}}
