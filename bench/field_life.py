@@ -62,6 +62,7 @@ from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.phases import Phases
 from loopcal.simulator.scenarios import HandMoves
 from loopcal.simulator.task import TaskLoop
+from tests.support.disk import can_mount
 from tests.support.rows import T0, rows_from
 from tests.support.sessions import truth_for
 
@@ -441,10 +442,6 @@ def script(seed: int, disk: bool = True) -> Life:
     return Life(seed, drifts, motion, sorted(actions), swaps)
 
 
-def _can_mount() -> bool:
-    return os.geteuid() == 0 and "tmpfs" in Path("/proc/filesystems").read_text()
-
-
 def _cpu_s(pid: int) -> float:
     """utime + stime of a process, s."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -453,22 +450,25 @@ def _cpu_s(pid: int) -> float:
 
 def _life(args: tuple) -> dict:
     """One scripted life against the real daemon (module docstring)."""
+    import contextlib
     import signal
-    import subprocess
 
     from loopcal.calibration.parameters import NOMINAL
     from loopcal.daemon.recording import read_recordings
+    from tests.support.disk import fill, small_tmpfs
     from tests.support.emulator import hand_emulator
     from tests.support.processes import Proc, write_config
 
     seed, disk = args
-    disk = disk and _can_mount()
+    disk = disk and can_mount()
     life = script(seed, disk)
     tmp = Path(tempfile.mkdtemp(prefix="field-life-"))
     cfg_dir = tmp / "controller"
-    cfg_dir.mkdir()
-    if disk:
-        subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(cfg_dir)], check=True)
+    mounted = contextlib.ExitStack()
+    if disk:  # the controller config on a 1 MiB file system, to be filled
+        mounted.enter_context(small_tmpfs(cfg_dir))
+    else:
+        cfg_dir.mkdir()
     config = calibrated_config(cfg_dir / "controller.toml", NOMINAL)
     rec_dir = tmp / "rec"
     daemon_cfg = write_config(tmp / "daemon.toml", "", rec_dir)
@@ -519,14 +519,7 @@ def _life(args: tuple) -> dict:
                     elif what == "power-cycle":
                         emu.faults.restart(4.0)
                     elif what == "fill":
-                        fd = os.open(cfg_dir / "filler", os.O_WRONLY | os.O_CREAT)
-                        try:
-                            while True:
-                                os.write(fd, b"\0" * 4096)
-                        except OSError:
-                            pass
-                        finally:
-                            os.close(fd)
+                        fill(cfg_dir / "filler")
                     elif what == "free":
                         (cfg_dir / "filler").unlink(missing_ok=True)
                 c = load_controller_config(config)
@@ -548,8 +541,7 @@ def _life(args: tuple) -> dict:
     finally:
         if daemon is not None:
             daemon.kill()
-        if disk:
-            subprocess.run(["umount", "-l", str(cfg_dir)], check=False)
+        mounted.close()
         shutil.rmtree(tmp, ignore_errors=True)
     said = sorted((ev.stamp_ns - t0_wall) / 1e9 for k in SAYING for ev in rec.events_of(k))
     gaps = rec.events_of("gap")
@@ -621,7 +613,7 @@ def _judge(life: Life, truth0, samples, said, runs, gaps) -> dict:
 
 
 def part_life(seeds: int, jobs: int) -> None:
-    disk = _can_mount()
+    disk = can_mount()
     print(
         f"== life: {seeds} scripted lives of {LIFE_S:g} s (seed 1..{seeds}), the real "
         f"daemon in write mode against the emulated LDQ-412 at the module's pace, "

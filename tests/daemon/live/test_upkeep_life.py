@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +24,7 @@ from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.phases import Phases
 from loopcal.simulator.scenarios import HandMoves
 from loopcal.simulator.task import TaskLoop
+from tests.support.disk import can_mount, fill, small_tmpfs
 from tests.support.processes import loopcal_main
 from tests.support.rows import rows_from
 from tests.support.sessions import truth_for
@@ -244,28 +244,13 @@ def test_a_swap_during_a_creep_is_fixed_and_nothing_else_moves(tmp_path):
     assert abs(offset(config, "d01") - (truth[INDEX["d01"]] + creep_now)) <= 0.2
 
 
-def _can_mount() -> bool:
-    return os.geteuid() == 0 and "tmpfs" in Path("/proc/filesystems").read_text()
-
-
-@pytest.mark.skipif(not _can_mount(), reason="mounting a small tmpfs needs root")
+@pytest.mark.skipif(not can_mount(), reason="mounting a small tmpfs needs root")
 def test_a_full_disk_when_a_write_is_due_keeps_the_change_and_writes_once_it_can(tmp_path):
     truth, rows = scans(6, 300, TaskLoop(6), [OffsetDrift("step", 2, 60.0, 0.8)])
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mnt)], check=True)
-    try:
+    with small_tmpfs(tmp_path / "small", "256k") as mnt:
         config = write_initial_config(mnt / "controller.toml", params=truth)
         before = config.read_bytes()
-        filler = mnt / "filler"
-        fd = os.open(filler, os.O_WRONLY | os.O_CREAT)
-        try:  # the disk full to the last page
-            while True:
-                os.write(fd, b"\0" * 4096)
-        except OSError:
-            pass
-        finally:
-            os.close(fd)
+        filler = fill(mnt / "filler")  # the disk full to the last page
         up = upkeep(config)
         feed(up, rows[: 150 * RATE])
         refused = up.emit.of("recalibration_refused")
@@ -278,8 +263,6 @@ def test_a_full_disk_when_a_write_is_due_keeps_the_change_and_writes_once_it_can
         assert len(up.emit.of("recalibration_refused")) == 1  # said once
         assert len(up.emit.of("recalibrated")) == 1, up.emit
         assert abs(offset(config, "d02") - (truth[INDEX["d02"]] + 0.8)) <= 0.05
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], check=False)
 
 
 def test_a_swap_during_a_technicians_session_is_said_and_left_to_the_session(tmp_path):

@@ -26,6 +26,7 @@ from loopcal.daemon.recorder.settings import (
     parse_size,
 )
 from loopcal.daemon.recording import find_recordings, read_recordings
+from tests.support.disk import can_mount, small_tmpfs
 from tests.support.drivers import tcp_line
 from tests.support.emulator import assert_matches_truth, hand_emulator
 from tests.support.processes import (
@@ -290,17 +291,10 @@ def test_a_directory_that_becomes_unwritable_recovers_when_fixed(tmp_path):
     assert value(m, "loopcal_disk_error") == 0
 
 
-def _can_mount() -> bool:
-    return os.geteuid() == 0 and Path("/proc/filesystems").read_text().count("tmpfs") > 0
-
-
 @pytest.mark.slow
-@pytest.mark.skipif(not _can_mount(), reason="mounting a small tmpfs needs root")
+@pytest.mark.skipif(not can_mount(), reason="mounting a small tmpfs needs root")
 def test_a_full_filesystem_recovers_when_space_returns(tmp_path):
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], check=True)
-    try:
+    with small_tmpfs(tmp_path / "small") as mnt:
         filler = mnt / "filler"
         filler.write_bytes(b"\0" * (960 << 10))
         with hand_emulator(rate=200) as emu:
@@ -316,8 +310,6 @@ def test_a_full_filesystem_recovers_when_space_returns(tmp_path):
         out = read_recordings(mnt / "rec")
         assert consecutive(out.scans) and out.scans["missed"].sum() == 0
         assert_matches_truth(out.scans, emu)
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], check=False)
 
 
 SLOW_FSYNC_C = r"""
