@@ -69,13 +69,13 @@ from tests.support.sessions import truth_for
 RATE = 20
 TOLERANCE_MM = 0.1
 OFFSETS = ("d01", "d02", "d03", "d04")
-#: the events that tell a person the config is wrong (or fix it)
+#: the events that tell a person the config is wrong (a fix's own event is not one: an
+#: interval it ends is timed to it)
 SAYING = (
     "offset_change",
     "offset_drift",
     "offset_drift_unattributed",
     "loops_open",
-    "recalibrated",
 )
 #: a task loop that cannot tell sensor 3 from sensor 4 (their patterns correlate 0.9998)
 AMBIGUOUS = dict(seed=1, waypoints=2)
@@ -312,9 +312,10 @@ def _window(plan, seed, a, ev, drift, truth, config, state, base, shifts, at_wri
             out_from = t if out_from is None else out_from
         elif out_from is not None:  # an interval ends: how long it went unsaid
             know = out_from if stop is None or out_from >= stop[1] else stop[1]
-            # said after the last fix before it began: a creep said before it is out counts
-            since = max([x for x in fixed if x <= out_from] or [-1.0])  # its own fix aside
-            heard = max(out_from, min([x for x in said if x > since] or [t]))
+            # said with or after the last fix before it began (a creep said before it is
+            # out counts)
+            since = max([x for x in fixed if x <= out_from] or [-1.0])
+            heard = max(out_from, min([x for x in said if x >= since] or [t]))
             late = max(0.0, heard - know)
             worst = max(worst, late)
             unsaid += int(late > 30.0)

@@ -52,7 +52,7 @@ from .changes import (
     steplike,
     trend,
 )
-from .upkeep_state import Change, Keeper, UpkeepRecord, reference_digest
+from .upkeep_state import TREND_SEGMENTS, Change, Keeper, UpkeepRecord, reference_digest
 
 log = logging.getLogger(__name__)
 
@@ -256,6 +256,7 @@ class Acts:
             self.controller = self.reference = written
         else:
             self.reference = self.with_values(values, std)
+        going = self.creeps_on(delta, ch, until)
         for n in values:
             rec.acted[n] = [int(until), round(float(delta[OFFSETS.index(n)]), 6), ch.gradual]
         rec.reference = reference_digest(self.reference.params)
@@ -264,27 +265,79 @@ class Acts:
         rec.change, rec.trend = None, []
         self._recent.clear()  # tested at the old values
         self.tests, self.advice, self.state.change = None, "", ""
+        if going:
+            self.warn_creeps_on(rec, going, written is not None)
         if self.mode != "report":
             self.keeper.save(rec, until)
+
+    def creeps_on(self, delta: np.ndarray, ch: Change, until: int) -> dict[str, float]:
+        """The offsets of a fix (``delta`` (4,) mm from the reference) that creep on: said
+        to creep (:meth:`warn_creep`) and still growing the fix's way over the trend, or
+        fixed the same way at most 1.5 ``min_interval`` before ``until`` and said to creep
+        or moved little by little (this change or that fix's): their rates, mm/s."""
+        rec = self.record
+        assert rec is not None
+        out = {}
+        if rec.creeping and len(rec.trend) >= 2 * TREND_MIN_SEGMENTS:
+            t, shift, std = (np.array(x, dtype=float) for x in zip(*rec.trend, strict=True))
+            slope = trend(t, shift, std)[0]
+            for n in rec.creeping:
+                i = OFFSETS.index(n)
+                if delta[i] * slope[i] > 0:
+                    out[n] = float(slope[i])
+        for n, last in rec.acted.items():
+            shift, dt = float(delta[OFFSETS.index(n)]), (until - last[0]) / 1e9
+            if shift and 0 < dt <= 1.5 * self.min_interval_ns / 1e9 and shift * last[1] > 0:
+                if ch.gradual or last[2] or n in rec.creeping:
+                    out[n] = shift / dt
+        return out
+
+    def warn_creeps_on(self, rec: UpkeepRecord, rates: dict[str, float], written: bool) -> None:
+        """Say, with the fix, that the offsets ``rates`` (mm/s) creep on: the values just
+        fixed will be off by the threshold again before the next fix (at most every
+        ``min_interval``), until the creep stops (``offset_change``, ``creeping``)."""
+        rec.creeping = list(rates)
+        fixed = "written" if written else "proposed"
+        words = " and ".join(f"{n} still creeps {r * 60:+.3f} mm/min" for n, r in rates.items())
+        soon = min(self.threshold_mm / abs(r) for r in rates.values())
+        self.emit(
+            "offset_change",
+            Level.WARNING,
+            f"upkeep: {words}: a creep goes on, and the values just {fixed} will be "
+            f"{self.threshold_mm:g} mm off again in about {soon / 60:.0f} min, and are fixed "
+            f"again at most every {self.min_interval_ns / 60e9:g} min until the creep stops "
+            "(check that LVDT's core and mounting)",
+            names=[],
+            candidates=[
+                {"names": [n], "shift_mm": [0.0], "rate_mm_min": round(r * 60, 5)}
+                for n, r in rates.items()
+            ],
+            advice="",
+            mode=self.mode,
+            creeping=True,
+        )
 
     def creeping(self, name: str, shift: float, ch: Change, end_ns: int) -> bool:
         """Whether ``name``, fixed less than ``min_interval`` ago, creeps: it moved on while
         its change stood, or it moved on the same way as the last fix (``shift`` mm from
-        the config) and little by little, this change or that fix's (no one segment told
-        it): a creep goes on one way, a swapped sensor's offset jumps, either way."""
+        the config) and it is said to creep, or moved little by little, this change or
+        that fix's (no one segment told it): a creep goes on one way, a swapped sensor's
+        offset jumps, either way."""
         rec = self.record
         assert rec is not None
         last = rec.acted.get(name)
         if last is None or end_ns - last[0] >= self.min_interval_ns:
             return False
-        return bool(ch.steps) or ((ch.gradual or bool(last[2])) and shift * last[1] > 0)
+        little = ch.gradual or bool(last[2]) or name in rec.creeping
+        return bool(ch.steps) or (little and shift * last[1] > 0)
 
     def warn_creep(self, rec: UpkeepRecord) -> None:
         """An offset whose shift from the config grows steadily (a slope at
         :data:`~.changes.LIMIT` over the segments since the reference took force or the
         last fix, and a straight line tells it better than a step) and has reached half the
         threshold is said before it reaches it (``offset_change``, ``creeping``): once,
-        until no shift grows any more (again after a fix, if it goes on)."""
+        until no shift grows any more (a fix that finds it going on says so itself:
+        :meth:`warn_creeps_on`)."""
         if len(rec.trend) < 2 * TREND_MIN_SEGMENTS:
             return
         t, shift, std = (np.array(x, dtype=float) for x in zip(*rec.trend, strict=True))
@@ -292,7 +345,9 @@ class Acts:
         going = (T >= LIMIT) & (np.abs(now) >= self.threshold_mm / 2) & (slope * now > 0)
         going &= [not (g and steplike(t, shift[:, i], std[:, i])) for i, g in enumerate(going)]
         if rec.creeping:  # said once while it creeps: until no shift grows at all
-            if T.max() < 4.0:  # it stopped: what it left under the threshold is settled
+            # it stopped (over a full trend: the few segments after a fix cannot tell):
+            # what it left under the threshold is settled
+            if T.max() < 4.0 and len(rec.trend) >= TREND_SEGMENTS:
                 rec.settle, rec.creeping = rec.creeping, []
             return
         if not going.any():

@@ -304,7 +304,8 @@ def test_a_swap_while_the_module_was_off_is_fixed_after_it_comes_back(tmp_path):
 def test_a_creep_is_said_before_the_config_is_out_of_tolerance(tmp_path):
     """A sensor creeping 0.04 mm/min: its shift's steady growth is said once it reaches
     half the threshold, before the config is 0.1 mm off, and fixed once the motion tells
-    which sensor (over this loop sensors 1 and 2 correlate 0.97: at 0.35 mm)."""
+    which sensor (over this loop sensors 1 and 2 correlate 0.97: at 0.35 mm). Each fix
+    says with it that the creep goes on: the values just written will be off again."""
     truth, rows = scans(9, 900, TaskLoop(9), [OffsetDrift("creep", 2, 60.0, 0.04)])
     config = write_initial_config(tmp_path / "controller.toml", params=truth)
     up = upkeep(config)
@@ -314,11 +315,16 @@ def test_a_creep_is_said_before_the_config_is_out_of_tolerance(tmp_path):
     t, _, message, d = warned[0]
     assert 0.04 * (t - 60.0) / 60 < 0.1, t  # before it was out of tolerance
     fixed_at = [e[0] for e in up.emit.of("recalibrated")]
-    for a, b in zip(warned, warned[1:], strict=False):  # again only after a fix
-        assert any(a[0] < f < b[0] for f in fixed_at), up.emit
+    for a, b in zip(warned, warned[1:], strict=False):  # again only with or after a fix
+        assert any(a[0] < f <= b[0] for f in fixed_at), up.emit
     assert "creeps" in message and "d02" in [c["names"][0] for c in d["candidates"]]
     fixes = up.emit.of("recalibrated")
     assert fixes and all(list(e[3]["values"]) == ["d02"] for e in fixes), up.emit
+    for f in fixed_at:  # the creep never stops here: every fix says it goes on
+        on = [e for e in warned if e[0] == f]
+        assert len(on) == 1 and "still creeps" in on[0][2], up.emit
+        (cand,) = on[0][3]["candidates"]
+        assert cand["names"] == ["d02"] and 0.02 <= cand["rate_mm_min"] <= 0.06, cand
 
 
 def test_a_reload_in_the_middle_of_a_change_forgets_nothing(tmp_path):
