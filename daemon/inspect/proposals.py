@@ -105,7 +105,8 @@ class ReportedProposals:
     def found(self, first_ns: int | None) -> list[dict[str, Any]]:
         """Each proposal, for ``--json``: ``names``, ``since_utc`` (when the change began),
         ``since_offset_s`` (seconds after ``first_ns``, the recordings' first scan),
-        ``values``, ``std`` and ``shift_mm`` (per name, mm), ``window_since_utc`` and
+        ``values``, ``std`` (what the offsets held carry in counted), ``scans_std`` (the
+        scans' own) and ``shift_mm`` (per name, mm), ``window_since_utc`` and
         ``window_until_utc`` (the scans fitted), ``scans``, ``gates`` (each passed)."""
         out = []
         for p in self._upkeep.state.reported:
@@ -115,7 +116,7 @@ class ReportedProposals:
                 "since_offset_s": (None if first_ns is None
                                    else round((p["since_ns"] - first_ns) / 1e9, 3)),
                 "values": dict(p["values"]), "std": dict(p["std"]),
-                "shift_mm": dict(p["shift_mm"]),
+                "scans_std": dict(p["scans_std"]), "shift_mm": dict(p["shift_mm"]),
                 "window_since_utc": time_json(p["window_since_ns"]),
                 "window_until_utc": time_json(p["window_until_ns"]),
                 "scans": p["scans"], "gates": dict(p["gates"]),

@@ -47,7 +47,7 @@ from loopcal.calibration.poses import pose_noise_volts
 from loopcal.calibration.simulate import NOISE_VOLTS
 
 from ..config.controller import ControllerConfig
-from ..worker.offsets import OFFSETS, config_std
+from ..worker.offsets import OFFSETS, config_cov
 from ..worker.scan_poses import scans_for_fit
 
 #: a segment with fewer usable scans than this is not tested
@@ -189,15 +189,15 @@ class Reference:
 
 def baseline_of(base: Normal, reference: ControllerConfig) -> Reference:
     """The baseline (module docstring): the reference config's own uncertainty (its
-    ``[provenance]`` std of the offsets) as a prior, updated by the baseline's segments.
+    ``[provenance]`` covariance of the offsets, or their std) as a prior, updated by the
+    baseline's segments.
 
     Returns
     -------
     Reference
         ``shift`` = ``C_b g``, ``cov`` = ``C_b`` = ``(C_0^-1 + N)^-1``.
     """
-    std = config_std(reference)
-    prior = np.diag([1.0 / std[n] ** 2 for n in OFFSETS])
+    prior = np.linalg.inv(config_cov(reference))
     cov = np.linalg.inv(prior + base.N)
     cov = (cov + cov.T) / 2
     return Reference(cov @ base.g, cov)

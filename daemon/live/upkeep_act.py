@@ -33,7 +33,7 @@ from loopcal.calibration.parameters import INDEX
 from ..config.controller import ControllerConfig, ControllerConfigError, load_controller_config
 from ..events import Level
 from ..times import now_text, time_or
-from ..worker.offsets import OFFSETS, OffsetFit
+from ..worker.offsets import OFFSETS, OffsetFit, config_cov, fixed_cov
 from ..worker.proposal import (
     Proposal,
     discard_proposal,
@@ -85,12 +85,15 @@ class Acts:
     _recent: Any  # deque of the latest segments
     min_interval_ns: int
 
-    def with_values(self, values: dict[str, float], std: dict[str, float]) -> ControllerConfig:
-        """The config in force with ``values`` (and their ``std``) in place of its own."""
+    def with_values(
+        self, values: dict[str, float], std: dict[str, float], cov: np.ndarray | None = None
+    ) -> ControllerConfig:
+        """The config in force with ``values`` (and their ``std``, the offsets' ``cov``) in
+        place of its own."""
         params = np.array(self.controller.params, dtype=float)
         for n, v in values.items():
             params[INDEX[n]] = v
-        prov = proposal_provenance(self.controller, values, std, {})
+        prov = proposal_provenance(self.controller, values, std, {}, cov)
         return replace(self.controller, params=params, provenance=prov)
 
     def announce(self, ch: Change) -> None:
@@ -161,16 +164,22 @@ class Acts:
         }
 
     def act(self, fit: OffsetFit, ch: Change, since: int, until: int) -> None:
-        """Propose, write or report an accepted refit (module docstring)."""
-        values, std = fit.values(), fit.std()
+        """Propose, write or report an accepted refit (module docstring). Its std counts
+        what the offsets held at the config carry into it (:func:`fixed_cov`), not only
+        the scans' noise."""
+        values, scans_std = fit.values(), fit.std()
+        cov = fixed_cov(config_cov(self.reference), ch.rest.N, fit.changed, scans_std)
+        std = {n: float(np.sqrt(cov[i, i])) for i, n in enumerate(OFFSETS) if n in values}
         table = self._table(fit, ch, since, until)
         words = ", ".join(
-            f"{n} {values[n]:.4f} mm ({table['shift_mm'][n]:+.3f} +- {std[n]:.3f})"
+            f"{n} {values[n]:.4f} mm ({table['shift_mm'][n]:+.3f} +- {std[n]:.3f}; the "
+            f"scans' own +- {scans_std[n]:.3f})"
             for n in fit.changed
         )
         details: dict[str, Any] = dict(
             values={n: round(v, 6) for n, v in values.items()},
             std={n: round(s, 6) for n, s in std.items()},
+            scans_std={n: round(s, 6) for n, s in scans_std.items()},
             shift_mm=table["shift_mm"],
             since_ns=ch.since_ns,
             window_since_ns=since,
@@ -191,7 +200,7 @@ class Acts:
                     f"{table['change_since_utc']}, every gate passed"
                 )
             elif self.mode == "propose":
-                path = str(write_proposal(self.controller, values, std, table))
+                path = str(write_proposal(self.controller, values, std, table, cov))
                 self.state.pending = read_proposal(self.controller)
                 self.state.pending_since_ns = table["proposed_ns"]
                 kind = "recalibration_proposed"
@@ -204,7 +213,7 @@ class Acts:
                 params = np.array(self.controller.params, dtype=float)
                 for n, v in values.items():
                     params[INDEX[n]] = v
-                prov = proposal_provenance(self.controller, values, std, table)
+                prov = proposal_provenance(self.controller, values, std, table, cov)
                 out = write_back(self.controller, params, prov)
                 written = load_controller_config(out.path)
                 path, kind = str(out.path), "recalibrated"
@@ -236,13 +245,14 @@ class Acts:
         rec = self.record
         assert rec is not None
         rec.last_action = {"kind": kind, "ns": time.time_ns(), "path": path, **details}
-        self.after_act(delta, values, std, ch, until, written)
+        self.after_act(delta, values, std, cov, ch, until, written)
 
     def after_act(
         self,
         delta: np.ndarray,
         values: dict[str, float],
         std: dict[str, float],
+        cov: np.ndarray,
         ch: Change,
         until: int,
         written: ControllerConfig | None,
@@ -255,7 +265,7 @@ class Acts:
         if written is not None:
             self.controller = self.reference = written
         else:
-            self.reference = self.with_values(values, std)
+            self.reference = self.with_values(values, std, cov)
         going = self.creeps_on(delta, ch, until)
         for n in values:
             rec.acted[n] = [int(until), round(float(delta[OFFSETS.index(n)]), 6), ch.gradual]

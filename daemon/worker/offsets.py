@@ -47,14 +47,66 @@ MIN_SCANS = 100
 
 def config_std(controller: ControllerConfig) -> dict[str, float]:
     """Each offset's standard deviation as the config's ``[provenance]`` records it (a
-    loopcal calibration), else :data:`DEFAULT_CONFIG_STD_MM`, mm."""
+    loopcal calibration; a positive number), else :data:`DEFAULT_CONFIG_STD_MM`, mm."""
     std = (controller.provenance or {}).get("std") or {}
     out = {}
     for name in OFFSETS:
         s = std.get(name) if isinstance(std, dict) else None
-        ok = isinstance(s, (int, float)) and not isinstance(s, bool) and np.isfinite(s)
+        ok = isinstance(s, (int, float)) and not isinstance(s, bool) and np.isfinite(s) and s > 0
         out[name] = float(s) if ok else DEFAULT_CONFIG_STD_MM
     return out
+
+
+def config_cov(controller: ControllerConfig) -> np.ndarray:
+    """The four offsets' covariance in the config, (4, 4) mm^2: the ``offset_cov`` the
+    upkeep records with its fixes (:func:`fixed_cov`), else the squares of
+    :func:`config_std` on the diagonal (a person's calibration, or none)."""
+    raw = (controller.provenance or {}).get("offset_cov")
+    try:
+        cov = np.array(raw, dtype=float)
+    except (TypeError, ValueError):
+        cov = np.zeros(0)
+    if cov.shape == (4, 4) and np.isfinite(cov).all() and np.allclose(cov, cov.T, atol=1e-12):
+        if np.linalg.eigvalsh(cov).min() > 0:
+            return (cov + cov.T) / 2
+    std = config_std(controller)
+    return np.diag([std[n] ** 2 for n in OFFSETS])
+
+
+def fixed_cov(
+    cov: np.ndarray, N: np.ndarray, names: list[str], std: dict[str, float]
+) -> np.ndarray:
+    """The four offsets' covariance after a fix of ``names`` alone, the others held at the
+    config: each fixed one takes in what the held ones are off by, as far as their
+    patterns correlate over the motion (``e_K = -N_KK^-1 N_KO e_O`` + the scans' noise).
+    A robot whose motion never tells all four apart sees this grow fix after fix, though
+    its loops close.
+
+    Parameters
+    ----------
+    cov : ndarray, shape (4, 4)
+        The offsets' covariance before, mm^2 (:func:`config_cov`).
+    N : ndarray, shape (4, 4)
+        Loop closure's normal equations in the four offsets over the fix's motion, 1/mm^2.
+    names : list of str
+        The offsets fixed.
+    std : dict
+        Each fixed offset's standard deviation from the scans, mm.
+
+    Returns
+    -------
+    ndarray, shape (4, 4)
+        mm^2.
+    """
+    K = [OFFSETS.index(n) for n in names]
+    O = [i for i in range(4) if i not in K]
+    A = np.eye(4)
+    A[np.ix_(K, K)] = 0.0
+    if O:
+        A[np.ix_(K, O)] = -np.linalg.pinv(N[np.ix_(K, K)]) @ N[np.ix_(K, O)]
+    out = A @ cov @ A.T
+    out[K, K] += [std[n] ** 2 for n in names]
+    return (out + out.T) / 2
 
 
 @dataclass

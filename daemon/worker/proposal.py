@@ -56,10 +56,12 @@ def _digest(values: dict[str, float], upkeep: dict[str, Any]) -> str:
 
 def proposal_provenance(
     config: ControllerConfig, values: dict[str, float], std: dict[str, float],
-    upkeep: dict[str, Any],
+    upkeep: dict[str, Any], cov: np.ndarray | None = None,
 ) -> dict[str, Any]:  # fmt: skip
     """The ``[provenance]`` of a proposed (or written) config: the values' std merged into
-    the config's recorded ones (health weighs every parameter by them), and ``upkeep``
+    the config's recorded ones (health weighs every parameter by them), the four offsets'
+    covariance ``cov`` (4, 4) mm^2 if given (``offset_cov``: what the offsets held carried
+    into the fixed ones, :func:`~loopcal.daemon.worker.offsets.fixed_cov`), and ``upkeep``
     (what the daemon found) with the base config's SHA-256 and the digest."""
     previous = (config.provenance or {}).get("std") or {}
     merged = {**(previous if isinstance(previous, dict) else {}),
@@ -67,7 +69,7 @@ def proposal_provenance(
     up = {**upkeep, "base_sha256": config.sha256,
           "values": {n: float(v) for n, v in values.items()}}  # fmt: skip
     up["digest"] = _digest(up["values"], up)
-    return {
+    out = {
         "written_utc": now_text(),
         "method": "ml",
         "identified": list(values),
@@ -75,11 +77,16 @@ def proposal_provenance(
         "previous": {n: float(config.params[INDEX[n]]) for n in values},
         "upkeep": up,
     }
+    if cov is not None:
+        out["offset_cov"] = [[float(f"{c:.6g}") for c in row] for row in np.asarray(cov)]
+    return out
 
 
 def write_proposal(config: ControllerConfig, values: dict[str, float],
-                   std: dict[str, float], upkeep: dict[str, Any]) -> Path:  # fmt: skip
-    """Write the proposal for ``config`` durably; returns its path.
+                   std: dict[str, float], upkeep: dict[str, Any],
+                   cov: np.ndarray | None = None) -> Path:  # fmt: skip
+    """Write the proposal for ``config`` durably (``cov``: :func:`proposal_provenance`);
+    returns its path.
 
     Raises
     ------
@@ -89,7 +96,7 @@ def write_proposal(config: ControllerConfig, values: dict[str, float],
     if config.path is None:
         raise ControllerConfigError("no controller config file to propose beside")
     path = proposal_path(config.path)
-    prov = proposal_provenance(config, values, std, upkeep)
+    prov = proposal_provenance(config, values, std, upkeep, cov)
     text = updated_text(config.text, values, prov)
     try:
         mode = os.stat(durable.target_of(config.path)).st_mode & 0o7777

@@ -227,7 +227,9 @@ def test_check_reports_what_upkeep_would_propose(swapped):
     assert p["names"] == ["d03"] and p["scans"] >= 300 and all(p["gates"].values())
     want = truth[INDEX["d03"]] + 0.8
     assert abs(p["values"]["d03"] - want) <= 0.05, (p, want)
-    assert abs(p["shift_mm"]["d03"] - 0.8) <= 0.05 and 0 < p["std"]["d03"] <= 0.05
+    assert abs(p["shift_mm"]["d03"] - 0.8) <= 0.05 and 0 < p["scans_std"]["d03"] <= 0.05
+    # a config loopcal never calibrated: its offsets held at 0.05 mm each carry into d03
+    assert p["std"]["d03"] > 0.05 > p["scans_std"]["d03"]
     began = T0 / 1e9 + 120
     assert abs(datetime.fromisoformat(p["since_utc"]).timestamp() - began) <= 15
     assert abs(p["since_offset_s"] - 120) <= 15

@@ -207,6 +207,17 @@ def test_a_change_against_a_calibrated_config_is_fixed_with_no_baseline_kept(tmp
     assert len(written) == 1 and list(written[0][3]["values"]) == ["d01"], up.emit
     assert written[0][0] <= 60.0
     assert abs(offset(config, "d01") - (truth[INDEX["d01"]] - 0.5)) <= 0.05
+    # its std counts what the three held at 0.01 mm carry into it over this loop, said
+    # and recorded: the fix is known no better than the offsets it was fitted against
+    d = written[0][3]
+    prov = load_controller_config(config).provenance
+    assert d["std"]["d01"] > max(d["scans_std"]["d01"], 0.01), d
+    assert "the scans' own" in written[0][2]
+    assert prov["std"]["d01"] == d["std"]["d01"]
+    assert [prov["std"][n] for n in ("d02", "d03", "d04")] == [0.01] * 3
+    cov = np.array(prov["offset_cov"])
+    assert np.isclose(np.sqrt(cov[0, 0]), d["std"]["d01"], rtol=1e-4)
+    assert (cov[0, 1:] < 0).all()  # it took in what they are off by, the other way
 
 
 @pytest.mark.parametrize(("second", "mm"), [(1, -0.8), (3, -0.8)], ids=["another", "same"])
