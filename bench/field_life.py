@@ -76,6 +76,7 @@ SAYING = (
     "offset_drift",
     "offset_drift_unattributed",
     "loops_open",
+    "offsets_uncertain",
 )
 #: a task loop that cannot tell sensor 3 from sensor 4 (their patterns correlate 0.9998)
 AMBIGUOUS = dict(seed=1, waypoints=2)

@@ -73,16 +73,20 @@ KINDS: dict[str, str] = {
     "candidates, advice, mode)",
     "offset_change_gone": "upkeep: the loops close again, the change it said is gone "
     "(details: since_ns, until_ns)",
+    "offsets_uncertain": "upkeep: the controller config (or the proposal pending) knows an "
+    "offset too poorly to vouch for the threshold (3 std reach it): fixes of single offsets "
+    "from motion that cannot tell the four apart carried the others' errors into them; "
+    "calibrate with loopcal session (details: std, threshold_mm)",
     "upkeep_reset": "the upkeep's kept record (its baseline and any change in progress) "
     "could not be taken up: damaged, or of another format version; set aside, and the upkeep "
     "starts over from the controller config's own calibration (details: path, aside, error)",
     "recalibration_proposed": "upkeep found an offset changed and identified it from the "
     "robot's motion, every gate passed: a complete config written beside the controller "
-    "config (.proposed) for a person to apply (details: path, values, std, shift_mm, since_ns, "
-    "window_since_ns, window_until_ns, scans, gates)",
+    "config (.proposed) for a person to apply (details: path, values, std, scans_std, "
+    "shift_mm, since_ns, window_since_ns, window_until_ns, scans, gates)",
     "recalibrated": "upkeep in write mode wrote such a change into the controller config, the "
-    "previous version kept (details: path, previous, values, std, shift_mm, since_ns, "
-    "window_since_ns, window_until_ns, scans, gates)",
+    "previous version kept (details: path, previous, values, std, scans_std, shift_mm, "
+    "since_ns, window_since_ns, window_until_ns, scans, gates)",
     "recalibration_withdrawn": "later scans contradict a pending proposal: it is renamed aside "
     "(details: path, aside, names, since_ns)",
     "recalibration_refused": "upkeep saw a change the robot's motion does not identify, or "

@@ -5,7 +5,9 @@ recalibration it proposed.
 (``upkeep-state.json``, :mod:`loopcal.daemon.live.upkeep_state`), whether the daemon runs or
 not, and in every mode: since when it watches the config in force, whether its baseline is
 ready, a change in progress (the offsets told apart, or the candidates, their shifts and
-the move that would tell them apart), its last proposal or write, and its refusals.
+the move that would tell them apart), its last proposal or write, and its refusals; and
+how well the config knows each offset (its std, the errors its fixes took in from the
+offsets held counted), and whether that still vouches for the upkeep's threshold.
 
 The daemon's upkeep (``[upkeep].mode = "propose"``, the default with a controller config)
 writes a complete controller config beside the one in force when it finds, from the
@@ -63,9 +65,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
 
 
-def _where(args: argparse.Namespace) -> tuple[Path, Path | None, float, str | None]:
-    """(controller config, recordings directory, target_mm, the upkeep's mode as the
-    daemon's config sets it or None) from the options."""
+def _where(args: argparse.Namespace) -> tuple[Path, Path | None, float, float, str | None]:
+    """(controller config, recordings directory, target_mm, threshold_mm, the upkeep's
+    mode as the daemon's config sets it or None) from the options."""
     from ..recorder.settings import DEFAULTS, load_daemon_config
 
     if args.config is not None:
@@ -76,10 +78,11 @@ def _where(args: argparse.Namespace) -> tuple[Path, Path | None, float, str | No
             raise CommandError(f"{args.config}: no [controller].config: the daemon proposes "
                                "nothing without one")  # fmt: skip
         mode = s.upkeep_mode if s.upkeep_mode is not None else "propose"
-        return s.controller_config, s.directory, s.upkeep_target_mm, mode
+        return s.controller_config, s.directory, s.upkeep_target_mm, s.upkeep_threshold_mm, mode
     if args.controller_config is None:
         raise CommandError("give --config DAEMON.toml, or --controller-config PATH")
-    return args.controller_config, args.recordings, DEFAULTS["upkeep_target_mm"], None
+    target, threshold = DEFAULTS["upkeep_target_mm"], DEFAULTS["upkeep_threshold_mm"]
+    return args.controller_config, args.recordings, target, threshold, None
 
 
 def _iso(ns: object) -> str:
@@ -198,11 +201,29 @@ def _record(recordings: Path | None, config: ControllerConfig) -> tuple[dict | N
     return doc, lines
 
 
+def _known(config: ControllerConfig, threshold_mm: float) -> tuple[dict | None, list[str]]:
+    """How well the config knows its offsets (its fixes' carried errors counted), for
+    ``--json`` and in lines: None and nothing for a config loopcal never calibrated."""
+    import numpy as np
+
+    from ..worker.offsets import OFFSETS, UNSURE_SIGMAS, calibrated, config_cov, unsure_offsets
+
+    if not calibrated(config):
+        return None, []
+    std = dict(zip(OFFSETS, np.sqrt(np.diag(config_cov(config))).round(5).tolist(), strict=True))
+    unsure = dict(unsure_offsets(config, threshold_mm))
+    line = "  offsets known to " + ", ".join(f"{n} +-{s:.3f} mm" for n, s in std.items())
+    if unsure:
+        line += (f"; OFFSETS UNCERTAIN ({', '.join(unsure)}): {UNSURE_SIGMAS:g} std reach the "
+                 f"{threshold_mm:g} mm threshold: calibrate with loopcal session")  # fmt: skip
+    return {"std_mm": std, "uncertain": sorted(unsure), "threshold_mm": threshold_mm}, [line]
+
+
 def run(args: argparse.Namespace) -> int:
     from ..config.controller import ControllerConfigError, load_controller_config
     from ..worker.proposal import apply_proposal, discard_proposal, read_proposal
 
-    config_path, recordings, target_mm, mode = _where(args)
+    config_path, recordings, target_mm, threshold_mm, mode = _where(args)
     config = load_controller_config(config_path)
     try:
         proposal = read_proposal(config)
@@ -220,7 +241,9 @@ def run(args: argparse.Namespace) -> int:
         status = 0
     elif args.action == "status":
         record, text = _record(recordings, config)
-        out.update(mode=mode, record=record)
+        known = _known(config, threshold_mm)
+        out.update(mode=mode, record=record, offsets=known[0])
+        text += known[1]
         if mode is not None:
             text.insert(0, f"upkeep: mode {mode}, beside {config_path}")
         if proposal is None:

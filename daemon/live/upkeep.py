@@ -64,7 +64,7 @@ from ..recorder.engine import Recorder
 from ..recorder.settings import RecorderSettings
 from ..times import time_or
 from ..worker.coverage import telling_move
-from ..worker.offsets import OFFSETS, refit_offsets
+from ..worker.offsets import OFFSETS, calibrated, config_cov, refit_offsets
 from ..worker.proposal import Proposal, read_proposal
 from .changes import (
     BASELINE_SEGMENTS,
@@ -267,7 +267,9 @@ class Upkeep(Acts, Words):
             self.state.pending = pending
             since = pending.upkeep.get("proposed_ns")
             self.state.pending_since_ns = since if isinstance(since, int) else time.time_ns()
-            self.reference = self.with_values(pending.values, pending.std)
+            self.reference = self.with_values(
+                pending.values, pending.std, config_cov(pending.config)
+            )
         prev = self.record
         if self.mode != "off":
             digest = reference_digest(self.reference.params)
@@ -281,6 +283,7 @@ class Upkeep(Acts, Words):
             if prev is None:  # taken up at start: this run's recording says it too, at once
                 ch.announced = False
                 self.announce(ch)
+        self.vouch()
 
     def _damaged(self, why: str, where: str) -> None:
         self.emit(
@@ -559,12 +562,6 @@ class Upkeep(Acts, Words):
         """Keep the record (:mod:`.upkeep_state`) if it changed, or a minute went by."""
         if self.record is not None and self.mode not in ("off", "report"):
             self.keeper.save(self.record, now_ns, dirty)
-
-
-def calibrated(config: ControllerConfig) -> bool:
-    """Whether loopcal calibrated ``config``: its ``[provenance]`` records the fit's std."""
-    std = (config.provenance or {}).get("std")
-    return isinstance(std, dict) and bool(std)
 
 
 def upkeep_mode(mode: str | None, controller: ControllerConfig) -> str:

@@ -33,7 +33,14 @@ from loopcal.calibration.parameters import INDEX
 from ..config.controller import ControllerConfig, ControllerConfigError, load_controller_config
 from ..events import Level
 from ..times import now_text, time_or
-from ..worker.offsets import OFFSETS, OffsetFit, config_cov, fixed_cov
+from ..worker.offsets import (
+    OFFSETS,
+    UNSURE_SIGMAS,
+    OffsetFit,
+    config_cov,
+    fixed_cov,
+    unsure_offsets,
+)
 from ..worker.proposal import (
     Proposal,
     discard_proposal,
@@ -84,6 +91,38 @@ class Acts:
     state: Any  # UpkeepState
     _recent: Any  # deque of the latest segments
     min_interval_ns: int
+    #: the offsets said known too poorly to vouch for, with their std: ((name, mm), ...)
+    unsure: tuple = ()
+
+    def vouch(self) -> None:
+        """Say when the reference (the config in force, or the proposal pending) knows an
+        offset too poorly to vouch for the threshold
+        (:func:`~loopcal.daemon.worker.offsets.unsure_offsets`), as fixes from motion that
+        cannot tell the four apart leave them
+        (:func:`~loopcal.daemon.worker.offsets.fixed_cov`): their loops close while each
+        may be off by more than they show. ``offsets_uncertain``, said again whenever what
+        it would say changes; a calibration from motion that tells them apart
+        (``loopcal session``) knows them again. A config loopcal never calibrated is
+        health's to say (``loops_open``)."""
+        said = self.unsure
+        self.unsure = (
+            () if self.mode == "off" else unsure_offsets(self.reference, self.threshold_mm)
+        )
+        if not self.unsure or self.unsure == said:
+            return
+        words = ", ".join(f"{n} +- {s:.3f} mm" for n, s in self.unsure)
+        self.emit(
+            "offsets_uncertain",
+            Level.WARNING,
+            f"upkeep: the controller config knows {words} only (std): "
+            f"{UNSURE_SIGMAS:g} std reach the {self.threshold_mm:g} mm threshold, so its "
+            "loops may close while an offset is that far off. Fixes of one offset from "
+            "motion that cannot tell the four apart carry the others' errors into it; "
+            "calibrate with loopcal session (motion that tells them apart) to know them "
+            "again",
+            std=dict(self.unsure),
+            threshold_mm=self.threshold_mm,
+        )
 
     def with_values(
         self, values: dict[str, float], std: dict[str, float], cov: np.ndarray | None = None
@@ -277,6 +316,7 @@ class Acts:
         self.tests, self.advice, self.state.change = None, "", ""
         if going:
             self.warn_creeps_on(rec, going, written is not None)
+        self.vouch()
         if self.mode != "report":
             self.keeper.save(rec, until)
 

@@ -14,7 +14,11 @@ from __future__ import annotations
 import time
 from typing import Any
 
+import numpy as np
+
+from ..config.controller import ControllerConfig
 from ..times import time_or
+from ..worker.offsets import OFFSETS, calibrated, config_cov
 from .changes import BASELINE_SEGMENTS, OffsetTests
 from .upkeep_state import UpkeepRecord
 
@@ -27,6 +31,8 @@ class Words:
     tests: OffsetTests | None
     advice: str
     state: Any  # UpkeepState
+    reference: ControllerConfig
+    unsure: tuple  # ((name, std mm), ...): Acts.vouch
 
     def change_words(self) -> str:
         """The change in progress in words ("" when none stands)."""
@@ -66,6 +72,12 @@ class Words:
             )
         if st.change:
             return f"upkeep: {st.change}"
+        if self.unsure:
+            return (
+                f"upkeep ({self.mode}): OFFSETS UNCERTAIN: "
+                + ", ".join(f"{n} +- {s:.3f} mm" for n, s in self.unsure)
+                + ": calibrate with loopcal session"
+            )
         if rec is not None and rec.baseline.segments < BASELINE_SEGMENTS:
             return (
                 f"upkeep ({self.mode}): nothing changed (baseline {rec.baseline.segments}/"
@@ -75,8 +87,9 @@ class Words:
 
     def metrics(self) -> list:
         """Prometheus families: a proposal pending and its age; a change standing, whether its
-        offsets are told apart, its age and its candidates' shifts; the baseline's segments;
-        fits and their CPU time; proposals, writes, withdrawals and refusals."""
+        offsets are told apart, its age and its candidates' shifts; the offsets' std in the
+        config and whether it vouches for them; the baseline's segments; fits and their CPU
+        time; proposals, writes, withdrawals and refusals."""
         from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
         st, rec = self.state, self.record
@@ -100,6 +113,12 @@ class Words:
                 "1 while such a change stands and the robot's motion cannot tell which "
                 "offset moved",
                 value=1.0 if standing and not ch.names else 0.0,
+            ),
+            GaugeMetricFamily(
+                "loopcal_upkeep_offsets_uncertain",
+                "1 while the config in force knows an offset too poorly to vouch for the "
+                "threshold (3 std reach it): calibrate with loopcal session",
+                value=1.0 if self.unsure else 0.0,
             ),
             GaugeMetricFamily(
                 "loopcal_upkeep_baseline_segments",
@@ -134,6 +153,16 @@ class Words:
                 for name, shift in zip(c.names, c.shift_mm, strict=True):
                     cand.add_metric([str(k), name], float(shift))
         out.append(cand)
+        if self.mode != "off" and calibrated(self.reference):
+            std = GaugeMetricFamily(
+                "loopcal_upkeep_offset_std_mm",
+                "each offset's standard deviation in the config in force (or the proposal "
+                "pending), the errors of the offsets held through its fixes counted, mm",
+                labels=["offset"],
+            )
+            for name, var in zip(OFFSETS, np.diag(config_cov(self.reference)), strict=True):
+                std.add_metric([name], float(np.sqrt(var)))
+            out.append(std)
         for name, doc, value in (
             ("loopcal_upkeep_fits", "upkeep fits run (screens and refits)", st.fits),
             ("loopcal_upkeep_fit_cpu_seconds", "CPU time of the upkeep's fits, s", st.fit_cpu_s),

@@ -43,6 +43,8 @@ SCREEN_Z = 5.0
 DEFAULT_CONFIG_STD_MM = 0.05
 #: the fewest usable scans a screen is tried on
 MIN_SCANS = 100
+#: an offset whose std this many times over reaches the threshold is not vouched for
+UNSURE_SIGMAS = 3.0
 
 
 def config_std(controller: ControllerConfig) -> dict[str, float]:
@@ -55,6 +57,12 @@ def config_std(controller: ControllerConfig) -> dict[str, float]:
         ok = isinstance(s, (int, float)) and not isinstance(s, bool) and np.isfinite(s) and s > 0
         out[name] = float(s) if ok else DEFAULT_CONFIG_STD_MM
     return out
+
+
+def calibrated(config: ControllerConfig) -> bool:
+    """Whether loopcal calibrated ``config``: its ``[provenance]`` records the fit's std."""
+    std = (config.provenance or {}).get("std")
+    return isinstance(std, dict) and bool(std)
 
 
 def config_cov(controller: ControllerConfig) -> np.ndarray:
@@ -71,6 +79,21 @@ def config_cov(controller: ControllerConfig) -> np.ndarray:
             return (cov + cov.T) / 2
     std = config_std(controller)
     return np.diag([std[n] ** 2 for n in OFFSETS])
+
+
+def unsure_offsets(controller: ControllerConfig, threshold_mm: float) -> tuple:
+    """The offsets a config loopcal calibrated knows too poorly to vouch for
+    ``threshold_mm`` (:data:`UNSURE_SIGMAS` of their std, from :func:`config_cov`, reach
+    it), with their std: ``(("d02", 0.052), ...)``, mm; empty for one never calibrated
+    (nothing to vouch for: health says it needs calibrating when its loops do not close)."""
+    if not calibrated(controller):
+        return ()
+    std = np.sqrt(np.diag(config_cov(controller)))
+    return tuple(
+        (n, round(float(s), 4))
+        for n, s in zip(OFFSETS, std, strict=True)
+        if UNSURE_SIGMAS * s >= threshold_mm
+    )
 
 
 def fixed_cov(

@@ -130,7 +130,9 @@ def test_the_motion_that_tells_them_apart_fixes_the_right_sensor(tmp_path):
     assert abs(offset(config, "d04") - (truth[INDEX["d04"]] - 0.6)) <= 0.05
     for name in ("d01", "d02", "d03"):
         assert offset(config, name) == truth[INDEX[name]]
-    assert "nothing changed" in up.status()
+    # a config loopcal never calibrated: the three held, 0.05 mm each, carried into d04
+    assert len(up.emit.of("offsets_uncertain")) == 1, up.emit
+    assert "OFFSETS UNCERTAIN" in up.status() and "loopcal session" in up.status()
 
 
 def test_a_restart_takes_up_the_change_in_progress_and_says_it_at_once(tmp_path):
@@ -218,6 +220,57 @@ def test_a_change_against_a_calibrated_config_is_fixed_with_no_baseline_kept(tmp
     cov = np.array(prov["offset_cov"])
     assert np.isclose(np.sqrt(cov[0, 0]), d["std"]["d01"], rtol=1e-4)
     assert (cov[0, 1:] < 0).all()  # it took in what they are off by, the other way
+
+
+def calibrated_to(config: Path, truth: np.ndarray, std: float) -> Path:
+    """``config`` at ``truth``, as loopcal's calibration writes it: ``std`` mm each offset."""
+    write_back(
+        load_controller_config(config),
+        np.array(truth, dtype=float),
+        {"method": "ml", "written_utc": "2026-12-01T08:00:00Z",
+         "std": dict.fromkeys(("d01", "d02", "d03", "d04"), std)},
+    )  # fmt: skip
+    return config
+
+
+@pytest.mark.parametrize(("std", "unsure"), [(0.01, False), (0.03, True)])
+def test_a_fix_says_when_the_offsets_are_no_longer_known_to_the_threshold(
+    tmp_path, std, unsure
+):
+    """Over this task loop the four patterns correlate: a fix of d02 takes in what the
+    three held are off by. Calibrated to 0.01 mm each, d02 is then known to about 0.02;
+    to 0.03 mm, to about 0.05: three std beyond the threshold, which the daemon says
+    (event, status line, metrics) once, and again at start, not at every reload."""
+    truth, rows = scans(11, 240, TaskLoop(11), [OffsetDrift("step", 2, 60.0, 0.7)])
+    config = calibrated_to(write_initial_config(tmp_path / "c.toml", params=truth), truth, std)
+    state = state_path(tmp_path)
+    up = upkeep(config, state=state)
+    feed(up, rows, follow=config)
+    (fix,) = up.emit.of("recalibrated")
+    assert fix[3]["std"]["d02"] > 1.3 * max(std, fix[3]["scans_std"]["d02"]), fix[3]
+    said = up.emit.of("offsets_uncertain")
+    metrics = {m.name: m for m in up.metrics()}
+    stds = {s.labels["offset"]: s.value for s in metrics["loopcal_upkeep_offset_std_mm"].samples}
+    assert stds["d02"] == pytest.approx(fix[3]["std"]["d02"], rel=1e-3) and stds["d01"] == std
+    assert metrics["loopcal_upkeep_offsets_uncertain"].samples[0].value == float(unsure)
+    st = loopcal_main("upkeep", "status", "--controller-config", config, "--recordings",
+                      tmp_path, "--json")  # fmt: skip
+    doc = json.loads(st.stdout)["offsets"]
+    assert doc["std_mm"]["d02"] == pytest.approx(stds["d02"], abs=1e-4), doc
+    assert doc["uncertain"] == (["d02"] if unsure else []), doc
+    text = loopcal_main("upkeep", "status", "--controller-config", config).stdout
+    assert ("OFFSETS UNCERTAIN (d02)" in text) == unsure and "offsets known to d01 +-" in text
+    if not unsure:
+        assert said == [] and "nothing changed" in up.status(), up.emit
+        return
+    assert len(said) == 1 and said[0][3]["std"] == {"d02": pytest.approx(stds["d02"], abs=1e-4)}
+    assert said[0][0] == fix[0] and "loopcal session" in said[0][2]
+    assert "OFFSETS UNCERTAIN: d02 +- 0.0" in up.status()
+    up.reload(load_controller_config(config))  # SIGHUP: the same config, not said again
+    assert len(up.emit.of("offsets_uncertain")) == 1
+    up.close()
+    again = upkeep(config, state=state)  # a restart: said at once
+    assert again.emit.kinds() == ["offsets_uncertain"], again.emit
 
 
 @pytest.mark.parametrize(("second", "mm"), [(1, -0.8), (3, -0.8)], ids=["another", "same"])
