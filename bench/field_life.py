@@ -53,10 +53,9 @@ import numpy as np
 
 from bench.bench_upkeep import quartiles, run_jobs
 from loopcal.calibration.parameters import INDEX
-from loopcal.daemon.config.controller import load_controller_config, write_initial_config
+from loopcal.daemon.config.controller import load_controller_config
 from loopcal.daemon.live.upkeep import Upkeep
 from loopcal.daemon.live.upkeep_state import state_path
-from loopcal.daemon.worker.writeback import write_back
 from loopcal.simulator.drift import OffsetDrift
 from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.phases import Phases
@@ -64,7 +63,7 @@ from loopcal.simulator.scenarios import HandMoves
 from loopcal.simulator.task import TaskLoop
 from tests.support.disk import can_mount
 from tests.support.rows import T0, rows_from
-from tests.support.sessions import truth_for
+from tests.support.sessions import calibrated_config, truth_for
 
 RATE = 20
 TOLERANCE_MM = 0.1
@@ -80,19 +79,6 @@ SAYING = (
 )
 #: a task loop that cannot tell sensor 3 from sensor 4 (their patterns correlate 0.9998)
 AMBIGUOUS = dict(seed=1, waypoints=2)
-
-
-def calibrated_config(path: Path, params: np.ndarray) -> Path:
-    """A controller config at ``params`` that loopcal calibrated (0.01 mm on each offset)."""
-    write_initial_config(path, params=params)
-    write_back(
-        load_controller_config(path),
-        np.asarray(params, dtype=float),
-        {"method": "ml", "written_utc": "2026-12-01T08:00:00Z", "std": {n: 0.01 for n in OFFSETS}},
-    )
-    for prev in path.parent.glob(f"{path.name}.*.prev"):
-        prev.unlink()
-    return path
 
 
 def offsets_of(params) -> np.ndarray:

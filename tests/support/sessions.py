@@ -28,6 +28,24 @@ class Session:
     seed: int
 
 
+def calibrated_config(path: Path, params: np.ndarray, std: float = 0.01) -> Path:
+    """A controller config at ``path`` with ``params``, as loopcal's calibration leaves it:
+    ``[provenance]`` with ``std`` mm on each offset (the previous version not kept)."""
+    from loopcal.daemon.config.controller import load_controller_config, write_initial_config
+    from loopcal.daemon.worker.writeback import write_back
+
+    write_initial_config(path, params=params)
+    write_back(
+        load_controller_config(path),
+        np.asarray(params, dtype=float),
+        {"method": "ml", "written_utc": "2026-12-01T08:00:00Z",
+         "std": dict.fromkeys(("d01", "d02", "d03", "d04"), std)},
+    )  # fmt: skip
+    for prev in path.parent.glob(f"{path.name}.*.prev"):
+        prev.unlink()
+    return path
+
+
 def truth_for(seed: int) -> np.ndarray:
     """A shoulder joint whose LVDTs were refitted (offsets up to 3 mm off) and whose
     geometry differs from the blueprint by up to 0.5 mm."""

@@ -18,7 +18,6 @@ from loopcal.calibration.parameters import INDEX
 from loopcal.daemon.config.controller import load_controller_config, write_initial_config
 from loopcal.daemon.live.upkeep import Upkeep
 from loopcal.daemon.live.upkeep_state import state_path
-from loopcal.daemon.worker.writeback import write_back
 from loopcal.simulator.drift import OffsetDrift
 from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.phases import Phases
@@ -27,7 +26,7 @@ from loopcal.simulator.task import TaskLoop
 from tests.support.disk import can_mount, fill, small_tmpfs
 from tests.support.processes import loopcal_main
 from tests.support.rows import rows_from
-from tests.support.sessions import truth_for
+from tests.support.sessions import calibrated_config, truth_for
 
 RATE = 20
 #: a task loop of two waypoints that cannot tell sensor 3 from sensor 4 (their patterns
@@ -193,17 +192,8 @@ def test_a_change_against_a_calibrated_config_is_fixed_with_no_baseline_kept(tmp
     """The config's own calibration is the baseline: a sensor swapped before the daemon
     ever ran is a change since that calibration."""
     truth, rows = scans(3, 240, TaskLoop(3), [OffsetDrift("step", 1, 0.0, -0.5)])
-    config = write_initial_config(tmp_path / "controller.toml", params=truth)
-    calibrated = write_back(
-        load_controller_config(config),
-        np.array(truth, dtype=float),
-        {
-            "method": "ml",
-            "written_utc": "2026-12-01T08:00:00Z",
-            "std": {n: 0.01 for n in ("d01", "d02", "d03", "d04")},
-        },
-    )
-    up = upkeep(calibrated.path)
+    config = calibrated_config(tmp_path / "controller.toml", truth)
+    up = upkeep(config)
     feed(up, rows, follow=config)
     written = up.emit.of("recalibrated")
     assert len(written) == 1 and list(written[0][3]["values"]) == ["d01"], up.emit
@@ -222,27 +212,14 @@ def test_a_change_against_a_calibrated_config_is_fixed_with_no_baseline_kept(tmp
     assert (cov[0, 1:] < 0).all()  # it took in what they are off by, the other way
 
 
-def calibrated_to(config: Path, truth: np.ndarray, std: float) -> Path:
-    """``config`` at ``truth``, as loopcal's calibration writes it: ``std`` mm each offset."""
-    write_back(
-        load_controller_config(config),
-        np.array(truth, dtype=float),
-        {"method": "ml", "written_utc": "2026-12-01T08:00:00Z",
-         "std": dict.fromkeys(("d01", "d02", "d03", "d04"), std)},
-    )  # fmt: skip
-    return config
-
-
 @pytest.mark.parametrize(("std", "unsure"), [(0.01, False), (0.03, True)])
-def test_a_fix_says_when_the_offsets_are_no_longer_known_to_the_threshold(
-    tmp_path, std, unsure
-):
+def test_a_fix_says_when_the_offsets_are_no_longer_known_to_the_threshold(tmp_path, std, unsure):
     """Over this task loop the four patterns correlate: a fix of d02 takes in what the
     three held are off by. Calibrated to 0.01 mm each, d02 is then known to about 0.02;
     to 0.03 mm, to about 0.05: three std beyond the threshold, which the daemon says
     (event, status line, metrics) once, and again at start, not at every reload."""
     truth, rows = scans(11, 240, TaskLoop(11), [OffsetDrift("step", 2, 60.0, 0.7)])
-    config = calibrated_to(write_initial_config(tmp_path / "c.toml", params=truth), truth, std)
+    config = calibrated_config(tmp_path / "c.toml", truth, std)
     state = state_path(tmp_path)
     up = upkeep(config, state=state)
     feed(up, rows, follow=config)
