@@ -67,7 +67,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from loopcal.calibration.parameters import INDEX
-from loopcal.daemon.config.controller import load_controller_config, write_initial_config
+from loopcal.daemon.config.controller import load_controller_config
 from loopcal.daemon.defaults import UPKEEP_SEGMENT_S
 from loopcal.daemon.live import upkeep as upkeep_module
 from loopcal.daemon.live.changes import LIMIT
@@ -77,7 +77,7 @@ from loopcal.simulator.motion import Scenario
 from loopcal.simulator.offline import mechanism_scans
 from loopcal.simulator.task import TaskLoop
 from tests.support.rows import T0, rows_from
-from tests.support.sessions import truth_for
+from tests.support.sessions import calibrated_config, truth_for
 
 RATE = 20
 FEED = RATE  # scans per feed: a second
@@ -208,7 +208,7 @@ def run_case(seed: int, sensors: tuple[int, ...], amounts: tuple[float, ...], at
     case.truth = {f"d0{s}": float(truth[INDEX[f"d0{s}"]] + a)
                   for s, a in zip(sensors, amounts, strict=True)}  # fmt: skip
     with tempfile.TemporaryDirectory(prefix="bench-upkeep-") as tmp:
-        config = write_initial_config(Path(tmp) / "controller.toml", params=truth)
+        config = calibrated_config(Path(tmp) / "controller.toml", truth)
         up = upkeep_for(config, mode)
         feed(up, rows)
     for t, kind, msg, d in up.emit:
@@ -354,7 +354,7 @@ def _creep(args: tuple) -> dict:
                                   drifts=(drift,))  # fmt: skip
     rows = rows_from(t_us, codes)
     with tempfile.TemporaryDirectory(prefix="bench-upkeep-") as tmp:
-        config = write_initial_config(Path(tmp) / "controller.toml", params=truth)
+        config = calibrated_config(Path(tmp) / "controller.toml", truth)
         up = upkeep_for(config, "report")
         feed(up, rows)
     base = float(truth[INDEX[name]])
@@ -479,7 +479,7 @@ def _week(args: tuple) -> dict:
     wall0, gen = time.perf_counter(), 0.0
     scans, feed_cpu = 0, 0.0
     with tempfile.TemporaryDirectory(prefix="bench-upkeep-") as tmp, watched(w):
-        config = write_initial_config(Path(tmp) / "controller.toml", params=truth)
+        config = calibrated_config(Path(tmp) / "controller.toml", truth)
         up = upkeep_for(config, "report")
         start = int(day0 * 86400 * RATE)
         end = int(day1 * 86400 * RATE)
