@@ -139,6 +139,7 @@ class Case:
     proposals: list = field(default_factory=list)  # (device s, details)
     other: list = field(default_factory=list)  # other events after the change (kind, msg)
     said: list = field(default_factory=list)  # when an offset_change said it, device s
+    unsure: list = field(default_factory=list)  # offsets_uncertain after a fix: (s, std)
     truth: dict = field(default_factory=dict)  # name -> true new offset
 
     @property
@@ -218,6 +219,8 @@ def run_case(seed: int, sensors: tuple[int, ...], amounts: tuple[float, ...], at
             case.proposals.append((t, d))
         elif kind == "offset_change" and not case.proposals:
             case.said.append(t)  # the change said before it was proposed
+        elif kind == "offsets_uncertain":  # a word on the fix, not an act
+            case.unsure.append((t, d["std"]))
         else:
             case.other.append((t, kind, msg))
     return case
@@ -338,6 +341,10 @@ def part_pairs(n: int, mode: str, jobs: int) -> None:
           f"{sum(abs(e) <= TARGET_MM for e in errs)}/{len(errs)}")  # fmt: skip
     print(f"meeting the single swaps' target (both, {TARGET_S:g} s, 3 std and {TARGET_MM} mm "
           f"each): {sum(c.verdict()[0] for c in cases)}/{n}")  # fmt: skip
+    unsure = [c for c in cases if c.unsure]
+    print(f"offsets_uncertain said after the fix (two offsets refitted together from patterns "
+          f"that correlate carry each other's error): {len(unsure)}/{n}"
+          + "".join(f"; seed {c.seed}: {c.unsure[0][1]}" for c in unsure[:3]))  # fmt: skip
     print_failures(cases, wall)
 
 
