@@ -8,7 +8,8 @@ serialised; a symlink stays a symlink.
 - :func:`locked`: an advisory lock (``flock``) on the target's directory, held by a writer
   from the moment it reads the file to the moment the new version is in place, so that a
   second writer waits and then sees what the first one wrote (no lock file is left behind).
-- :func:`create_new`: a new file, durably, never over an existing one.
+- :func:`create_new`: a new file, durably, never over an existing one; :func:`make_dirs`,
+  new directories, durably.
 - :func:`replace`: a new version of a file (temporary file in the same directory, fsync,
   rename over it, fsync of the directory), with the old file's mode and, where allowed, its
   owner.
@@ -24,10 +25,12 @@ import contextlib
 import errno
 import fcntl
 import os
+import re
 import secrets
 import signal
 import time
 from collections.abc import Callable, Iterator
+from glob import escape as glob_escape
 from pathlib import Path
 
 #: how long a writer waits for another to finish before giving up, s
@@ -53,6 +56,25 @@ def fsync_dir(directory: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def make_dirs(directory: Path) -> None:
+    """``mkdir -p`` that a power cut does not undo: each directory created, its parent
+    synced. Nothing done when ``directory`` is one. FileExistsError when it is something
+    else, NotADirectoryError (naming it) when a parent is."""
+    missing = []
+    p = Path(directory)
+    while not p.exists() and p.parent != p:
+        missing.append(p)
+        p = p.parent
+    if not p.is_dir():
+        if not missing:
+            raise FileExistsError(errno.EEXIST, "exists and is not a directory", str(p))
+        raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(p))
+    for d in reversed(missing):
+        d.mkdir(exist_ok=True)
+        with contextlib.suppress(PermissionError):  # a parent we may write but not read
+            fsync_dir(d.parent)
 
 
 def target_of(path: Path) -> Path:
@@ -96,9 +118,35 @@ def check_can_replace(target: Path) -> None:
     _write_tmp(target.parent, target.name, b"", 0o600, None).unlink()
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def sweep_temporaries(directory: Path, name: str) -> list[Path]:
+    """Remove the temporary files of ``name`` in ``directory`` that a writer killed before
+    its rename left (``.{name}.{pid}.{token}.tmp`` whose process is gone); those of a
+    writer still running are left to it. Returns those removed."""
+    gone = []
+    for tmp in directory.glob(f".{glob_escape(name)}.*.*.tmp"):
+        m = re.fullmatch(r"(\d+)\.[0-9a-f]{8}\.tmp", tmp.name[len(name) + 2 :])
+        if m is not None and not _alive(int(m.group(1))):
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+                gone.append(tmp)
+    return gone
+
+
 def _write_tmp(directory: Path, name: str, data: bytes, mode: int,
                owner: tuple[int, int] | None) -> Path:  # fmt: skip
-    """Write ``data`` to a new temporary file in ``directory`` and fsync it."""
+    """Write ``data`` to a new temporary file in ``directory`` and fsync it (what a killed
+    writer of the same file left there removed first: :func:`sweep_temporaries`)."""
+    sweep_temporaries(directory, name)
     tmp = directory / f".{name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
     try:

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import durable
 from ..config.controller import ControllerConfig
 from ..events import Event, Level
 from ..recording import RecordingWriter, find_recordings, metadata_records, recording_name
@@ -66,7 +67,7 @@ def prepare_directory(directory: Path) -> None:
         return SettingsError(f"{directory}: {what}{why}", "directory")
 
     try:
-        directory.mkdir(parents=True, exist_ok=True)
+        durable.make_dirs(directory)  # a power cut after the first file leaves it there
     except FileExistsError:
         raise refuse("exists and is not a directory") from None
     except OSError as exc:
@@ -293,7 +294,7 @@ class FileWriter:
     def _open_file(self, now: float) -> RecordingWriter:
         s = self.shared.settings
         controller = self.shared.take_rotation()
-        s.directory.mkdir(parents=True, exist_ok=True)
+        durable.make_dirs(s.directory)
         t = time.time_ns()
         path = s.directory / recording_name(t)
         while path.exists():
@@ -425,6 +426,16 @@ class FileWriter:
             log.warning("disk still refuses writes after %.0f s (%s); %d scans waiting in memory",
                         now - self.disk_error_since, text, self.n_rows)  # fmt: skip
 
+    @staticmethod
+    def _sync_deleted(path: Path) -> None:
+        """The directory synced after ``path`` was deleted: deleted for good before it is
+        said (a power cut may bring back a file whose deletion was not synced)."""
+        try:
+            durable.fsync_dir(path.parent)
+        except OSError as exc:
+            log.warning("retention: deleted %s, but %s cannot be synced (%s): a power cut "
+                        "may bring it back", path, path.parent, exc)  # fmt: skip
+
     def _retention(self) -> None:
         self.next_retention = time.monotonic() + RETENTION_CHECK_S
         budget = self.shared.settings.disk_budget_bytes
@@ -450,6 +461,7 @@ class FileWriter:
             try:
                 with directory_lock(p.parent):  # not while a compaction replaces it
                     p.unlink()
+                    self._sync_deleted(p)
             except OSError as exc:
                 log.warning("retention: cannot delete %s: %s", p, exc)
                 continue
