@@ -58,6 +58,7 @@ from .schemas import (
     TOPIC_EVENTS,
     TOPIC_SCANS,
     TOPIC_STATE,
+    format_words,
     our_channel_id,
 )
 from .walk import OVERRAN, walk
@@ -217,10 +218,7 @@ class FileReader:
         if fmt is None:
             return
         if not len(rows) or bad:
-            raise RecordingError(
-                f"{self.path}: recording format {fmt}, this loopcal reads formats "
-                f"{' and '.join(READ_FORMATS)}"
-            )
+            raise RecordingError(f"{self.path}: {format_words(fmt)}")
         info.damage.append(Damage(0, 0, (
             f"its loopcal record says format {fmt!r}, but every scan block is in the layout "
             "of a format this loopcal reads: the record is damaged")))  # fmt: skip

@@ -15,6 +15,16 @@ COMPACT_FORMAT = "2"
 #: the formats this loopcal reads
 READ_FORMATS = (FORMAT_VERSION, COMPACT_FORMAT)
 
+
+def format_words(fmt: str) -> str:
+    """Why a file of recording format ``fmt`` (not one of :data:`READ_FORMATS`) is not
+    read: a newer loopcal's (a larger number) wants loopcal upgraded."""
+    known = ", ".join(READ_FORMATS)
+    if fmt.isdigit() and int(fmt) > max(int(f) for f in READ_FORMATS):
+        return (f"recording format {fmt}, written by a newer loopcal: this one reads formats "
+                f"{known}; upgrade loopcal to read it")  # fmt: skip
+    return f"recording format {fmt}, this loopcal reads formats {known}"
+
 TOPIC_SCANS = "/daq/scans"
 TOPIC_EVENTS = "/loopcal/events"
 TOPIC_LOG = "/loopcal/log"

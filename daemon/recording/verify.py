@@ -74,7 +74,7 @@ from .mcap_records import (
     read_header,
     record_at,
 )
-from .schemas import READ_FORMATS, our_topic
+from .schemas import READ_FORMATS, format_words, our_topic
 from .verify_chunks import ChunkAt, ChunkChecks, message_index_at
 from .verify_summary import SummaryChecks
 
@@ -517,8 +517,7 @@ class Verifier(ChunkChecks, SummaryChecks):
         at, (length, _, values) = own[0]
         fmt = values.get("format")
         if fmt is not None and fmt not in READ_FORMATS:
-            self.damage(at, length, "metadata", f"loopcal format {fmt!r}, not one of "
-                        f"{', '.join(READ_FORMATS)}")  # fmt: skip
+            self.damage(at, length, "metadata", format_words(str(fmt)))
         version = values.get("version")
         if version and self.header is not None and self.header.library != f"loopcal {version}":
             self.damage(8, 0, "header", f"library {self.header.library!r}, while the loopcal "

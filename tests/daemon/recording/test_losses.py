@@ -174,8 +174,15 @@ def test_a_damaged_format_byte_is_damage_but_another_format_is_refused(tmp_path,
     empty = tmp_path / "empty.mcap"  # nothing in this format's layout: another format
     write_rows(empty, rows[:0], metadata={"loopcal": {"format": "9"}, "device": {},
                                           "controller_config": {}})  # fmt: skip
-    with pytest.raises(rec.RecordingError, match="recording format 9"):
+    with pytest.raises(rec.RecordingError, match="recording format 9, written by a newer "
+                       "loopcal: this one reads formats 1, 2; upgrade loopcal"):  # fmt: skip
         rec.read_recordings(empty)
+    odd = tmp_path / "odd.mcap"  # not a number: not said to be newer
+    write_rows(odd, rows[:0], metadata={"loopcal": {"format": "x"}, "device": {},
+                                        "controller_config": {}})  # fmt: skip
+    with pytest.raises(rec.RecordingError, match="recording format x, this loopcal reads "
+                       "formats 1, 2$"):  # fmt: skip
+        rec.read_recordings(odd)
 
 
 def test_an_empty_or_tiny_file_is_read_without_mapping(tmp_path):
