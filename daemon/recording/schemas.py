@@ -20,10 +20,17 @@ def format_words(fmt: str) -> str:
     """Why a file of recording format ``fmt`` (not one of :data:`READ_FORMATS`) is not
     read: a newer loopcal's (a larger number) wants loopcal upgraded."""
     known = ", ".join(READ_FORMATS)
-    if fmt.isdigit() and int(fmt) > max(int(f) for f in READ_FORMATS):
-        return (f"recording format {fmt}, written by a newer loopcal: this one reads formats "
-                f"{known}; upgrade loopcal to read it")  # fmt: skip
-    return f"recording format {fmt}, this loopcal reads formats {known}"
+    # a hostile file's value: shown short and printable, compared as ASCII digits only
+    # (int() refuses other digits, and strings of thousands of them)
+    shown = fmt if len(fmt) <= 32 and fmt.isprintable() else f"{fmt[:32]!r}..."
+    number = fmt.lstrip("0") if fmt.isascii() and fmt.isdigit() else None
+    if number and (len(number) > 9 or int(number) > max(int(f) for f in READ_FORMATS)):
+        return (
+            f"recording format {shown}, written by a newer loopcal: this one reads formats "
+            f"{known}; upgrade loopcal to read it"
+        )
+    return f"recording format {shown}, this loopcal reads formats {known}"
+
 
 TOPIC_SCANS = "/daq/scans"
 TOPIC_EVENTS = "/loopcal/events"

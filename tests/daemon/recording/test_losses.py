@@ -174,15 +174,26 @@ def test_a_damaged_format_byte_is_damage_but_another_format_is_refused(tmp_path,
     empty = tmp_path / "empty.mcap"  # nothing in this format's layout: another format
     write_rows(empty, rows[:0], metadata={"loopcal": {"format": "9"}, "device": {},
                                           "controller_config": {}})  # fmt: skip
-    with pytest.raises(rec.RecordingError, match="recording format 9, written by a newer "
-                       "loopcal: this one reads formats 1, 2; upgrade loopcal"):  # fmt: skip
+    newer = "recording format 9, written by a newer loopcal: this one reads formats 1, 2; "
+    with pytest.raises(rec.RecordingError, match=newer + "upgrade loopcal"):
         rec.read_recordings(empty)
-    odd = tmp_path / "odd.mcap"  # not a number: not said to be newer
-    write_rows(odd, rows[:0], metadata={"loopcal": {"format": "x"}, "device": {},
-                                        "controller_config": {}})  # fmt: skip
-    with pytest.raises(rec.RecordingError, match="recording format x, this loopcal reads "
-                       "formats 1, 2$"):  # fmt: skip
-        rec.read_recordings(odd)
+    # not ASCII digits (not said to be newer), and a hostile length: words, never a crash
+    for i, (fmt, said) in enumerate(
+        [
+            ("x", "recording format x, this loopcal reads formats 1, 2$"),
+            ("\u00b2", "recording format \u00b2, this loopcal reads formats"),
+            ("9" * 5000, "recording format '9{32}'..., written by a newer loopcal"),
+            ("a\x00" * 40, r"recording format 'a\\x00a.*\.\.\., this loopcal reads"),
+        ]
+    ):
+        odd = tmp_path / f"odd{i}.mcap"
+        write_rows(
+            odd,
+            rows[:0],
+            metadata={"loopcal": {"format": fmt}, "device": {}, "controller_config": {}},
+        )
+        with pytest.raises(rec.RecordingError, match=said):
+            rec.read_recordings(odd)
 
 
 def test_an_empty_or_tiny_file_is_read_without_mapping(tmp_path):
