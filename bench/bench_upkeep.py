@@ -342,9 +342,11 @@ def part_pairs(n: int, mode: str, jobs: int) -> None:
     print(f"meeting the single swaps' target (both, {TARGET_S:g} s, 3 std and {TARGET_MM} mm "
           f"each): {sum(c.verdict()[0] for c in cases)}/{n}")  # fmt: skip
     unsure = [c for c in cases if c.unsure]
-    print(f"offsets_uncertain said after the fix (two offsets refitted together from patterns "
-          f"that correlate carry each other's error): {len(unsure)}/{n}"
-          + "".join(f"; seed {c.seed}: {c.unsure[0][1]}" for c in unsure[:3]))  # fmt: skip
+    examples = "".join(f"; seed {c.seed}: {c.unsure[0][1]}" for c in unsure[:3])
+    print(
+        f"offsets_uncertain said after the fix (two offsets refitted together from patterns "
+        f"that correlate carry each other's error): {len(unsure)}/{n}{examples}"
+    )
     print_failures(cases, wall)
 
 

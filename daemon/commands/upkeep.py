@@ -214,8 +214,10 @@ def _known(config: ControllerConfig, threshold_mm: float) -> tuple[dict | None, 
     unsure = dict(unsure_offsets(config, threshold_mm))
     line = "  offsets known to " + ", ".join(f"{n} +-{s:.3f} mm" for n, s in std.items())
     if unsure:
-        line += (f"; OFFSETS UNCERTAIN ({', '.join(unsure)}): {UNSURE_SIGMAS:g} std reach the "
-                 f"{threshold_mm:g} mm threshold: calibrate with loopcal session")  # fmt: skip
+        line += (
+            f"; OFFSETS UNCERTAIN ({', '.join(unsure)}): {UNSURE_SIGMAS:g} std reach the "
+            f"{threshold_mm:g} mm threshold: calibrate with loopcal session"
+        )
     return {"std_mm": std, "uncertain": sorted(unsure), "threshold_mm": threshold_mm}, [line]
 
 

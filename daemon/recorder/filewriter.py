@@ -433,8 +433,13 @@ class FileWriter:
         try:
             durable.fsync_dir(path.parent)
         except OSError as exc:
-            log.warning("retention: deleted %s, but %s cannot be synced (%s): a power cut "
-                        "may bring it back", path, path.parent, exc)  # fmt: skip
+            log.warning(
+                "retention: deleted %s, but %s cannot be synced (%s): a power cut "
+                "may bring it back",
+                path,
+                path.parent,
+                exc,
+            )
 
     def _retention(self) -> None:
         self.next_retention = time.monotonic() + RETENTION_CHECK_S

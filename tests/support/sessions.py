@@ -35,12 +35,9 @@ def calibrated_config(path: Path, params: np.ndarray, std: float = 0.01) -> Path
     from loopcal.daemon.worker.writeback import write_back
 
     write_initial_config(path, params=params)
-    write_back(
-        load_controller_config(path),
-        np.asarray(params, dtype=float),
-        {"method": "ml", "written_utc": "2026-12-01T08:00:00Z",
-         "std": dict.fromkeys(("d01", "d02", "d03", "d04"), std)},
-    )  # fmt: skip
+    stds = dict.fromkeys(("d01", "d02", "d03", "d04"), std)
+    provenance = {"method": "ml", "written_utc": "2026-12-01T08:00:00Z", "std": stds}
+    write_back(load_controller_config(path), np.asarray(params, dtype=float), provenance)
     for prev in path.parent.glob(f"{path.name}.*.prev"):
         prev.unlink()
     return path

@@ -15,8 +15,12 @@ from loopcal.daemon.config import durable
 
 def dead_pid() -> int:
     """The pid of a process that has exited."""
-    proc = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
-                          capture_output=True, text=True, check=True)  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     return int(proc.stdout)
 
 
@@ -28,8 +32,10 @@ def test_the_temporaries_a_killed_writer_left_go_with_the_next_write(tmp_path):
     target = tmp_path / "controller.toml"
     target.write_text("old\n")
     env = {**os.environ, "LOOPCAL_KILL_AT": "written"}
-    code = f"from pathlib import Path; from loopcal.daemon.config import durable; " \
-           f"durable.replace(Path({str(target)!r}), b'new\\n')"  # fmt: skip
+    code = (
+        f"from pathlib import Path; from loopcal.daemon.config import durable; "
+        f"durable.replace(Path({str(target)!r}), b'new\\n')"
+    )
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True)
     assert proc.returncode == -signal.SIGKILL, proc.stderr
     left = temporaries(tmp_path)

@@ -230,8 +230,9 @@ def test_a_fix_says_when_the_offsets_are_no_longer_known_to_the_threshold(tmp_pa
     stds = {s.labels["offset"]: s.value for s in metrics["loopcal_upkeep_offset_std_mm"].samples}
     assert stds["d02"] == pytest.approx(fix[3]["std"]["d02"], rel=1e-3) and stds["d01"] == std
     assert metrics["loopcal_upkeep_offsets_uncertain"].samples[0].value == float(unsure)
-    st = loopcal_main("upkeep", "status", "--controller-config", config, "--recordings",
-                      tmp_path, "--json")  # fmt: skip
+    st = loopcal_main(
+        "upkeep", "status", "--controller-config", config, "--recordings", tmp_path, "--json"
+    )
     doc = json.loads(st.stdout)["offsets"]
     assert doc["std_mm"]["d02"] == pytest.approx(stds["d02"], abs=1e-4), doc
     assert doc["uncertain"] == (["d02"] if unsure else []), doc

@@ -30,8 +30,8 @@ def test_a_fix_on_motion_that_cannot_tell_the_offsets_apart_takes_in_the_others(
 
 def test_a_fix_on_motion_that_tells_the_offsets_apart_is_known_to_its_scans():
     cov = np.diag([0.01, 0.02, 0.03, 0.04]) ** 2
-    out = fixed_cov(cov, np.diag([4.0, 3.0, 2.0, 1.0]) * 1e4, ["d02", "d04"],
-                    {"d02": 0.006, "d04": 0.007})  # fmt: skip
+    N = np.diag([4.0, 3.0, 2.0, 1.0]) * 1e4
+    out = fixed_cov(cov, N, ["d02", "d04"], {"d02": 0.006, "d04": 0.007})
     assert np.allclose(np.diag(out), [0.01**2, 0.006**2, 0.03**2, 0.007**2])
     assert np.allclose(out - np.diag(np.diag(out)), 0.0)
 
@@ -58,12 +58,18 @@ def test_the_config_covariance_is_the_recorded_one_or_the_std_squared():
     assert np.allclose(config_cov(config(zero)), np.eye(4) * 0.05**2)  # none of them a std
 
 
-@given(st.one_of(
-    st.none(), st.text(max_size=5), st.lists(st.floats(allow_nan=True), max_size=5),
-    st.lists(st.lists(st.one_of(st.floats(allow_nan=True, allow_infinity=True),
-                                st.text(max_size=2), st.booleans()),
-                      min_size=0, max_size=5), max_size=5),
-))  # fmt: skip
+ELEMENT = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=2), st.booleans()
+)
+RAW = st.one_of(
+    st.none(),
+    st.text(max_size=5),
+    st.lists(st.floats(allow_nan=True), max_size=5),
+    st.lists(st.lists(ELEMENT, max_size=5), max_size=5),
+)
+
+
+@given(RAW)
 @settings(max_examples=examples(200), deadline=None)
 def test_a_damaged_recorded_covariance_is_never_taken(raw):
     """What a person or a program wrote there, whatever it is: taken only as a whole
