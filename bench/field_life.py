@@ -51,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.bench_upkeep import quartiles, run_jobs
+from bench.bench_upkeep import SETTINGS, quartiles, run_jobs
 from loopcal.calibration.parameters import INDEX
 from loopcal.daemon.config.controller import load_controller_config
 from loopcal.daemon.live.upkeep import Upkeep
@@ -238,16 +238,8 @@ def _window(plan, seed, a, ev, drift, truth, config, state, base, shifts, at_wri
             fixed.append(clock)
 
     def start() -> Upkeep:  # the daemon (re)started: its record taken up
-        return Upkeep(
-            load_controller_config(config),
-            emit,
-            mode="write",
-            target_mm=0.05,
-            threshold_mm=0.1,
-            min_interval_s=600.0,
-            threaded=False,
-            state=state,
-        )
+        cfg = load_controller_config(config)
+        return Upkeep(cfg, emit, mode="write", threaded=False, state=state, **SETTINGS)
 
     def truth_at(t: float) -> np.ndarray:
         return base + shifts + float(drift.shift_mm(np.array(t))) * np.eye(4)[ev.sensor - 1]

@@ -204,13 +204,11 @@ def _record(recordings: Path | None, config: ControllerConfig) -> tuple[dict | N
 def _known(config: ControllerConfig, threshold_mm: float) -> tuple[dict | None, list[str]]:
     """How well the config knows its offsets (its fixes' carried errors counted), for
     ``--json`` and in lines: None and nothing for a config loopcal never calibrated."""
-    import numpy as np
-
-    from ..worker.offsets import OFFSETS, UNSURE_SIGMAS, calibrated, config_cov, unsure_offsets
+    from ..worker.offsets import UNSURE_SIGMAS, calibrated, offset_std, unsure_offsets
 
     if not calibrated(config):
         return None, []
-    std = dict(zip(OFFSETS, np.sqrt(np.diag(config_cov(config))).round(5).tolist(), strict=True))
+    std = {n: round(s, 5) for n, s in offset_std(config).items()}
     unsure = dict(unsure_offsets(config, threshold_mm))
     line = "  offsets known to " + ", ".join(f"{n} +-{s:.3f} mm" for n, s in std.items())
     if unsure:

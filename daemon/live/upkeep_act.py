@@ -329,8 +329,7 @@ class Acts:
         assert rec is not None
         out = {}
         if rec.creeping and len(rec.trend) >= 2 * TREND_MIN_SEGMENTS:
-            t, shift, std = (np.array(x, dtype=float) for x in zip(*rec.trend, strict=True))
-            slope = trend(t, shift, std)[0]
+            slope = trend(*rec.trend_arrays())[0]
             for n in rec.creeping:
                 i = OFFSETS.index(n)
                 if delta[i] * slope[i] > 0:
@@ -390,7 +389,7 @@ class Acts:
         :meth:`warn_creeps_on`)."""
         if len(rec.trend) < 2 * TREND_MIN_SEGMENTS:
             return
-        t, shift, std = (np.array(x, dtype=float) for x in zip(*rec.trend, strict=True))
+        t, shift, std = rec.trend_arrays()
         slope, now, T = trend(t, shift, std)
         going = (T >= LIMIT) & (np.abs(now) >= self.threshold_mm / 2) & (slope * now > 0)
         going &= [not (g and steplike(t, shift[:, i], std[:, i])) for i, g in enumerate(going)]

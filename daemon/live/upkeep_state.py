@@ -342,6 +342,11 @@ class UpkeepRecord:
             list(d["settle"]),
         )
 
+    def trend_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The trend's segment ends (k,) ns, shifts and std (k, 4) mm, as arrays."""
+        t, shift, std = (np.array(x, dtype=float) for x in zip(*self.trend, strict=True))
+        return t, shift, std
+
     def note_trend(self, end_ns: int, shift: np.ndarray, std: np.ndarray) -> None:
         """Keep a segment's single-sensor shifts (the latest :data:`TREND_SEGMENTS`)."""
         if not (np.isfinite(shift).all() and np.isfinite(std).all()):

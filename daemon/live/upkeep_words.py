@@ -14,11 +14,9 @@ from __future__ import annotations
 import time
 from typing import Any
 
-import numpy as np
-
 from ..config.controller import ControllerConfig
 from ..times import time_or
-from ..worker.offsets import OFFSETS, calibrated, config_cov
+from ..worker.offsets import calibrated, offset_std
 from .changes import BASELINE_SEGMENTS, OffsetTests
 from .upkeep_state import UpkeepRecord
 
@@ -160,8 +158,8 @@ class Words:
                 "pending), the errors of the offsets held through its fixes counted, mm",
                 labels=["offset"],
             )
-            for name, var in zip(OFFSETS, np.diag(config_cov(self.reference)), strict=True):
-                std.add_metric([name], float(np.sqrt(var)))
+            for name, value in offset_std(self.reference).items():
+                std.add_metric([name], value)
             out.append(std)
         for name, doc, value in (
             ("loopcal_upkeep_fits", "upkeep fits run (screens and refits)", st.fits),

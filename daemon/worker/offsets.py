@@ -81,6 +81,13 @@ def config_cov(controller: ControllerConfig) -> np.ndarray:
     return np.diag([std[n] ** 2 for n in OFFSETS])
 
 
+def offset_std(controller: ControllerConfig) -> dict[str, float]:
+    """Each offset's standard deviation from :func:`config_cov` (a fix's carried errors
+    counted), mm."""
+    var = np.diag(config_cov(controller))
+    return {n: float(np.sqrt(v)) for n, v in zip(OFFSETS, var, strict=True)}
+
+
 def unsure_offsets(controller: ControllerConfig, threshold_mm: float) -> tuple:
     """The offsets a config loopcal calibrated knows too poorly to vouch for
     ``threshold_mm`` (:data:`UNSURE_SIGMAS` of their std, from :func:`config_cov`, reach
@@ -88,12 +95,8 @@ def unsure_offsets(controller: ControllerConfig, threshold_mm: float) -> tuple:
     (nothing to vouch for: health says it needs calibrating when its loops do not close)."""
     if not calibrated(controller):
         return ()
-    std = np.sqrt(np.diag(config_cov(controller)))
-    return tuple(
-        (n, round(float(s), 4))
-        for n, s in zip(OFFSETS, std, strict=True)
-        if UNSURE_SIGMAS * s >= threshold_mm
-    )
+    std = offset_std(controller)
+    return tuple((n, round(s, 4)) for n, s in std.items() if UNSURE_SIGMAS * s >= threshold_mm)
 
 
 def fixed_cov(
